@@ -1,0 +1,409 @@
+"""The star catalog: load, filter, propagate, merge, thin, and count stars in a field.
+
+A :class:`Catalog` is a table of stars in ICRS: ``id`` (HIP number for the
+shipped catalog), ``ra``/``dec`` in degrees at ``epoch`` (decimal year),
+``mag`` (Hipparcos Hp for the shipped catalog), proper motions ``pm_ra``
+(``mu_alpha* = mu_alpha cos(dec)``) and ``pm_dec`` in mas/yr, and ``bv``.
+
+The shipped catalog (``catalogs/hip2.h5``, see ``catalogs/README.md``) holds
+every Hipparcos 2 star to Hp 8.0 at epoch J1991.25.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from startrack._version import __version__
+from startrack.errors import BadInputError
+
+__all__ = [
+    "CATALOG_FORMAT",
+    "Catalog",
+    "default_catalog_path",
+    "load_catalog",
+    "write_catalog",
+    "star_pairs",
+    "FieldStatistics",
+    "field_statistics",
+]
+
+CATALOG_FORMAT = "startrack.catalog/1"
+MAS_TO_RAD = math.pi / (180.0 * 3600.0 * 1000.0)
+_COLUMNS = ("id", "ra", "dec", "mag", "pm_ra", "pm_dec", "bv")
+
+
+def default_catalog_path() -> str:
+    """The shipped catalog: ``$STARTRACK_CATALOG``, the packaged copy, or ``catalogs/hip2.h5``."""
+    env = os.environ.get("STARTRACK_CATALOG")
+    if env:
+        return env
+    here = os.path.dirname(os.path.abspath(__file__))
+    for candidate in (os.path.join(here, "data", "hip2.h5"),
+                      os.path.join(os.path.dirname(here), "catalogs", "hip2.h5")):
+        if os.path.exists(candidate):
+            return candidate
+    raise BadInputError("catalog", None, "the shipped catalog hip2.h5 was not found; give --catalog")
+
+
+@dataclass
+class Catalog:
+    """A star table; arrays of equal length, sorted brightest first when built here."""
+
+    id: np.ndarray
+    ra: np.ndarray
+    dec: np.ndarray
+    mag: np.ndarray
+    pm_ra: np.ndarray
+    pm_dec: np.ndarray
+    bv: np.ndarray
+    epoch: float
+    params: dict = field(default_factory=dict)
+    source: str = ""
+
+    def __post_init__(self):
+        self.id = np.asarray(self.id, dtype=np.int64)
+        for name in ("ra", "dec", "mag", "pm_ra", "pm_dec", "bv"):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        n = len(self.id)
+        for name in _COLUMNS:
+            if len(getattr(self, name)) != n:
+                raise BadInputError(self.source or "catalog", name, f"has {len(getattr(self, name))} rows, expected {n}")
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+    def subset(self, index) -> "Catalog":
+        """The stars selected by a boolean mask or an index array, in that order."""
+        return replace(self, **{name: getattr(self, name)[index] for name in _COLUMNS},
+                       params=dict(self.params))
+
+    def sorted_by_magnitude(self) -> "Catalog":
+        return self.subset(np.lexsort((self.id, self.mag)))
+
+    def vectors(self) -> np.ndarray:
+        """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14)."""
+        from startrack.rotations import radec_to_vector
+
+        return radec_to_vector(np.radians(self.ra), np.radians(self.dec))
+
+    def checksum(self) -> str:
+        """SHA-256 of the star table (ids, positions, magnitudes and epoch).
+
+        Databases record it so that one built from another catalog is refused.
+        """
+        h = hashlib.sha256()
+        for name in ("id", "ra", "dec", "mag"):
+            h.update(np.ascontiguousarray(getattr(self, name)).tobytes())
+        h.update(repr(float(self.epoch)).encode())
+        return h.hexdigest()
+
+    # ------------------------------------------------------------ operations
+    def filter_magnitude(self, mag_min: float | None = None, mag_max: float | None = None) -> "Catalog":
+        """Stars with ``mag_min <= mag <= mag_max`` (paper 000 keeps 2.5 to 6.59)."""
+        if mag_min is not None and mag_max is not None and mag_min > mag_max:
+            raise BadInputError("--mag-min", None, f"{mag_min:g} is larger than --mag-max {mag_max:g}")
+        keep = np.ones(len(self), dtype=bool)
+        if mag_min is not None:
+            keep &= self.mag >= mag_min
+        if mag_max is not None:
+            keep &= self.mag <= mag_max
+        out = self.subset(keep)
+        out.params.update(mag_min=mag_min, mag_max=mag_max)
+        return out
+
+    def propagate(self, epoch: float) -> "Catalog":
+        """Positions and proper motions moved to ``epoch`` (decimal Julian year).
+
+        Each star moves along its great circle at constant angular rate
+        ``mu = hypot(mu_a*, mu_d)``: ``u(t) = u0 cos(mu dt) + d sin(mu dt)`` with
+        ``d`` the unit direction of motion, and the proper-motion components are
+        re-expressed in the new local east/north frame, so propagating there and
+        back returns the same catalog.  Parallax and radial velocity are neglected
+        (well under 1 mas per century for all but a handful of nearby stars).
+        """
+        from startrack.rotations import radec_to_vector, vector_to_radec
+
+        if not math.isfinite(epoch):
+            raise BadInputError("--epoch", None, f"must be a finite decimal year, got {epoch}")
+        dt = float(epoch) - float(self.epoch)
+
+        def east_north(ra, dec):
+            east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
+            north = np.stack([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)], axis=-1)
+            return east, north
+
+        ra = np.radians(self.ra)
+        dec = np.radians(self.dec)
+        u = radec_to_vector(ra, dec)
+        east, north = east_north(ra, dec)
+        pm_ra = np.nan_to_num(self.pm_ra) * MAS_TO_RAD
+        pm_dec = np.nan_to_num(self.pm_dec) * MAS_TO_RAD
+        velocity = pm_ra[:, None] * east + pm_dec[:, None] * north
+        mu = np.linalg.norm(velocity, axis=1)
+        direction = velocity / np.where(mu > 0, mu, 1.0)[:, None]
+        angle = (mu * dt)[:, None]
+        u_new = u * np.cos(angle) + direction * np.sin(angle)
+        v_new = (-u * np.sin(angle) + direction * np.cos(angle)) * mu[:, None]
+        u_new /= np.linalg.norm(u_new, axis=1, keepdims=True)
+        new_ra, new_dec = vector_to_radec(u_new)
+        east2, north2 = east_north(new_ra, new_dec)
+        out = replace(self, ra=np.degrees(new_ra), dec=np.degrees(new_dec), epoch=float(epoch),
+                      pm_ra=np.where(np.isfinite(self.pm_ra), np.sum(v_new * east2, axis=1) / MAS_TO_RAD, np.nan),
+                      pm_dec=np.where(np.isfinite(self.pm_dec), np.sum(v_new * north2, axis=1) / MAS_TO_RAD, np.nan),
+                      params=dict(self.params))
+        out.params["epoch"] = float(epoch)
+        return out
+
+    def merge_close(self, radius_arcsec: float) -> "Catalog":
+        """Merge stars closer than ``radius_arcsec`` into one entry (paper 004 Sec. 3).
+
+        Close stars image as one blob, so the catalog should hold one entry of their
+        combined brightness, ``m = -2.5 log10(sum 10^(-0.4 m_i))``, at their
+        flux-weighted mean direction.  Groups are the connected components of the
+        "closer than radius" relation; the merged entry keeps the id, proper motion
+        and colour of the group's brightest star.
+        """
+        if not radius_arcsec > 0:
+            raise BadInputError("--merge-arcsec", None, f"must be positive, got {radius_arcsec:g}")
+        first, second, _ = star_pairs(self, math.radians(radius_arcsec / 3600.0))
+        out = self.subset(np.arange(len(self)))
+        out.params["merge_arcsec"] = float(radius_arcsec)
+        if len(first) == 0:
+            out.params["merged_groups"] = 0
+            return out
+        parent = np.arange(len(self))
+
+        def root(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for a, b in zip(first.tolist(), second.tolist()):
+            ra_, rb = root(a), root(b)
+            if ra_ != rb:
+                parent[max(ra_, rb)] = min(ra_, rb)
+        roots = np.array([root(i) for i in range(len(self))])
+        vec = self.vectors()
+        flux = 10.0 ** (-0.4 * self.mag)
+        keep = np.ones(len(self), dtype=bool)
+        ra = out.ra.copy()
+        dec = out.dec.copy()
+        mag = out.mag.copy()
+        ids = out.id.copy()
+        groups = 0
+        from startrack.rotations import vector_to_radec
+
+        for r in np.unique(roots[np.bincount(roots, minlength=len(self))[roots] > 1]):
+            members = np.flatnonzero(roots == r)
+            brightest = members[np.argmin(self.mag[members])]
+            w = flux[members]
+            mean = (vec[members] * w[:, None]).sum(axis=0)
+            a, d = vector_to_radec(mean / np.linalg.norm(mean))
+            keep[members] = False
+            keep[brightest] = True
+            ra[brightest], dec[brightest] = math.degrees(a), math.degrees(d)
+            mag[brightest] = -2.5 * math.log10(w.sum())
+            ids[brightest] = self.id[brightest]
+            groups += 1
+        merged = replace(out, ra=ra, dec=dec, mag=mag, id=ids).subset(keep).sorted_by_magnitude()
+        merged.params["merged_groups"] = groups
+        return merged
+
+    def thin_uniform(self, per_cell: int, cell_deg: float = 4.0) -> "Catalog":
+        """Keep the ``per_cell`` brightest stars in each sky cell of about ``cell_deg``.
+
+        In the spirit of Samaan, Bruccoleri, Mortari & Junkins's nearly uniform
+        catalog: dense regions (the Milky Way) are thinned so that every field holds
+        about the same number of stars.  Cells form an equal-area "igloo" grid:
+        declination bands of height ``cell_deg`` divided in right ascension into
+        ``round(360 cos(dec) / cell_deg)`` cells.
+        """
+        if per_cell < 1:
+            raise BadInputError("--uniform", None, f"must be at least 1, got {per_cell}")
+        if not 0 < cell_deg <= 90:
+            raise BadInputError("--cell-deg", None, f"must be in (0, 90], got {cell_deg:g}")
+        n_bands = max(1, int(round(180.0 / cell_deg)))
+        band = np.minimum(((self.dec + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
+        centre = -90.0 + (band + 0.5) * 180.0 / n_bands
+        n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(centre)) / cell_deg)).astype(np.int64)
+        ra_cell = np.minimum((np.mod(self.ra, 360.0) / 360.0 * n_ra).astype(np.int64), n_ra - 1)
+        cell = band * 100000 + ra_cell
+        order = np.lexsort((self.id, self.mag, cell))
+        sorted_cell = cell[order]
+        start = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
+        rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
+        keep = np.zeros(len(self), dtype=bool)
+        keep[order[rank < per_cell]] = True
+        out = self.subset(keep).sorted_by_magnitude()
+        out.params.update(uniform_per_cell=int(per_cell), uniform_cell_deg=float(cell_deg))
+        return out
+
+
+def load_catalog(path: str | None = None) -> Catalog:
+    """Read a ``startrack.catalog/1`` HDF5 file (default: the shipped catalog).
+
+    Raises
+    ------
+    BadInputError
+        If the file is missing, not HDF5, not a catalog, or holds NaN positions.
+    """
+    from startrack.formats.hdf5 import read_hdf5
+
+    path = path or default_catalog_path()
+    f = read_hdf5(path, CATALOG_FORMAT)
+    cols = {}
+    for name in ("id", "ra", "dec", "mag"):
+        cols[name] = np.asarray(f[name])
+    n = len(cols["id"])
+    for name in ("pm_ra", "pm_dec", "bv"):
+        cols[name] = np.asarray(f[name]) if name in f else np.full(n, np.nan if name == "bv" else 0.0)
+    for name in ("ra", "dec", "mag"):
+        bad = ~np.isfinite(cols[name])
+        if bad.any():
+            raise BadInputError(path, name, f"has {int(bad.sum())} non-finite values (first at row {int(np.argmax(bad))})")
+    epoch = float(f.attrs.get("epoch", f.params.get("epoch", 2000.0)))
+    return Catalog(epoch=epoch, params=dict(f.params), source=path, **cols)
+
+
+def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> None:
+    """Write a catalog as HDF5 (``.h5``/``.hdf5``) or CSV (``.csv``, or ``-`` for stdout)."""
+    all_params = dict(catalog.params)
+    all_params.update(params or {})
+    all_params["epoch"] = catalog.epoch
+    all_params["source_catalog"] = os.path.basename(catalog.source) if catalog.source else None
+    ext = os.path.splitext(path)[1].lower()
+    if path == "-" or ext == ".csv":
+        _write_csv(catalog, path, all_params)
+        return
+    if ext not in (".h5", ".hdf5"):
+        raise BadInputError(path, None, "unknown output extension: use .h5, .hdf5 or .csv")
+    from startrack.formats.hdf5 import write_hdf5
+
+    datasets = {
+        "id": (catalog.id.astype(np.int64), {"note": "Hipparcos number (HIP) for Hipparcos catalogs"}),
+        "ra": (catalog.ra, {"unit": "deg", "note": "ICRS at epoch"}),
+        "dec": (catalog.dec, {"unit": "deg", "note": "ICRS at epoch"}),
+        "mag": (catalog.mag.astype(np.float32), {"unit": "mag"}),
+        "pm_ra": (catalog.pm_ra.astype(np.float32), {"unit": "mas/yr", "note": "pmRA*cos(dec)"}),
+        "pm_dec": (catalog.pm_dec.astype(np.float32), {"unit": "mas/yr"}),
+        "bv": (catalog.bv.astype(np.float32), {"unit": "mag"}),
+    }
+    write_hdf5(path, CATALOG_FORMAT, all_params, datasets, attrs={"epoch": float(catalog.epoch)})
+
+
+def _write_csv(catalog: Catalog, path: str, params: dict) -> None:
+    import sys
+
+    from startrack.formats.atomic import atomic_open
+
+    def emit(handle):
+        handle.write(f"# startrack {__version__} catalog; params: {json.dumps(params, sort_keys=True)}\n")
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(["id", "ra_deg", "dec_deg", "mag", "pm_ra_mas_yr", "pm_dec_mas_yr", "bv"])
+        for row in zip(catalog.id.tolist(), catalog.ra.tolist(), catalog.dec.tolist(), catalog.mag.tolist(),
+                       catalog.pm_ra.tolist(), catalog.pm_dec.tolist(), catalog.bv.tolist()):
+            writer.writerow([row[0], f"{row[1]:.9f}", f"{row[2]:.9f}", f"{row[3]:.4f}",
+                             f"{row[4]:.3f}", f"{row[5]:.3f}", "" if math.isnan(row[6]) else f"{row[6]:.3f}"])
+
+    if path == "-":
+        emit(sys.stdout)
+        sys.stdout.flush()
+    else:
+        with atomic_open(path, "w", encoding="utf-8") as handle:
+            emit(handle)
+
+
+def star_pairs(catalog_or_vectors, max_angle: float):
+    """All star pairs separated by at most ``max_angle`` radians.
+
+    Parameters
+    ----------
+    catalog_or_vectors : Catalog or ndarray, shape (n, 3)
+    max_angle : float
+        Radians.
+
+    Returns
+    -------
+    first, second : ndarray of int64
+        Star indices with ``first < second``.
+    cosine : ndarray of float64
+        Cosine of each pair's angle.
+    """
+    from startrack._kernels.sphere import pairs_within
+
+    vec = catalog_or_vectors.vectors() if isinstance(catalog_or_vectors, Catalog) else catalog_or_vectors
+    vec = np.ascontiguousarray(vec, dtype=np.float64)
+    dec = np.arcsin(np.clip(vec[:, 2], -1.0, 1.0))
+    order = np.argsort(dec, kind="stable").astype(np.int64)
+    first, second, cosine = pairs_within(vec, dec, order, float(max_angle), math.cos(max_angle))
+    lo = np.minimum(first, second)
+    hi = np.maximum(first, second)
+    return lo, hi, cosine
+
+
+@dataclass
+class FieldStatistics:
+    """Monte Carlo statistics of the stars a camera sees (paper 000 Fig. 2)."""
+
+    counts: np.ndarray
+    brightest_mag: np.ndarray
+    n_catalog: int
+    mag_bins: list
+    mag_bin_counts: list
+    params: dict
+
+    def summary(self) -> dict:
+        c = self.counts
+        pct = np.percentile(c, [1, 5, 25, 50, 75, 95, 99])
+        finite = self.brightest_mag[np.isfinite(self.brightest_mag)]
+        edges = np.arange(math.floor(finite.min()) if finite.size else -2, (math.ceil(finite.max()) if finite.size else 8) + 1, 0.5)
+        hist, edges = np.histogram(finite, bins=edges) if finite.size else (np.array([]), edges)
+        return {
+            "boresights": int(len(c)),
+            "catalog_stars": int(self.n_catalog),
+            "min": int(c.min()),
+            "max": int(c.max()),
+            "mean": float(c.mean()),
+            "std": float(c.std()),
+            "percentiles": {str(p): float(v) for p, v in zip([1, 5, 25, 50, 75, 95, 99], pct)},
+            "fraction_at_least": {str(k): float(np.mean(c >= k)) for k in (1, 2, 3, 4, 5, 6, 8, 10)},
+            "brightest_mag_histogram": {"edges": [float(e) for e in edges], "counts": [int(h) for h in hist]},
+            "brightest_mag_empty_fields": int(np.sum(~np.isfinite(self.brightest_mag))),
+            "mag_bins": {"edges": self.mag_bins, "counts": self.mag_bin_counts},
+            "params": self.params,
+        }
+
+
+def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random.Generator,
+                     mag_edges=None) -> FieldStatistics:
+    """Count the catalog stars inside ``camera``'s image over random attitudes.
+
+    Attitudes are uniform over SO(3) (random boresight and roll), the Monte Carlo
+    of paper 000 Fig. 2 and paper 003 Fig. 3.  Radial distortion is included.
+    """
+    from startrack._kernels.sphere import count_in_fov
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    if n_boresights < 1:
+        raise BadInputError("--samples", None, f"must be at least 1, got {n_boresights}")
+    vec = catalog.vectors()
+    dec = np.arcsin(np.clip(vec[:, 2], -1, 1))
+    order = np.argsort(dec, kind="stable")
+    dcms = np.ascontiguousarray(quaternion_to_dcm(random_quaternions(n_boresights, rng)))
+    counts, brightest = count_in_fov(
+        np.ascontiguousarray(vec[order]), np.ascontiguousarray(dec[order]),
+        np.ascontiguousarray(catalog.mag[order]), dcms, float(camera.focal_length_px),
+        float(camera.cx), float(camera.cy), float(camera.width), float(camera.height),
+        float(camera.k1), float(camera.k2), math.radians(camera.max_off_axis_deg) + 1e-9)
+    if mag_edges is None:
+        mag_edges = [-2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    hist, _ = np.histogram(catalog.mag, bins=mag_edges)
+    return FieldStatistics(counts, brightest, len(catalog), [float(e) for e in mag_edges],
+                           [int(h) for h in hist], {"samples": int(n_boresights)})

@@ -1,0 +1,149 @@
+"""Options shared by several commands, defined once, and the error handling."""
+from __future__ import annotations
+
+import functools
+import os
+import sys
+
+import click
+
+from startrack.errors import BadInputError, StartrackError
+
+
+def input_argument(f):
+    return click.argument("input", default="-", metavar="INPUT")(f)
+
+
+def output_option(help_text="Output file, or - for standard output.", default="-"):
+    return click.option("--output", "-o", default=default, show_default=True,
+                        type=click.Path(dir_okay=False, allow_dash=True), help=help_text)
+
+
+seed_option = click.option("--seed", type=int, default=None,
+                           help="Seed of the random generator; the same seed gives the same output.")
+quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary on stderr.")
+catalog_option = click.option("--catalog", type=click.Path(dir_okay=False), default=None,
+                              help="Star catalog (startrack.catalog/1 HDF5); default: the shipped Hipparcos catalog.")
+
+
+def camera_options(f):
+    """``--camera FILE`` or ``--fov-deg``/``--focal-length-mm``+``--pixel-pitch-um`` with ``--size``."""
+    opts = [
+        click.option("--camera", "camera_file", type=click.Path(dir_okay=False, allow_dash=False),
+                     default=None, help="Camera JSON (startrack.camera/1, or a frame document's camera)."),
+        click.option("--fov-deg", type=float, default=None,
+                     help="Horizontal field of view in degrees (with --size)."),
+        click.option("--focal-length-mm", type=float, default=None,
+                     help="Lens focal length in mm (with --pixel-pitch-um and --size)."),
+        click.option("--pixel-pitch-um", type=float, default=None, help="Pixel pitch in micrometres."),
+        click.option("--size", type=str, default=None, help="Image size WIDTHxHEIGHT in pixels, e.g. 1024x768."),
+        click.option("--k1", type=float, default=None, help="Radial distortion coefficient k1."),
+        click.option("--k2", type=float, default=None, help="Radial distortion coefficient k2."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def camera_from_options(camera_file=None, fov_deg=None, focal_length_mm=None, pixel_pitch_um=None,
+                        size=None, k1=None, k2=None, default_size=None, required=True):
+    """Build a :class:`~startrack.camera.Camera` from the camera options (or ``None``)."""
+    from startrack.camera import Camera, parse_size
+    from startrack.formats.frame import read_json_file
+
+    kw = {}
+    if k1 is not None:
+        kw["k1"] = k1
+    if k2 is not None:
+        kw["k2"] = k2
+    if camera_file is not None:
+        if fov_deg is not None or focal_length_mm is not None:
+            raise BadInputError("--camera", None, "give either --camera or --fov-deg/--focal-length-mm, not both")
+        doc = read_json_file(camera_file)
+        if "format" in doc and doc["format"] != "startrack.camera/1":
+            from startrack.formats.frame import check_format_tag
+
+            if str(doc["format"]).startswith("startrack.frame/"):
+                check_format_tag(doc, "startrack.frame/1", camera_file)
+                doc = doc.get("camera")
+                if doc is None:
+                    raise BadInputError(camera_file, "camera", "is missing")
+            else:
+                check_format_tag(doc, "startrack.camera/1", camera_file)
+        cam = Camera.from_dict(doc, camera_file)
+        if kw:
+            from dataclasses import replace
+
+            cam = replace(cam, **kw)
+        return cam
+    if size is None:
+        size = default_size
+    if fov_deg is None and focal_length_mm is None:
+        if required:
+            raise BadInputError("--fov-deg", None, "a camera is needed: give --fov-deg and --size, "
+                                "--focal-length-mm, --pixel-pitch-um and --size, or --camera FILE")
+        return None
+    if size is None:
+        raise BadInputError("--size", None, "is needed with --fov-deg or --focal-length-mm (e.g. --size 1024x1024)")
+    width, height = parse_size(size)
+    if fov_deg is not None and focal_length_mm is not None:
+        raise BadInputError("--fov-deg", None, "give either --fov-deg or --focal-length-mm, not both")
+    if fov_deg is not None:
+        if not fov_deg > 0:
+            raise BadInputError("--fov-deg", None, f"must be positive, got {fov_deg:g}")
+        return Camera.from_fov(fov_deg, width, height, pixel_pitch_um=pixel_pitch_um, **kw)
+    if pixel_pitch_um is None:
+        raise BadInputError("--pixel-pitch-um", None, "is needed with --focal-length-mm")
+    return Camera.from_focal_length_mm(focal_length_mm, pixel_pitch_um, width, height, **kw)
+
+
+def command_path() -> str:
+    ctx = click.get_current_context(silent=True)
+    return ctx.command_path if ctx is not None else "startrack"
+
+
+def handle_errors(func):
+    """Turn library errors into one line on stderr and the right exit status.
+
+    ``BadInputError`` -> exit 2; any other ``StartrackError`` -> exit 1; an
+    unexpected exception -> exit 1 with its type and message (the traceback is
+    shown only with ``STARTRACK_DEBUG=1``).
+    """
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except click.exceptions.Exit:
+            raise
+        except click.ClickException:
+            raise
+        except StartrackError as exc:
+            click.echo(f"{command_path()}: error: {exc}", err=True)
+            sys.exit(exc.exit_code)
+        except BrokenPipeError:
+            # The reader went away (e.g. `| head`): not our failure.
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            sys.exit(0)
+        except PermissionError as exc:
+            click.echo(f"{command_path()}: error: {exc.filename}: permission denied", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo(f"{command_path()}: interrupted", err=True)
+            sys.exit(130)
+        except Exception as exc:  # noqa: BLE001 - the last line of defence of a CLI
+            if os.environ.get("STARTRACK_DEBUG"):
+                raise
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            click.echo(f"{command_path()}: internal error: {type(exc).__name__}: {msg} "
+                       "(set STARTRACK_DEBUG=1 for a traceback)", err=True)
+            sys.exit(1)
+
+    return wrapper
+
+
+def info(quiet: bool, message: str) -> None:
+    """A summary line on stderr, unless ``--quiet``."""
+    if not quiet:
+        click.echo(message, err=True)

@@ -1,0 +1,135 @@
+"""HDF5 catalogs and databases: every file carries its format, version and parameters.
+
+Root attributes of every startrack HDF5 file (``docs/formats.md``):
+
+``format``
+    e.g. ``"startrack.kvector/1"``.
+``startrack_version``
+    the version that wrote it.
+``params``
+    JSON string of every parameter that built it.
+``catalog_sha256`` (databases)
+    checksum of the star table they were built from
+    (:meth:`startrack.catalog.Catalog.checksum`).
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from startrack._version import __version__
+from startrack.errors import BadInputError
+from startrack.formats.atomic import atomic_path
+from startrack.formats.frame import check_format_tag
+
+__all__ = ["write_hdf5", "read_hdf5", "HDF5File"]
+
+
+def write_hdf5(path: str, format_tag: str, params: dict, datasets: dict, attrs: dict | None = None,
+               compress: bool = True) -> None:
+    """Write datasets and root attributes atomically.
+
+    Parameters
+    ----------
+    path : str
+        Destination; written to a temporary file beside it and renamed.
+    format_tag : str
+        The ``format`` attribute, e.g. ``"startrack.catalog/1"``.
+    params : dict
+        Every parameter that built the file; stored as a JSON string.
+    datasets : dict of str -> ndarray
+        Root datasets.  A value may be ``(array, {attr: value})`` to attach
+        attributes such as ``unit``.
+    attrs : dict, optional
+        Extra root attributes (strings or numbers).
+    """
+    import h5py
+
+    with atomic_path(path, suffix=".h5") as tmp:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs["format"] = format_tag
+            h5.attrs["startrack_version"] = __version__
+            h5.attrs["params"] = json.dumps(params, sort_keys=True)
+            for key, value in (attrs or {}).items():
+                h5.attrs[key] = value
+            for name, value in datasets.items():
+                dattrs = {}
+                if isinstance(value, tuple):
+                    value, dattrs = value
+                value = np.asarray(value)
+                kwargs = {}
+                if compress and value.size > 1024:
+                    kwargs = dict(compression="gzip", compression_opts=4, shuffle=True)
+                ds = h5.create_dataset(name, data=value, **kwargs)
+                for key, attr in dattrs.items():
+                    ds.attrs[key] = attr
+
+
+class HDF5File:
+    """What :func:`read_hdf5` returns: root attributes, parsed params and datasets."""
+
+    def __init__(self, path: str, attrs: dict, datasets: dict):
+        self.path = path
+        self.attrs = attrs
+        self.datasets = datasets
+        try:
+            self.params = json.loads(attrs.get("params", "{}"))
+        except ValueError:
+            raise BadInputError(path, "params", "is not a JSON string") from None
+
+    def __getitem__(self, name):
+        try:
+            return self.datasets[name]
+        except KeyError:
+            raise BadInputError(self.path, name, "dataset is missing") from None
+
+    def __contains__(self, name):
+        return name in self.datasets
+
+
+def _attr(value):
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
+    """Open a startrack HDF5 file, check its format tag and read its datasets.
+
+    Parameters
+    ----------
+    path : str
+    expected_format : str
+        e.g. ``"startrack.catalog/1"``; another family or major version is refused.
+    names : iterable of str, optional
+        Datasets to read (default all root datasets).
+
+    Raises
+    ------
+    BadInputError
+        Missing file, not HDF5, wrong or missing ``format``, missing dataset.
+    """
+    import h5py
+
+    if not os.path.exists(path):
+        raise BadInputError(path, None, "no such file")
+    if os.path.isdir(path):
+        raise BadInputError(path, None, "is a directory")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError:
+        raise BadInputError(path, None, f"is not an HDF5 file (expected {expected_format})") from None
+    with h5:
+        attrs = {k: _attr(v) for k, v in h5.attrs.items()}
+        check_format_tag(attrs, expected_format, path)
+        wanted = list(names) if names is not None else [k for k in h5.keys() if isinstance(h5[k], h5py.Dataset)]
+        datasets = {}
+        for name in wanted:
+            if name not in h5:
+                raise BadInputError(path, name, "dataset is missing")
+            datasets[name] = h5[name][()]
+    return HDF5File(path, attrs, datasets)

@@ -1,0 +1,304 @@
+"""Attitude mathematics: quaternions, direction cosine matrices and angles.
+
+Conventions (``docs/formats.md``, "Attitude"):
+
+* The attitude matrix ``A`` maps ICRS unit vectors to camera-frame unit vectors,
+  ``v_cam = A @ v_icrs``; its rows are the camera axes expressed in ICRS, so its
+  third row is the boresight.
+* Quaternions are ``[q1, q2, q3, q4]``, scalar last, and
+  ``A(q) = (q4**2 - |q_v|**2) I + 2 q_v q_v^T - 2 q4 [q_v x]``
+  (paper 000 Eqs. 20-22; Shuster 1993).  Every quaternion returned here has
+  ``q4 >= 0``.
+* ``(ra, dec, roll)``: ``ra``/``dec`` are the boresight's.  ``roll`` is the
+  position angle of the image's "up" direction (``-y``, toward row 0) measured
+  from celestial north through east, the same angle astrometry.net reports as
+  "up, degrees east of north".  ``roll = 0`` puts north up and east to the left,
+  as on a sky chart.  Formally ``A = R3(-roll) @ A0(ra, dec)`` with ``A0``'s rows
+  ``(-east, -north, boresight)``.
+* ``(yaw, pitch, roll)`` Euler angles: the 1-2-3 sequence
+  ``A = R3(roll) @ R2(pitch) @ R1(yaw)`` (passive elementary rotations), so the
+  last rotation is about the boresight.  Paper 000 (Eqs. 27-29) reports
+  attitudes as roll/pitch/yaw without naming its sequence; this is ours.
+
+All functions take radians and broadcast over leading dimensions: a quaternion
+array has shape ``(..., 4)`` and a DCM array ``(..., 3, 3)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "normalize_quaternion",
+    "quaternion_to_dcm",
+    "dcm_to_quaternion",
+    "quaternion_multiply",
+    "quaternion_inverse",
+    "radec_roll_to_dcm",
+    "dcm_to_radec_roll",
+    "euler123_to_dcm",
+    "dcm_to_euler123",
+    "elementary_rotation",
+    "random_quaternions",
+    "radec_to_vector",
+    "vector_to_radec",
+    "rotation_vector",
+    "attitude_error",
+]
+
+
+def normalize_quaternion(q):
+    """Return ``q`` scaled to unit norm with a non-negative scalar part."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def _cross_matrix(v):
+    """Skew-symmetric ``[v x]`` with ``[v x] w = v x w``; shape ``(..., 3, 3)``."""
+    zero = np.zeros_like(v[..., 0])
+    return np.stack(
+        [
+            np.stack([zero, -v[..., 2], v[..., 1]], axis=-1),
+            np.stack([v[..., 2], zero, -v[..., 0]], axis=-1),
+            np.stack([-v[..., 1], v[..., 0], zero], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def quaternion_to_dcm(q):
+    """Attitude matrix of a scalar-last quaternion (paper 000 Eq. 22; Shuster).
+
+    Parameters
+    ----------
+    q : array_like, shape (..., 4)
+        Quaternion ``[q1, q2, q3, q4]``; normalised here.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        ``A(q) = (q4^2 - |q_v|^2) I + 2 q_v q_v^T - 2 q4 [q_v x]``.
+    """
+    q = normalize_quaternion(q)
+    qv = q[..., :3]
+    q4 = q[..., 3]
+    eye = np.eye(3)
+    scal = (q4**2 - np.sum(qv * qv, axis=-1))[..., None, None]
+    return (
+        scal * eye
+        + 2.0 * qv[..., :, None] * qv[..., None, :]
+        - 2.0 * q4[..., None, None] * _cross_matrix(qv)
+    )
+
+
+def dcm_to_quaternion(dcm):
+    """Quaternion of an attitude matrix, by Shepperd's method (stable everywhere).
+
+    Parameters
+    ----------
+    dcm : array_like, shape (..., 3, 3)
+        A proper rotation matrix.
+
+    Returns
+    -------
+    ndarray, shape (..., 4)
+        Scalar-last unit quaternion with ``q4 >= 0``.
+    """
+    a = np.asarray(dcm, dtype=np.float64)
+    tr = a[..., 0, 0] + a[..., 1, 1] + a[..., 2, 2]
+    # Four candidate forms; pick, per matrix, the one with the largest pivot.
+    cands = np.stack(
+        [
+            np.stack([1 + 2 * a[..., 0, 0] - tr, a[..., 0, 1] + a[..., 1, 0],
+                      a[..., 0, 2] + a[..., 2, 0], a[..., 1, 2] - a[..., 2, 1]], axis=-1),
+            np.stack([a[..., 1, 0] + a[..., 0, 1], 1 + 2 * a[..., 1, 1] - tr,
+                      a[..., 1, 2] + a[..., 2, 1], a[..., 2, 0] - a[..., 0, 2]], axis=-1),
+            np.stack([a[..., 2, 0] + a[..., 0, 2], a[..., 2, 1] + a[..., 1, 2],
+                      1 + 2 * a[..., 2, 2] - tr, a[..., 0, 1] - a[..., 1, 0]], axis=-1),
+            np.stack([a[..., 1, 2] - a[..., 2, 1], a[..., 2, 0] - a[..., 0, 2],
+                      a[..., 0, 1] - a[..., 1, 0], 1 + tr], axis=-1),
+        ],
+        axis=-2,
+    )
+    pivots = np.stack(
+        [a[..., 0, 0], a[..., 1, 1], a[..., 2, 2], tr], axis=-1
+    )
+    best = np.argmax(pivots, axis=-1)
+    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+    return normalize_quaternion(q)
+
+
+def quaternion_multiply(q, p):
+    """Compose attitudes: ``A(quaternion_multiply(q, p)) == A(q) @ A(p)``.
+
+    This is Shuster's product in "natural order" (Shuster 1993, Eq. 171):
+    ``q (x) p = [q4 p_v + p4 q_v - q_v x p_v,  q4 p4 - q_v . p_v]``.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    p = np.asarray(p, dtype=np.float64)
+    qv, q4 = q[..., :3], q[..., 3:4]
+    pv, p4 = p[..., :3], p[..., 3:4]
+    vec = q4 * pv + p4 * qv - np.cross(qv, pv)
+    scal = q4 * p4 - np.sum(qv * pv, axis=-1, keepdims=True)
+    return normalize_quaternion(np.concatenate([vec, scal], axis=-1))
+
+
+def quaternion_inverse(q):
+    """Inverse (conjugate) attitude: ``A(quaternion_inverse(q)) == A(q).T``."""
+    q = normalize_quaternion(q)
+    return normalize_quaternion(np.concatenate([-q[..., :3], q[..., 3:]], axis=-1))
+
+
+def elementary_rotation(axis: int, angle):
+    """Passive rotation ``R_axis(angle)`` about axis 1, 2 or 3; shape ``(..., 3, 3)``.
+
+    ``R3(t) = [[c, s, 0], [-s, c, 0], [0, 0, 1]]`` and likewise for 1 and 2.
+    """
+    angle = np.asarray(angle, dtype=np.float64)
+    c, s = np.cos(angle), np.sin(angle)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    if axis == 1:
+        rows = [[one, zero, zero], [zero, c, s], [zero, -s, c]]
+    elif axis == 2:
+        rows = [[c, zero, -s], [zero, one, zero], [s, zero, c]]
+    elif axis == 3:
+        rows = [[c, s, zero], [-s, c, zero], [zero, zero, one]]
+    else:
+        raise ValueError("axis must be 1, 2 or 3")
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def radec_to_vector(ra, dec):
+    """ICRS unit vector ``(cos a cos d, sin a cos d, sin d)`` (paper 000 Eq. 14).
+
+    Parameters
+    ----------
+    ra, dec : array_like
+        Right ascension and declination in radians.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+    """
+    ra = np.asarray(ra, dtype=np.float64)
+    dec = np.asarray(dec, dtype=np.float64)
+    cd = np.cos(dec)
+    return np.stack([np.cos(ra) * cd, np.sin(ra) * cd, np.sin(dec)], axis=-1)
+
+
+def vector_to_radec(v):
+    """Right ascension in ``[0, 2 pi)`` and declination of vectors ``(..., 3)``."""
+    v = np.asarray(v, dtype=np.float64)
+    ra = np.mod(np.arctan2(v[..., 1], v[..., 0]), 2 * np.pi)
+    dec = np.arctan2(v[..., 2], np.hypot(v[..., 0], v[..., 1]))
+    return ra, dec
+
+
+def _east_north(ra, dec):
+    ra = np.asarray(ra, dtype=np.float64)
+    dec = np.asarray(dec, dtype=np.float64)
+    east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
+    north = np.stack(
+        [-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)], axis=-1
+    )
+    return east, north
+
+
+def radec_roll_to_dcm(ra, dec, roll):
+    """Attitude matrix from boresight ``(ra, dec)`` and ``roll`` (radians).
+
+    Rows of the result: camera ``+x`` (image right), ``+y`` (image down) and
+    ``+z`` (boresight) in ICRS.  With ``roll = 0`` image up is north and image
+    left is east; ``roll`` turns image up from north toward east.
+    """
+    east, north = _east_north(ra, dec)
+    bore = radec_to_vector(ra, dec)
+    roll = np.asarray(roll, dtype=np.float64)[..., None]
+    c, s = np.cos(roll), np.sin(roll)
+    # image up (-y) = cos(roll) N + sin(roll) E;  +x = y x z.
+    y_axis = -(c * north + s * east)
+    x_axis = np.cross(y_axis, bore)
+    return np.stack([x_axis, y_axis, bore], axis=-2)
+
+
+def dcm_to_radec_roll(dcm):
+    """Inverse of :func:`radec_roll_to_dcm`: ``(ra, dec, roll)`` in radians.
+
+    ``ra`` is in ``[0, 2 pi)``, ``roll`` in ``(-pi, pi]``.  At a pole ``ra`` is
+    undefined; the returned triple then still reproduces ``dcm`` exactly.
+    """
+    a = np.asarray(dcm, dtype=np.float64)
+    bore = a[..., 2, :]
+    ra, dec = vector_to_radec(bore)
+    east, north = _east_north(ra, dec)
+    up = -a[..., 1, :]
+    roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
+    return ra, dec, roll
+
+
+def euler123_to_dcm(yaw, pitch, roll):
+    """``A = R3(roll) R2(pitch) R1(yaw)``: the roll/pitch/yaw of our reports."""
+    return (
+        elementary_rotation(3, roll)
+        @ elementary_rotation(2, pitch)
+        @ elementary_rotation(1, yaw)
+    )
+
+
+def dcm_to_euler123(dcm):
+    """Inverse of :func:`euler123_to_dcm`: ``(yaw, pitch, roll)`` in radians.
+
+    ``pitch`` is in ``[-pi/2, pi/2]``.  At ``|pitch| = pi/2`` (gimbal lock) only
+    ``roll -/+ yaw`` is defined; the returned triple still reproduces ``dcm``.
+    """
+    a = np.asarray(dcm, dtype=np.float64)
+    # A = R3(r) R2(p) R1(y) has third row (sin p, -cos p sin y, cos p cos y).
+    pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
+    yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
+    # Roll from what is left once pitch and yaw are undone: stable near gimbal
+    # lock (|pitch| -> 90 deg), where any error in yaw is absorbed by roll.
+    rest = a @ np.swapaxes(elementary_rotation(2, pitch) @ elementary_rotation(1, yaw), -1, -2)
+    roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
+    return yaw, pitch, roll
+
+
+def random_quaternions(n: int, rng: np.random.Generator):
+    """``n`` attitudes uniformly distributed over SO(3), shape ``(n, 4)``.
+
+    Normalised 4-D Gaussian vectors are uniform on the unit 3-sphere, hence
+    uniform (Haar) attitudes.
+    """
+    q = rng.standard_normal((int(n), 4))
+    return normalize_quaternion(q)
+
+
+def rotation_vector(dcm):
+    """Rotation vector ``phi`` (radians) with ``A ~ I - [phi x]`` for small angles."""
+    q = dcm_to_quaternion(dcm)
+    qv = q[..., :3]
+    sin_half = np.linalg.norm(qv, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(sin_half, q[..., 3:4])
+    scale = np.where(sin_half > 1e-300, angle / np.maximum(sin_half, 1e-300), 2.0)
+    return qv * scale
+
+
+def attitude_error(dcm_estimate, dcm_truth):
+    """Angle between two attitudes, split into cross-boresight and roll parts.
+
+    Returns
+    -------
+    total, cross_boresight, roll : ndarray
+        In radians.  ``total`` is the angle of ``A_est A_true^T``;
+        ``cross_boresight`` the angle between the two boresights; ``roll`` the
+        signed component of the error rotation vector about the true boresight.
+        The x and y components (camera frame) are pitch and yaw errors.
+    """
+    a_est = np.asarray(dcm_estimate, dtype=np.float64)
+    a_true = np.asarray(dcm_truth, dtype=np.float64)
+    delta = a_est @ np.swapaxes(a_true, -1, -2)
+    phi = rotation_vector(delta)
+    total = np.linalg.norm(phi, axis=-1)
+    cos_b = np.clip(np.sum(a_est[..., 2, :] * a_true[..., 2, :], axis=-1), -1, 1)
+    sin_b = np.linalg.norm(np.cross(a_est[..., 2, :], a_true[..., 2, :]), axis=-1)
+    cross = np.arctan2(sin_b, cos_b)
+    return total, cross, phi[..., 2]

@@ -1,0 +1,33 @@
+import os
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DATA = os.path.join(ROOT, "tests", "data")
+
+
+def run_cli(*args, input=None, check=False, env=None, timeout=300):
+    """Run the real ``startrack`` entry point in a subprocess."""
+    full_env = dict(os.environ)
+    full_env.pop("STARTRACK_DEBUG", None)
+    if env:
+        full_env.update(env)
+    proc = subprocess.run([sys.executable, "-m", "startrack", *map(str, args)], input=input,
+                          capture_output=True, text=True, env=full_env, timeout=timeout)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"startrack {' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture
+def cli():
+    return run_cli
+
+
+@pytest.fixture(scope="session")
+def catalog():
+    from startrack.catalog import load_catalog
+
+    return load_catalog()

@@ -1,0 +1,79 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from startrack.camera import Camera, parse_size
+from startrack.errors import BadInputError
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    fov=st.floats(2.0, 40.0),
+    width=st.integers(16, 4096),
+    height=st.integers(16, 4096),
+    k1=st.floats(-0.3, 0.3),
+    k2=st.floats(-0.1, 0.1),
+    fx=st.floats(0.0, 1.0),
+    fy=st.floats(0.0, 1.0),
+)
+def test_pixel_vector_pixel_round_trip(fov, width, height, k1, k2, fx, fy):
+    assume(0.25 <= height / width <= 4)
+    cam = Camera.from_fov(fov, width, height, k1=k1, k2=k2)
+    # The lens model must be invertible over the image: r_d(r) increasing.
+    r2 = ((width / 2) ** 2 + (height / 2) ** 2) / cam.focal_length_px**2
+    assume(1 + 3 * k1 * r2 + 5 * k2 * r2 * r2 > 0.2)
+    x = -0.5 + fx * width
+    y = -0.5 + fy * height
+    v = cam.pixels_to_vectors(x, y)
+    assert np.linalg.norm(v) == pytest.approx(1.0, abs=1e-12)
+    x2, y2 = cam.vectors_to_pixels(v)
+    assert abs(x2 - x) < 1e-9 and abs(y2 - y) < 1e-9
+
+
+def test_eq13_pinhole():
+    # Paper 000 Eq. 13 with f in pixels: W = (x - cx, y - cy, f) / norm.
+    cam = Camera(752, 480, 41.1e-3 / 6e-6, 375.5, 239.5)
+    v = cam.pixels_to_vectors(np.array([295.0]), np.array([355.0]))[0]
+    w = np.array([295 - 375.5, 355 - 239.5, 41.1e-3 / 6e-6])
+    np.testing.assert_allclose(v, w / np.linalg.norm(w), atol=1e-15)
+
+
+def test_fov_from_model():
+    cam = Camera.from_fov(20.0, 1024, 1024)
+    fx, fy = cam.fov_deg
+    assert fx == pytest.approx(20.0, abs=1e-9) and fy == pytest.approx(20.0, abs=1e-9)
+    assert cam.diagonal_fov_deg == pytest.approx(2 * math.degrees(math.atan(math.sqrt(2) * math.tan(math.radians(10)))))
+    cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480)
+    assert cam.focal_length_px == pytest.approx(6850.0)
+    assert cam.fov_deg[0] == pytest.approx(2 * math.degrees(math.atan(376 / 6850)), abs=1e-9)
+
+
+def test_distortion_moves_corners_outward():
+    plain = Camera.from_fov(20, 1000, 1000)
+    barrel = Camera.from_fov(20, 1000, 1000, k1=-0.1)
+    assert barrel.fov_deg[0] > plain.fov_deg[0]
+
+
+def test_dict_round_trip_and_validation():
+    cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480, k1=0.01)
+    doc = cam.to_dict(standalone=True)
+    assert doc["format"] == "startrack.camera/1"
+    assert Camera.from_dict(doc) == cam
+    bad = dict(doc, focal_length_px=float("nan"))
+    with pytest.raises(BadInputError, match="camera.focal_length_px"):
+        Camera.from_dict(bad, "cam.json")
+    with pytest.raises(BadInputError, match="camera.cx: is missing"):
+        Camera.from_dict({k: v for k, v in doc.items() if k != "cx"}, "cam.json")
+
+
+@pytest.mark.parametrize("text", ["0x10", "10", "axb", "10x-4", ""])
+def test_parse_size_refuses(text):
+    with pytest.raises(BadInputError):
+        parse_size(text)
+
+
+def test_parse_size():
+    assert parse_size("1024x768") == (1024, 768)
