@@ -118,3 +118,15 @@ def test_attitude_error_split():
     total, cross, roll = rot.attitude_error(tilt, a)
     assert cross == pytest.approx(2e-5, rel=1e-6)
     assert abs(roll) < 1e-12
+
+
+def test_readme_roll_example(catalog):
+    # README: boresight (83.8, -1.2), roll 30 deg -> Betelgeuse straight above the centre.
+    from startrack.camera import Camera
+
+    a = rot.radec_roll_to_dcm(np.radians(83.8), np.radians(-1.2), np.radians(30.0))
+    cam = Camera.from_fov(30, 1024, 1024)
+    betel = catalog.subset(catalog.id == 27989).vectors()[0]
+    x, y = cam.vectors_to_pixels(a @ betel)
+    assert y < cam.cy - 300
+    assert abs(x - cam.cx) < 0.1 * (cam.cy - y)
