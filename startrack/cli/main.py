@@ -12,6 +12,7 @@ from startrack._version import __version__
 COMMANDS = {
     "catalog-filter": "catalog_filter",
     "catalog-stats": "catalog_stats",
+    "render": "render",
 }
 
 

@@ -1,0 +1,195 @@
+"""startrack render: synthetic star images, star lists, Monte Carlo sets and sequences."""
+import click
+
+from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
+                                   quiet_option, seed_option)
+
+
+def _floats(text, name, n):
+    from startrack.errors import BadInputError
+
+    try:
+        values = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise BadInputError(name, None, f"expected {n} comma-separated numbers, got {text!r}") from None
+    if len(values) != n:
+        raise BadInputError(name, None, f"expected {n} comma-separated numbers, got {len(values)}")
+    return values
+
+
+@click.command("render", short_help="Render star images or star lists with known truth.")
+@catalog_option
+@camera_options
+@click.option("--quaternion", type=str, default=None, help="Attitude q1,q2,q3,q4 (scalar last, ICRS to camera).")
+@click.option("--ra", type=float, default=None, help="Boresight right ascension, degrees.")
+@click.option("--dec", type=float, default=None, help="Boresight declination, degrees.")
+@click.option("--roll", type=float, default=0.0, show_default=True, help="Roll (image up, degrees east of north).")
+@click.option("--output", "-o", type=click.Path(dir_okay=False), default=None,
+              help="Image file (.png, .tif/.tiff, .fits); numbered (sky-0000.png) for several frames.")
+@click.option("--documents", type=click.Path(dir_okay=False, allow_dash=True), default="-", show_default=True,
+              help="Where the frame documents (JSON Lines) go.")
+@click.option("--mag-limit", type=float, default=None, help="Faintest magnitude rendered (default: the catalog's).")
+@click.option("--zero-point", "zero_point", type=float, default=2.0e6, show_default=True,
+              help="Photo-electrons per second from a magnitude-0 star (aperture, optics, QE folded in).")
+@click.option("--exposure-ms", type=float, default=100.0, show_default=True, help="Exposure time.")
+@click.option("--psf-sigma-px", type=float, default=1.0, show_default=True, help="Gaussian PSF sigma (defocus).")
+@click.option("--full-well-e", type=float, default=20000.0, show_default=True, help="Full-well capacity.")
+@click.option("--bit-depth", type=click.Choice(["8", "12", "16"]), default="16", show_default=True)
+@click.option("--gain-e-per-dn", type=float, default=None, help="Gain (default: full well / ADC range).")
+@click.option("--bias-dn", type=float, default=None, help="Bias level (default: 2% of the ADC range).")
+@click.option("--read-noise-e", type=float, default=5.0, show_default=True)
+@click.option("--dark-current-e-per-s", type=float, default=20.0, show_default=True)
+@click.option("--background-e-per-s", type=float, default=50.0, show_default=True, help="Sky background per pixel.")
+@click.option("--prnu", type=float, default=0.0, show_default=True, help="Pixel response non-uniformity (1 sigma, fraction).")
+@click.option("--hot-pixels", type=int, default=0, show_default=True, help="Number of hot pixels.")
+@click.option("--no-noise", is_flag=True, help="Expected values only: no shot, dark or read noise.")
+@click.option("--mag-noise", type=float, default=0.0, show_default=True, help="Magnitude noise, 1 sigma (paper 003: 0.2).")
+@click.option("--false-stars", type=int, default=0, show_default=True, help="False stars of random position and brightness.")
+@click.option("--focal-error-pct", type=float, default=0.0, show_default=True,
+              help="Render with f*(1+e/100) while the camera section keeps the nominal f.")
+@click.option("--rate-deg-s", type=str, default="0,0,0", show_default=True,
+              help="Angular rate wx,wy,wz in the camera frame (smear, and the turn between frames).")
+@click.option("--frames", type=int, default=1, show_default=True, help="Frames in a sequence.")
+@click.option("--frame-interval-s", type=float, default=0.1, show_default=True, help="Time between frames.")
+@click.option("--time", "start_time", type=str, default=None,
+              help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch.")
+@click.option("--stars-only", is_flag=True, help="No image: stars straight from the truth, with noise.")
+@click.option("--sigma-px", type=float, default=None, help="Star-list centroid noise, pixels (1 sigma per axis).")
+@click.option("--sigma-arcsec", type=float, default=None, help="Star-list centroid noise, arcsec (1 sigma per axis).")
+@click.option("--max-stars", type=int, default=None, help="Star list: keep the N brightest.")
+@click.option("--drop-fraction", type=float, default=0.0, show_default=True, help="Star list: fraction of stars dropped.")
+@click.option("--count", type=int, default=1, show_default=True, help="Number of random-attitude frames (or sequences).")
+@seed_option
+@click.option("--frame-seed", type=int, default=None, help="Re-render exactly one frame from its recorded frame_seed.")
+@quiet_option
+@handle_errors
+def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
+            output, documents, mag_limit, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
+            bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, no_noise, mag_noise,
+            false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, stars_only, sigma_px,
+            sigma_arcsec, max_stars, drop_fraction, count, seed, frame_seed, quiet):
+    """Render star images (or star lists) of a catalog seen by a camera.
+
+    The image goes to --output (format by extension: 8/16-bit PNG, 16-bit TIFF,
+    FITS) and one frame document per frame (image, camera, truth, render
+    parameters) to stdout.  Photometry follows paper 003 Eqs. 7-9, the PSF is a
+    Gaussian integrated over each pixel (Eqs. 4-5), and the sensor adds shot,
+    dark, read and background noise.  Every random choice follows --seed; each
+    document records its frame_seed, which --frame-seed re-renders alone.
+
+    \b
+    Example (Orion, 20 deg, 1024 x 1024, 16-bit PNG):
+      startrack render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 -o orion.png > orion.json
+    \b
+    Example (a Monte Carlo set of 1000 star lists, paper 003's conditions):
+      startrack render --stars-only --count 1000 --fov-deg 20 --size 1024x1024 --mag-limit 5 \\
+          --sigma-arcsec 1.67 --mag-noise 0.2 --max-stars 10 --seed 1 > set.jsonl
+    \b
+    Example (a tracking sequence: 200 frames at 0.5 deg/s with smear):
+      startrack render --fov-deg 12 --size 1024x768 --frames 200 --rate-deg-s 0.3,0.4,0 \\
+          --frame-interval-s 0.1 --seed 2 -o seq/frame.png > seq.jsonl
+    """
+    import math
+    import os
+
+    import numpy as np
+
+    from startrack.catalog import load_catalog
+    from startrack.errors import BadInputError
+    from startrack.formats.frame import FrameWriter
+    from startrack.imageio import check_image_output, write_image
+    from startrack.progress import ProgressBar
+    from startrack.render import RenderRun, Scene, Sensor
+    from startrack.rotations import normalize_quaternion, quaternion_to_dcm, radec_roll_to_dcm
+    from startrack.timeutil import julian_year, parse_time
+
+    cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
+                              default_size="1024x1024")
+    if count < 1:
+        raise BadInputError("--count", None, f"must be at least 1, got {count}")
+    if frames < 1:
+        raise BadInputError("--frames", None, f"must be at least 1, got {frames}")
+    if not frame_interval_s > 0:
+        raise BadInputError("--frame-interval-s", None, f"must be positive, got {frame_interval_s}")
+    if not 0 <= drop_fraction < 1:
+        raise BadInputError("--drop-fraction", None, f"must be in [0, 1), got {drop_fraction}")
+    if max_stars is not None and max_stars < 1:
+        raise BadInputError("--max-stars", None, f"must be at least 1, got {max_stars}")
+    if sigma_px is not None and sigma_arcsec is not None:
+        raise BadInputError("--sigma-px", None, "give --sigma-px or --sigma-arcsec, not both")
+    noise_px = 0.0
+    if sigma_px is not None:
+        noise_px = sigma_px
+    elif sigma_arcsec is not None:
+        noise_px = sigma_arcsec / cam.pixel_scale_arcsec
+    if not noise_px >= 0:
+        raise BadInputError("--sigma-px", None, "must be >= 0")
+    if (sigma_px is not None or sigma_arcsec is not None or max_stars or drop_fraction) and not stars_only:
+        raise BadInputError("--sigma-px", None, "--sigma-px/--sigma-arcsec/--max-stars/--drop-fraction need --stars-only "
+                            "(with an image, centroid noise comes from the pixels)")
+    if not stars_only:
+        if output is None:
+            raise BadInputError("--output", None, "an image file is needed (e.g. -o sky.png), or use --stars-only")
+        if count * frames > 1 and os.path.splitext(output)[1].lower() in (".png", ".tif", ".tiff", ".fits", ".fit"):
+            # A numbered set goes into its own folder, made on demand.
+            os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
+        check_image_output(output)
+    elif output is not None:
+        raise BadInputError("--output", None, "--stars-only writes no image; drop --output")
+
+    attitude = None
+    if quaternion is not None:
+        if ra is not None or dec is not None:
+            raise BadInputError("--quaternion", None, "give either --quaternion or --ra/--dec, not both")
+        q = np.array(_floats(quaternion, "--quaternion", 4))
+        if not np.all(np.isfinite(q)):
+            raise BadInputError("--quaternion", None, f"must be finite, got {quaternion}")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+            raise BadInputError("--quaternion", None, f"must be a unit quaternion, its norm is {np.linalg.norm(q):.6g}")
+        attitude = quaternion_to_dcm(normalize_quaternion(q))
+    elif ra is not None or dec is not None:
+        if ra is None or dec is None:
+            raise BadInputError("--ra" if ra is None else "--dec", None, "--ra and --dec go together")
+        if not (math.isfinite(ra) and math.isfinite(dec) and -90 <= dec <= 90 and math.isfinite(roll)):
+            raise BadInputError("--dec", None, f"need finite --ra, --roll and -90 <= --dec <= 90, got {ra}, {dec}, {roll}")
+        attitude = radec_roll_to_dcm(math.radians(ra), math.radians(dec), math.radians(roll))
+    if attitude is not None and count > 1:
+        raise BadInputError("--count", None, "random attitudes (--count) cannot be combined with a given attitude")
+
+    sensor = Sensor(zero_point, exposure_ms, psf_sigma_px, full_well_e, int(bit_depth), gain_e_per_dn, bias_dn,
+                    read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, not no_noise)
+    scene = Scene(mag_limit, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)))
+    t0 = parse_time(start_time) if start_time else None
+    cat = load_catalog(catalog)
+    if mag_limit is not None:
+        cat = cat.filter_magnitude(None, mag_limit)
+        if len(cat) == 0:
+            raise BadInputError("--mag-limit", None, f"no catalog star is at or brighter than {mag_limit}")
+    if t0 is not None:
+        cat = cat.propagate(julian_year(t0))
+    if seed is None:
+        seed = int(np.random.SeedSequence().entropy % (2**31))
+    params = {k: v for k, v in dict(
+        catalog=catalog or "shipped", catalog_sha256=cat.checksum(), sensor=sensor.to_dict(),
+        scene={"mag_limit": mag_limit, "mag_noise": mag_noise, "false_stars": false_stars,
+               "focal_error_pct": focal_error_pct, "rate_deg_s": list(scene.rate_deg_s)},
+        frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
+        sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
+        time=start_time).items()}
+    run = RenderRun(cat, cam, sensor, scene, seed, attitude, count, frames, frame_interval_s, t0, stars_only,
+                    noise_px, max_stars, drop_fraction, output, frame_seed, params)
+    if frame_seed is not None and run.total != 1:
+        raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
+    bar = ProgressBar("render", quiet)
+    n_stars = 0
+    with FrameWriter(documents) as writer:
+        for i, (doc, image, path) in enumerate(run.frames_iter()):
+            if image is not None and path:
+                write_image(path, image, header={"STVER": doc["render"]["startrack_version"],
+                                                 "FRSEED": str(doc["render"]["frame_seed"])})
+            writer.write(doc)
+            n_stars += len(doc["truth"]["stars"])
+            bar(i + 1, run.total)
+    info(quiet, f"render: {run.total} frame(s), {n_stars / run.total:.1f} catalog stars per frame on average, seed {seed}"
+                + (f", images {output if run.total == 1 else os.path.splitext(output)[0] + '-NNNN' + os.path.splitext(output)[1]}"
+                   if output else ""))

@@ -1,0 +1,541 @@
+"""Synthetic star images and star lists whose truth is known.
+
+The renderer is the project's test oracle, so it is physically honest:
+
+* **Photometry** (paper 003 Eqs. 7-9): a star of magnitude ``m`` delivers
+  ``N_e = Z t 10^(-0.4 m)`` photo-electrons, a factor 2.512 per magnitude, with
+  ``Z`` the zero point (photo-electrons per second from a magnitude-0 star,
+  with aperture, optics transmission and quantum efficiency folded in) and ``t``
+  the exposure time.
+* **PSF**: a Gaussian of standard deviation ``psf_sigma_px`` integrated over
+  each pixel's area with the error function (paper 003 Eqs. 4-5).
+* **Motion**: with an angular rate the star is integrated along its trail
+  (sub-samples no more than a quarter pixel apart); the truth position is the
+  star's position at mid-exposure.
+* **Sensor**: sky background and dark current (Poisson), photon shot noise,
+  optional pixel response non-uniformity (PRNU, a fixed pattern of the sensor:
+  the same map every frame of a given size), hot pixels, full-well
+  saturation, read noise, gain (e-/DN), bias and quantisation to 8, 12 or 16 bits.
+* **Errors for robustness studies**: magnitude noise, false stars, a
+  focal-length error (the image is rendered with ``f (1 + e/100)`` while the
+  camera section keeps the nominal ``f``; paper 004 Fig. 7).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from startrack.camera import Camera
+from startrack.errors import BadInputError
+from startrack.rotations import (dcm_to_quaternion, dcm_to_radec_roll, quaternion_multiply,
+                                 quaternion_to_dcm, radec_to_vector, rotation_vector)
+
+__all__ = [
+    "Sensor",
+    "Scene",
+    "electrons_from_magnitude",
+    "project_stars",
+    "render_image",
+    "star_list",
+    "propagate_attitude",
+    "background_dn_cdf",
+]
+
+
+@dataclass
+class Sensor:
+    """Photometric and electronic model of a star camera (all documented units).
+
+    Defaults describe a generic small-satellite star tracker: a magnitude-6 star
+    gives about 800 photo-electrons in 100 ms.
+    """
+
+    zero_point_e_per_s: float = 2.0e6
+    exposure_ms: float = 100.0
+    psf_sigma_px: float = 1.0
+    full_well_e: float = 20000.0
+    bit_depth: int = 16
+    gain_e_per_dn: float | None = None
+    bias_dn: float | None = None
+    read_noise_e: float = 5.0
+    dark_current_e_per_s: float = 20.0
+    background_e_per_s: float = 50.0
+    prnu: float = 0.0
+    hot_pixels: int = 0
+    noise: bool = True
+
+    def __post_init__(self):
+        checks = {
+            "zero_point_e_per_s": self.zero_point_e_per_s > 0,
+            "exposure_ms": self.exposure_ms > 0,
+            "psf_sigma_px": self.psf_sigma_px > 0,
+            "full_well_e": self.full_well_e > 0,
+            "read_noise_e": self.read_noise_e >= 0,
+            "dark_current_e_per_s": self.dark_current_e_per_s >= 0,
+            "background_e_per_s": self.background_e_per_s >= 0,
+            "prnu": 0 <= self.prnu < 1,
+            "hot_pixels": self.hot_pixels >= 0,
+        }
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not ok or not math.isfinite(float(value)):
+                raise BadInputError("--" + name.replace("_", "-"), None, f"invalid value {value!r}")
+        if self.bit_depth not in (8, 12, 16):
+            raise BadInputError("--bit-depth", None, f"must be 8, 12 or 16, got {self.bit_depth}")
+        if self.gain_e_per_dn is not None and not self.gain_e_per_dn > 0:
+            raise BadInputError("--gain-e-per-dn", None, f"must be positive, got {self.gain_e_per_dn}")
+
+    @property
+    def max_dn(self) -> int:
+        return 2 ** self.bit_depth - 1
+
+    @property
+    def gain(self) -> float:
+        """Electrons per DN; by default the full well fills the ADC range."""
+        return self.gain_e_per_dn if self.gain_e_per_dn is not None else self.full_well_e / self.max_dn
+
+    @property
+    def bias(self) -> float:
+        """Bias (offset) in DN; by default 2% of the range, so noise is not clipped at 0."""
+        return self.bias_dn if self.bias_dn is not None else round(0.02 * self.max_dn)
+
+    @property
+    def exposure_s(self) -> float:
+        return self.exposure_ms / 1000.0
+
+    @property
+    def background_e(self) -> float:
+        """Expected sky + dark electrons per pixel in one exposure."""
+        return (self.background_e_per_s + self.dark_current_e_per_s) * self.exposure_s
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.update(gain_e_per_dn=self.gain, bias_dn=self.bias)
+        return d
+
+
+@dataclass
+class Scene:
+    """What is rendered besides the catalog: errors and motion for robustness studies."""
+
+    mag_limit: float | None = None
+    mag_noise: float = 0.0
+    false_stars: int = 0
+    focal_error_pct: float = 0.0
+    rate_deg_s: tuple = (0.0, 0.0, 0.0)
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.mag_noise >= 0:
+            raise BadInputError("--mag-noise", None, f"must be >= 0, got {self.mag_noise}")
+        if self.false_stars < 0:
+            raise BadInputError("--false-stars", None, f"must be >= 0, got {self.false_stars}")
+        if not -50 < self.focal_error_pct < 50:
+            raise BadInputError("--focal-error-pct", None, f"must be within +-50, got {self.focal_error_pct}")
+        if len(self.rate_deg_s) != 3 or not all(math.isfinite(v) for v in self.rate_deg_s):
+            raise BadInputError("--rate-deg-s", None, "must be three finite numbers wx,wy,wz")
+
+
+def electrons_from_magnitude(mag, sensor: Sensor):
+    """Photo-electrons of a star of magnitude ``mag`` in one exposure (paper 003 Eq. 9).
+
+    ``In_m = In_0 * 2.512^(0 - m)`` with ``In_0 = Z t`` the signal of a magnitude-0
+    star; 2.512 is ``100^(1/5)`` exactly here.
+    """
+    return sensor.zero_point_e_per_s * sensor.exposure_s * 10.0 ** (-0.4 * np.asarray(mag, dtype=np.float64))
+
+
+def propagate_attitude(dcm, rate_rad_s, dt):
+    """Attitude after ``dt`` seconds at constant body rate ``rate_rad_s`` (camera frame).
+
+    ``A(t) = exp(-[w x] t) A(0)``: the camera turns by ``w t`` about the
+    body-frame axis ``w``, so fixed stars appear to turn the other way.
+    """
+    w = np.asarray(rate_rad_s, dtype=np.float64)
+    angle = float(np.linalg.norm(w)) * dt
+    if angle == 0.0:
+        return np.array(dcm, dtype=np.float64)
+    axis = w / np.linalg.norm(w)
+    # Quaternion of a passive rotation by `angle` about `axis` (A = I - [phi x] + ...).
+    dq = np.concatenate([axis * math.sin(angle / 2.0), [math.cos(angle / 2.0)]])
+    return quaternion_to_dcm(quaternion_multiply(dq, dcm_to_quaternion(dcm)))
+
+
+def project_stars(vectors, dcm, camera: Camera, margin_px: float = 0.0):
+    """Image positions of catalog stars seen at attitude ``dcm``.
+
+    Returns
+    -------
+    index : ndarray of int
+        Catalog rows that land on the image (within ``margin_px`` outside its edge).
+    x, y : ndarray
+        Their positions in pixels.
+    """
+    cam_vec = vectors @ np.asarray(dcm).T
+    cos_limit = math.cos(math.radians(min(89.0, camera.max_off_axis_deg + 1.0)))
+    front = np.flatnonzero(cam_vec[:, 2] > cos_limit)
+    x, y = camera.vectors_to_pixels(cam_vec[front])
+    inside = camera.in_image(x, y, margin=-margin_px) & np.isfinite(x)
+    return front[inside], x[inside], y[inside]
+
+
+def background_dn_cdf(sensor: Sensor):
+    """Distribution of a star-free pixel's DN, as a cumulative table.
+
+    ``DN = round((Poisson(B) + N(0, r)) / g + bias)`` with ``B`` the sky + dark
+    electrons, ``r`` the read noise and ``g`` the gain.  Returns ``(cdf, lo)``:
+    ``cdf[i] = P(DN <= lo + i)``.
+    """
+    lam = sensor.background_e
+    g, bias, rn = sensor.gain, sensor.bias, sensor.read_noise_e
+    kmax = int(lam + 12.0 * math.sqrt(lam) + 12.0)
+    k = np.arange(kmax + 1, dtype=np.float64)
+    logp = -lam + k * math.log(lam) - np.array([math.lgamma(v + 1.0) for v in k]) if lam > 0 else None
+    pk = np.exp(logp) if lam > 0 else np.r_[1.0, np.zeros(kmax)]
+    lo = int(math.floor((-9.0 * rn) / g + bias)) - 1
+    hi = int(math.ceil((kmax + 9.0 * rn) / g + bias)) + 1
+    d = np.arange(lo, hi + 1, dtype=np.float64)
+    # DN = d  <=>  g (d - bias - 0.5) <= k + n < g (d + 0.5 - bias)
+    upper = g * (d + 0.5 - bias)
+    if rn > 0:
+        z = (upper[:, None] - k[None, :]) / (math.sqrt(2.0) * rn)
+        cdf_upper = 0.5 * (1.0 + _erf(z))
+    else:
+        cdf_upper = (k[None, :] < upper[:, None]).astype(np.float64)
+    cdf = cdf_upper @ pk
+    cdf = np.clip(cdf / cdf[-1], 0.0, 1.0)
+    cdf[-1] = 1.0
+    return np.ascontiguousarray(cdf), lo
+
+
+def _guide_table(cdf, size=4096):
+    """``guide[b]`` = first index with ``cdf >= b / size`` (indexed search)."""
+    return np.searchsorted(cdf, np.arange(size) / size, side="left").astype(np.int64)
+
+
+def _erf(z):
+    """Vectorised error function (Abramowitz & Stegun 7.1.26 is too coarse; use math.erf)."""
+    flat = np.fromiter((math.erf(v) for v in z.ravel()), dtype=np.float64, count=z.size)
+    return flat.reshape(z.shape)
+
+
+_CDF_CACHE: dict = {}
+_PRNU_CACHE: dict = {}
+
+
+def _prnu_map(height, width, prnu):
+    """The sensor's fixed-pattern gain map: the same sensor every frame (seeded by its size)."""
+    key = (height, width, prnu)
+    if key not in _PRNU_CACHE:
+        rng = np.random.default_rng([height, width, 0x5052_4E55])
+        _PRNU_CACHE.clear()
+        _PRNU_CACHE[key] = np.ascontiguousarray(1.0 + prnu * rng.standard_normal((height, width)))
+    return _PRNU_CACHE[key]
+
+
+def _background_table(sensor: Sensor):
+    key = (sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
+    if key not in _CDF_CACHE:
+        cdf, lo = background_dn_cdf(sensor)
+        _CDF_CACHE.clear()
+        _CDF_CACHE[key] = (cdf, _guide_table(cdf), lo)
+    return _CDF_CACHE[key]
+
+
+def _trail_positions(vectors, dcm, camera, rate_rad_s, exposure_s, sigma):
+    """Per-star positions along the exposure: shape (n, n_sub), mid-exposure centred."""
+    rate = np.asarray(rate_rad_s, dtype=np.float64)
+    if not np.any(rate):
+        x, y = camera.vectors_to_pixels(vectors @ dcm.T)
+        return x[:, None], y[:, None]
+    # Trail length bound: |w| t f (plus roll sweep at the image corner).
+    length = float(np.linalg.norm(rate)) * exposure_s * camera.focal_length_px * 1.5
+    n_sub = int(min(2000, max(2, math.ceil(length / min(0.25, sigma / 2.0)) + 1)))
+    times = (np.arange(n_sub) + 0.5) / n_sub - 0.5
+    xs = np.empty((len(vectors), n_sub))
+    ys = np.empty((len(vectors), n_sub))
+    for t_index, t in enumerate(times * exposure_s):
+        a = propagate_attitude(dcm, rate, t)
+        xs[:, t_index], ys[:, t_index] = camera.vectors_to_pixels(vectors @ a.T)
+    return xs, ys
+
+
+def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: np.random.Generator,
+                 seed: int | None = None, vectors=None):
+    """Render one frame.
+
+    Parameters
+    ----------
+    catalog : startrack.catalog.Catalog
+        Stars (already propagated to the frame's epoch).
+    camera : Camera
+        The nominal camera; the image is rendered with the focal length
+        perturbed by ``scene.focal_error_pct``.
+    dcm : ndarray (3, 3)
+        Attitude at mid-exposure.
+    sensor, scene :
+        The models above.
+    rng : numpy Generator
+        Drives every random choice (magnitude noise, false stars, hot pixels,
+        PRNU, and the pixel noise seed), so one seed gives one image.
+    vectors : ndarray (n, 3), optional
+        ``catalog.vectors()``, when the caller already has them.
+
+    Returns
+    -------
+    image : ndarray (height, width) of uint8 or uint16
+    truth : dict
+        The frame document's ``truth`` section (positions in pixels, degrees).
+    """
+    from startrack._kernels.render import add_stars, expose
+
+    dcm = np.asarray(dcm, dtype=np.float64)
+    vectors = catalog.vectors() if vectors is None else vectors
+    true_cam = camera.with_focal_length(camera.focal_length_px * (1.0 + scene.focal_error_pct / 100.0))
+    margin = 5.0 * sensor.psf_sigma_px + 2.0 + float(np.linalg.norm(scene.rate_deg_s)) * math.pi / 180 \
+        * sensor.exposure_s * camera.focal_length_px
+    index, x_mid, y_mid = project_stars(vectors, dcm, true_cam, margin)
+    mags = catalog.mag[index]
+    if scene.mag_limit is not None:
+        keep = mags <= scene.mag_limit
+        index, x_mid, y_mid, mags = index[keep], x_mid[keep], y_mid[keep], mags[keep]
+    rendered_mag = mags + (rng.normal(0.0, scene.mag_noise, len(mags)) if scene.mag_noise > 0 else 0.0)
+    electrons = electrons_from_magnitude(rendered_mag, sensor)
+    xs, ys = _trail_positions(vectors[index], dcm, true_cam, np.radians(scene.rate_deg_s),
+                              sensor.exposure_s, sensor.psf_sigma_px)
+    # False stars: random position and brightness inside the image.
+    n_false = int(scene.false_stars)
+    faint = scene.mag_limit if scene.mag_limit is not None else (float(np.max(catalog.mag)) if len(catalog) else 6.0)
+    false_x = rng.uniform(-0.5, camera.width - 0.5, n_false)
+    false_y = rng.uniform(-0.5, camera.height - 0.5, n_false)
+    false_mag = rng.uniform(max(0.0, faint - 5.0), faint, n_false)
+    height, width = camera.height, camera.width
+    signal = np.zeros((height, width), dtype=np.float64)
+    if n_false:
+        xs = np.vstack([xs, np.repeat(false_x[:, None], xs.shape[1], axis=1)])
+        ys = np.vstack([ys, np.repeat(false_y[:, None], ys.shape[1], axis=1)])
+        electrons = np.concatenate([electrons, electrons_from_magnitude(false_mag, sensor)])
+    add_stars(signal, np.ascontiguousarray(xs), np.ascontiguousarray(ys), np.ascontiguousarray(electrons),
+              float(sensor.psf_sigma_px))
+    hot = []
+    if sensor.hot_pixels:
+        hx = rng.integers(0, width, sensor.hot_pixels)
+        hy = rng.integers(0, height, sensor.hot_pixels)
+        level = rng.uniform(0.05, 1.0, sensor.hot_pixels) * sensor.full_well_e
+        np.add.at(signal, (hy, hx), level)
+        hot = [{"x": int(a), "y": int(b), "electrons": float(c)} for a, b, c in zip(hx, hy, level)]
+    prnu = _prnu_map(height, width, sensor.prnu) if sensor.prnu > 0 else np.empty((0, 0))
+    cdf, guide, lo = _background_table(sensor)
+    image = np.empty((height, width), dtype=np.uint8 if sensor.bit_depth == 8 else np.uint16)
+    pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
+    expose(signal, image, cdf, guide, lo, float(sensor.background_e), prnu, float(sensor.full_well_e),
+           float(sensor.read_noise_e), float(sensor.gain), float(sensor.bias), float(sensor.max_dn),
+           pixel_seed, bool(sensor.noise))
+    ra, dec, roll = dcm_to_radec_roll(dcm)
+    peak_e = electrons[: len(index)] * _peak_fraction(sensor.psf_sigma_px)
+    truth = {
+        "quaternion": dcm_to_quaternion(dcm).tolist(),
+        "ra": math.degrees(ra), "dec": math.degrees(dec), "roll": math.degrees(roll),
+        "stars": [
+            {"id": int(catalog.id[i]), "x": float(x), "y": float(y), "mag": float(m),
+             "mag_rendered": float(mr), "electrons": float(e), "saturated": bool(p + sensor.background_e >= sensor.full_well_e)}
+            for i, x, y, m, mr, e, p in zip(index, x_mid, y_mid, mags, rendered_mag, electrons, peak_e)
+        ],
+        "false_stars": [{"x": float(a), "y": float(b), "mag": float(m)} for a, b, m in zip(false_x, false_y, false_mag)],
+        "hot_pixels": hot,
+        "epoch": float(catalog.epoch),
+        "focal_length_px": float(true_cam.focal_length_px),
+        "rate_deg_s": [float(v) for v in scene.rate_deg_s],
+    }
+    truth["stars"].sort(key=lambda s: s["mag"])
+    return image, truth
+
+
+def _peak_fraction(sigma):
+    """Fraction of a centred pixel-integrated Gaussian in its brightest pixel."""
+    return math.erf(0.5 / (math.sqrt(2.0) * sigma)) ** 2
+
+
+def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: np.random.Generator,
+              sigma_px: float = 0.0, max_stars: int | None = None, drop_fraction: float = 0.0, vectors=None):
+    """A frame's ``stars`` straight from the truth, with centroid and magnitude noise.
+
+    The fast path for identification studies (no image): catalog stars inside
+    the (focal-error perturbed) image at or brighter than ``scene.mag_limit``,
+    each moved by Gaussian noise of ``sigma_px`` per axis; ``flux`` is the
+    photo-electrons of its noisy magnitude; a fraction ``drop_fraction`` of
+    stars is dropped at random; ``scene.false_stars`` false stars of random
+    position and brightness are added; the ``max_stars`` brightest are kept.
+
+    Returns
+    -------
+    stars : list of dict
+        ``x``, ``y``, ``flux``, brightest first.
+    truth : dict
+        ``quaternion``, ``ra``, ``dec``, ``roll``, ``stars`` (every visible
+        catalog star) and ``star_ids``: for each entry of ``stars`` its catalog
+        id, or ``None`` for a false star.
+    """
+    dcm = np.asarray(dcm, dtype=np.float64)
+    vectors = catalog.vectors() if vectors is None else vectors
+    true_cam = camera.with_focal_length(camera.focal_length_px * (1.0 + scene.focal_error_pct / 100.0))
+    index, x, y = project_stars(vectors, dcm, true_cam)
+    mags = catalog.mag[index]
+    if scene.mag_limit is not None:
+        keep = mags <= scene.mag_limit
+        index, x, y, mags = index[keep], x[keep], y[keep], mags[keep]
+    order = np.argsort(mags, kind="stable")
+    index, x, y, mags = index[order], x[order], y[order], mags[order]
+    truth_stars = [{"id": int(catalog.id[i]), "x": float(a), "y": float(b), "mag": float(m)}
+                   for i, a, b, m in zip(index, x, y, mags)]
+    noisy_mag = mags + (rng.normal(0.0, scene.mag_noise, len(mags)) if scene.mag_noise > 0 else 0.0)
+    mx = x + (rng.normal(0.0, sigma_px, len(x)) if sigma_px > 0 else 0.0)
+    my = y + (rng.normal(0.0, sigma_px, len(y)) if sigma_px > 0 else 0.0)
+    ids = [int(catalog.id[i]) for i in index]
+    if drop_fraction > 0:
+        keep = rng.random(len(ids)) >= drop_fraction
+        mx, my, noisy_mag = mx[keep], my[keep], noisy_mag[keep]
+        ids = [i for i, k in zip(ids, keep) if k]
+    n_false = int(scene.false_stars)
+    faint = scene.mag_limit if scene.mag_limit is not None else (float(np.max(catalog.mag)) if len(catalog) else 6.0)
+    fx = rng.uniform(-0.5, camera.width - 0.5, n_false)
+    fy = rng.uniform(-0.5, camera.height - 0.5, n_false)
+    fmag = rng.uniform(max(0.0, faint - 5.0), faint, n_false)
+    all_x = np.concatenate([mx, fx])
+    all_y = np.concatenate([my, fy])
+    flux = electrons_from_magnitude(np.concatenate([noisy_mag, fmag]), sensor)
+    all_ids = ids + [None] * n_false
+    order = np.argsort(-flux, kind="stable")
+    if max_stars is not None:
+        order = order[:max_stars]
+    stars = [{"x": float(all_x[k]), "y": float(all_y[k]), "flux": float(flux[k])} for k in order]
+    ra, dec, roll = dcm_to_radec_roll(dcm)
+    truth = {
+        "quaternion": dcm_to_quaternion(dcm).tolist(),
+        "ra": math.degrees(ra), "dec": math.degrees(dec), "roll": math.degrees(roll),
+        "stars": truth_stars,
+        "star_ids": [all_ids[k] for k in order],
+        "epoch": float(catalog.epoch),
+        "focal_length_px": float(true_cam.focal_length_px),
+    }
+    return stars, truth
+
+
+def attitude_rate_check(dcm_a, dcm_b, dt):
+    """Body rate (rad/s) that turns ``dcm_a`` into ``dcm_b`` in ``dt`` seconds."""
+    delta = np.asarray(dcm_b) @ np.asarray(dcm_a).T
+    return rotation_vector(delta) / dt
+
+
+def boresight_vector(ra_deg, dec_deg):
+    return radec_to_vector(math.radians(ra_deg), math.radians(dec_deg))
+
+
+def frame_seed(seed: int, index: int) -> int:
+    """The seed of frame ``index`` of a run seeded ``seed`` (recorded in each document)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+def numbered_path(path: str, index: int, total: int) -> str:
+    """``sky.png`` -> ``sky-0007.png`` when a run writes several images."""
+    if total <= 1:
+        return path
+    root, ext = os.path.splitext(path)
+    return f"{root}-{index:04d}{ext}"
+
+
+@dataclass
+class RenderRun:
+    """Everything one ``render`` invocation needs; :meth:`frames` yields the results.
+
+    ``attitude`` is a DCM or ``None`` for random attitudes (one per frame with
+    ``count``).  A sequence (``frames > 1``) starts at ``attitude`` (or a random
+    one) and turns at ``scene.rate_deg_s`` (camera frame) every
+    ``frame_interval_s``.
+    """
+
+    catalog: object
+    camera: Camera
+    sensor: Sensor
+    scene: Scene
+    seed: int
+    attitude: np.ndarray | None = None
+    count: int = 1
+    frames: int = 1
+    frame_interval_s: float = 0.1
+    start_time: object = None
+    stars_only: bool = False
+    sigma_px: float = 0.0
+    max_stars: int | None = None
+    drop_fraction: float = 0.0
+    image_path: str | None = None
+    first_seed: int | None = None
+    params: dict = field(default_factory=dict)
+
+    @property
+    def total(self) -> int:
+        return self.count * self.frames
+
+    def frames_iter(self):
+        """Yield ``(document, image_or_None, image_path_or_None)`` for every frame."""
+        import datetime as _dt
+
+        from startrack._version import __version__
+        from startrack.formats.frame import FRAME_FORMAT
+        from startrack.timeutil import format_time
+
+        vectors = self.catalog.vectors()
+        rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
+        index = 0
+        for c in range(self.count):
+            base = None
+            for k in range(self.frames):
+                seed_k = self.first_seed if (self.first_seed is not None and self.total == 1) else frame_seed(self.seed, index)
+                rng = np.random.default_rng(seed_k)
+                if base is None:
+                    if self.attitude is not None:
+                        base = np.asarray(self.attitude, dtype=np.float64)
+                    else:
+                        base = quaternion_to_dcm(random_quaternions_one(rng))
+                dcm = propagate_attitude(base, rate, k * self.frame_interval_s) if k else base
+                doc = {"format": FRAME_FORMAT}
+                image_doc = {"width": self.camera.width, "height": self.camera.height}
+                if self.start_time is not None:
+                    t = self.start_time + _dt.timedelta(seconds=k * self.frame_interval_s)
+                    image_doc["time"] = format_time(t)
+                image = None
+                path = None
+                if self.stars_only:
+                    stars, truth = star_list(self.catalog, self.camera, dcm, self.sensor, self.scene, rng,
+                                             self.sigma_px, self.max_stars, self.drop_fraction, vectors)
+                else:
+                    image, truth = render_image(self.catalog, self.camera, dcm, self.sensor, self.scene, rng,
+                                                vectors=vectors)
+                    path = numbered_path(self.image_path, index, self.total) if self.image_path else None
+                    if path:
+                        image_doc["path"] = path
+                    image_doc["bit_depth"] = self.sensor.bit_depth
+                doc["image"] = image_doc
+                doc["camera"] = self.camera.to_dict()
+                doc["truth"] = truth
+                if self.stars_only:
+                    doc["stars"] = stars
+                doc["render"] = {
+                    "startrack_version": __version__,
+                    "frame_index": index,
+                    "sequence": {"index": k, "frames": self.frames} if self.frames > 1 else None,
+                    "frame_seed": seed_k,
+                    "seed": self.seed,
+                    "params": self.params,
+                }
+                yield doc, image, path
+                index += 1
+
+
+def random_quaternions_one(rng):
+    from startrack.rotations import random_quaternions
+
+    return random_quaternions(1, rng)[0]
