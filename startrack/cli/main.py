@@ -13,6 +13,7 @@ COMMANDS = {
     "catalog-filter": "catalog_filter",
     "catalog-stats": "catalog_stats",
     "render": "render",
+    "centroid": "centroid",
 }
 
 

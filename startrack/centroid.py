@@ -1,0 +1,400 @@
+"""Star detection and sub-pixel centroiding.
+
+The pipeline (paper 000 Sec. 3.1, paper 003 Sec. 3):
+
+1. **Background**: a global sigma-clipped level and noise, and a local mesh
+   (tiles of ``mesh_px``, sigma-clipped median, 3 x 3 median-filtered, bilinear
+   interpolation) that follows gradients, moonlight and light pollution.
+2. **Detection**: pixels above ``threshold_sigma`` times the local noise (or a
+   fixed ``threshold_dn`` above the background; paper 000 uses 60 DN),
+   optionally after a matched (Gaussian) filter for faint stars;
+   connected-component labelling (paper 000 Fig. 6) with OpenCV's
+   ``connectedComponentsWithStats``.
+3. **Rejection**: blobs smaller than ``min_pixels`` or larger than
+   ``max_pixels``; hot pixels and cosmic rays (almost all the flux in one
+   pixel); elongated trails and extended objects (flagged, not centroided).
+   Two touching stars are split at their saddle (deblending).
+4. **Centroid** by ``method``: ``com`` (centre of mass of the blob, paper 000
+   Eq. 1; paper 003 Eqs. 1-3), ``iwc`` (iterative intensity-weighted centroid
+   with a Gaussian window), ``quine`` (Gaussian interpolation, paper 003
+   Eqs. 4-6, Quine et al. 2007), ``gauss`` (2-D pixel-integrated Gaussian least
+   squares).
+5. **Adaptive selection** (paper 000 Fig. 9): the ``max_stars`` brightest.
+
+Positions follow the project convention: ``x`` column, ``y`` row, ``(0, 0)`` the
+centre of the top-left pixel.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from startrack.errors import BadInputError
+
+__all__ = ["CentroidOptions", "CentroidResult", "estimate_background", "find_stars", "centroid_windows", "METHODS"]
+
+METHODS = ("com", "iwc", "quine", "gauss")
+
+
+@dataclass
+class CentroidOptions:
+    """Detection and centroiding settings (pixels and DN)."""
+
+    method: str = "gauss"
+    threshold_sigma: float = 5.0
+    threshold_dn: float | None = None
+    background: str = "mesh"
+    mesh_px: int = 64
+    matched_filter: bool = False
+    filter_sigma_px: float = 1.0
+    min_pixels: int = 3
+    max_pixels: int = 5000
+    max_elongation: float = 2.5
+    hot_pixel_ratio: float = 0.7
+    deblend: bool = True
+    max_stars: int | None = None
+    psf_sigma_px: float | None = None
+    gain_e_per_dn: float | None = None
+    saturation_dn: float | None = None
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise BadInputError("--method", None, f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
+        if self.background not in ("mesh", "global"):
+            raise BadInputError("--background", None, "must be 'mesh' or 'global'")
+        if not self.threshold_sigma > 0:
+            raise BadInputError("--threshold-sigma", None, f"must be positive, got {self.threshold_sigma}")
+        if self.threshold_dn is not None and not self.threshold_dn > 0:
+            raise BadInputError("--threshold-dn", None, f"must be positive, got {self.threshold_dn}")
+        if self.mesh_px < 8:
+            raise BadInputError("--mesh-px", None, f"must be at least 8, got {self.mesh_px}")
+        if self.min_pixels < 1 or self.max_pixels < self.min_pixels:
+            raise BadInputError("--min-pixels", None, "need 1 <= --min-pixels <= --max-pixels")
+        if self.max_stars is not None and self.max_stars < 1:
+            raise BadInputError("--max-stars", None, f"must be at least 1, got {self.max_stars}")
+
+
+@dataclass
+class CentroidResult:
+    """Stars found in one image, brightest first, and what was set aside."""
+
+    stars: list
+    rejected: list
+    background_level: float
+    background_sigma: float
+    time_ms: float
+    reason: str | None = None
+    params: dict = field(default_factory=dict)
+
+    def section(self) -> dict:
+        """The frame document's ``centroid`` section (the stars go to ``stars``)."""
+        out = {"method": self.params.get("method"), "n_stars": len(self.stars), "n_rejected": len(self.rejected),
+               "background_dn": self.background_level, "noise_dn": self.background_sigma,
+               "time_ms": self.time_ms, "rejected": self.rejected, "params": self.params}
+        if self.reason:
+            out["reason"] = self.reason
+        return out
+
+
+def _median3(a):
+    """3 x 3 median filter of a small 2-D array (edges replicated)."""
+    p = np.pad(a, 1, mode="edge")
+    stack = np.stack([p[j:j + a.shape[0], i:i + a.shape[1]] for j in range(3) for i in range(3)])
+    return np.median(stack, axis=0)
+
+
+def estimate_background(image: np.ndarray, options: CentroidOptions):
+    """Background level and noise on a coarse mesh, and their global values (DN).
+
+    Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
+    arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``),
+    and :func:`expand_mesh` interpolates them to full size.
+    """
+    from startrack._kernels.centroid import _clipped_stats, background_mesh
+
+    h, w = image.shape
+    step = max(1, int(round(math.sqrt(h * w / 20000.0))))
+    sample = np.ascontiguousarray(image[::step, ::step], dtype=np.float64).ravel()
+    glevel, gsigma = _clipped_stats(sample, 5, 3.0)
+    if options.background == "global" or min(h, w) < 2 * options.mesh_px:
+        return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
+    cell = options.mesh_px
+    mstep = max(1, cell // 16)
+    level, sigma = background_mesh(np.ascontiguousarray(image, dtype=np.float32), cell, mstep)
+    level = _median3(level)
+    sigma = _median3(sigma)
+    sigma = np.where(sigma > 0, sigma, gsigma)
+    return level, sigma, float(glevel), float(gsigma)
+
+
+def expand_mesh(mesh, shape, cell):
+    """Bilinear interpolation of a tile mesh to a full-size float32 map."""
+    import cv2
+
+    h, w = shape
+    if mesh.shape == (1, 1):
+        return np.full(shape, float(mesh[0, 0]), dtype=np.float32)
+    ny, nx = mesh.shape
+    return cv2.resize(mesh.astype(np.float32), (nx * cell, ny * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
+
+
+def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_ratio=0.7):
+    """Deblend: local maxima of a blob that are separate peaks (saddle below ratio x lower peak)."""
+    left, top, bw, bh = (int(v) for v in stats_row[:4])
+    sub = residual[top:top + bh, left:left + bw]
+    mask = labels[top:top + bh, left:left + bw] == lab
+    if mask.sum() < 6:
+        return []
+    pad = np.pad(np.where(mask, sub, -np.inf), 1, mode="constant", constant_values=-np.inf)
+    neigh = np.max(np.stack([pad[j:j + bh, i:i + bw] for j in range(3) for i in range(3) if (i, j) != (1, 1)]), axis=0)
+    peaks = np.argwhere(mask & (sub > neigh))
+    if len(peaks) < 2:
+        return []
+    heights = sub[peaks[:, 0], peaks[:, 1]]
+    order = np.argsort(-heights)
+    kept = []
+    for k in order:
+        py, px = peaks[k]
+        ok = True
+        for (qy, qx) in kept:
+            dist = math.hypot(px - qx, py - qy)
+            if dist < min_separation:
+                ok = False
+                break
+            n = int(math.ceil(dist * 2))
+            line = [sub[int(round(py + (qy - py) * t / n)), int(round(px + (qx - px) * t / n))] for t in range(n + 1)]
+            if min(line) > saddle_ratio * min(sub[py, px], sub[qy, qx]):
+                ok = False
+                break
+        if ok:
+            kept.append((py, px))
+    if len(kept) < 2:
+        return []
+    return [(left + px, top + py) for (py, px) in kept]
+
+
+def _uncertainty(flux, sigma_psf, noise, gain):
+    """1-sigma centroid uncertainty per axis, px (King 1983; Liebe 2002).
+
+    ``sigma_x^2 = s^2 / N_e + 4 pi s^4 n^2 / F^2`` with ``s`` the PSF sigma,
+    ``N_e`` the star's photo-electrons (only when the gain is known), ``n`` the
+    background noise per pixel and ``F`` the flux, both in DN.
+    """
+    if flux <= 0:
+        return float("nan")
+    # Photon term sigma^2 / N_e (N_e = flux * gain electrons), in px^2.
+    shot = sigma_psf**2 / (flux * gain) if gain else 0.0
+    bg = 4.0 * math.pi * sigma_psf**4 * noise**2 / flux**2
+    return math.sqrt(shot + bg + 1e-6)
+
+
+def find_stars(image: np.ndarray, options: CentroidOptions | None = None, saturation: float | None = None,
+               source: str = "image") -> CentroidResult:
+    """Detect and centroid the stars of one image.
+
+    Parameters
+    ----------
+    image : ndarray (height, width)
+        Pixel values in DN (any numeric dtype).
+    options : CentroidOptions
+    saturation : float, optional
+        The DN at which a pixel is saturated (default: the largest DN a
+        file of the image's type holds, else the image maximum).
+    source : str
+        Name for messages.
+
+    Returns
+    -------
+    CentroidResult
+        ``stars``: list of dicts with ``x``, ``y``, ``flux``, ``peak``,
+        ``npix``, ``snr``, ``sigma_px`` (estimated 1-sigma uncertainty per
+        axis), ``fwhm_px``, ``saturated``; brightest first.  An image where
+        nothing can be found gives an empty list and a ``reason``.
+    """
+    import cv2
+
+    from startrack._kernels.centroid import (aperture_flux, gaussian_fit, label_blobs, quine_offset,
+                                             subtract_background, windowed_centroid)
+
+    options = options or CentroidOptions()
+    t0 = time.perf_counter()
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    if img.ndim != 2 or img.size == 0:
+        raise BadInputError(source, None, f"expected a 2-D image, got shape {img.shape}")
+    params = asdict(options)
+    sat = options.saturation_dn if options.saturation_dn is not None else (saturation if saturation is not None
+                                                                              else float(img.max()))
+
+    def result(stars, rejected, level, sigma, reason=None):
+        return CentroidResult(stars, rejected, float(level), float(sigma), (time.perf_counter() - t0) * 1000.0,
+                              reason, params)
+
+    probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
+    frac_sat = float(np.mean(probe >= sat)) if sat > img.min() else 1.0
+    if frac_sat > 0.5:
+        return result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of pixels)")
+    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(img, options)
+    if not gsigma > 0 and float(img.max()) - float(img.min()) <= 0:
+        return result([], [], glevel, 0.0, "image is constant: no signal")
+    sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
+    cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+    if options.threshold_dn is not None:
+        thresh_mesh = np.full(level_mesh.shape, float(options.threshold_dn))
+    else:
+        thresh_mesh = options.threshold_sigma * sigma_mesh
+    residual = np.empty(img.shape, dtype=np.float32)
+    mask = np.empty(img.shape, dtype=np.uint8)
+    subtract_background(img, np.ascontiguousarray(level_mesh, dtype=np.float64),
+                        np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
+    sigma_at = lambda x, y: float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1),
+                                             min(int(x) // cell, sigma_mesh.shape[1] - 1)])
+    if options.matched_filter:
+        # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
+        # the filtered image is the pixel noise times the kernel's L2 norm.
+        k = max(3, int(2 * math.ceil(3 * options.filter_sigma_px) + 1))
+        det = cv2.GaussianBlur(residual, (k, k), options.filter_sigma_px)
+        g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
+        norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
+        zero = np.zeros((1, 1))
+        subtract_background(det, zero, np.ascontiguousarray(thresh_mesh * norm, dtype=np.float64), float(cell),
+                            np.empty_like(det), mask)
+    max_blobs = 20000
+    labels, table, n_found = label_blobs(residual, mask, img, float(sat), max_blobs)
+    if n_found == 0:
+        return result([], [], glevel, gsigma, "no pixel above the detection threshold")
+    if n_found > max_blobs:
+        return result([], [], glevel, gsigma,
+                      f"over {max_blobs} detections: not a star field (noise or texture), or the threshold is too low")
+    candidates = []
+    rejected = []
+    for lab in range(1, n_found + 1):
+        flux, cx, cy, peak, px, py, npix, mxx, myy, mxy, nsat, ratio = table[lab, :12]
+        area = int(npix)
+        px, py = int(px), int(py)
+        if flux <= 0:
+            continue
+        if area < options.min_pixels:
+            if ratio >= options.hot_pixel_ratio and area <= 2 and nsat == 0 and peak > 0:
+                rejected.append({"x": float(px), "y": float(py), "flux": float(flux), "reason": "hot pixel"})
+            continue
+        if area > options.max_pixels:
+            rejected.append({"x": float(cx), "y": float(cy), "flux": float(flux), "npix": area, "reason": "too large"})
+            continue
+        if ratio >= options.hot_pixel_ratio and nsat == 0:
+            rejected.append({"x": float(px), "y": float(py), "flux": float(flux), "reason": "hot pixel or cosmic ray"})
+            continue
+        tr = mxx + myy
+        det2 = mxx * myy - mxy * mxy
+        disc = math.sqrt(max(tr * tr / 4 - det2, 0.0))
+        l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 1e-6)
+        elong = math.sqrt(l1 / l2)
+        if options.deblend and area >= 6 and elong > 1.2:
+            stats_row = (int(table[lab, 12]), int(table[lab, 13]), int(table[lab, 14] - table[lab, 12] + 1),
+                         int(table[lab, 15] - table[lab, 13] + 1))
+            peaks = _split_blob(residual, labels, lab, stats_row)
+            if len(peaks) >= 2:
+                for (qx, qy) in peaks:
+                    candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), nsat,
+                                       math.sqrt(max(l2, 0.25)), True))
+                continue
+        if elong > options.max_elongation and area >= 8:
+            rejected.append({"x": float(cx), "y": float(cy), "flux": float(flux), "npix": area,
+                             "elongation": float(elong), "reason": "elongated (trail or extended object)"})
+            continue
+        candidates.append((float(cx), float(cy), float(peak), float(npix), nsat, math.sqrt(max(l2, 0.25)), False))
+    stars = []
+    method = options.method
+    for (cx, cy, peak, npix, nsat, sig_est, deblended) in candidates:
+        sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
+        half = int(max(2, math.ceil(3 * sigma_psf)))
+        x, y, ok = cx, cy, True
+        xi, yi = int(round(cx)), int(round(cy))
+        if deblended or method == "iwc":
+            x, y, ok = windowed_centroid(residual, cx, cy, sigma_psf, half, 30)
+        elif method == "quine":
+            if 1 <= xi < residual.shape[1] - 1 and 1 <= yi < residual.shape[0] - 1:
+                # peak pixel of the blob, then 3-pixel sums across the other axis
+                win = residual[yi - 1:yi + 2, xi - 1:xi + 2]
+                colsum = win.sum(axis=0)
+                rowsum = win.sum(axis=1)
+                x = xi + quine_offset(colsum[0], colsum[1], colsum[2], sigma_psf)
+                y = yi + quine_offset(rowsum[0], rowsum[1], rowsum[2], sigma_psf)
+        elif method == "gauss":
+            x, y, s_fit, amp, ok = gaussian_fit(residual, cx, cy, sigma_psf, half, 50)
+            if ok:
+                sigma_psf = s_fit
+        if not ok:
+            x, y = cx, cy
+        # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
+        r = max(2.0, 3.0 * sigma_psf)
+        flux, n_ap = aperture_flux(residual, x, y, r)
+        noise = sigma_at(min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1))
+        if flux <= 0:
+            continue
+        var = n_ap * noise**2 + (flux / options.gain_e_per_dn if options.gain_e_per_dn else 0.0)
+        snr = flux / math.sqrt(var) if var > 0 else float("inf")
+        stars.append({
+            "x": float(x), "y": float(y), "flux": flux, "peak": float(peak), "npix": int(npix),
+            "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, options.gain_e_per_dn),
+            "fwhm_px": 2.3548 * sigma_psf, "saturated": bool(nsat > 0),
+            **({"deblended": True} if deblended else {}),
+        })
+    stars.sort(key=lambda s: -s["flux"])
+    if options.max_stars is not None:
+        stars = stars[: options.max_stars]
+    reason = None if stars else "no star-like detection (all rejected)"
+    return result(stars, rejected, glevel, gsigma, reason)
+
+
+def centroid_windows(image: np.ndarray, centres, half_size: int, options: CentroidOptions | None = None,
+                     saturation: float | None = None):
+    """Centroid only inside square windows around predicted positions (tracking mode).
+
+    Parameters
+    ----------
+    image : ndarray (height, width)
+    centres : array_like (n, 2)
+        Predicted ``(x, y)`` in pixels.
+    half_size : int
+        Window half-width in pixels (the window is ``2 half + 1`` wide).
+
+    Returns
+    -------
+    list of dict or None
+        For each window, the brightest star-like blob inside it (same fields
+        as :func:`find_stars`, plus ``window``) or ``None`` when nothing was
+        found.  The background is the window's sigma-clipped border.
+    """
+    from startrack._kernels.centroid import _clipped_stats
+
+    options = options or CentroidOptions()
+    img = np.asarray(image, dtype=np.float32)
+    h, w = img.shape
+    out = []
+    for k, (px, py) in enumerate(np.asarray(centres, dtype=np.float64).reshape(-1, 2)):
+        if not (np.isfinite(px) and np.isfinite(py)):
+            out.append(None)
+            continue
+        xi, yi = int(round(px)), int(round(py))
+        x0, x1 = max(0, xi - half_size), min(w, xi + half_size + 1)
+        y0, y1 = max(0, yi - half_size), min(h, yi + half_size + 1)
+        if x1 - x0 < 5 or y1 - y0 < 5:
+            out.append(None)
+            continue
+        sub = img[y0:y1, x0:x1]
+        border = np.concatenate([sub[0], sub[-1], sub[1:-1, 0], sub[1:-1, -1]]).astype(np.float64)
+        level, sigma = _clipped_stats(border, 3, 3.0)
+        opts = CentroidOptions(**{**asdict(options), "background": "global", "max_stars": None})
+        res = find_stars(sub - level + 0.0, opts, saturation=(saturation - level) if saturation else None)
+        if not res.stars:
+            out.append(None)
+            continue
+        best = dict(res.stars[0])
+        best["x"] += x0
+        best["y"] += y0
+        best["window"] = [x0, y0, x1 - 1, y1 - 1]
+        out.append(best)
+    return out

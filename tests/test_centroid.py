@@ -1,0 +1,164 @@
+import math
+
+import numpy as np
+import pytest
+
+from startrack.camera import Camera
+from startrack.catalog import Catalog
+from startrack.centroid import CentroidOptions, centroid_windows, find_stars
+from startrack.centroid_accuracy import accuracy_trials, cramer_rao_bound
+from startrack.render import Scene, Sensor, render_image
+
+from naive import centre_of_mass_naive, label_naive
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_label_blobs_matches_naive_labelling(seed):
+    from startrack._kernels.centroid import label_blobs
+
+    rng = np.random.default_rng(seed)
+    residual = rng.normal(0, 1, (60, 80)).astype(np.float32)
+    mask = (residual > 0.8).astype(np.uint8)
+    labels, table, n = label_blobs(residual, mask, residual, np.inf, 100000)
+    ref, n_ref = label_naive(mask.astype(bool))
+    assert n == n_ref
+    # Same partition: each kernel label maps to exactly one reference label.
+    pairs = set(zip(labels[mask > 0].tolist(), ref[mask > 0].tolist()))
+    assert len(pairs) == n
+    for lab in range(1, n + 1):
+        ref_lab = ref[labels == lab][0]
+        cx, cy, s = centre_of_mass_naive(residual, ref, ref_lab)
+        if s > 0:
+            assert table[lab, 1] == pytest.approx(cx, abs=1e-9) and table[lab, 2] == pytest.approx(cy, abs=1e-9)
+            assert table[lab, 0] == pytest.approx(s, rel=1e-5)
+        assert table[lab, 6] == (ref == ref_lab).sum()
+
+
+def _star_catalog(camera, positions, mags):
+    vec = camera.pixels_to_vectors(np.array([p[0] for p in positions]), np.array([p[1] for p in positions]))
+    ra = np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 360
+    dec = np.degrees(np.arcsin(vec[:, 2]))
+    n = len(positions)
+    return Catalog(np.arange(1, n + 1), ra, dec, np.array(mags, float), np.zeros(n), np.zeros(n), np.full(n, np.nan), 2000.)
+
+
+def test_rendered_frame_all_bright_stars_found_accurately(catalog):
+    from startrack.rotations import radec_roll_to_dcm
+
+    cam = Camera.from_fov(20, 1024, 1024)
+    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.3)
+    sensor = Sensor(hot_pixels=30, psf_sigma_px=1.2)
+    image, truth = render_image(catalog.filter_magnitude(None, 6.5), cam, a, sensor, Scene(),
+                                np.random.default_rng(2))
+    res = find_stars(image, CentroidOptions(gain_e_per_dn=sensor.gain), saturation=65535)
+    found = np.array([(s["x"], s["y"]) for s in res.stars])
+    sig = np.array([s["sigma_px"] for s in res.stars])
+    allx = np.array([s["x"] for s in truth["stars"]])
+    ally = np.array([s["y"] for s in truth["stars"]])
+
+    def isolated(s):  # no other star within 6 px to blend with
+        return np.sum(np.hypot(allx - s["x"], ally - s["y"]) < 6.0) == 1
+
+    bright = [s for s in truth["stars"] if s["mag"] <= 5.5 and 3 < s["x"] < 1020 and 3 < s["y"] < 1020
+              and not s["saturated"] and isolated(s)]
+    assert len(bright) > 20
+    errors = []
+    for s in bright:
+        d = np.hypot(found[:, 0] - s["x"], found[:, 1] - s["y"])
+        k = int(np.argmin(d))
+        # Within 5 of the reported 1-sigma uncertainties (radial, 2 axes).
+        assert d[k] < max(0.05, 5 * sig[k]), s
+        errors.append(d[k])
+    assert np.median(errors) < 0.05
+    # Nothing found where there is no star: every detection is a real star.
+    tx = np.array([s["x"] for s in truth["stars"]])
+    ty = np.array([s["y"] for s in truth["stars"]])
+    for f in res.stars:
+        assert np.hypot(tx - f["x"], ty - f["y"]).min() < 2.5, f
+    # Hot pixels are set aside, not reported as stars.
+    assert sum(r["reason"].startswith("hot pixel") for r in res.rejected) >= 15
+    # Brightest first, each with an uncertainty and SNR.
+    fluxes = [s["flux"] for s in res.stars]
+    assert fluxes == sorted(fluxes, reverse=True)
+    assert all(s["sigma_px"] > 0 and s["snr"] > 0 for s in res.stars)
+
+
+@pytest.mark.parametrize("method", ["com", "iwc", "quine", "gauss"])
+def test_methods_on_a_clean_star(method):
+    cam = Camera.from_fov(10, 64, 64)
+    cat = _star_catalog(cam, [(30.3, 33.8)], [3.0])
+    sensor = Sensor(psf_sigma_px=1.2, noise=False, gain_e_per_dn=0.2, full_well_e=1e9)
+    image, truth = render_image(cat, cam, np.eye(3), sensor, Scene(), np.random.default_rng(0))
+    res = find_stars(image, CentroidOptions(method=method, psf_sigma_px=1.2, background="global"), saturation=65535)
+    assert len(res.stars) == 1
+    tol = {"com": 0.02, "iwc": 0.02, "quine": 0.02, "gauss": 0.002}[method]
+    assert abs(res.stars[0]["x"] - truth["stars"][0]["x"]) < tol
+    assert abs(res.stars[0]["y"] - truth["stars"][0]["y"]) < tol
+
+
+def test_gaussian_fit_near_cramer_rao_bound():
+    rms, crb, det = accuracy_trials("gauss", 50, 1.2, 150, np.random.default_rng(11))
+    assert det == 1.0
+    assert rms < 1.3 * crb
+
+
+def test_cramer_rao_bound_scales_with_snr():
+    # Photon-limited: sigma_x = s / sqrt(N) for a well-sampled Gaussian.
+    b = cramer_rao_bound(1e6, 3.0, 0.0, 0.0)
+    assert b == pytest.approx(3.0 / math.sqrt(1e6), rel=0.02)
+    assert cramer_rao_bound(1e4, 1.0, 100, 5) > cramer_rao_bound(4e4, 1.0, 100, 5)
+
+
+def test_deblends_two_touching_stars():
+    cam = Camera.from_fov(10, 64, 64)
+    cat = _star_catalog(cam, [(28.0, 32.0), (32.5, 32.4)], [3.0, 3.4])
+    sensor = Sensor(psf_sigma_px=1.1, noise=False, gain_e_per_dn=0.2, full_well_e=1e9)
+    image, truth = render_image(cat, cam, np.eye(3), sensor, Scene(), np.random.default_rng(0))
+    res = find_stars(image, CentroidOptions(background="global"), saturation=65535)
+    assert len(res.stars) == 2
+    for s, t in zip(sorted(res.stars, key=lambda s: s["x"]), sorted(truth["stars"], key=lambda s: s["x"])):
+        assert math.hypot(s["x"] - t["x"], s["y"] - t["y"]) < 0.3
+
+
+def test_trail_is_flagged_not_centroided():
+    cam = Camera.from_fov(10, 128, 128)
+    cat = _star_catalog(cam, [(64.0, 64.0)], [2.0])
+    sensor = Sensor(psf_sigma_px=1.0, exposure_ms=500, gain_e_per_dn=1.0)
+    image, _ = render_image(cat, cam, np.eye(3), sensor, Scene(rate_deg_s=(0, 2.0, 0)), np.random.default_rng(0))
+    res = find_stars(image, CentroidOptions(), saturation=65535)
+    assert res.stars == []
+    assert any("elongated" in r["reason"] for r in res.rejected)
+
+
+def test_windowed_mode(catalog):
+    from startrack.rotations import radec_roll_to_dcm
+
+    cam = Camera.from_fov(12, 1024, 768)
+    a = radec_roll_to_dcm(math.radians(200), math.radians(40), 0.1)
+    image, truth = render_image(catalog.filter_magnitude(None, 6.0), cam, a, Sensor(), Scene(),
+                                np.random.default_rng(4))
+    stars = [s for s in truth["stars"] if s["mag"] < 5.5 and 10 < s["x"] < 1010 and 10 < s["y"] < 758]
+    predicted = [(s["x"] + 2.3, s["y"] - 1.7) for s in stars]
+    found = centroid_windows(image, predicted + [(500.0, 20.0), (np.nan, 3.0)], 8)
+    assert all(f is not None for f in found[: len(stars)])
+    for f, s in zip(found, stars):
+        assert math.hypot(f["x"] - s["x"], f["y"] - s["y"]) < 0.2
+    assert found[-1] is None
+
+
+def test_constant_and_saturated_images_give_reasons():
+    flat = np.full((100, 120), 500.0)
+    res = find_stars(flat, saturation=65535)
+    assert res.stars == [] and "constant" in res.reason
+    black = np.zeros((50, 50))
+    assert find_stars(black, saturation=255).stars == []
+    white = np.full((50, 50), 255.0)
+    res = find_stars(white, saturation=255)
+    assert res.stars == [] and "saturated" in res.reason
+
+
+def test_noise_image_finds_no_stars():
+    rng = np.random.default_rng(0)
+    noise = rng.normal(1000, 20, (512, 512))
+    res = find_stars(noise, saturation=65535)
+    assert len(res.stars) <= 2
