@@ -33,13 +33,13 @@ else
 fi
 
 # --- 2. cedar-solve in its own venv ---------------------------------------------------
-if [ -x "$CEDAR_VENV/bin/python" ] && "$CEDAR_VENV/bin/python" -c 'import tetra3' 2>/dev/null; then
+if [ -x "$CEDAR_VENV/bin/python" ] && "$CEDAR_VENV/bin/python" -c "import tetra3, h5py" 2>/dev/null; then
     say "cedar-solve already in $CEDAR_VENV"
 else
     say "creating $CEDAR_VENV with cedar-solve"
     [ -x "$CEDAR_VENV/bin/python" ] || "$PYTHON" -m venv "$CEDAR_VENV" || { say "cannot create $CEDAR_VENV"; exit 1; }
     "$CEDAR_VENV/bin/python" -m pip install --quiet --upgrade pip
-    "$CEDAR_VENV/bin/python" -m pip install --quiet cedar-solve || { say "pip install cedar-solve FAILED"; status=1; }
+    "$CEDAR_VENV/bin/python" -m pip install --quiet cedar-solve h5py || { say "pip install cedar-solve h5py FAILED"; status=1; }
 fi
 
 # --- 3. astrometry.net (Debian) ----------------------------------------------------------

@@ -14,6 +14,8 @@ COMMANDS = {
     "catalog-stats": "catalog_stats",
     "render": "render",
     "centroid": "centroid",
+    "build-kvector": "build_kvector",
+    "build-labels": "build_labels",
 }
 
 

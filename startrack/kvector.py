@@ -1,0 +1,269 @@
+"""The star-pair database and Mortari's k-vector (``startrack.kvector/1``).
+
+Every catalog star pair closer than the sensor's largest angular separation is
+stored with the cosine of its angle, sorted ascending (paper 003 Eq. 10:
+``P``, ``I`` = brighter star, ``J`` = dimmer star), together with
+
+* Mortari's k-vector (Mortari & Neta 2000; paper 003 Eqs. 11-14) for O(1)
+  range look-ups of all pairs whose cosine lies in an interval;
+* paper 000's modified search: a least-squares quadratic through the sorted
+  values (Eqs. 7-9) and its own index array, queried by Eqs. 10-12;
+* per-star neighbour lists (CSR) for geometric voting and grid patterns;
+* the star table (ids, unit vectors, magnitudes) so that ``identify`` needs
+  nothing else.
+
+The file records the catalog checksum and the parameters, and
+:func:`check_database` refuses a database built for another catalog or field.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from startrack.errors import BadInputError, DatabaseMismatchError
+
+__all__ = ["KVECTOR_FORMAT", "KVectorDatabase", "build_kvector", "load_kvector", "check_database",
+           "max_separation_deg"]
+
+KVECTOR_FORMAT = "startrack.kvector/1"
+
+
+def max_separation_deg(fov_deg: float | None = None, camera=None, margin_deg: float = 0.5) -> float:
+    """Largest angle between two stars of one image: the diagonal FOV plus a margin."""
+    if camera is not None:
+        diag = camera.diagonal_fov_deg
+    else:
+        if fov_deg is None or not fov_deg > 0:
+            raise BadInputError("--fov-deg", None, f"must be positive, got {fov_deg}")
+        # A square field of side fov: diagonal 2 atan(sqrt(2) tan(fov/2)).
+        diag = math.degrees(2 * math.atan(math.sqrt(2) * math.tan(math.radians(fov_deg) / 2)))
+    return diag + margin_deg
+
+
+@dataclass
+class KVectorDatabase:
+    """The pair database in memory; arrays are contiguous and ready for numba."""
+
+    star_id: np.ndarray
+    star_vector: np.ndarray
+    star_mag: np.ndarray
+    pair_i: np.ndarray
+    pair_j: np.ndarray
+    pair_cos: np.ndarray
+    kvector: np.ndarray
+    line: tuple
+    kquad: np.ndarray
+    quad: tuple
+    neighbor_ptr: np.ndarray
+    neighbor_idx: np.ndarray
+    max_angle_deg: float
+    catalog_sha256: str
+    params: dict = field(default_factory=dict)
+    path: str = ""
+
+    @property
+    def n_stars(self) -> int:
+        return len(self.star_id)
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.pair_cos)
+
+    def range_linear(self, cos_lo: float, cos_hi: float):
+        """Candidate index range ``[start, end)`` by the k-vector."""
+        from startrack._kernels.database import kvector_range
+
+        return kvector_range(self.kvector, self.line[0], self.line[1], cos_lo, cos_hi)
+
+    def range_quadratic_pure(self, cos_lo: float, cos_hi: float):
+        """Candidate index range ``[start, end)`` by paper 000's quadratic search alone (Eqs. 10-12)."""
+        from startrack._kernels.database import quadratic_range
+
+        return quadratic_range(self.kquad, *self.quad, cos_lo, cos_hi)
+
+    def range_quadratic(self, cos_lo: float, cos_hi: float):
+        """Paper 000's quadratic range clipped to the k-vector's.
+
+        Both ranges contain every pair in the interval, so their intersection
+        does too, and it is never longer than either.  On cosine-sorted pairs
+        the k-vector line is already close to the data (cosines of random pairs
+        are nearly uniform), so the quadratic alone is as often a little longer
+        as shorter; clipped, it is never longer.
+        """
+        from startrack._kernels.database import kvector_range, quadratic_range
+
+        s1, e1 = kvector_range(self.kvector, self.line[0], self.line[1], cos_lo, cos_hi)
+        s2, e2 = quadratic_range(self.kquad, *self.quad, cos_lo, cos_hi)
+        start, end = max(s1, s2), min(e1, e2)
+        return (start, end) if end > start else (start, start)
+
+    def pairs_between(self, angle_lo: float, angle_hi: float, method: str = "linear"):
+        """Indices of the pairs whose angle (radians) lies in ``[angle_lo, angle_hi]``."""
+        cos_lo, cos_hi = math.cos(min(angle_hi, math.pi)), math.cos(max(angle_lo, 0.0))
+        start, end = (self.range_linear if method == "linear" else self.range_quadratic)(cos_lo, cos_hi)
+        idx = np.arange(start, end)
+        c = self.pair_cos[start:end]
+        return idx[(c >= cos_lo) & (c <= cos_hi)]
+
+
+def _kvector_line(y: np.ndarray):
+    """Mortari's line through (0, y_min - xi) and (n, y_max + xi), and K(k) = #{y <= m k + q}."""
+    from startrack._kernels.database import count_at_or_below
+
+    n = len(y)
+    xi = np.finfo(np.float64).eps * max(abs(y[0]), abs(y[-1]), 1.0) * 4
+    m = (y[-1] - y[0] + 2 * xi) / max(n, 1)
+    q = y[0] - xi
+    k = np.arange(n + 1, dtype=np.float64)
+    return count_at_or_below(y, m * k + q), (float(m), float(q))
+
+
+def _quadratic_fit(y: np.ndarray):
+    """Paper 000 Eqs. 7-9: least-squares ``y(k) = p1 k^2 + p2 k + p3`` over k = 1..n, and its K array.
+
+    Eq. 8 as printed uses raw sums; it is the ordinary least-squares solution
+    only with centred sums, so we solve the least-squares problem directly.
+    The curve is shifted down / up at its ends so that it brackets the data
+    (``f(0) < y_min``, ``f(n) > y_max``); returns ``None`` when it is not
+    monotonic over the index range (then only the linear search applies).
+    """
+    from startrack._kernels.database import count_at_or_below
+
+    n = len(y)
+    k = np.arange(1, n + 1, dtype=np.float64)
+    p1, p2, p3 = np.polyfit(k, y, 2)
+    f = lambda kk: p1 * kk * kk + p2 * kk + p3  # noqa: E731
+    slope0, slope_n = 2 * p1 * 0 + p2, 2 * p1 * n + p2
+    if slope0 <= 0 or slope_n <= 0:
+        return None
+    # Bracket the data: lower the start, raise the end, by the largest residual.
+    resid = y - f(k)
+    p3_lo = p3 + min(resid.min(), 0.0) - 1e-12
+    grid = np.arange(n + 1, dtype=np.float64)
+    curve = p1 * grid * grid + p2 * grid + p3_lo
+    top_gap = y[-1] - curve[-1]
+    if top_gap > 0:
+        # Tilt the curve up linearly so that it reaches y_max at k = n.
+        curve = curve + top_gap * grid / n + 1e-12
+        p2 = p2 + top_gap / n + 1e-12 / n
+    return count_at_or_below(y, curve), (float(p1), float(p2), float(p3_lo))
+
+
+def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | None = None) -> KVectorDatabase:
+    """Build the pair database of a catalog for pairs up to ``max_angle_deg`` apart.
+
+    Parameters
+    ----------
+    catalog : startrack.catalog.Catalog
+        Stars; sorted here brightest first so that in every pair ``i < j``
+        means ``i`` is the brighter star (paper 003 Sec. 4.2.1).
+    max_angle_deg : float
+        Largest separation kept (degrees): the diagonal FOV plus a margin.
+    progress : callable, optional
+        ``progress(done, total)``.
+    """
+    from startrack.catalog import star_pairs
+
+    if len(catalog) < 2:
+        raise BadInputError("--catalog", None, f"needs at least 2 stars after filtering, has {len(catalog)}")
+    if not 0 < max_angle_deg <= 180:
+        raise BadInputError("--fov-deg", None, f"largest separation must be in (0, 180] deg, got {max_angle_deg:g}")
+    t0 = time.perf_counter()
+    cat = catalog.sorted_by_magnitude()
+    vec = np.ascontiguousarray(cat.vectors())
+    if progress:
+        progress(0, 3)
+    first, second, cosine = star_pairs(vec, math.radians(max_angle_deg))
+    order = np.argsort(cosine, kind="stable")
+    pair_i = first[order].astype(np.int32)      # first < second: brighter star first
+    pair_j = second[order].astype(np.int32)
+    pair_cos = np.ascontiguousarray(cosine[order])
+    if progress:
+        progress(1, 3)
+    if len(pair_cos) == 0:
+        raise BadInputError("--fov-deg", None, "no star pair is that close: the database would be empty")
+    kvec, line = _kvector_line(pair_cos)
+    quad = _quadratic_fit(pair_cos)
+    kquad, coeffs = (quad if quad is not None else (kvec.copy(), (0.0, line[0], line[1])))
+    # Neighbour lists (CSR), each star's neighbours sorted by index.
+    n = len(cat)
+    both_a = np.concatenate([pair_i, pair_j]).astype(np.int64)
+    both_b = np.concatenate([pair_j, pair_i]).astype(np.int32)
+    order = np.lexsort((both_b, both_a))
+    neighbor_idx = both_b[order]
+    neighbor_ptr = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(neighbor_ptr, both_a + 1, 1)
+    neighbor_ptr = np.cumsum(neighbor_ptr)
+    if progress:
+        progress(3, 3)
+    all_params = dict(params or {})
+    all_params.update(max_angle_deg=float(max_angle_deg), n_stars=int(n), n_pairs=int(len(pair_cos)),
+                      mag_min=float(cat.mag.min()), mag_max=float(cat.mag.max()), epoch=float(cat.epoch),
+                      quadratic_monotonic=quad is not None, build_seconds=round(time.perf_counter() - t0, 3))
+    return KVectorDatabase(cat.id.astype(np.int64), vec, cat.mag.astype(np.float64), pair_i, pair_j, pair_cos,
+                           kvec, line, kquad, coeffs, neighbor_ptr, neighbor_idx, float(max_angle_deg),
+                           cat.checksum(), all_params)
+
+
+def save_kvector(db: KVectorDatabase, path: str) -> None:
+    """Write ``startrack.kvector/1`` atomically."""
+    from startrack.formats.hdf5 import write_hdf5
+
+    datasets = {
+        "star_id": db.star_id, "star_vector": db.star_vector, "star_mag": (db.star_mag, {"unit": "mag"}),
+        "pair_i": (db.pair_i, {"note": "brighter star (index into star_*)"}),
+        "pair_j": (db.pair_j, {"note": "dimmer star"}),
+        "pair_cos": (db.pair_cos, {"note": "cosine of the pair's angle, ascending"}),
+        "kvector": db.kvector, "kquad": db.kquad,
+        "neighbor_ptr": db.neighbor_ptr, "neighbor_idx": db.neighbor_idx,
+    }
+    write_hdf5(path, KVECTOR_FORMAT, db.params, datasets, attrs={
+        "catalog_sha256": db.catalog_sha256, "max_angle_deg": db.max_angle_deg,
+        "kvector_line": np.array(db.line), "quadratic": np.array(db.quad)})
+
+
+def load_kvector(path: str) -> KVectorDatabase:
+    """Read a ``startrack.kvector/1`` file (one-line errors for anything else)."""
+    from startrack.formats.hdf5 import read_hdf5
+
+    f = read_hdf5(path, KVECTOR_FORMAT)
+    for attr in ("catalog_sha256", "max_angle_deg", "kvector_line", "quadratic"):
+        if attr not in f.attrs:
+            raise BadInputError(path, attr, "attribute is missing")
+    get = lambda name, dtype: np.ascontiguousarray(f[name], dtype=dtype)  # noqa: E731
+    return KVectorDatabase(
+        get("star_id", np.int64), get("star_vector", np.float64), get("star_mag", np.float64),
+        get("pair_i", np.int32), get("pair_j", np.int32), get("pair_cos", np.float64),
+        get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]), get("kquad", np.int64),
+        tuple(float(v) for v in f.attrs["quadratic"]), get("neighbor_ptr", np.int64), get("neighbor_idx", np.int32),
+        float(f.attrs["max_angle_deg"]), str(f.attrs["catalog_sha256"]), f.params, path)
+
+
+def check_database(db, camera=None, catalog=None, tolerance: float = 0.5) -> None:
+    """Refuse a database that does not fit the camera or the catalog in use.
+
+    Raises :class:`~startrack.errors.DatabaseMismatchError` (exit status 2) when
+
+    * the camera's diagonal field is wider than the database's largest pair
+      separation (pairs in the image would be missing from the database), or
+      narrower than ``tolerance`` times it (built for another, wider sensor);
+    * ``catalog`` is given and its checksum differs from the one recorded.
+    """
+    name = getattr(db, "path", "") or "database"
+    if camera is not None:
+        need = camera.diagonal_fov_deg
+        have = db.max_angle_deg
+        if need > have + 1e-9:
+            raise DatabaseMismatchError(name, "max_angle_deg",
+                                        f"built for separations up to {have:.2f} deg, but the camera's diagonal "
+                                        f"field is {need:.2f} deg: rebuild with the camera's --fov-deg")
+        if need < tolerance * have:
+            raise DatabaseMismatchError(name, "max_angle_deg",
+                                        f"built for a field of {have:.2f} deg but the camera's diagonal is "
+                                        f"{need:.2f} deg: use a database built for this sensor")
+    if catalog is not None and catalog.checksum() != db.catalog_sha256:
+        raise DatabaseMismatchError(name, "catalog_sha256",
+                                    "was built from another catalog (checksum differs): rebuild the database")
