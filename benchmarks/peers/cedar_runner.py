@@ -55,6 +55,7 @@ import os
 import sys
 import time
 import traceback
+from pathlib import Path
 
 import numpy as np
 
@@ -127,7 +128,7 @@ def build_db(max_fov, min_fov=None, mag=None, epoch=2025.0, cache_dir=CACHE_DIR,
           f"min_fov={min_fov}, mag={mag}, epoch={epoch}) ...", file=log, flush=True)
     t0 = time.perf_counter()
     tmp = path[:-4] + ".part.npz"
-    t3.generate_database(max_fov=max_fov, min_fov=min_fov, save_as=tmp, star_catalog=cat,
+    t3.generate_database(max_fov=max_fov, min_fov=min_fov, save_as=Path(tmp), star_catalog=cat,
                          star_max_magnitude=mag, epoch_proper_motion=epoch, **kw)
     dt = time.perf_counter() - t0
     os.replace(tmp, path)
@@ -155,7 +156,8 @@ class Solver:
             if db == "default":
                 self._dbs[db] = self.tetra3.Tetra3()  # ships default_database.npz
             else:
-                self._dbs[db] = self.tetra3.Tetra3(load_database=db)
+                # a str would be looked up in tetra3's own data/ folder: pass a Path
+                self._dbs[db] = self.tetra3.Tetra3(load_database=Path(os.path.abspath(db)))
         return self._dbs[db]
 
     def solve(self, req: dict) -> dict:

@@ -1,0 +1,247 @@
+"""Attitude kernels: QUEST (Shuster & Oh 1981) without LAPACK, for use inside other kernels."""
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def profile(b, r, w):
+    """``B = sum w_i b_i r_i^T`` (paper 000 Eq. 19)."""
+    bm = np.zeros((3, 3))
+    for i in range(b.shape[0]):
+        for p in range(3):
+            for q in range(3):
+                bm[p, q] += w[i] * b[i, p] * r[i, q]
+    return bm
+
+
+@njit(cache=True, inline="always")
+def _mv(m, v):
+    return np.array([m[0, 0] * v[0] + m[0, 1] * v[1] + m[0, 2] * v[2],
+                     m[1, 0] * v[0] + m[1, 1] * v[1] + m[1, 2] * v[2],
+                     m[2, 0] * v[0] + m[2, 1] * v[1] + m[2, 2] * v[2]])
+
+
+@njit(cache=True, inline="always")
+def _vdot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True)
+def _quest_core(bm, lam0):
+    """QUEST on a profile matrix: Newton on the characteristic equation, adjugate quaternion.
+
+    Shuster & Oh (1981): with ``S = B + B^T``, ``sigma = tr B``,
+    ``Z = (B23 - B32, B31 - B13, B12 - B21)``, ``kappa = tr adj S``,
+    ``Delta = det S``: ``a = sigma^2 - kappa``, ``b = sigma^2 + Z.Z``,
+    ``c = Delta + Z.S Z``, ``d = Z.S^2 Z``,
+    ``f(l) = l^4 - (a + b) l^2 - c l + (a b + c sigma - d)``; Newton from
+    ``lam0 = sum w``.  Then ``alpha = l^2 - sigma^2 + kappa``, ``beta = l - sigma``,
+    ``gamma = (l + sigma) alpha - Delta``, ``X = (alpha I + beta S + S^2) Z`` and
+    ``q = (X, gamma) / norm``.  Returns ``(q, lambda, gamma_rel)``.
+    """
+    s = bm + bm.T
+    sigma = bm[0, 0] + bm[1, 1] + bm[2, 2]
+    z = np.array([bm[1, 2] - bm[2, 1], bm[2, 0] - bm[0, 2], bm[0, 1] - bm[1, 0]])
+    kappa = (s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0]) + (s[0, 0] * s[2, 2] - s[0, 2] * s[2, 0]) + \
+        (s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1])
+    delta = s[0, 0] * (s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1]) - s[0, 1] * (s[1, 0] * s[2, 2] - s[1, 2] * s[2, 0]) + \
+        s[0, 2] * (s[1, 0] * s[2, 1] - s[1, 1] * s[2, 0])
+    sz = _mv(s, z)
+    s2z = _mv(s, sz)
+    a = sigma * sigma - kappa
+    b = sigma * sigma + _vdot(z, z)
+    c = delta + _vdot(z, sz)
+    d = _vdot(z, s2z)
+    lam = lam0
+    for _ in range(50):
+        f = lam ** 4 - (a + b) * lam * lam - c * lam + (a * b + c * sigma - d)
+        fp = 4 * lam ** 3 - 2 * (a + b) * lam - c
+        if fp == 0.0:
+            break
+        step = f / fp
+        lam -= step
+        if abs(step) < 1e-15 * max(1.0, abs(lam)):
+            break
+    alpha = lam * lam - sigma * sigma + kappa
+    beta = lam - sigma
+    gamma = (lam + sigma) * alpha - delta
+    x = alpha * z + beta * sz + s2z
+    norm = math.sqrt(gamma * gamma + _vdot(x, x))
+    q = np.empty(4)
+    if norm == 0.0:
+        q[:] = 0.0
+        q[3] = 1.0
+        return q, lam, 0.0
+    q[0] = x[0] / norm
+    q[1] = x[1] / norm
+    q[2] = x[2] / norm
+    q[3] = gamma / norm
+    return q, lam, abs(gamma) / norm
+
+
+@njit(cache=True)
+def quest(b, r, w):
+    """Optimal quaternion (scalar last) of Wahba's problem by QUEST, with sequential rotations.
+
+    When ``gamma`` is small (rotation near 180 degrees) the problem is solved
+    again with the reference frame turned by 180 degrees about x, y or z
+    (Shuster & Oh's method of sequential rotations: two columns of ``B``
+    negated) and the result turned back.  Returns ``(q, lambda_max)``.
+    """
+    bm = profile(b, r, w)
+    lam0 = 0.0
+    for i in range(w.shape[0]):
+        lam0 += w[i]
+    q, lam, g = _quest_core(bm, lam0)
+    if g > 1e-2:
+        if q[3] < 0:
+            q = -q
+        return q, lam
+    best_q = q
+    best_g = g
+    for axis in range(3):
+        bm2 = bm.copy()
+        for row in range(3):
+            for col in range(3):
+                if col != axis:
+                    bm2[row, col] = -bm[row, col]
+        q2, lam2, g2 = _quest_core(bm2, lam0)
+        if g2 > best_g:
+            # Undo the 180-degree turn of the reference frame: q = q' (x) e_axis.
+            if axis == 0:
+                qq = np.array([q2[3], -q2[2], q2[1], -q2[0]])
+            elif axis == 1:
+                qq = np.array([q2[2], q2[3], -q2[0], -q2[1]])
+            else:
+                qq = np.array([-q2[1], q2[0], q2[3], -q2[2]])
+            best_q = qq
+            best_g = g2
+            lam = lam2
+        if best_g > 0.3:
+            break
+    if best_q[3] < 0:
+        best_q = -best_q
+    return best_q, lam
+
+
+@njit(cache=True)
+def quat_to_dcm(q):
+    """``A(q) = (q4^2 - |q|^2) I + 2 q q^T - 2 q4 [q x]`` (paper 000 Eq. 21)."""
+    q1, q2, q3, q4 = q[0], q[1], q[2], q[3]
+    a = np.empty((3, 3))
+    a[0, 0] = q1 * q1 - q2 * q2 - q3 * q3 + q4 * q4
+    a[0, 1] = 2 * (q1 * q2 + q3 * q4)
+    a[0, 2] = 2 * (q1 * q3 - q2 * q4)
+    a[1, 0] = 2 * (q1 * q2 - q3 * q4)
+    a[1, 1] = -q1 * q1 + q2 * q2 - q3 * q3 + q4 * q4
+    a[1, 2] = 2 * (q2 * q3 + q1 * q4)
+    a[2, 0] = 2 * (q1 * q3 + q2 * q4)
+    a[2, 1] = 2 * (q2 * q3 - q1 * q4)
+    a[2, 2] = -q1 * q1 - q2 * q2 + q3 * q3 + q4 * q4
+    return a
+
+
+@njit(cache=True)
+def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, radius):
+    """Nearest catalog star (within ``radius`` rad, unambiguous) for every image vector.
+
+    Catalog stars are projected with ``dcm`` and kept when they land on the
+    sensor (plus the radius).  A match is refused when a second catalog star
+    is within the radius and not at least twice as far as the first.  Each
+    catalog star is used once (the closer image star wins).
+    Returns ``(match, n_predicted)`` with ``match[i]`` a catalog index or -1.
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    margin = radius * focal
+    cand = np.empty(m, dtype=np.int64)
+    pred = np.empty((m, 3))
+    nc = 0
+    for s in range(m):
+        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
+        if z < cos_fov:
+            continue
+        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
+        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
+        u = x / z
+        v = y / z
+        r2 = u * u + v * v
+        sc = 1.0 + k1 * r2 + k2 * r2 * r2
+        px = cx + focal * u * sc
+        py = cy + focal * v * sc
+        if px < -0.5 - margin or px > width - 0.5 + margin or py < -0.5 - margin or py > height - 0.5 + margin:
+            continue
+        cand[nc] = s
+        pred[nc, 0] = x
+        pred[nc, 1] = y
+        pred[nc, 2] = z
+        nc += 1
+    match = np.full(n, -1, dtype=np.int64)
+    best_ang = np.full(n, 1e9)
+    cos_r = math.cos(radius)
+    for i in range(n):
+        d1 = -2.0
+        d2 = -2.0
+        a1 = -1
+        for c in range(nc):
+            d = b[i, 0] * pred[c, 0] + b[i, 1] * pred[c, 1] + b[i, 2] * pred[c, 2]
+            if d > d1:
+                d2 = d1
+                d1 = d
+                a1 = c
+            elif d > d2:
+                d2 = d
+        if a1 < 0 or d1 < cos_r:
+            continue
+        ang1 = math.acos(min(1.0, d1))
+        if d2 >= cos_r:
+            ang2 = math.acos(min(1.0, d2))
+            if ang1 > 0.5 * ang2:
+                continue
+        match[i] = cand[a1]
+        best_ang[i] = ang1
+    # One image star per catalog star: keep the closer.
+    for i in range(n):
+        if match[i] < 0:
+            continue
+        for j in range(i + 1, n):
+            if match[j] == match[i]:
+                if best_ang[j] < best_ang[i]:
+                    match[i] = -1
+                    break
+                else:
+                    match[j] = -1
+    return match, nc
+
+
+@njit(cache=True)
+def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds):
+    """Attitude from the proposal, then match-all / re-solve ``rounds`` times.
+
+    Returns ``(match, q, n_predicted)``.
+    """
+    w = np.ones(img.shape[0])
+    q, _ = quest(b[img], star_vec[cat], w)
+    match = np.full(b.shape[0], -1, dtype=np.int64)
+    npred = 0
+    for _ in range(rounds):
+        dcm = quat_to_dcm(q)
+        match, npred = match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, radius)
+        k = 0
+        for i in range(match.shape[0]):
+            if match[i] >= 0:
+                k += 1
+        if k < 2:
+            break
+        bi = np.empty((k, 3))
+        ri = np.empty((k, 3))
+        t = 0
+        for i in range(match.shape[0]):
+            if match[i] >= 0:
+                bi[t] = b[i]
+                ri[t] = star_vec[match[i]]
+                t += 1
+        q, _ = quest(bi, ri, np.ones(k))
+    return match, q, npred

@@ -1,0 +1,133 @@
+"""startrack identify: lost-in-space star identification of frame documents."""
+import click
+
+from startrack.cli.options import handle_errors, input_argument, output_option, quiet_option
+
+
+@click.command("identify", short_help="Identify the stars of frame documents (lost in space).")
+@input_argument
+@click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
+              help="Database from build-kvector (or build-labels for --algorithm labelling).")
+@click.option("--algorithm", "-a", default="pyramid", show_default=True,
+              help="pyramid, pyramid-quadratic, voting (and the algorithms of later versions).")
+@click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
+              help="Camera JSON, for frames without a camera section (or to override it).")
+@click.option("--sigma-px", type=float, default=None,
+              help="Centroid noise (1 sigma, px) for the tolerances; default: from the stars' sigma_px, else 0.5.")
+@click.option("--tolerance-arcsec", type=float, default=None, help="Inter-star angle tolerance, overriding the default.")
+@click.option("--max-stars", type=int, default=12, show_default=True, help="Brightest stars used to search.")
+@click.option("--max-false-probability", type=float, default=1e-4, show_default=True,
+              help="Refuse an identification more likely than this to be a coincidence.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="Annotated PNG of each frame with an image (numbered when several).")
+@output_option()
+@quiet_option
+@handle_errors
+def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
+            plot, output, quiet):
+    """Identify the stars of each frame: adds an `identification` section.
+
+    Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
+    from a file or stdin; writes `identification` with status, algorithm,
+    matches (star index -> HIP id), time_ms and false_match_probability, the
+    probability that the match is a coincidence.  A frame that cannot be
+    identified gets status "failed" and a reason; the batch goes on.
+
+    \b
+    Example (build a database once, then identify a stream):
+      startrack build-kvector --fov-deg 20 --mag-max 5.0 -o db.h5
+      startrack render --stars-only --count 100 --fov-deg 20 --mag-limit 5 --sigma-px 0.3 --seed 1 \\
+          | startrack identify --database db.h5 --algorithm pyramid | jq -c .identification.status
+    \b
+    Example (a real photo):
+      startrack centroid sky.tiff --camera cam.json | startrack identify -d db.h5 --plot sky-id.png
+    """
+    import os
+
+    from startrack.camera import Camera
+    from startrack.cli.batch import run_frames
+    from startrack.errors import BadInputError
+    from startrack.formats.frame import read_json_file
+    from startrack.identify import ALGORITHMS, DATABASE_KIND, IdentifyParams, identify_stars
+
+    if algorithm not in ALGORITHMS:
+        raise BadInputError("--algorithm", None, f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+    if max_stars < 3:
+        raise BadInputError("--max-stars", None, f"must be at least 3, got {max_stars}")
+    db = _load_database(database, DATABASE_KIND[algorithm])
+    override = None
+    if camera_file:
+        doc = read_json_file(camera_file)
+        override = Camera.from_dict(doc.get("camera", doc) if str(doc.get("format", "")).startswith("startrack.frame")
+                                    else doc, camera_file)
+    params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
+                            max_false_probability=max_false_probability)
+    checked = {}
+    counter = {"n": 0}
+
+    def process(doc, source):
+        if override is not None:
+            cam = override
+            doc["camera"] = cam.to_dict()
+        else:
+            if "camera" not in doc:
+                raise BadInputError(source, "camera", "is missing (give --camera camera.json)")
+            cam = Camera.from_dict(doc["camera"], source)
+        key = (cam.width, cam.height, cam.focal_length_px, cam.k1, cam.k2)
+        if key not in checked:
+            checked[key] = _check(db, cam, DATABASE_KIND[algorithm])
+        from startrack.formats.frame import validate_stars
+
+        validate_stars(doc, source)
+        result = identify_stars(doc["stars"], cam, db, algorithm, params)
+        doc["identification"] = result.section()
+        if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
+            _plot(plot, counter["n"], doc, db, cam, result)
+        counter["n"] += 1
+        return doc
+
+    run_frames(input, output, "identification", process, quiet, "identify")
+
+
+def _load_database(path, kind):
+    if kind == "labels":
+        from startrack.labels import load_labels
+
+        return load_labels(path)
+    from startrack.kvector import load_kvector
+
+    return load_kvector(path)
+
+
+def _check(db, camera, kind):
+    if kind == "labels":
+        from startrack.labels import check_labels
+
+        check_labels(db, camera)
+    else:
+        from startrack.kvector import check_database
+
+        check_database(db, camera)
+    return True
+
+
+def _plot(pattern, index, doc, db, camera, result):
+    import numpy as np
+
+    from startrack.imageio import read_image
+    from startrack.names import star_label
+    from startrack.plot import annotate_stars
+    from startrack.render import numbered_path
+
+    image, _ = read_image(doc["image"]["path"])
+    labels = {m["star"]: star_label(m["id"]) for m in result.matches}
+    predicted = []
+    if result.dcm is not None:
+        cam_vec = db.star_vector @ result.dcm.T
+        front = cam_vec[:, 2] > 0
+        x, y = camera.vectors_to_pixels(cam_vec[front])
+        inside = camera.in_image(x, y)
+        predicted = list(zip(x[inside], y[inside]))
+    title = f"{result.algorithm}: {result.status}, {len(result.matches)} stars identified"
+    annotate_stars(numbered_path(pattern, index, 10**9 if index else 1), image, doc["stars"], None, labels,
+                   predicted, title)
