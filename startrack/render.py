@@ -359,13 +359,36 @@ def _peak_fraction(sigma):
     return math.erf(0.5 / (math.sqrt(2.0) * sigma)) ** 2
 
 
+def _merge_unresolved(x, y, mags, ids, resolve_px):
+    """Blend stars closer than ``resolve_px``: one entry at the flux-weighted position with the
+    summed flux, carrying the brighter star's id (a centroider sees one blob)."""
+    order = np.argsort(mags, kind="stable")
+    kept = []
+    for k in order:
+        for g in kept:
+            if math.hypot(x[k] - g["x"], y[k] - g["y"]) < resolve_px:
+                f_g = 10 ** (-0.4 * g["mag"])
+                f_k = 10 ** (-0.4 * mags[k])
+                g["x"] = (g["x"] * f_g + x[k] * f_k) / (f_g + f_k)
+                g["y"] = (g["y"] * f_g + y[k] * f_k) / (f_g + f_k)
+                g["mag"] = -2.5 * math.log10(f_g + f_k)
+                g["blended"].append(int(ids[k]))
+                break
+        else:
+            kept.append({"x": float(x[k]), "y": float(y[k]), "mag": float(mags[k]), "id": int(ids[k]), "blended": []})
+    return kept
+
+
 def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: np.random.Generator,
-              sigma_px: float = 0.0, max_stars: int | None = None, drop_fraction: float = 0.0, vectors=None):
+              sigma_px: float = 0.0, max_stars: int | None = None, drop_fraction: float = 0.0, vectors=None,
+              resolve_px: float | None = None):
     """A frame's ``stars`` straight from the truth, with centroid and magnitude noise.
 
     The fast path for identification studies (no image): catalog stars inside
-    the (focal-error perturbed) image at or brighter than ``scene.mag_limit``,
-    each moved by Gaussian noise of ``sigma_px`` per axis; ``flux`` is the
+    the (focal-error perturbed) image at or brighter than ``scene.mag_limit``
+    (stars closer than ``resolve_px``, by default two PSF sigmas, blended into
+    one as a centroider would see them), each moved by Gaussian noise of
+    ``sigma_px`` per axis; ``flux`` is the
     photo-electrons of its noisy magnitude; a fraction ``drop_fraction`` of
     stars is dropped at random; ``scene.false_stars`` false stars of random
     position and brightness are added; the ``max_stars`` brightest are kept.
@@ -387,14 +410,18 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
     if scene.mag_limit is not None:
         keep = mags <= scene.mag_limit
         index, x, y, mags = index[keep], x[keep], y[keep], mags[keep]
-    order = np.argsort(mags, kind="stable")
-    index, x, y, mags = index[order], x[order], y[order], mags[order]
-    truth_stars = [{"id": int(catalog.id[i]), "x": float(a), "y": float(b), "mag": float(m)}
-                   for i, a, b, m in zip(index, x, y, mags)]
+    resolve = 2.0 * sensor.psf_sigma_px if resolve_px is None else resolve_px
+    blobs = _merge_unresolved(x, y, mags, catalog.id[index], resolve)
+    x = np.array([b["x"] for b in blobs])
+    y = np.array([b["y"] for b in blobs])
+    mags = np.array([b["mag"] for b in blobs])
+    blob_ids = [b["id"] for b in blobs]
+    truth_stars = [{"id": b["id"], "x": b["x"], "y": b["y"], "mag": b["mag"],
+                    **({"blended": b["blended"]} if b["blended"] else {})} for b in blobs]
     noisy_mag = mags + (rng.normal(0.0, scene.mag_noise, len(mags)) if scene.mag_noise > 0 else 0.0)
     mx = x + (rng.normal(0.0, sigma_px, len(x)) if sigma_px > 0 else 0.0)
     my = y + (rng.normal(0.0, sigma_px, len(y)) if sigma_px > 0 else 0.0)
-    ids = [int(catalog.id[i]) for i in index]
+    ids = list(blob_ids)
     if drop_fraction > 0:
         keep = rng.random(len(ids)) >= drop_fraction
         mx, my, noisy_mag = mx[keep], my[keep], noisy_mag[keep]

@@ -38,6 +38,14 @@ CEDAR_PY = os.path.join(ROOT, ".venv-cedar", "bin", "python")
 CEDAR_RUNNER = os.path.join(HERE, "cedar_runner.py")
 
 
+# startrack roll (PA of image up, -y, east of north) at the image centre of the ESA images,
+# from astrometry.net 0.93's WCS (astrometry_peer.wcs_solution); cedar and tetra3rs agree
+# to 0.02 deg.
+ESA_CENTRE_ROLL = {"Alt40_Azi-135": 27.720, "Alt40_Azi-45": 56.577, "Alt40_Azi135": 335.108,
+                   "Alt40_Azi45": 306.691, "Alt60_Azi-135": 30.951, "Alt60_Azi-45": 91.676,
+                   "Alt60_Azi135": 331.369, "Alt60_Azi45": 270.599}
+
+
 # ----------------------------------------------------------------------------- geometry
 def radec_vec(ra, dec):
     ra, dec = np.radians(ra), np.radians(dec)
@@ -191,8 +199,11 @@ def main():
         lines.append(f"| solve-field (Tycho-2 10-19, scale 10-13 deg width) | {ok}/{len(res)} solved | "
                      f"median {med([r['elapsed_ms'] for r in res]):.0f} ms/image (whole process) | "
                      f"max centre err {max([r.get('err_arcsec', float('nan')) for r in res]):.1f}\" |")
-    ref_roll = {fn: an_roll.get(fn, (float(refs[fn]["up_deg_east_of_north"]) + 180.0) % 360.0)
-                for fn in files}
+    # Without a solve-field run: the centre rolls measured from its WCS (README.md); the CSV's
+    # up_deg_east_of_north + 180 is only good to ~2 deg (it is taken at CRPIX).
+    ref_roll = {fn: an_roll.get(fn, ESA_CENTRE_ROLL.get(
+        fn.split("T204726_")[-1].replace("_Try1.tiff", ""),
+        (float(refs[fn]["up_deg_east_of_north"]) + 180.0) % 360.0)) for fn in files}
 
     # -- SEP
     sep_xy = {}
@@ -280,7 +291,7 @@ def main():
             out = []
             for fn in files:
                 rr = byid[fn]
-                r = dict(rr[-1])
+                r = dict(rr[-1], file=fn)
                 r["t_solve_ms_median"] = med([x["t_solve_ms"] for x in rr])
                 r["t_extract_ms_median"] = med([x.get("t_extract_ms") for x in rr])
                 r["t_wall_ms_median"] = med([x["t_wall_ms"] for x in rr])

@@ -46,12 +46,17 @@ def extract(image: np.ndarray, thresh_sigma: float, *, minarea: int = 5,
     try:
         objs = sep.extract(data, float(thresh_sigma), err=bkg.globalrms, mask=mask, **kw)
     except Exception as exc:  # SEP's default pixel stack (300k) can overflow on busy frames
-        if "pixel buffer full" not in str(exc) or sep.get_extract_pixstack() >= data.size:
+        msg = str(exc).lower()
+        if "pixel" not in msg or sep.get_extract_pixstack() >= data.size:
             raise
         # Raising the stack for every call would cost ~13 ms a 1024x768 frame (it is
         # allocated per call), so only on overflow; the retry stays inside the timing.
+        old = sep.get_extract_pixstack()
         sep.set_extract_pixstack(int(data.size))
-        objs = sep.extract(data, float(thresh_sigma), err=bkg.globalrms, mask=mask, **kw)
+        try:
+            objs = sep.extract(data, float(thresh_sigma), err=bkg.globalrms, mask=mask, **kw)
+        finally:  # restore, so later calls keep the fast default
+            sep.set_extract_pixstack(old)
     elapsed_ms = (time.perf_counter() - t0) * 1000.0
     order = np.argsort(-objs["flux"], kind="stable")
     objs = objs[order]

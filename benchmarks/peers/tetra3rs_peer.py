@@ -21,7 +21,6 @@ Conventions (measured, see README.md):
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 
@@ -211,10 +210,12 @@ def is_available() -> bool:
         return False
 
 
-if __name__ == "__main__":  # tiny smoke test: python benchmarks/peers/tetra3rs_peer.py
+if __name__ == "__main__":  # python benchmarks/peers/tetra3rs_peer.py [FOV [MAG [gaia|hip2]]]
     import sys
 
     fov = float(sys.argv[1]) if len(sys.argv) > 1 else 11.4
-    build_or_load(fov, None)
+    mag = float(sys.argv[2]) if len(sys.argv) > 2 and sys.argv[2] != "auto" else None
+    cat = sys.argv[3] if len(sys.argv) > 3 else "gaia"
+    d = build_or_load(fov, mag, catalog=cat)
     print(LAST_BUILD)
-    print(math.isfinite(fov))
+    print(d.parameters)

@@ -148,9 +148,9 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
     """Nearest catalog star (within ``radius`` rad, unambiguous) for every image vector.
 
     Catalog stars are projected with ``dcm`` and kept when they land on the
-    sensor (plus the radius).  A match is refused when a second catalog star
-    is within the radius and not at least twice as far as the first.  Each
-    catalog star is used once (the closer image star wins).
+    sensor (plus the radius).  Two catalog stars inside the radius of one image
+    star are an unresolved pair (they image as one blob): the nearer is taken.
+    Each catalog star is used once (the closer image star wins).
     Returns ``(match, n_predicted)`` with ``match[i]`` a catalog index or -1.
     """
     n = b.shape[0]
@@ -196,10 +196,6 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
         if a1 < 0 or d1 < cos_r:
             continue
         ang1 = math.acos(min(1.0, d1))
-        if d2 >= cos_r:
-            ang2 = math.acos(min(1.0, d2))
-            if ang1 > 0.5 * ang2:
-                continue
         match[i] = cand[a1]
         best_ang[i] = ang1
     # One image star per catalog star: keep the closer.

@@ -164,7 +164,12 @@ def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_
                               radius, 2)
     dcm = quat_to_dcm(q)
     n_matched = int(np.sum(match >= 0))
-    agree = int(np.sum(match[img] == cat))
+    # A proposal star agrees when the refined match is its catalog star, or a
+    # catalog star it cannot be told from (an unresolved pair within the radius).
+    got = match[img]
+    same = got == cat
+    near = (got >= 0) & (np.einsum("ij,ij->i", star_vec[np.maximum(got, 0)], star_vec[cat]) >= math.cos(radius))
+    agree = int(np.sum(same | near))
     if agree < min(len(img), params.min_matches):
         return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
     if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):

@@ -1,0 +1,242 @@
+"""Monte Carlo comparison of identification algorithms (the papers' tables).
+
+For every condition (centroid noise, false stars, magnitude noise, focal-length
+error, dropped stars) ``n`` random attitudes are drawn from the same seed, so
+every algorithm and every condition sees the same skies.  Star lists come from
+:func:`startrack.render.star_list`; each frame is scored against its truth:
+
+* **success**: identified, and every reported match is the true star;
+* **bad match**: identified, but at least one match is wrong (a false star
+  matched to a catalog star counts as wrong);
+* **ID failure**: no identification returned.
+
+Times are the identification time per frame as each algorithm reports it
+(``time_ms``: pattern search, verification and confidence).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from startrack.errors import BadInputError
+
+__all__ = ["Condition", "conditions_grid", "make_frames", "score", "evaluate", "summarise", "plot_results"]
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One cell of the comparison."""
+
+    sigma_px: float = 0.1
+    false_stars: int = 0
+    mag_noise: float = 0.0
+    focal_error_pct: float = 0.0
+    drop_fraction: float = 0.0
+    min_stars: int = 0
+    max_stars: int | None = None
+
+    def label(self) -> str:
+        parts = [f"sigma {self.sigma_px:g}px"]
+        if self.false_stars:
+            parts.append(f"{self.false_stars} false")
+        if self.mag_noise:
+            parts.append(f"mag noise {self.mag_noise:g}")
+        if self.focal_error_pct:
+            parts.append(f"focal {self.focal_error_pct:g}%")
+        if self.drop_fraction:
+            parts.append(f"drop {self.drop_fraction:g}")
+        if self.min_stars:
+            parts.append(f">= {self.min_stars} stars")
+        return ", ".join(parts)
+
+
+def conditions_grid(**lists) -> list:
+    """All combinations of the given value lists, e.g. ``false_stars=[0, 1, 2]``."""
+    keys = [k for k, v in lists.items() if v is not None]
+    values = [lists[k] for k in keys]
+    return [Condition(**dict(zip(keys, combo))) for combo in itertools.product(*values)]
+
+
+def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor=None, mag_limit=None, vectors=None):
+    """``n`` star-list frames for ``condition``; frame k uses attitude seed (seed, k), retried (seed, k, t)
+    until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star")."""
+    from startrack.render import Scene, Sensor, star_list
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    sensor = sensor or Sensor()
+    scene = Scene(mag_limit=mag_limit, mag_noise=condition.mag_noise, false_stars=condition.false_stars,
+                  focal_error_pct=condition.focal_error_pct)
+    vectors = catalog.vectors() if vectors is None else vectors
+    frames = []
+    for k in range(n):
+        for t in range(1000):
+            frame_seed = [int(seed), int(k), int(t)]
+            rng = np.random.default_rng(frame_seed)
+            dcm = quaternion_to_dcm(random_quaternions(1, rng)[0])
+            stars, truth = star_list(catalog, camera, dcm, sensor, scene, rng, condition.sigma_px,
+                                     condition.max_stars, condition.drop_fraction, vectors)
+            if len(stars) >= condition.min_stars:
+                break
+        frames.append((stars, truth, frame_seed))
+    return frames
+
+
+def score(result, truth) -> str:
+    """``"success"``, ``"bad"`` or ``"failure"`` for one identification against its truth."""
+    if result.status != "ok":
+        return "failure"
+    ids = truth["star_ids"]
+    blends = {s["id"]: set(s.get("blended", ())) for s in truth.get("stars", ())}
+    for m in result.matches:
+        true_id = ids[m["star"]]
+        # A blend of unresolved stars may be named after any of its components.
+        if true_id != m["id"] and m["id"] not in blends.get(true_id, ()):
+            return "bad"
+    return "success"
+
+
+_WORKER = {}
+
+
+def _worker_init(databases, camera, params):
+    _WORKER.update(databases=databases, camera=camera, params=params)
+
+
+def _identify_chunk(args):
+    from startrack.identify import DATABASE_KIND, identify_stars
+
+    algorithm, frames = args
+    db = _WORKER["databases"][DATABASE_KIND[algorithm]]
+    if frames and not _WORKER.get(("warm", algorithm)):
+        # The first call in a process loads the compiled kernels: keep it out of the timings.
+        identify_stars(frames[0][0], _WORKER["camera"], db, algorithm, _WORKER["params"])
+        _WORKER[("warm", algorithm)] = True
+    out = []
+    for stars, truth, frame_seed in frames:
+        res = identify_stars(stars, _WORKER["camera"], db, algorithm, _WORKER["params"])
+        outcome = score(res, truth)
+        wrong = [m for m in res.matches if truth["star_ids"][m["star"]] != m["id"]][:3] if outcome == "bad" else []
+        out.append((outcome, res.time_ms, len(stars), frame_seed, wrong))
+    return out
+
+
+def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: int = 0, jobs: int = 1,
+             params=None, mag_limit=None, progress=None):
+    """Run every algorithm on every condition.
+
+    Parameters
+    ----------
+    databases : dict
+        Database kind (``"kvector"``, ``"labels"``, ...) -> loaded database.
+
+    Returns
+    -------
+    list of dict
+        One row per (algorithm, condition) with the counts, rates and times,
+        and the frame seeds of any bad match (to reproduce it).
+    """
+    from startrack.identify import DATABASE_KIND, IdentifyParams
+
+    for a in algorithms:
+        if a not in DATABASE_KIND:
+            raise BadInputError("--algorithms", None, f"unknown algorithm {a!r}")
+        if DATABASE_KIND[a] not in databases:
+            raise BadInputError("--database", None, f"{a} needs a {DATABASE_KIND[a]} database")
+    params = params or IdentifyParams()
+    vectors = catalog.vectors()
+    rows = []
+    total = len(conditions) * len(algorithms)
+    done = 0
+    pool = None
+    if jobs > 1:
+        import multiprocessing as mp
+
+        pool = mp.get_context("fork").Pool(jobs, _worker_init, (databases, camera, params))
+    else:
+        _worker_init(databases, camera, params)
+    try:
+        for cond in conditions:
+            frames = make_frames(catalog, camera, cond, n, seed, mag_limit=mag_limit, vectors=vectors)
+            for algorithm in algorithms:
+                if pool is not None:
+                    size = max(1, len(frames) // (jobs * 4))
+                    chunks = [(algorithm, frames[i:i + size]) for i in range(0, len(frames), size)]
+                    results = [r for part in pool.map(_identify_chunk, chunks) for r in part]
+                else:
+                    results = _identify_chunk((algorithm, frames))
+                outcome = [r[0] for r in results]
+                times = np.array([r[1] for r in results])
+                bad = [{"frame_seed": r[3], "wrong": r[4]} for r in results if r[0] == "bad"]
+                rows.append({
+                    "algorithm": algorithm, "condition": cond.label(), **asdict(cond), "frames": n,
+                    "success": outcome.count("success"), "failure": outcome.count("failure"),
+                    "bad": outcome.count("bad"),
+                    "success_rate": outcome.count("success") / n,
+                    "mean_ms": float(times.mean()), "median_ms": float(np.median(times)),
+                    "p95_ms": float(np.percentile(times, 95)),
+                    "mean_stars": float(np.mean([r[2] for r in results])),
+                    "bad_seeds": bad[:20],
+                })
+                done += 1
+                if progress:
+                    progress(done, total)
+    finally:
+        if pool is not None:
+            pool.close()
+            pool.join()
+    return rows
+
+
+def summarise(rows) -> str:
+    """The papers' table: per algorithm and condition."""
+    headers = ["algorithm", "condition", "frames", "success", "ID failure", "bad match", "mean ms", "median ms", "p95 ms"]
+    body = [[r["algorithm"], r["condition"], str(r["frames"]), f"{100 * r['success_rate']:.2f}%", str(r["failure"]),
+             str(r["bad"]), f"{r['mean_ms']:.3f}", f"{r['median_ms']:.3f}", f"{r['p95_ms']:.3f}"] for r in rows]
+    widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(headers)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(headers, widths)), "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(b, widths)) for b in body]
+    return "\n".join(lines)
+
+
+def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -> str:
+    """Success rate and median time against the swept condition, one line per algorithm (matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise BadInputError("--plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
+    from startrack.formats.atomic import atomic_path
+
+    fields = ["false_stars", "focal_error_pct", "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
+    if x_field is None:
+        x_field = next((f for f in fields if len({r[f] for r in rows}) > 1), "false_stars")
+    names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
+             "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
+             "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    for algorithm in dict.fromkeys(r["algorithm"] for r in rows):
+        sub = sorted((r for r in rows if r["algorithm"] == algorithm), key=lambda r: r[x_field])
+        xs = [r[x_field] for r in sub]
+        ax1.plot(xs, [100 * r["success_rate"] for r in sub], marker="o", label=algorithm)
+        ax2.plot(xs, [r["median_ms"] for r in sub], marker="o", label=algorithm)
+    ax1.set_xlabel(names.get(x_field, x_field))
+    ax1.set_ylabel("success rate (%)")
+    ax1.grid(alpha=0.3)
+    ax1.legend(fontsize=8)
+    ax2.set_xlabel(names.get(x_field, x_field))
+    ax2.set_ylabel("median identification time (ms)")
+    ax2.set_yscale("log")
+    ax2.grid(alpha=0.3, which="both")
+    n = rows[0]["frames"] if rows else 0
+    fig.suptitle(title or f"{n} random attitudes per point")
+    fig.tight_layout()
+    with atomic_path(path, suffix=os.path.splitext(path)[1] or ".png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path

@@ -1,0 +1,121 @@
+"""identify and evaluate through the real entry point: pipes, real images, bad input."""
+import csv
+import glob
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from conftest import DATA, run_cli
+
+REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
+ESA_CAMERA = os.path.join(DATA, "real", "camera.json")
+
+
+@pytest.fixture(scope="module")
+def db20(tmp_path_factory):
+    out = tmp_path_factory.mktemp("db") / "p003.h5"
+    run_cli("build-kvector", "--fov-deg", "20", "--mag-max", "5.0", "-o", out, check=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def esa_db(tmp_path_factory):
+    out = tmp_path_factory.mktemp("db") / "esa.h5"
+    run_cli("build-kvector", "--camera", ESA_CAMERA, "--mag-max", "6.5", "-o", out, check=True)
+    return out
+
+
+def test_pipe_render_identify(db20):
+    frames = run_cli("render", "--stars-only", "--count", "30", "--fov-deg", "20", "--size", "1024x1024",
+                     "--mag-limit", "5", "--sigma-px", "0.2", "--max-stars", "10", "--seed", "5", check=True).stdout
+    proc = run_cli("identify", "--database", db20, input=frames, check=True)
+    docs = [json.loads(l) for l in proc.stdout.splitlines()]
+    assert len(docs) == 30
+    ok = [d for d in docs if d["identification"]["status"] == "ok"]
+    assert len(ok) >= 29
+    for d in ok:
+        blends = {t["id"]: set(t.get("blended", [])) for t in d["truth"]["stars"]}
+        for m in d["identification"]["matches"]:
+            true_id = d["truth"]["star_ids"][m["star"]]
+            assert true_id == m["id"] or m["id"] in blends[true_id]   # a blend may take either name
+        assert d["identification"]["false_match_probability"] < 1e-4
+
+
+def test_real_esa_images_identified(esa_db):
+    """centroid -> identify on the 8 real images: all identified, boresight within 0.05 deg of the reference."""
+    from startrack.rotations import dcm_to_radec_roll, quaternion_to_dcm, radec_to_vector
+
+    cent = run_cli("centroid", *REAL, "--camera", ESA_CAMERA, check=True).stdout
+    proc = run_cli("identify", "-d", esa_db, input=cent, check=True)
+    ref = {r["file"]: r for r in csv.DictReader(open(os.path.join(DATA, "real", "solutions.csv")))}
+    docs = [json.loads(l) for l in proc.stdout.splitlines()]
+    assert len(docs) == 8
+    for d in docs:
+        ident = d["identification"]
+        assert ident["status"] == "ok", ident
+        assert len(ident["matches"]) >= 6
+        ra, dec, _ = dcm_to_radec_roll(quaternion_to_dcm(ident["quaternion_estimate"]))
+        r = ref[os.path.basename(d["image"]["path"])]
+        sep = math.degrees(math.acos(np.clip(radec_to_vector(ra, dec) @ radec_to_vector(
+            math.radians(float(r["ra_deg"])), math.radians(float(r["dec_deg"]))), -1, 1)))
+        assert sep < 0.05, (d["image"]["path"], sep)
+
+
+def _refused(proc, *needles):
+    assert proc.returncode == 2, proc.stderr
+    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+    assert proc.stdout == ""
+
+
+def test_database_for_another_fov_is_refused(db20):
+    frame = run_cli("render", "--stars-only", "--fov-deg", "40", "--size", "1024x1024", "--seed", "1",
+                    check=True).stdout
+    _refused(run_cli("identify", "-d", db20, input=frame), "max_angle_deg", "rebuild")
+    frame = run_cli("render", "--stars-only", "--fov-deg", "6", "--size", "1024x1024", "--seed", "1",
+                    check=True).stdout
+    _refused(run_cli("identify", "-d", db20, input=frame), "max_angle_deg")
+
+
+def test_bad_frames_in_a_batch(db20):
+    good = run_cli("render", "--stars-only", "--count", "3", "--fov-deg", "20", "--size", "1024x1024",
+                   "--mag-limit", "5", "--sigma-px", "0.2", "--seed", "2", check=True).stdout.splitlines()
+    bad_x = json.loads(good[1])
+    del bad_x["stars"][0]["x"]
+    empty = json.loads(good[2])
+    empty["stars"] = []
+    stream = "\n".join([good[0], json.dumps(bad_x), "{not json", json.dumps(empty), good[0]]) + "\n"
+    proc = run_cli("identify", "-d", db20, input=stream)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    docs = [json.loads(l) for l in proc.stdout.splitlines()]
+    assert len(docs) == 5
+    assert docs[0]["identification"]["status"] == "ok" and docs[4]["identification"]["status"] == "ok"
+    assert docs[1]["identification"]["status"] == "failed" and "stars[0].x" in docs[1]["identification"]["reason"]
+    assert docs[2]["identification"]["status"] == "failed" and "JSON" in docs[2]["identification"]["reason"]
+    assert docs[3]["identification"]["status"] == "failed" and "at least 3" in docs[3]["identification"]["reason"]
+    assert "stars[0].x" in proc.stderr
+    # A single bad document is refused outright.
+    _refused(run_cli("identify", "-d", db20, input=json.dumps(bad_x)), "stars[0].x", "missing")
+
+
+def test_wrong_database_file(tmp_path):
+    cat = tmp_path / "c.h5"
+    run_cli("catalog-filter", "--mag-max", "2", "-o", cat, check=True)
+    _refused(run_cli("identify", "-d", cat, input="{}"), "c.h5", "format")
+
+
+def test_evaluate_table_csv_json_plot(db20, tmp_path):
+    proc = run_cli("evaluate", "-d", db20, "-a", "pyramid,voting", "--fov-deg", "20", "--size", "1024x1024",
+                   "--mag-limit", "5", "--sigma-px", "0.2", "--false-stars", "0,2", "--count", "60", "--seed", "3",
+                   "--csv", tmp_path / "e.csv", "--json", tmp_path / "e.json", "--plot", tmp_path / "e.png",
+                   "-j", "2", check=True)
+    assert "pyramid" in proc.stdout and "bad match" in proc.stdout
+    rows = json.load(open(tmp_path / "e.json"))["rows"]
+    assert len(rows) == 4 and all(r["success"] + r["failure"] + r["bad"] == 60 for r in rows)
+    assert (tmp_path / "e.png").stat().st_size > 10000
+    assert open(tmp_path / "e.csv").readline().startswith("# startrack")

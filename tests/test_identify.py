@@ -1,0 +1,93 @@
+import math
+
+import numpy as np
+import pytest
+
+from startrack.camera import Camera
+from startrack.evaluate import Condition, evaluate, make_frames, score
+from startrack.identify import IdentifyParams, identify_stars
+from startrack.kvector import build_kvector, max_separation_deg
+
+
+@pytest.fixture(scope="module")
+def setup20(catalog):
+    cat = catalog.filter_magnitude(None, 5.0)
+    return cat, build_kvector(cat, max_separation_deg(20.0)), Camera.from_fov(20, 1024, 1024)
+
+
+def test_smart_triads_cover_every_triad_once():
+    from startrack._kernels.identify import smart_triads
+
+    for n in (3, 4, 6, 10):
+        t = smart_triads(n)
+        assert len(t) == math.comb(n, 3)
+        assert len({tuple(sorted(r)) for r in t.tolist()}) == len(t)
+    assert [tuple(r) for r in smart_triads(6)[:5].tolist()] == [(0, 1, 2), (1, 2, 3), (2, 3, 4), (3, 4, 5), (0, 1, 3)]
+
+
+@pytest.mark.parametrize("algorithm", ["pyramid", "pyramid-quadratic", "voting"])
+def test_identifies_clean_frames_without_bad_matches(setup20, algorithm):
+    cat, db, cam = setup20
+    sigma = (5 / 3) / cam.pixel_scale_arcsec       # paper 003: 5" (3 sigma)
+    frames = make_frames(cat, cam, Condition(sigma_px=sigma, mag_noise=0.2, max_stars=10, min_stars=4), 300, 7,
+                         mag_limit=5.0)
+    outcomes = [score(identify_stars(s, cam, db, algorithm, IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
+    assert outcomes.count("bad") == 0
+    assert outcomes.count("success") >= 298
+
+
+def test_false_stars_are_not_matched(setup20):
+    cat, db, cam = setup20
+    frames = make_frames(cat, cam, Condition(sigma_px=0.3, false_stars=3, max_stars=12, min_stars=7), 200, 3,
+                         mag_limit=5.0)
+    for stars, truth, seed in frames:
+        res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.3))
+        assert score(res, truth) != "bad", seed
+        if res.status == "ok":
+            matched = {m["star"] for m in res.matches}
+            assert all(truth["star_ids"][i] is not None for i in matched), seed
+
+
+def test_result_reports_confidence_and_attitude(setup20):
+    cat, db, cam = setup20
+    from startrack.render import Scene, Sensor, star_list
+    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+
+    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.4)
+    stars, truth = star_list(cat, cam, a, Sensor(), Scene(mag_limit=5.0), np.random.default_rng(1), sigma_px=0.2)
+    res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.2))
+    assert res.status == "ok" and len(res.matches) >= 0.9 * len(stars)
+    assert score(res, truth) == "success"
+    assert 0 <= res.false_probability < 1e-10
+    total, cross, roll = attitude_error(res.dcm, a)
+    assert math.degrees(cross) * 3600 < 5
+    sec = res.section()
+    assert sec["algorithm"] == "pyramid" and sec["time_ms"] > 0 and len(sec["quaternion_estimate"]) == 4
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_too_few_stars_fail_with_a_reason(setup20, n):
+    cat, db, cam = setup20
+    stars = [{"x": 100.0 + 50 * i, "y": 200.0, "flux": 10.0} for i in range(n)]
+    res = identify_stars(stars, cam, db, "pyramid")
+    assert res.status == "failed" and "at least 3" in res.reason
+
+
+def test_random_points_are_refused_not_misidentified(setup20):
+    cat, db, cam = setup20
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        stars = [{"x": float(x), "y": float(y), "flux": 1.0} for x, y in rng.uniform(0, 1023, (8, 2))]
+        for algorithm in ("pyramid", "voting"):
+            assert identify_stars(stars, cam, db, algorithm, IdentifyParams(sigma_px=0.3)).status == "failed"
+
+
+def test_evaluate_rows(setup20):
+    cat, db, cam = setup20
+    rows = evaluate(["pyramid", "voting"], [Condition(sigma_px=0.2), Condition(sigma_px=0.2, false_stars=2)], 50,
+                    {"kvector": db}, cam, cat, seed=1, params=IdentifyParams(sigma_px=0.2), mag_limit=5.0)
+    assert len(rows) == 4
+    for r in rows:
+        assert r["success"] + r["failure"] + r["bad"] == 50
+        assert r["median_ms"] > 0
+    assert rows[0]["success_rate"] >= 0.95
