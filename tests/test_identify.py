@@ -91,3 +91,46 @@ def test_evaluate_rows(setup20):
         assert r["success"] + r["failure"] + r["bad"] == 50
         assert r["median_ms"] > 0
     assert rows[0]["success_rate"] >= 0.95
+
+
+@pytest.fixture(scope="module")
+def setup24(catalog):
+    from startrack.labels import build_labels
+
+    cat = catalog.filter_magnitude(None, 5.2)
+    return (cat, build_kvector(cat, max_separation_deg(24.0)), build_labels(cat, 24.0, step_deg=1.0),
+            Camera.from_fov(24, 1200, 1200))
+
+
+@pytest.mark.parametrize("algorithm, min_success", [("brightness", 0.99), ("labelling", 0.98), ("grid", 0.8)])
+def test_part2_algorithms_identify_without_bad_matches(setup24, algorithm, min_success):
+    cat, kv, labels, cam = setup24
+    sigma = 38 / cam.pixel_scale_arcsec     # paper 004: 38" (1 sigma)
+    db = labels if algorithm == "labelling" else kv
+    frames = make_frames(cat, cam, Condition(sigma_px=sigma, mag_noise=0.1), 200, 4, mag_limit=5.2)
+    outcomes = [score(identify_stars(s, cam, db, algorithm, IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
+    assert outcomes.count("bad") == 0
+    assert outcomes.count("success") >= min_success * len(frames)
+
+
+def test_labelling_tolerates_focal_length_error_pyramid_does_not(setup24):
+    """Paper 004 Fig. 7: labelling keeps identifying at 1% focal-length error."""
+    cat, kv, labels, cam = setup24
+    sigma = 38 / cam.pixel_scale_arcsec
+    frames = make_frames(cat, cam, Condition(sigma_px=sigma, focal_error_pct=1.0), 150, 5, mag_limit=5.2)
+    lab = [score(identify_stars(s, cam, labels, "labelling", IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
+    pyr = [score(identify_stars(s, cam, kv, "pyramid", IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
+    assert lab.count("success") >= 0.97 * len(frames) and lab.count("bad") == 0
+    assert pyr.count("success") < 0.6 * len(frames)
+    # The focal-length error is measured: the image was made with f * 1.01, so the
+    # measured angles are 1% too large and focal_scale = theta_cat / theta_mea ~ 1 / 1.01.
+    res = identify_stars(frames[0][0], cam, labels, "labelling", IdentifyParams(sigma_px=sigma))
+    assert res.extra["focal_scale"] == pytest.approx(1 / 1.01, abs=0.002)
+
+
+def test_brightness_modes(setup24):
+    cat, kv, labels, cam = setup24
+    frames = make_frames(cat, cam, Condition(sigma_px=0.2, mag_noise=0.1), 100, 6, mag_limit=5.2)
+    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2)).extra.get("mode")
+             for s, _, _ in frames}
+    assert {"reference-star", "four-star"} <= modes

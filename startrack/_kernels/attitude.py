@@ -148,9 +148,11 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
     """Nearest catalog star (within ``radius`` rad, unambiguous) for every image vector.
 
     Catalog stars are projected with ``dcm`` and kept when they land on the
-    sensor (plus the radius).  Two catalog stars inside the radius of one image
-    star are an unresolved pair (they image as one blob): the nearer is taken.
-    Each catalog star is used once (the closer image star wins).
+    sensor (plus the radius).  A match needs the nearest catalog star within
+    the radius and no other within twice the radius, unless the two catalog
+    stars are closer to each other than the radius: an unresolved pair (one
+    blob), of which the nearer is taken.  Each catalog star is used once (the
+    closer image star wins).
     Returns ``(match, n_predicted)`` with ``match[i]`` a catalog index or -1.
     """
     n = b.shape[0]
@@ -181,20 +183,28 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
     match = np.full(n, -1, dtype=np.int64)
     best_ang = np.full(n, 1e9)
     cos_r = math.cos(radius)
+    cos_2r = math.cos(2.0 * radius)
     for i in range(n):
         d1 = -2.0
         d2 = -2.0
         a1 = -1
+        a2 = -1
         for c in range(nc):
             d = b[i, 0] * pred[c, 0] + b[i, 1] * pred[c, 1] + b[i, 2] * pred[c, 2]
             if d > d1:
                 d2 = d1
+                a2 = a1
                 d1 = d
                 a1 = c
             elif d > d2:
                 d2 = d
+                a2 = c
         if a1 < 0 or d1 < cos_r:
             continue
+        if a2 >= 0 and d2 >= cos_2r:
+            pair = pred[a1, 0] * pred[a2, 0] + pred[a1, 1] * pred[a2, 1] + pred[a1, 2] * pred[a2, 2]
+            if pair < cos_r:
+                continue    # two distinct catalog stars near this image star: ambiguous
         ang1 = math.acos(min(1.0, d1))
         match[i] = cand[a1]
         best_ang[i] = ang1

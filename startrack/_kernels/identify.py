@@ -276,3 +276,251 @@ def geometric_voting(b, star_vec, n_cat, pair_i, pair_j, pair_cos, kvector, line
                 votes2[i] += 1
                 votes2[j] += 1
     return identity, votes1, votes2
+
+
+@njit(cache=True)
+def _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, cos_lo, cos_hi, dmag, gamma, ref_mag_max):
+    """Pairs in ``[s, e)`` within the cosine range, as (X, Y) with X the image star's candidate.
+
+    Paper 003 Sec. 4.3: when the image star (first of the pair) is brighter than
+    the other by more than ``gamma`` magnitudes (``dmag < -gamma``) it must be the
+    catalog pair's brighter star ``I``; fainter by more than ``gamma``, the
+    dimmer ``J``; otherwise either.  ``ref_mag_max`` keeps only candidates X
+    brighter than that magnitude (the reference-star mode's ``B_I < 3``).
+    Sorted by X.
+    """
+    n = 0
+    for t in range(s, e):
+        if pair_cos[t] >= cos_lo and pair_cos[t] <= cos_hi:
+            n += 2
+    out = np.empty((n, 2), dtype=np.int64)
+    k = 0
+    for t in range(s, e):
+        if pair_cos[t] < cos_lo or pair_cos[t] > cos_hi:
+            continue
+        a = pair_i[t]
+        b = pair_j[t]
+        if dmag <= gamma and star_mag[a] <= ref_mag_max:
+            out[k, 0] = a
+            out[k, 1] = b
+            k += 1
+        if dmag >= -gamma and star_mag[b] <= ref_mag_max:
+            out[k, 0] = b
+            out[k, 1] = a
+            k += 1
+    out = out[:k]
+    order = np.argsort(out[:, 0], kind="mergesort")
+    return out[order]
+
+
+@njit(cache=True)
+def _partners(sorted_pairs, x):
+    p = _first_at_or_after(sorted_pairs, x)
+    q = p
+    while q < sorted_pairs.shape[0] and sorted_pairs[q, 0] == x:
+        q += 1
+    return sorted_pairs[p:q, 1]
+
+
+@njit(cache=True)
+def _angle(u, v):
+    return math.acos(min(1.0, max(-1.0, _dot(u, v))))
+
+
+@njit(cache=True)
+def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kvector, line, eps, gamma, ref_flux_ok,
+                      ref_mag, max_loops):
+    """Paper 003's brightness-referenced identification (Sec. 4.3, Figs. 5-6).
+
+    ``b`` image vectors sorted brightest first, ``mags`` their instrumental
+    magnitudes (``-2.5 log10 flux``, any zero point: only differences and the
+    reference flag are used), ``ref_flux_ok[i]`` true when star i is brighter
+    than ``M_t`` (magnitude ``ref_mag``, from the frame's Eq. 9 calibration).
+
+    * Reference (three-star) mode, while the current brightest star is above
+      ``M_t``: ``i`` from the brightest, ``j`` from the dimmest down to
+      ``i + 2``, ``k`` from ``j - 1`` down to ``i + 1``; the candidates of
+      ``s_i`` from pairs (i, j) and (i, k) restricted to catalog stars brighter
+      than ``ref_mag``, intersected; a unique ``I`` gives ``J`` and ``K`` from
+      the two pairs, checked against the measured angle ``theta_jk``.
+    * Four-star mode otherwise: ``i`` and three dimmer stars ``j > k > l``; the
+      intersection of the three candidate sets of ``s_i``; ``J, K, L`` from the
+      pairs, checked against the three angles among ``j, k, l``.
+    * ``n = 3``: the triangle, unique.
+
+    Returns ``(mode, idx[4], cat[4], loops)``: mode 1 reference, 2 four-star,
+    3 triangle, 0 none.
+    """
+    n = b.shape[0]
+    idx = np.full(4, -1, dtype=np.int64)
+    cat = np.full(4, -1, dtype=np.int64)
+    loops = 0
+    if n < 3:
+        return 0, idx, cat, loops
+    if n >= 4:
+        # Reference-star (three-star) mode.
+        for i in range(0, n - 2):
+            if not ref_flux_ok[i]:
+                break
+            for j in range(n - 1, i + 1, -1):
+                for k in range(j - 1, i, -1):
+                    loops += 1
+                    if loops > max_loops:
+                        return 0, idx, cat, loops
+                    th_ij = _angle(b[i], b[j])
+                    th_ik = _angle(b[i], b[k])
+                    th_jk = _angle(b[j], b[k])
+                    lo = math.cos(th_ij + eps)
+                    hi = math.cos(max(th_ij - eps, 0.0))
+                    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+                    cij = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[i] - mags[j],
+                                               gamma, ref_mag)
+                    if cij.shape[0] == 0:
+                        continue
+                    lo2 = math.cos(th_ik + eps)
+                    hi2 = math.cos(max(th_ik - eps, 0.0))
+                    s, e = kvector_range(kvector, line[0], line[1], lo2, hi2)
+                    cik = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo2, hi2, mags[i] - mags[k],
+                                               gamma, ref_mag)
+                    if cik.shape[0] == 0:
+                        continue
+                    # R_i = candidates of s_i in both; unique triple (I, J, K) with theta_JK ~ theta_jk.
+                    found = 0
+                    fI = -1
+                    fJ = -1
+                    fK = -1
+                    p = 0
+                    while p < cij.shape[0]:
+                        I = cij[p, 0]
+                        js = _partners(cij, I)
+                        ks = _partners(cik, I)
+                        p += js.shape[0]
+                        if ks.shape[0] == 0:
+                            continue
+                        for J in js:
+                            for K in ks:
+                                if J == K:
+                                    continue
+                                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) <= eps:
+                                    found += 1
+                                    fI = I
+                                    fJ = J
+                                    fK = K
+                        if found > 1:
+                            break
+                    if found == 1:
+                        idx[0] = i
+                        idx[1] = j
+                        idx[2] = k
+                        cat[0] = fI
+                        cat[1] = fJ
+                        cat[2] = fK
+                        return 1, idx, cat, loops
+        # Four-star mode.
+        for i in range(0, n - 3):
+            for j in range(n - 1, i + 2, -1):
+                for k in range(j - 1, i + 1, -1):
+                    for l in range(k - 1, i, -1):
+                        loops += 1
+                        if loops > max_loops:
+                            return 0, idx, cat, loops
+                        th = np.empty(3)
+                        th[0] = _angle(b[i], b[j])
+                        th[1] = _angle(b[i], b[k])
+                        th[2] = _angle(b[i], b[l])
+                        others = np.array([j, k, l])
+                        empty = False
+                        c0 = np.empty((0, 2), dtype=np.int64)
+                        c1 = np.empty((0, 2), dtype=np.int64)
+                        c2 = np.empty((0, 2), dtype=np.int64)
+                        for t in range(3):
+                            lo = math.cos(th[t] + eps)
+                            hi = math.cos(max(th[t] - eps, 0.0))
+                            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+                            c = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi,
+                                                     mags[i] - mags[others[t]], gamma, 1e9)
+                            if c.shape[0] == 0:
+                                empty = True
+                                break
+                            if t == 0:
+                                c0 = c
+                            elif t == 1:
+                                c1 = c
+                            else:
+                                c2 = c
+                        if empty:
+                            continue
+                        th_jk = _angle(b[j], b[k])
+                        th_jl = _angle(b[j], b[l])
+                        th_kl = _angle(b[k], b[l])
+                        found = 0
+                        res = np.full(4, -1, dtype=np.int64)
+                        p = 0
+                        while p < c0.shape[0]:
+                            I = c0[p, 0]
+                            js = _partners(c0, I)
+                            p += js.shape[0]
+                            ks = _partners(c1, I)
+                            if ks.shape[0] == 0:
+                                continue
+                            ls = _partners(c2, I)
+                            if ls.shape[0] == 0:
+                                continue
+                            for J in js:
+                                for K in ks:
+                                    if K == J or abs(_angle(star_vec[J], star_vec[K]) - th_jk) > eps:
+                                        continue
+                                    for L in ls:
+                                        if L == J or L == K:
+                                            continue
+                                        if abs(_angle(star_vec[J], star_vec[L]) - th_jl) > eps:
+                                            continue
+                                        if abs(_angle(star_vec[K], star_vec[L]) - th_kl) > eps:
+                                            continue
+                                        found += 1
+                                        res[0] = I
+                                        res[1] = J
+                                        res[2] = K
+                                        res[3] = L
+                            if found > 1:
+                                break
+                        if found == 1:
+                            idx[0] = i
+                            idx[1] = j
+                            idx[2] = k
+                            idx[3] = l
+                            cat[:] = res
+                            return 2, idx, cat, loops
+        return 0, idx, cat, loops
+    # n == 3: a unique triangle.
+    th_ij = _angle(b[0], b[1])
+    th_ik = _angle(b[0], b[2])
+    th_jk = _angle(b[1], b[2])
+    lo = math.cos(th_ij + eps)
+    hi = math.cos(max(th_ij - eps, 0.0))
+    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+    cij = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[0] - mags[1], gamma, 1e9)
+    lo = math.cos(th_ik + eps)
+    hi = math.cos(max(th_ik - eps, 0.0))
+    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+    cik = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[0] - mags[2], gamma, 1e9)
+    found = 0
+    p = 0
+    while p < cij.shape[0]:
+        I = cij[p, 0]
+        js = _partners(cij, I)
+        p += js.shape[0]
+        for J in js:
+            for K in _partners(cik, I):
+                if K != J and abs(_angle(star_vec[J], star_vec[K]) - th_jk) <= eps:
+                    found += 1
+                    cat[0] = I
+                    cat[1] = J
+                    cat[2] = K
+    if found == 1:
+        idx[0] = 0
+        idx[1] = 1
+        idx[2] = 2
+        return 3, idx, cat, 1
+    cat[:] = -1
+    return 0, idx, cat, 1

@@ -16,7 +16,7 @@ from startrack.cli.options import handle_errors, input_argument, output_option, 
               help="Centroid noise (1 sigma, px) for the tolerances; default: from the stars' sigma_px, else 0.5.")
 @click.option("--tolerance-arcsec", type=float, default=None, help="Inter-star angle tolerance, overriding the default.")
 @click.option("--max-stars", type=int, default=12, show_default=True, help="Brightest stars used to search.")
-@click.option("--max-false-probability", type=float, default=1e-4, show_default=True,
+@click.option("--max-false-probability", type=float, default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")

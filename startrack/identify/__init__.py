@@ -16,6 +16,9 @@ ALGORITHMS = {
     "pyramid": ("startrack.identify.pyramid", "propose_pyramid", "kvector"),
     "pyramid-quadratic": ("startrack.identify.pyramid", "propose_pyramid_quadratic", "kvector"),
     "voting": ("startrack.identify.voting", "propose_voting", "kvector"),
+    "brightness": ("startrack.identify.brightness", "propose_brightness", "kvector"),
+    "labelling": ("startrack.identify.labelling", "propose_labelling", "labels"),
+    "grid": ("startrack.identify.grid", "propose_grid", "kvector"),
 }
 DATABASE_KIND = {name: kind for name, (_, _, kind) in ALGORITHMS.items()}
 

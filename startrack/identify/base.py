@@ -33,14 +33,16 @@ class IdentifyParams:
     """Settings shared by all algorithms (angles in radians, pixels for the centroid noise)."""
 
     sigma_px: float | None = None
-    tolerance_sigma: float = 3.0
+    tolerance_sigma: float = 4.0
+    match_sigma: float = 5.0
     tolerance_arcsec: float | None = None
     margin_arcsec: float = 2.0
     match_radius_px: float | None = None
     max_stars: int = 12
     max_triads: int = 200
     min_matches: int = 4
-    max_false_probability: float = 1e-4
+    max_false_probability: float = 1e-6
+    max_focal_error: float = 0.05
     extra: dict = field(default_factory=dict)
 
 
@@ -68,7 +70,8 @@ class IdentifyResult:
     extra: dict = field(default_factory=dict)
 
     def section(self) -> dict:
-        out = {"status": self.status, "algorithm": self.algorithm, "matches": self.matches,
+        out = {"status": self.status, "algorithm": self.algorithm,
+               "matches": [{"star": m["star"], "id": m["id"]} for m in self.matches],
                "time_ms": round(self.time_ms, 4)}
         if self.reason:
             out["reason"] = self.reason
@@ -98,8 +101,9 @@ def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
 
     ``eps = k sqrt(2) sigma_px / f + margin``: an angle between two stars
     errs by the two centroid errors along their separation (``sqrt 2`` of one),
-    ``k`` = ``tolerance_sigma`` (3 by default), plus a small margin for
-    calibration.  ``tolerance_arcsec`` overrides it.
+    ``k`` = ``tolerance_sigma`` (4 by default: a pyramid has six angles, and at
+    3 sigma one in sixty true pyramids would be missed), plus a small margin
+    for calibration.  ``tolerance_arcsec`` overrides it.
     """
     if params.tolerance_arcsec is not None:
         return math.radians(params.tolerance_arcsec / 3600.0)
@@ -121,6 +125,10 @@ def _binomial_sf(m: int, n: int, p: float) -> float:
 
 def _pyramid_chance(n_cat: int, eps: float, vecs) -> float:
     """Expected number of catalog pyramids matching four measured directions by chance (Mortari 2004; LOST)."""
+    if len(vecs) < 3:
+        # A lone pair: E = N (N - 1) / 2 * eps * sin(theta) chance pairs at that angle.
+        th = math.acos(max(-1.0, min(1.0, float(vecs[0] @ vecs[1])))) if len(vecs) == 2 else math.pi / 2
+        return float(n_cat * (n_cat - 1) / 2 * eps * math.sin(th))
     a, b, c = vecs[0], vecs[1], vecs[2]
     th_ij = math.acos(max(-1.0, min(1.0, float(a @ b))))
 
@@ -155,7 +163,7 @@ def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_
     if len(img) < 2:
         return None, None, None, "fewer than two stars identified"
     radius_px = params.match_radius_px if params.match_radius_px is not None else \
-        max(1.0, params.tolerance_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
+        max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
     radius = radius_px / camera.focal_length_px
     cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
     match, q, n_pred = refine(np.ascontiguousarray(b_vectors), star_vec, img, cat, cos_fov,
@@ -164,26 +172,44 @@ def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_
                               radius, 2)
     dcm = quat_to_dcm(q)
     n_matched = int(np.sum(match >= 0))
-    # A proposal star agrees when the refined match is its catalog star, or a
-    # catalog star it cannot be told from (an unresolved pair within the radius).
-    got = match[img]
-    same = got == cat
-    near = (got >= 0) & (np.einsum("ij,ij->i", star_vec[np.maximum(got, 0)], star_vec[cat]) >= math.cos(radius))
-    agree = int(np.sum(same | near))
+    # A proposal star agrees when the refined attitude puts its catalog star
+    # within the match radius of it (whether or not the star-by-star matching,
+    # which refuses ambiguous neighbours, kept it).
+    predicted = star_vec[cat] @ dcm.T
+    agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[img], predicted) >= math.cos(radius)))
     if agree < min(len(img), params.min_matches):
         return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
     if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
         return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})"
-    # Confidence: chance pyramid x chance agreement of the other stars.
+    # Confidence: the chance that a pattern of the proposal's first four stars
+    # (three when that is all) matches by coincidence, times the chance that the
+    # other stars fall on predicted catalog stars by accident.
+    core = img[:4]
     p_hit = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
-    others = len(b_vectors) - len(img)
-    e_pyr = _pyramid_chance(len(star_vec), eps, b_vectors[img])
-    p_false = min(1.0, e_pyr * max(proposal.trials, 1)) * _binomial_sf(n_matched - agree, others, p_hit)
+    others = len(b_vectors) - len(core)
+    core_pred = star_vec[cat[:4]] @ dcm.T
+    core_agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[core], core_pred) >= math.cos(radius)))
+    e_pyr = _pyramid_chance(len(star_vec), eps, b_vectors[core])
+    p_false = min(1.0, e_pyr * max(proposal.trials, 1)) * _binomial_sf(n_matched - core_agree, others, p_hit)
     if p_false > params.max_false_probability:
         return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
                                     f"{params.max_false_probability:g}")
-    out = [{"star": int(s), "id": int(star_id[c])} for s, c in enumerate(match) if c >= 0]
+    out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in enumerate(match) if c >= 0]
     return out, dcm, p_false, None
+
+
+def _focal_scale(b_all, proposal, star_vec):
+    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the proposal's pairs (None if < 3 stars)."""
+    img, cat = list(proposal.image), list(proposal.catalog)
+    if len(img) < 3:
+        return None
+    iu = np.triu_indices(len(img), 1)
+    b = b_all[img]
+    r = star_vec[cat]
+    mea = np.arccos(np.clip((b @ b.T)[iu], -1.0, 1.0))
+    ref = np.arccos(np.clip((r @ r.T)[iu], -1.0, 1.0))
+    denom = float(mea @ mea)
+    return float(ref @ mea / denom) if denom > 0 else None
 
 
 def run(algorithm_name: str, propose, frame_stars: list, camera, db, params: IdentifyParams) -> IdentifyResult:
@@ -204,10 +230,37 @@ def run(algorithm_name: str, propose, frame_stars: list, camera, db, params: Ide
         reason = (proposal.extra.get("reason") if proposal is not None else None) or "no consistent star pattern found"
         return IdentifyResult("failed", algorithm_name, [], (time.perf_counter() - t0) * 1000, reason,
                               extra={"tolerance_arcsec": math.degrees(eps) * 3600})
+    # The focal-length scale the proposal implies (angles scale as 1 / f): a
+    # focal-length error is measured here, and the rest of the frame is matched
+    # with the corrected focal length; the scale is then re-estimated from every
+    # matched star and the matching repeated until it settles.
+    scale = _focal_scale(b_all, proposal, db.star_vector)
+    total_scale = 1.0
+    if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
+        scale = None    # within noise (or beyond belief): keep the nominal focal length
+    if scale is not None:
+        total_scale = scale
+        camera = camera.with_focal_length(camera.focal_length_px / scale)
+        b_all = camera.pixels_to_vectors(xs, ys)
     matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id, eps,
                                            sigma_px, params)
+    for _ in range(3):
+        if matches is None or scale is None or len(matches) < 3:
+            break
+        everything = Proposal([m["star"] for m in matches], [m["index"] for m in matches])
+        step = _focal_scale(b_all, everything, db.star_vector)
+        if step is None or abs(step - 1.0) < 1e-5 or abs(total_scale * step - 1.0) > params.max_focal_error:
+            break
+        total_scale *= step
+        camera = camera.with_focal_length(camera.focal_length_px / step)
+        b_all = camera.pixels_to_vectors(xs, ys)
+        matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id,
+                                               eps, sigma_px, params)
+    scale = total_scale if scale is not None else None
     elapsed = (time.perf_counter() - t0) * 1000
     extra = {"tolerance_arcsec": round(math.degrees(eps) * 3600, 3), "trials": int(proposal.trials)}
+    if scale is not None:
+        extra["focal_scale"] = round(float(scale), 7)
     extra.update(proposal.extra)
     if matches is None:
         return IdentifyResult("failed", algorithm_name, [], elapsed, reason, p_false, extra=extra)

@@ -42,5 +42,6 @@ def propose_voting(b, db, eps, params, stars, camera):
     if len(cluster) < 3:
         return Proposal([], [], n * (n - 1) // 2, {"reason": f"largest consistent cluster has {len(cluster)} stars"})
     cluster = cluster[:4] + sorted(cluster[4:])
-    return Proposal(cluster, [int(identity[i]) for i in cluster], n * (n - 1) // 2,
+    # One hypothesis per image star (its most-voted identity): n trials.
+    return Proposal(cluster, [int(identity[i]) for i in cluster], n,
                     {"votes": [int(votes2[i]) for i in cluster]})

@@ -1,0 +1,156 @@
+"""Grid identification (Padgett & Kreutz-Delgado 1997, "A grid algorithm for autonomous star identification").
+
+Pattern of a reference star: its neighbours between the buffer radius ``br``
+and the pattern radius ``pr`` are projected on the tangent plane at the star
+(gnomonic), the plane is turned so that the nearest neighbour outside ``br``
+lies on the +x axis, and a ``g x g`` grid over ``[-pr, pr]^2`` marks the cells
+holding a neighbour.  The pattern is the set of on-cells.
+
+Matching: each sensor pattern votes, through an inverted index cell -> catalog
+stars, for the catalog patterns sharing its on-cells (bit overlap); the best
+is taken when its overlap reaches ``min_overlap`` and beats the runner-up.
+Confirmation: several reference stars (those nearest the image centre, whose
+pattern disc lies inside the field) are matched independently and the largest
+set whose catalog angles agree with the measured angles (within ``eps``) is
+kept; each reference brings its orientation neighbour along.
+
+The catalog patterns are computed from the k-vector database's star table and
+neighbour lists the first time they are needed (milliseconds) and cached, so
+that the grid needs no database of its own and always matches the sensor's
+``g``, ``pr`` and ``br``.
+
+Defaults (tuned on the 24 deg / magnitude 5.2 sensor of paper 004; the
+paper's own values are not in our sources): ``g = 40``, ``pr`` = 0.6 of the
+narrower field, ``br`` = 6 px (at least 3 eps), 12 reference stars, an
+overlap of at least 3 cells.  With only ~20 stars per field the patterns are
+sparse, which limits the method (Padgett & Kreutz-Delgado simulated an 8 deg
+field with a much deeper catalog).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from startrack.identify.base import Proposal
+
+_CACHE: dict = {}
+
+
+def _tangent_basis(v):
+    a = np.array([0.0, 0.0, 1.0]) if abs(v[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(a, v)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(v, e1)
+    return e1, e2
+
+
+def _pattern(centre, neighbours, pr, br, g):
+    """On-cell indices of one pattern and the index (into ``neighbours``) of the orientation star."""
+    if len(neighbours) == 0:
+        return None, -1
+    cosang = neighbours @ centre
+    ang = np.arccos(np.clip(cosang, -1.0, 1.0))
+    keep = (ang >= br) & (ang <= pr)
+    if keep.sum() < 2:
+        return None, -1
+    idx = np.flatnonzero(keep)
+    e1, e2 = _tangent_basis(centre)
+    x = (neighbours[idx] @ e1) / cosang[idx]
+    y = (neighbours[idx] @ e2) / cosang[idx]
+    nearest = int(np.argmin(ang[idx]))
+    phi = math.atan2(y[nearest], x[nearest])
+    c, s = math.cos(-phi), math.sin(-phi)
+    xr = c * x - s * y
+    yr = s * x + c * y
+    half = math.tan(pr)
+    ix = np.floor((xr + half) / (2 * half) * g).astype(np.int64)
+    iy = np.floor((yr + half) / (2 * half) * g).astype(np.int64)
+    ok = (ix >= 0) & (ix < g) & (iy >= 0) & (iy < g)
+    cells = np.unique(iy[ok] * g + ix[ok])
+    return cells, int(idx[nearest])
+
+
+def catalog_patterns(db, pr, br, g):
+    """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> stars), orientation stars."""
+    key = (id(db), round(pr, 9), round(br, 9), g)
+    if key in _CACHE:
+        return _CACHE[key]
+    n = db.n_stars
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    cells_all = []
+    orient = np.full(n, -1, dtype=np.int64)
+    for s in range(n):
+        nb = db.neighbor_idx[db.neighbor_ptr[s]:db.neighbor_ptr[s + 1]]
+        cells, k = _pattern(db.star_vector[s], db.star_vector[nb], pr, br, g)
+        if cells is None:
+            ptr[s + 1] = ptr[s]
+            continue
+        cells_all.append(cells)
+        orient[s] = nb[k]
+        ptr[s + 1] = ptr[s] + len(cells)
+    cells = np.concatenate(cells_all) if cells_all else np.zeros(0, dtype=np.int64)
+    owner = np.repeat(np.arange(n), np.diff(ptr))
+    order = np.argsort(cells, kind="stable")
+    inv_stars = owner[order]
+    inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
+    _CACHE.clear()
+    _CACHE[key] = (ptr, cells, inv_ptr, inv_stars, orient)
+    return _CACHE[key]
+
+
+def propose_grid(b, db, eps, params, stars, camera):
+    g = int(params.extra.get("grid_size", 40))
+    fov = math.radians(min(camera.fov_deg))
+    pr = float(params.extra.get("pattern_radius_deg", math.degrees(fov) * 0.6)) * math.pi / 180
+    pr = min(pr, math.radians(db.max_angle_deg))
+    br = max(float(params.extra.get("buffer_px", 6.0)) / camera.focal_length_px, 3 * eps)
+    min_overlap = int(params.extra.get("min_overlap", 3))
+    n_refs = int(params.extra.get("references", 12))
+    ptr, cells_db, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g)
+    boresight = np.array([0.0, 0.0, 1.0])
+    # Reference stars: nearest the image centre first.
+    order = np.argsort(-(b @ boresight))
+    refs = []
+    for r in order[:n_refs]:
+        others = np.delete(np.arange(len(b)), r)
+        cells, k = _pattern(b[r], b[others], pr, br, g)
+        if cells is None or len(cells) < min_overlap:
+            continue
+        votes = np.zeros(db.n_stars, dtype=np.int64)
+        for c in cells:
+            votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
+        top = np.argsort(-votes)[:2]
+        best, second = int(top[0]), int(top[1]) if len(top) > 1 else -1
+        if votes[best] < min_overlap or (second >= 0 and votes[second] == votes[best]):
+            continue
+        refs.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
+    if not refs:
+        return Proposal([], [], n_refs, {"reason": "no grid pattern matched"})
+    # Confirmation: the largest set of references whose catalog angles agree with the image.
+    best_set = []
+    for i in range(len(refs)):
+        group = [refs[i]]
+        for j in range(len(refs)):
+            if j == i:
+                continue
+            ok = True
+            for rr in group:
+                th = math.acos(min(1.0, float(b[refs[j][0]] @ b[rr[0]])))
+                tc = math.acos(min(1.0, float(db.star_vector[refs[j][1]] @ db.star_vector[rr[1]])))
+                if abs(th - tc) > eps or refs[j][1] == rr[1]:
+                    ok = False
+                    break
+            if ok:
+                group.append(refs[j])
+        if len(group) > len(best_set):
+            best_set = group
+    if len(best_set) < 2:
+        return Proposal([], [], n_refs, {"reason": "grid matches do not confirm each other"})
+    img, cat = [], []
+    for r, c, rn, cn, _ in best_set:
+        for i, k in ((r, c), (rn, cn)):
+            if i not in img and k >= 0 and k not in cat:
+                img.append(i)
+                cat.append(k)
+    return Proposal(img, cat, len(refs), {"grid_votes": [v for *_, v in best_set]})
