@@ -1,15 +1,35 @@
-"""Attitude from vector pairs: Wahba's problem (paper 000 Eqs. 15-26).
+"""Attitude from vector pairs: Wahba's problem and its solvers (paper 000 Secs. 3.3.2-3.3.3).
 
 Find the rotation ``A`` minimising ``L(A) = 1/2 sum a_i |b_i - A r_i|^2``
-(Eq. 15) for body (camera) vectors ``b_i`` and reference (ICRS) vectors
-``r_i``.  ``B = sum a_i b_i r_i^T`` (Eq. 19) is the attitude profile matrix and
-``L(A) = lambda_0 - tr(A B^T)`` (Eq. 18).
+(paper 000 Eq. 15) for body (camera) unit vectors ``b_i`` (Eq. 13) and
+reference (ICRS) unit vectors ``r_i`` (Eq. 14).  ``B = sum a_i b_i r_i^T``
+(Eq. 19) is the attitude profile matrix and ``L(A) = lambda_0 - tr(A B^T)``
+(Eq. 18).  Every solver returns a proper rotation (never a reflection).
+
+Solvers (``METHODS``): ``q-method`` (Davenport; Eqs. 23-26), ``quest`` (Shuster
+& Oh 1981), ``svd`` (Markley 1988, determinant sign fixed), ``foam`` (Markley
+1993), ``esoq2`` (Mortari 1997), ``triad`` (Black 1964; two stars).
+
+Uncertainty: the QUEST measurement model (Shuster & Oh 1981): each ``b_i``
+errs perpendicular to itself with variance ``sigma_i^2`` per axis, and the
+covariance of the small body-frame error rotation is
+``P = [sum_i (I - b_i b_i^T) / sigma_i^2]^-1`` (rad^2); its x and y diagonal
+entries are the cross-boresight (pitch/yaw) variances, z the roll variance.
 """
 from __future__ import annotations
 
+import math
+import time
+from dataclasses import dataclass, field
+
 import numpy as np
 
-__all__ = ["profile_matrix", "svd_solve", "wahba_loss"]
+from startrack.errors import BadInputError
+
+__all__ = ["METHODS", "profile_matrix", "wahba_loss", "solve_wahba", "q_method", "quest", "svd_solve", "foam",
+           "esoq2", "triad", "covariance", "AttitudeResult", "estimate_attitude", "wcs_header"]
+
+METHODS = ("quest", "q-method", "svd", "foam", "esoq2", "triad")
 
 
 def profile_matrix(body, reference, weights=None):
@@ -20,17 +40,6 @@ def profile_matrix(body, reference, weights=None):
     return np.einsum("i,ij,ik->jk", a, b, r)
 
 
-def svd_solve(body, reference, weights=None):
-    """Markley's SVD solution (1988) with the determinant sign fixed: never a reflection.
-
-    ``B = U S V^T``, ``A = U diag(1, 1, det U det V) V^T``.
-    """
-    bmat = profile_matrix(body, reference, weights)
-    u, _, vt = np.linalg.svd(bmat)
-    d = np.linalg.det(u) * np.linalg.det(vt)
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
 def wahba_loss(dcm, body, reference, weights=None):
     """``L(A) = 1/2 sum a_i |b_i - A r_i|^2`` (paper 000 Eq. 15)."""
     b = np.asarray(body, dtype=np.float64)
@@ -38,3 +47,363 @@ def wahba_loss(dcm, body, reference, weights=None):
     a = np.ones(len(b)) if weights is None else np.asarray(weights, dtype=np.float64)
     diff = b - r @ np.asarray(dcm).T
     return 0.5 * float(np.sum(a * np.sum(diff * diff, axis=1)))
+
+
+def _k_matrix(bmat):
+    """Davenport's ``K = [[S - sigma I, Z], [Z^T, sigma]]`` (paper 000 Eqs. 24-25)."""
+    s = bmat + bmat.T
+    sigma = np.trace(bmat)
+    z = np.array([bmat[1, 2] - bmat[2, 1], bmat[2, 0] - bmat[0, 2], bmat[0, 1] - bmat[1, 0]])
+    k = np.empty((4, 4))
+    k[:3, :3] = s - sigma * np.eye(3)
+    k[:3, 3] = z
+    k[3, :3] = z
+    k[3, 3] = sigma
+    return k
+
+
+def q_method(body, reference, weights=None):
+    """Davenport's q-method: the eigenvector of ``K`` with the largest eigenvalue (Eqs. 23-26)."""
+    from startrack.rotations import quaternion_to_dcm
+
+    vals, vecs = np.linalg.eigh(_k_matrix(profile_matrix(body, reference, weights)))
+    return quaternion_to_dcm(vecs[:, np.argmax(vals)])
+
+
+def quest(body, reference, weights=None):
+    """QUEST (Shuster & Oh 1981): Newton on the characteristic equation, sequential rotations near 180 deg."""
+    from startrack._kernels.attitude import quat_to_dcm, quest as quest_kernel
+
+    b = np.ascontiguousarray(body, dtype=np.float64)
+    r = np.ascontiguousarray(reference, dtype=np.float64)
+    w = np.ones(len(b)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    q, _ = quest_kernel(b, r, w)
+    return quat_to_dcm(q)
+
+
+def svd_solve(body, reference, weights=None):
+    """Markley's SVD solution (1988): ``A = U diag(1, 1, det U det V) V^T`` -- never a reflection."""
+    bmat = profile_matrix(body, reference, weights)
+    u, _, vt = np.linalg.svd(bmat)
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def _adj(m):
+    """Adjugate (transpose of the cofactor matrix) of a 3 x 3 matrix."""
+    c = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            minor = np.delete(np.delete(m, i, axis=0), j, axis=1)
+            c[i, j] = (-1) ** (i + j) * (minor[0, 0] * minor[1, 1] - minor[0, 1] * minor[1, 0])
+    return c.T
+
+
+def _upper_bound(body, reference, weights):
+    """``sum a_i |b_i| |r_i|``: no eigenvalue of ``K`` exceeds it, so Newton started there finds the largest."""
+    b = np.asarray(body, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    return float(np.sum(weights * np.linalg.norm(b, axis=1) * np.linalg.norm(r, axis=1))) * (1 + 1e-12)
+
+
+def foam(body, reference, weights=None):
+    """FOAM (Markley 1993): ``lambda`` by Newton on
+    ``(l^2 - |B|^2)^2 - 8 l det B - 4 |adj B|^2 = 0`` from ``sum a_i``, then
+    ``A = [(kappa + |B|^2) B + l adj(B^T) - B B^T B] / zeta`` (Newton started
+    at the upper bound ``sum a |b| |r|`` rather than ``sum a``) with
+    ``kappa = (l^2 - |B|^2) / 2`` and ``zeta = kappa l - det B``."""
+    bmat = profile_matrix(body, reference, weights)
+    a = np.ones(len(body)) if weights is None else np.asarray(weights, dtype=np.float64)
+    nb2 = float(np.sum(bmat * bmat))
+    detb = float(np.linalg.det(bmat))
+    adjb = _adj(bmat)
+    nadj2 = float(np.sum(adjb * adjb))
+    lam = _upper_bound(body, reference, a)
+    for _ in range(50):
+        psi = (lam * lam - nb2) ** 2 - 8 * lam * detb - 4 * nadj2
+        dpsi = 4 * lam * (lam * lam - nb2) - 8 * detb
+        if dpsi == 0:
+            break
+        step = psi / dpsi
+        lam -= step
+        if abs(step) < 1e-15 * max(1.0, abs(lam)):
+            break
+    kappa = 0.5 * (lam * lam - nb2)
+    zeta = kappa * lam - detb
+    # (Newton started above from the upper bound of lambda_max, see _upper_bound.)
+    return ((kappa + nb2) * bmat + lam * adjb.T - bmat @ bmat.T @ bmat) / zeta
+
+
+def esoq2(body, reference, weights=None):
+    """ESOQ2 (Mortari 1997): the rotation axis from a cross product of two rows of
+    ``M = t (S - (tr B + l) I) - Z Z^T`` (``t = tr B - l``), ``q ~ (t e, -Z.e)``.
+
+    ``l`` is QUEST's largest eigenvalue.  ESOQ2 is singular for a rotation of
+    zero angle, so the reference frame is first turned by 180 degrees about the
+    axis that moves the attitude farthest from the identity (two columns of
+    ``B`` negated; Markley's ESOQ2.1 device) and turned back at the end.
+    """
+    from startrack._kernels.attitude import _quest_core
+    from startrack.rotations import quaternion_to_dcm
+
+    bmat0 = profile_matrix(body, reference, weights)
+    a = np.ones(len(body)) if weights is None else np.asarray(weights, dtype=np.float64)
+    traces = [np.trace(bmat0), 2 * bmat0[0, 0] - np.trace(bmat0), 2 * bmat0[1, 1] - np.trace(bmat0),
+              2 * bmat0[2, 2] - np.trace(bmat0)]
+    axis = int(np.argmin(traces)) - 1        # -1: no rotation
+    bmat = bmat0.copy()
+    if axis >= 0:
+        for col in range(3):
+            if col != axis:
+                bmat[:, col] = -bmat[:, col]
+    _, lam, _ = _quest_core(bmat, _upper_bound(body, reference, a))
+    s = bmat + bmat.T
+    z = np.array([bmat[1, 2] - bmat[2, 1], bmat[2, 0] - bmat[0, 2], bmat[0, 1] - bmat[1, 0]])
+    tr = np.trace(bmat)
+    t = tr - lam
+    m = t * (s - (tr + lam) * np.eye(3)) - np.outer(z, z)
+    cands = [np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])]
+    e = max(cands, key=lambda v: float(v @ v))
+    e = e / np.linalg.norm(e)
+    q = np.array([t * e[0], t * e[1], t * e[2], -float(z @ e)])
+    q /= np.linalg.norm(q)
+    if axis == 0:
+        q = np.array([q[3], -q[2], q[1], -q[0]])
+    elif axis == 1:
+        q = np.array([q[2], q[3], -q[0], -q[1]])
+    elif axis == 2:
+        q = np.array([-q[1], q[0], q[3], -q[2]])
+    return quaternion_to_dcm(q)
+
+
+def triad(body, reference, weights=None):
+    """TRIAD (Black 1964): the first pair exactly, the second's plane.
+
+    ``M(v1, v2) = [v1, w, v1 x w]`` with ``w = v1 x v2 / |v1 x v2|`` and
+    ``A = M(b1, b2) M(r1, r2)^T``.  Only the first two pairs are used; the more
+    accurate star (largest weight) goes first.
+    """
+    b = np.asarray(body, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    if len(b) < 2:
+        raise BadInputError("triad", None, "needs two stars")
+    order = [0, 1]
+    if weights is not None and len(weights) >= 2 and weights[1] > weights[0]:
+        order = [1, 0]
+
+    def frame(v1, v2):
+        w = np.cross(v1, v2)
+        nw = np.linalg.norm(w)
+        if nw < 1e-12:
+            raise BadInputError("triad", None, "the two stars are parallel")
+        w /= nw
+        return np.column_stack([v1, w, np.cross(v1, w)])
+
+    return frame(b[order[0]], b[order[1]]) @ frame(r[order[0]], r[order[1]]).T
+
+
+_SOLVERS = {"quest": quest, "q-method": q_method, "svd": svd_solve, "foam": foam, "esoq2": esoq2, "triad": triad}
+
+
+def solve_wahba(method: str, body, reference, weights=None):
+    """Attitude matrix by ``method`` (one of :data:`METHODS`)."""
+    if method not in _SOLVERS:
+        raise BadInputError("--method", None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    return _SOLVERS[method](body, reference, weights)
+
+
+def covariance(body, sigmas_rad):
+    """QUEST measurement-model covariance ``P = [sum (I - b b^T) / sigma^2]^-1`` (rad^2, body frame)."""
+    b = np.asarray(body, dtype=np.float64)
+    s2 = np.asarray(sigmas_rad, dtype=np.float64) ** 2
+    info = np.einsum("i,ijk->jk", 1.0 / s2, np.eye(3)[None, :, :] - b[:, :, None] * b[:, None, :])
+    return np.linalg.inv(info)
+
+
+@dataclass
+class AttitudeResult:
+    """The ``attitude`` section of a frame document."""
+
+    status: str
+    method: str
+    dcm: np.ndarray | None = None
+    reason: str | None = None
+    used: list = field(default_factory=list)
+    rejected: list = field(default_factory=list)
+    residuals_arcsec: list = field(default_factory=list)
+    loss: float | None = None
+    cov_rad2: np.ndarray | None = None
+    time_ms: float = 0.0
+    variance_factor: float = 1.0
+
+    def section(self) -> dict:
+        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
+
+        out = {"status": self.status, "method": self.method}
+        if self.reason:
+            out["reason"] = self.reason
+        if self.dcm is None:
+            return out
+        ra, dec, roll = dcm_to_radec_roll(self.dcm)
+        yaw, pitch, roll123 = dcm_to_euler123(self.dcm)
+        arcsec = math.degrees(1.0) * 3600.0
+        out.update(
+            quaternion=[float(v) for v in dcm_to_quaternion(self.dcm)],
+            dcm=[[float(v) for v in row] for row in self.dcm],
+            ra=float(np.degrees(ra)) % 360.0, dec=float(np.degrees(dec)), roll=float(np.degrees(roll)),
+            euler123_deg={"yaw": float(np.degrees(yaw)), "pitch": float(np.degrees(pitch)),
+                          "roll": float(np.degrees(roll123))},
+            n_stars=len(self.used), loss=self.loss,
+            residuals=[{"star": s, "id": i, "residual_arcsec": round(float(r), 4)}
+                       for (s, i), r in zip(self.used, self.residuals_arcsec)],
+            rms_residual_arcsec=float(np.sqrt(np.mean(np.square(self.residuals_arcsec)))) if self.residuals_arcsec
+            else None,
+            time_ms=round(self.time_ms, 4),
+            variance_factor=round(float(self.variance_factor), 4),
+        )
+        if self.cov_rad2 is not None:
+            p = self.cov_rad2
+            out["covariance_arcsec2"] = [[float(v) * arcsec**2 for v in row] for row in p]
+            out["sigma_cross_boresight_arcsec"] = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
+            out["sigma_pitch_yaw_arcsec"] = [float(math.sqrt(p[0, 0]) * arcsec), float(math.sqrt(p[1, 1]) * arcsec)]
+            out["sigma_roll_arcsec"] = float(math.sqrt(p[2, 2]) * arcsec)
+        if self.rejected:
+            out["rejected"] = self.rejected
+        return out
+
+
+def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", labels=None, gate: float = 13.8,
+                      weighted: bool = True) -> AttitudeResult:
+    """Solve the attitude with outlier rejection and uncertainty.
+
+    Parameters
+    ----------
+    body, reference : array (n, 3)
+        Camera-frame and ICRS unit vectors of the identified stars.
+    sigmas_rad : array (n,), optional
+        1-sigma line-of-sight error per star and axis (radians); default 1e-5.
+    labels : list of (star index, catalog id), optional
+        Carried into the result's residual list.
+    gate : float
+        Chi-square gate on ``residual^2 / (k sigma)^2`` (2 degrees of freedom;
+        13.8 is the 0.1% point).  The worst star beyond it is dropped and the
+        attitude solved again, until all pass or two stars are left.  ``k >= 1``
+        is a robust variance factor, ``k^2 = median(chi^2) / 1.386`` (the median
+        of chi-square with 2 dof) when at least 5 stars remain and that ratio
+        exceeds 2.5: when the given sigmas are clearly too small for the data
+        (uncalibrated optics), all stars are scaled alike instead of being
+        rejected one by one; the covariance is scaled by the same factor and
+        ``k`` is reported.
+    weighted : bool
+        Weights ``a_i = 1 / sigma_i^2`` (the optimal QUEST weights); equal when false.
+    """
+    t0 = time.perf_counter()
+    b = np.asarray(body, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    n = len(b)
+    labels = list(labels) if labels is not None else [(i, None) for i in range(n)]
+    sig = np.full(n, 1e-5) if sigmas_rad is None else np.asarray(sigmas_rad, dtype=np.float64)
+    if n < 2:
+        return AttitudeResult("failed", method, reason=f"{n} identified star(s): at least 2 are needed",
+                              time_ms=(time.perf_counter() - t0) * 1000)
+    if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
+        return AttitudeResult("failed", method, reason="non-finite star vectors or uncertainties",
+                              time_ms=(time.perf_counter() - t0) * 1000)
+    keep = np.arange(n)
+    rejected = []
+    while True:
+        w = 1.0 / sig[keep] ** 2 if weighted else np.ones(len(keep))
+        w = w / w.sum()
+        use_method = method if not (method == "triad" and len(keep) < 2) else method
+        dcm = solve_wahba(use_method, b[keep], r[keep], w)
+        pred = r[keep] @ dcm.T
+        resid = np.arccos(np.clip(np.einsum("ij,ij->i", b[keep], pred), -1.0, 1.0))
+        chi2 = (resid / sig[keep]) ** 2
+        factor2 = float(np.median(chi2)) / 1.386 if len(keep) >= 5 else 1.0
+        factor2 = factor2 if factor2 > 2.5 else 1.0   # only when the sigmas are clearly too small
+        chi2 = chi2 / factor2
+        worst = int(np.argmax(chi2))
+        if chi2[worst] <= gate or len(keep) <= 2 or method == "triad":
+            break
+        s, i = labels[keep[worst]]
+        rejected.append({"star": s, "id": i, "residual_arcsec": round(float(np.degrees(resid[worst]) * 3600), 3),
+                         "reason": f"chi-square {chi2[worst]:.1f} above the gate {gate:g}"})
+        keep = np.delete(keep, worst)
+    used = [labels[k] for k in keep]
+    loss = wahba_loss(dcm, b[keep], r[keep], w)
+    cov = covariance(b[keep], sig[keep]) * factor2 if len(keep) >= 2 else None
+    out = AttitudeResult("ok", method, dcm, None, used, rejected, list(np.degrees(resid) * 3600), loss, cov,
+                         (time.perf_counter() - t0) * 1000)
+    out.variance_factor = math.sqrt(factor2)
+    return out
+
+
+def wcs_header(dcm, camera, image_shape=None, sip_order: int = 5):
+    """A FITS WCS (TAN, with SIP terms when the camera has distortion) for an attitude.
+
+    Pixel ``(x, y)`` (0-based, ours) is FITS ``(x + 1, y + 1)``.  ``CRPIX`` is
+    the principal point, ``CRVAL`` the boresight, and the ``CD`` matrix maps
+    pixel offsets to the tangent plane: ``CD = (180 / pi) / f [[X.E, Y.E],
+    [X.N, Y.N]]`` with ``X``, ``Y`` the camera axes in ICRS (rows of ``A``)
+    and ``E``, ``N`` east and north at the boresight.  With distortion, SIP
+    ``A``/``B`` (distorted -> undistorted, fitted on a grid) and ``AP``/``BP``
+    (undistorted -> distorted, exact for the radial model) are added.
+    Returns an ``astropy.io.fits.Header``.
+    """
+    from astropy.io import fits
+
+    from startrack.rotations import dcm_to_radec_roll
+
+    a = np.asarray(dcm, dtype=np.float64)
+    ra, dec, _ = dcm_to_radec_roll(a)
+    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
+    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
+    k = math.degrees(1.0) / camera.focal_length_px
+    cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
+    hdr = fits.Header()
+    hdr["WCSAXES"] = 2
+    hdr["CTYPE1"] = "RA---TAN-SIP" if camera.has_distortion else "RA---TAN"
+    hdr["CTYPE2"] = "DEC--TAN-SIP" if camera.has_distortion else "DEC--TAN"
+    hdr["CRPIX1"] = camera.cx + 1.0
+    hdr["CRPIX2"] = camera.cy + 1.0
+    hdr["CRVAL1"] = math.degrees(ra) % 360.0
+    hdr["CRVAL2"] = math.degrees(dec)
+    hdr["CUNIT1"] = "deg"
+    hdr["CUNIT2"] = "deg"
+    hdr["CD1_1"], hdr["CD1_2"] = float(cd[0, 0]), float(cd[0, 1])
+    hdr["CD2_1"], hdr["CD2_2"] = float(cd[1, 0]), float(cd[1, 1])
+    hdr["RADESYS"] = "ICRS"
+    hdr["IMAGEW"] = camera.width
+    hdr["IMAGEH"] = camera.height
+    if camera.has_distortion:
+        f = camera.focal_length_px
+        k1, k2 = camera.k1, camera.k2
+        # Inverse (AP/BP): undistorted offsets (U, V) -> distorted: U (k1 r^2 + k2 r^4), r^2 = (U^2 + V^2) / f^2.
+        ap = {(3, 0): k1 / f**2, (1, 2): k1 / f**2, (5, 0): k2 / f**4, (3, 2): 2 * k2 / f**4, (1, 4): k2 / f**4}
+        bp = {(0, 3): k1 / f**2, (2, 1): k1 / f**2, (0, 5): k2 / f**4, (2, 3): 2 * k2 / f**4, (4, 1): k2 / f**4}
+        # Forward (A/B): distorted (u, v) -> undistorted - distorted, least squares on a grid over the image.
+        xs = np.linspace(-0.5, camera.width - 0.5, 41) - camera.cx
+        ys = np.linspace(-0.5, camera.height - 0.5, 41) - camera.cy
+        gu, gv = np.meshgrid(xs, ys)
+        uu, vv = camera.undistort(gu.ravel() / f, gv.ravel() / f)
+        du = uu * f - gu.ravel()
+        dv = vv * f - gv.ravel()
+        terms = [(p, q) for p in range(sip_order + 1) for q in range(sip_order + 1 - p) if p + q >= 2]
+        design = np.stack([gu.ravel() ** p * gv.ravel() ** q for p, q in terms], axis=1)
+        scale = np.max(np.abs(design), axis=0)
+        ca, *_ = np.linalg.lstsq(design / scale, du, rcond=None)
+        cb, *_ = np.linalg.lstsq(design / scale, dv, rcond=None)
+        ca /= scale
+        cb /= scale
+        hdr["A_ORDER"] = sip_order
+        hdr["B_ORDER"] = sip_order
+        for (p, q), va, vb in zip(terms, ca, cb):
+            hdr[f"A_{p}_{q}"] = float(va)
+            hdr[f"B_{p}_{q}"] = float(vb)
+        hdr["AP_ORDER"] = 5
+        hdr["BP_ORDER"] = 5
+        for (p, q), v in ap.items():
+            hdr[f"AP_{p}_{q}"] = float(v)
+        for (p, q), v in bp.items():
+            hdr[f"BP_{p}_{q}"] = float(v)
+    return hdr

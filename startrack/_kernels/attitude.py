@@ -37,7 +37,8 @@ def _quest_core(bm, lam0):
     ``Delta = det S``: ``a = sigma^2 - kappa``, ``b = sigma^2 + Z.Z``,
     ``c = Delta + Z.S Z``, ``d = Z.S^2 Z``,
     ``f(l) = l^4 - (a + b) l^2 - c l + (a b + c sigma - d)``; Newton from
-    ``lam0 = sum w``.  Then ``alpha = l^2 - sigma^2 + kappa``, ``beta = l - sigma``,
+    ``lam0`` (Shuster starts at ``sum w``; an upper bound makes sure the largest
+    root is the one found).  Then ``alpha = l^2 - sigma^2 + kappa``, ``beta = l - sigma``,
     ``gamma = (l + sigma) alpha - Delta``, ``X = (alpha I + beta S + S^2) Z`` and
     ``q = (X, gamma) / norm``.  Returns ``(q, lambda, gamma_rel)``.
     """
@@ -70,7 +71,8 @@ def _quest_core(bm, lam0):
     x = alpha * z + beta * sz + s2z
     norm = math.sqrt(gamma * gamma + _vdot(x, x))
     q = np.empty(4)
-    if norm == 0.0:
+    # (X, gamma) scales as lambda^3: a tiny norm is all round-off (a rotation of 180 degrees).
+    if norm <= 1e-10 * max(1.0, abs(lam)) ** 3:
         q[:] = 0.0
         q[3] = 1.0
         return q, lam, 0.0
@@ -91,9 +93,13 @@ def quest(b, r, w):
     negated) and the result turned back.  Returns ``(q, lambda_max)``.
     """
     bm = profile(b, r, w)
+    # Newton from an upper bound of lambda_max (sum w |b| |r|), so that it
+    # converges to the largest root even when the second root is close (two
+    # stars) or the vectors are not exactly unit.
     lam0 = 0.0
     for i in range(w.shape[0]):
-        lam0 += w[i]
+        lam0 += w[i] * math.sqrt(_vdot(b[i], b[i]) * _vdot(r[i], r[i]))
+    lam0 *= 1.0 + 1e-12
     q, lam, g = _quest_core(bm, lam0)
     if g > 1e-2:
         if q[3] < 0:

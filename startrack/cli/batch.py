@@ -17,7 +17,7 @@ from startrack.errors import BadInputError
 
 def run_frames(input_path: str, output: str, section: str, process, quiet: bool, label: str,
                need: tuple = ()) -> None:
-    """Apply ``process(doc, source) -> doc`` to every frame of ``input_path``; write to ``output``.
+    """Apply ``process(doc, source, index, total) -> doc`` to every frame of ``input_path``; write to ``output``.
 
     ``process`` raises :class:`BadInputError` for input it cannot use.
     """
@@ -37,7 +37,7 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
                 if rec.error is not None:
                     raise rec.error
                 validate_frame(rec.doc, rec.source, need)
-                out = process(rec.doc, rec.source)
+                out = process(rec.doc, rec.source, i, len(records))
                 if isinstance(out.get(section), dict) and out[section].get("status") == "failed":
                     n_failed += 1
             except BadInputError as exc:

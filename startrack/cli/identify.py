@@ -63,9 +63,8 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
                             max_false_probability=max_false_probability)
     checked = {}
-    counter = {"n": 0}
 
-    def process(doc, source):
+    def process(doc, source, index, total):
         if override is not None:
             cam = override
             doc["camera"] = cam.to_dict()
@@ -82,8 +81,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
         result = identify_stars(doc["stars"], cam, db, algorithm, params)
         doc["identification"] = result.section()
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
-            _plot(plot, counter["n"], doc, db, cam, result)
-        counter["n"] += 1
+            _plot(plot, index, total, doc, db, cam, result)
         return doc
 
     run_frames(input, output, "identification", process, quiet, "identify")
@@ -111,7 +109,7 @@ def _check(db, camera, kind):
     return True
 
 
-def _plot(pattern, index, doc, db, camera, result):
+def _plot(pattern, index, total, doc, db, camera, result):
     import numpy as np
 
     from startrack.imageio import read_image
@@ -129,5 +127,5 @@ def _plot(pattern, index, doc, db, camera, result):
         inside = camera.in_image(x, y)
         predicted = list(zip(x[inside], y[inside]))
     title = f"{result.algorithm}: {result.status}, {len(result.matches)} stars identified"
-    annotate_stars(numbered_path(pattern, index, 10**9 if index else 1), image, doc["stars"], None, labels,
+    annotate_stars(numbered_path(pattern, index, total), image, doc["stars"], None, labels,
                    predicted, title)

@@ -17,6 +17,7 @@ COMMANDS = {
     "build-kvector": "build_kvector",
     "build-labels": "build_labels",
     "identify": "identify",
+    "attitude": "attitude",
     "evaluate": "evaluate",
 }
 
