@@ -405,13 +405,15 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
     dcm = np.asarray(dcm, dtype=np.float64)
     vectors = catalog.vectors() if vectors is None else vectors
     true_cam = camera.with_focal_length(camera.focal_length_px * (1.0 + scene.focal_error_pct / 100.0))
-    index, x, y = project_stars(vectors, dcm, true_cam)
+    resolve = 2.0 * sensor.psf_sigma_px if resolve_px is None else resolve_px
+    # Stars just outside the edge still blend with those just inside.
+    index, x, y = project_stars(vectors, dcm, true_cam, margin_px=resolve)
     mags = catalog.mag[index]
     if scene.mag_limit is not None:
         keep = mags <= scene.mag_limit
         index, x, y, mags = index[keep], x[keep], y[keep], mags[keep]
-    resolve = 2.0 * sensor.psf_sigma_px if resolve_px is None else resolve_px
     blobs = _merge_unresolved(x, y, mags, catalog.id[index], resolve)
+    blobs = [bl for bl in blobs if true_cam.in_image(bl["x"], bl["y"])]
     x = np.array([b["x"] for b in blobs])
     y = np.array([b["y"] for b in blobs])
     mags = np.array([b["mag"] for b in blobs])

@@ -230,7 +230,9 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
 
 @njit(cache=True)
 def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds):
-    """Attitude from the proposal, then match-all / re-solve ``rounds`` times.
+    """Attitude from the proposal, then ``rounds`` of match-all / re-solve, and a
+    last matching with the final attitude (so that the matches returned are the
+    ones that attitude supports).
 
     Returns ``(match, q, n_predicted)``.
     """
@@ -246,7 +248,7 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
             if match[i] >= 0:
                 k += 1
         if k < 2:
-            break
+            return match, q, npred
         bi = np.empty((k, 3))
         ri = np.empty((k, 3))
         t = 0
@@ -256,4 +258,5 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
                 ri[t] = star_vec[match[i]]
                 t += 1
         q, _ = quest(bi, ri, np.ones(k))
+    match, npred = match_stars(b, star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, radius)
     return match, q, npred

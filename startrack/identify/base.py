@@ -185,7 +185,8 @@ def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_
     # (three when that is all) matches by coincidence, times the chance that the
     # other stars fall on predicted catalog stars by accident.
     core = img[:4]
-    p_hit = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
+    p_hit = _local_hit_probability(b_vectors, np.delete(np.arange(len(b_vectors)), core), star_vec, dcm, camera,
+                                   radius, cos_fov, n_pred, radius_px)
     others = len(b_vectors) - len(core)
     core_pred = star_vec[cat[:4]] @ dcm.T
     core_agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[core], core_pred) >= math.cos(radius)))
@@ -196,6 +197,28 @@ def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_
                                     f"{params.max_false_probability:g}")
     out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in enumerate(match) if c >= 0]
     return out, dcm, p_false, None
+
+
+def _local_hit_probability(b_vectors, others, star_vec, dcm, camera, radius, cos_fov, n_pred, radius_px):
+    """Mean chance that one of ``others`` lands within ``radius`` of a predicted catalog star by accident.
+
+    The density of catalog stars is taken around each image star (within ten
+    match radii), not over the whole image: in a cluster (the Hyades, the
+    Pleiades) chance coincidences are far more likely than the field average
+    suggests.  The global average is the floor.
+    """
+    floor = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
+    if len(others) == 0:
+        return floor
+    front = star_vec @ dcm[2] > cos_fov
+    pred = star_vec[front] @ dcm.T
+    if len(pred) == 0:
+        return floor
+    local = 10.0 * radius
+    cos_local = math.cos(local)
+    counts = np.sum((b_vectors[others] @ pred.T) >= cos_local, axis=1)
+    p_each = np.minimum(1.0, counts * (radius / local) ** 2)
+    return float(max(floor, np.mean(p_each)))
 
 
 def _focal_scale(b_all, proposal, star_vec):

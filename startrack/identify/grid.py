@@ -12,7 +12,7 @@ is taken when its overlap reaches ``min_overlap`` and beats the runner-up.
 Confirmation: several reference stars (those nearest the image centre, whose
 pattern disc lies inside the field) are matched independently and the largest
 set whose catalog angles agree with the measured angles (within ``eps``) is
-kept; each reference brings its orientation neighbour along.
+kept as the proposal.
 
 The catalog patterns are computed from the k-vector database's star table and
 neighbour lists the first time they are needed (milliseconds) and cached, so
@@ -147,10 +147,10 @@ def propose_grid(b, db, eps, params, stars, camera):
             best_set = group
     if len(best_set) < 2:
         return Proposal([], [], n_refs, {"reason": "grid matches do not confirm each other"})
-    img, cat = [], []
-    for r, c, rn, cn, _ in best_set:
-        for i, k in ((r, c), (rn, cn)):
-            if i not in img and k >= 0 and k not in cat:
-                img.append(i)
-                cat.append(k)
+    # The confirmed reference stars are the proposal.  (Their orientation
+    # neighbours are not added: the image's nearest neighbour need not be the
+    # catalog's -- a missing or extra star changes it -- and one wrong pair in
+    # the proposal can pull the attitude onto the wrong member of a close pair.)
+    img = [r for r, *_ in best_set]
+    cat = [c for _, c, *_ in best_set]
     return Proposal(img, cat, len(refs), {"grid_votes": [v for *_, v in best_set]})
