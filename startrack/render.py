@@ -503,6 +503,7 @@ class RenderRun:
     image_path: str | None = None
     first_seed: int | None = None
     params: dict = field(default_factory=dict)
+    blackout: tuple = ()
 
     @property
     def total(self) -> int:
@@ -541,8 +542,14 @@ class RenderRun:
                     stars, truth = star_list(self.catalog, self.camera, dcm, self.sensor, self.scene, rng,
                                              self.sigma_px, self.max_stars, self.drop_fraction, vectors)
                 else:
-                    image, truth = render_image(self.catalog, self.camera, dcm, self.sensor, self.scene, rng,
-                                                vectors=vectors)
+                    catalog = self.catalog
+                    if k in self.blackout:
+                        # A covered or blinded frame: the sensor's noise and no star.
+                        catalog = self.catalog.subset(np.zeros(len(self.catalog), dtype=bool))
+                    image, truth = render_image(catalog, self.camera, dcm, self.sensor, self.scene, rng,
+                                                vectors=None if k in self.blackout else vectors)
+                    if k in self.blackout:
+                        truth["blackout"] = True
                     path = numbered_path(self.image_path, index, self.total) if self.image_path else None
                     if path:
                         image_doc["path"] = path

@@ -18,6 +18,7 @@ COMMANDS = {
     "build-labels": "build_labels",
     "identify": "identify",
     "attitude": "attitude",
+    "track": "track",
     "evaluate": "evaluate",
 }
 

@@ -53,6 +53,8 @@ def _floats(text, name, n):
 @click.option("--frame-interval-s", type=float, default=0.1, show_default=True, help="Time between frames.")
 @click.option("--time", "start_time", type=str, default=None,
               help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch.")
+@click.option("--blackout", type=str, default=None,
+              help="START:COUNT: frames of a sequence rendered without stars (covered or blinded), e.g. 50:10.")
 @click.option("--stars-only", is_flag=True, help="No image: stars straight from the truth, with noise.")
 @click.option("--sigma-px", type=float, default=None, help="Star-list centroid noise, pixels (1 sigma per axis).")
 @click.option("--sigma-arcsec", type=float, default=None, help="Star-list centroid noise, arcsec (1 sigma per axis).")
@@ -66,7 +68,7 @@ def _floats(text, name, n):
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
             output, documents, mag_limit, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, no_noise, mag_noise,
-            false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, stars_only, sigma_px,
+            false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, frame_seed, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
 
@@ -176,8 +178,18 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
         time=start_time).items()}
+    black = ()
+    if blackout:
+        try:
+            start, n_black = (int(v) for v in blackout.split(":"))
+        except ValueError:
+            raise BadInputError("--blackout", None, f"expected START:COUNT, got {blackout!r}") from None
+        if start < 0 or n_black < 1:
+            raise BadInputError("--blackout", None, f"expected START >= 0 and COUNT >= 1, got {blackout!r}")
+        black = tuple(range(start, start + n_black))
+        params["blackout"] = blackout
     run = RenderRun(cat, cam, sensor, scene, seed, attitude, count, frames, frame_interval_s, t0, stars_only,
-                    noise_px, max_stars, drop_fraction, output, frame_seed, params)
+                    noise_px, max_stars, drop_fraction, output, frame_seed, params, black)
     if frame_seed is not None and run.total != 1:
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
     bar = ProgressBar("render", quiet)

@@ -1,0 +1,136 @@
+"""startrack track: tracking mode over image sequences."""
+import click
+
+from startrack.cli.options import catalog_option, handle_errors, info, output_option, quiet_option
+
+
+@click.command("track", short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
+@click.argument("inputs", nargs=-1, metavar="[FRAMES.jsonl | IMAGE...]")
+@click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
+              help="k-vector database for the lost-in-space start and fall-backs.")
+@click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
+              help="Camera JSON (needed for bare image files).")
+@catalog_option
+@click.option("--mag-limit", type=float, default=None, help="Faintest catalog star predicted (default: the database's).")
+@click.option("--frame-interval-s", type=float, default=None,
+              help="Time between frames when the documents have no image.time (bare images).")
+@click.option("--initial-quaternion", type=str, default=None, help="Start from this attitude (q1,q2,q3,q4).")
+@click.option("--rate-prior", type=str, default=None, help="Initial body rate wx,wy,wz (deg/s).")
+@click.option("--window-px", type=int, default=8, show_default=True, help="Base half-size of the prediction windows.")
+@click.option("--sigma-px", type=float, default=0.3, show_default=True, help="Centroid noise (1 sigma) for weights.")
+@click.option("--exposure-ms", type=float, default=100.0, show_default=True, help="Exposure (for smear-aware windows).")
+@click.option("--max-gap-s", type=float, default=2.0, show_default=True,
+              help="A longer gap between frames restarts from lost in space.")
+@click.option("--algorithm", default="pyramid", show_default=True, help="Lost-in-space algorithm.")
+@output_option()
+@quiet_option
+@handle_errors
+def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s, initial_quaternion, rate_prior,
+            window_px, sigma_px, exposure_ms, max_gap_s, algorithm, output, quiet):
+    """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
+
+    Input: frame documents naming images (JSON Lines, e.g. from `startrack
+    render --frames N`), in time order, or image files with --camera and
+    --frame-interval-s.  Each output frame has a `track` section: mode (lis,
+    track, single-star, lost), predicted vs measured positions, the rate
+    estimate (deg/s), the window size and the time per frame.  Out-of-order
+    time stamps are refused.
+
+    \b
+    Example (a rendered slew, then tracking):
+      startrack render --fov-deg 12 --size 1024x768 --frames 200 --rate-deg-s 0.3,0.4,0 --seed 2 \\
+          -o seq/frame.png > seq.jsonl
+      startrack build-kvector --fov-deg 12 --size 1024x768 --mag-max 6.0 -o db12.h5
+      startrack track seq.jsonl -d db12.h5 | jq -c '[.track.mode, .attitude.ra, .attitude.dec]'
+    """
+    import math
+
+    import numpy as np
+
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.cli.batch import run_frames
+    from startrack.errors import BadInputError
+    from startrack.formats.frame import FRAME_FORMAT, read_json_file
+    from startrack.imageio import read_image
+    from startrack.kvector import check_database, load_kvector
+    from startrack.rotations import normalize_quaternion, quaternion_to_dcm
+    from startrack.timeutil import parse_time
+    from startrack.track import Tracker, TrackerConfig
+
+    db = load_kvector(database)
+    cam_override = None
+    if camera_file:
+        doc = read_json_file(camera_file)
+        cam_override = Camera.from_dict(doc.get("camera", doc) if str(doc.get("format", "")).startswith("startrack.frame")
+                                        else doc, camera_file)
+    init = None
+    if initial_quaternion:
+        q = np.array([float(v) for v in initial_quaternion.split(",")])
+        if len(q) != 4 or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > 1e-6:
+            raise BadInputError("--initial-quaternion", None, "must be a unit quaternion q1,q2,q3,q4")
+        init = quaternion_to_dcm(normalize_quaternion(q))
+    rate = None
+    if rate_prior:
+        rate = np.radians([float(v) for v in rate_prior.split(",")])
+        if len(rate) != 3:
+            raise BadInputError("--rate-prior", None, "expected wx,wy,wz in deg/s")
+    cat = load_catalog(catalog)
+    config = TrackerConfig(mag_limit=mag_limit if mag_limit is not None else float(db.star_mag.max()),
+                           window_px=window_px, sigma_px=sigma_px, max_gap_s=max_gap_s, exposure_s=exposure_ms / 1000,
+                           algorithm=algorithm)
+    state = {"tracker": None, "t0": None}
+
+    # Bare image files become minimal frame documents.
+    names = list(inputs) or ["-"]
+    if all(not (n == "-" or n.lower().endswith((".json", ".jsonl", ".ndjson"))) for n in names):
+        if cam_override is None:
+            raise BadInputError("--camera", None, "is needed with image files")
+        if frame_interval_s is None:
+            raise BadInputError("--frame-interval-s", None, "is needed with image files (they carry no time)")
+        import json
+        import tempfile
+
+        tmp = tempfile.NamedTemporaryFile("w", suffix=".jsonl", delete=False)
+        for n in names:
+            tmp.write(json.dumps({"format": FRAME_FORMAT, "image": {"path": n}}) + "\n")
+        tmp.close()
+        source = tmp.name
+    elif len(names) == 1:
+        source = names[0]
+    else:
+        raise BadInputError("INPUT", None, "give one frame-document stream, or image files")
+
+    def process(doc, src, index, total):
+        cam = cam_override if cam_override is not None else (
+            Camera.from_dict(doc["camera"], src) if "camera" in doc else None)
+        if cam is None:
+            raise BadInputError(src, "camera", "is missing (give --camera)")
+        if state["tracker"] is None:
+            check_database(db, cam)
+            state["tracker"] = Tracker(cat, cam, db, config, init, rate)
+        path = (doc.get("image") or {}).get("path")
+        if not path:
+            raise BadInputError(src, "image.path", "is missing: tracking needs the images")
+        image, meta = read_image(path)
+        tstr = (doc.get("image") or {}).get("time")
+        if tstr:
+            t_abs = parse_time(tstr, f"{src}: image.time")
+            if state["t0"] is None:
+                state["t0"] = t_abs
+            t = (t_abs - state["t0"]).total_seconds()
+        elif frame_interval_s:
+            t = index * frame_interval_s
+        else:
+            raise BadInputError(src, "image.time", "is missing (give --frame-interval-s)")
+        doc["image"] = {**(doc.get("image") or {}), "width": image.shape[1], "height": image.shape[0]}
+        doc["camera"] = cam.to_dict()
+        out = state["tracker"].step(image, t, meta["saturation"])
+        doc["stars"] = out["stars"]
+        doc["identification"] = out["identification"]
+        doc["attitude"] = out["attitude"]
+        doc["track"] = out["track"]
+        doc["track"]["t_s"] = t
+        return doc
+
+    run_frames(source, output, "track", process, quiet, "track")
