@@ -170,8 +170,37 @@ def bench_identify():
     return "identify (peers)", text
 
 
+def bench_attitude():
+    import pipeline_bench as pb
+
+    rows = pb.attitude_speed()
+    text = "Median microseconds per solve, 10 stars (Python call included):\n\n" + table(["method", "us"], rows)
+    e2e = pb.paper000_end_to_end()
+    text += ("\n\nPaper 000's sensor end to end (render -> centroid -> identify -> attitude; 752 x 480 px, 6 um, "
+             f"f 41.1 mm = {e2e['fov_deg'][0]:.2f} x {e2e['fov_deg'][1]:.2f} deg, {e2e['pixel_arcsec']:.1f}\"/px, "
+             f"catalog Hp 2.5-6.59, rendered to Hp 7.5; {e2e['frames']} random attitudes):\n\n"
+             + table(["quantity", "startrack", "paper 000 requirement", "Liebe (2002) prediction"], [
+                 ["identified frames (correct / failed / wrong)", f"{e2e['ok']} / {e2e['failed']} / {e2e['bad']}", "", ""],
+                 ["RMS pitch/yaw (per axis)", f"{e2e['rms_pitch_yaw_arcsec']:.2f}\"", "< 20\"",
+                  f"{e2e['liebe_pitch_yaw_arcsec']:.2f}\""],
+                 ["RMS roll", f"{e2e['rms_roll_arcsec']:.2f}\"", "< 100\"", f"{e2e['liebe_roll_arcsec']:.2f}\""],
+                 ["stars per solution (mean)", f"{e2e['mean_stars']:.1f}", "4 (adaptive selection)", ""],
+                 ["centroid sigma (median, px)", f"{e2e['median_centroid_sigma_px']:.3f}", "", ""]]))
+    return "attitude", text
+
+
+def bench_track():
+    import pipeline_bench as pb
+
+    track_ms, lis_ms, n = pb.tracking_speed()
+    return "track", table(["mode (1024 x 768, 12 deg, image in memory)", "median ms per frame", "frames/s"], [
+        ["tracking (predict + windows + QUEST)", f"{track_ms:.3f}", f"{1000 / track_ms:.0f}"],
+        ["lost in space (centroid + identify + attitude)", f"{lis_ms:.3f}", f"{1000 / lis_ms:.0f}"],
+        ["ratio", f"{lis_ms / track_ms:.1f}x faster", ""]]) + f"\n\n({n} tracked frames)"
+
+
 SECTIONS = {"render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
-            "identify": bench_identify}
+            "identify": bench_identify, "attitude": bench_attitude, "track": bench_track}
 
 
 def main():

@@ -19,6 +19,7 @@ COMMANDS = {
     "identify": "identify",
     "attitude": "attitude",
     "track": "track",
+    "plot": "plot",
     "evaluate": "evaluate",
 }
 
