@@ -155,7 +155,8 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
     if jobs > 1:
         import multiprocessing as mp
 
-        pool = mp.get_context("fork").Pool(jobs, _worker_init, (databases, camera, params))
+        # spawn, not fork: numba's OpenMP threading layer must not be forked.
+        pool = mp.get_context("spawn").Pool(jobs, _worker_init, (databases, camera, params))
     else:
         _worker_init(databases, camera, params)
     try:

@@ -77,7 +77,7 @@ def smart_triads(n):
 
 @njit(cache=True)
 def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad, use_quadratic, eps,
-                   max_triads):
+                   max_triads, eps_rel=0.0):
     """The pyramid identification (Mortari, Samaan, Bruccoleri & Junkins 2004).
 
     ``b`` are image-star unit vectors (camera frame), brightest first.  Triads
@@ -109,10 +109,13 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
         th_ij = math.acos(min(1.0, max(-1.0, _dot(b[i], b[j]))))
         th_ik = math.acos(min(1.0, max(-1.0, _dot(b[i], b[k]))))
         th_jk = math.acos(min(1.0, max(-1.0, _dot(b[j], b[k]))))
-        lo_ij = math.cos(th_ij + eps)
-        hi_ij = math.cos(max(th_ij - eps, 0.0))
-        lo_ik = math.cos(th_ik + eps)
-        hi_ik = math.cos(max(th_ik - eps, 0.0))
+        e_ij = eps + eps_rel * th_ij
+        e_ik = eps + eps_rel * th_ik
+        e_jk = eps + eps_rel * th_jk
+        lo_ij = math.cos(th_ij + e_ij)
+        hi_ij = math.cos(max(th_ij - e_ij, 0.0))
+        lo_ik = math.cos(th_ik + e_ik)
+        hi_ik = math.cos(max(th_ik - e_ik, 0.0))
         s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
         side_ij = _side_candidates(pair_i, pair_j, pair_cos, s, e, lo_ij, hi_ij)
         if side_ij.shape[0] == 0:
@@ -138,7 +141,7 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
                     continue
                 c = _dot(star_vec[J], star_vec[K])
                 th = math.acos(min(1.0, max(-1.0, c)))
-                if abs(th - th_jk) > eps:
+                if abs(th - th_jk) > e_jk:
                     continue
                 rI = star_vec[I]
                 rJ = star_vec[J]
@@ -172,8 +175,9 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
             th_ir = math.acos(min(1.0, max(-1.0, _dot(b[i], b[r]))))
             th_jr = math.acos(min(1.0, max(-1.0, _dot(b[j], b[r]))))
             th_kr = math.acos(min(1.0, max(-1.0, _dot(b[k], b[r]))))
-            lo = math.cos(th_ir + eps)
-            hi = math.cos(max(th_ir - eps, 0.0))
+            e_ir = eps + eps_rel * th_ir
+            lo = math.cos(th_ir + e_ir)
+            hi = math.cos(max(th_ir - e_ir, 0.0))
             s, e = _range(kvector, line, kquad, quad, use_quadratic, lo, hi)
             nR = 0
             fR = -1
@@ -190,10 +194,10 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
                 if R == fJ or R == fK:
                     continue
                 t1 = math.acos(min(1.0, max(-1.0, _dot(star_vec[fJ], star_vec[R]))))
-                if abs(t1 - th_jr) > eps:
+                if abs(t1 - th_jr) > eps + eps_rel * th_jr:
                     continue
                 t2 = math.acos(min(1.0, max(-1.0, _dot(star_vec[fK], star_vec[R]))))
-                if abs(t2 - th_kr) > eps:
+                if abs(t2 - th_kr) > eps + eps_rel * th_kr:
                     continue
                 nR += 1
                 fR = R

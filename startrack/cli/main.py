@@ -20,6 +20,8 @@ COMMANDS = {
     "attitude": "attitude",
     "track": "track",
     "plot": "plot",
+    "solve": "solve",
+    "calibrate": "calibrate",
     "evaluate": "evaluate",
 }
 

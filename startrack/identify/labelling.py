@@ -91,8 +91,10 @@ def propose_labelling(b, db, eps, params, stars, camera):
                         best = (err, [int(members[perm[a]]) for a in range(group)], s)
         if best is None:
             continue
-        # Accept when the residual is what centroid noise explains (eps per angle, eps = 3 sigma).
-        if best[0] <= len(mea) * eps:
+        # Accept when the residual is what centroid noise explains (eps per angle) plus, when the
+        # focal length is far off, the departure of the gnomonic angles from one common scale.
+        allowance = len(mea) * (eps + 0.5 * abs(best[2] - 1.0) * float(np.max(mea)) ** 3)
+        if best[0] <= allowance:
             return Proposal(list(combo), best[1], tried, {"label_error_arcsec": round(math.degrees(best[0]) * 3600, 3),
                                                           "focal_scale": round(best[2], 6)})
     return Proposal([], [], tried, {"reason": f"no label matched within tolerance in {tried} groups"})

@@ -19,7 +19,7 @@ def _propose(b, db, eps, params, stars, camera, quadratic):
 
     status, idx, cat, tried, _ = pyramid_search(
         b, db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, np.array(db.line), db.kquad,
-        np.array(db.quad), quadratic, eps, params.max_triads)
+        np.array(db.quad), quadratic, eps, params.max_triads, float(params.extra.get("relative_tolerance", 0.0)))
     if status == 0:
         return Proposal([], [], int(tried), {"reason": f"no unique pyramid among {tried} triads"})
     keep = [k for k in range(4) if idx[k] >= 0]

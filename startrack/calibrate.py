@@ -1,0 +1,146 @@
+"""Ground calibration of the camera: focal length, principal point and radial distortion.
+
+Paper 000 (Sec. 3.3, after Medaglia 2016) calibrates the focal length and the
+principal point by least squares; we solve the bundle problem directly: over
+one or many identified frames, minimise the pixel residuals between the
+measured stars and the catalog stars projected through the camera model,
+
+    r = (x, y)_measured - project(exp(-[d_k x]) A_k r_i; f, cx, cy, k1, k2),
+
+for the intrinsics and a small attitude correction ``d_k`` per frame
+(Levenberg-Marquardt; Jacobian by central differences).  The uncertainty is
+``sqrt(diag((J^T J)^-1)) s`` with ``s^2`` the residual variance per degree of
+freedom.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from startrack.errors import BadInputError
+
+__all__ = ["CalibrationResult", "calibrate"]
+
+PARAMS = ("focal_length_px", "cx", "cy", "k1", "k2")
+
+
+@dataclass
+class CalibrationResult:
+    camera: object
+    sigma: dict
+    rms_before_px: float
+    rms_after_px: float
+    n_frames: int
+    n_stars: int
+    fov_deg: tuple
+    fov_sigma_deg: tuple
+
+    def to_dict(self) -> dict:
+        doc = self.camera.to_dict(standalone=True)
+        arcsec = self.camera.pixel_scale_arcsec
+        doc["calibration"] = {
+            "frames": self.n_frames, "stars": self.n_stars,
+            "sigma": {k: float(v) for k, v in self.sigma.items()},
+            "rms_residual_before_px": self.rms_before_px, "rms_residual_after_px": self.rms_after_px,
+            "rms_residual_before_arcsec": self.rms_before_px * arcsec,
+            "rms_residual_after_arcsec": self.rms_after_px * arcsec,
+            "fov_deg": list(self.fov_deg), "fov_sigma_deg": list(self.fov_sigma_deg),
+            "method": "Levenberg-Marquardt bundle adjustment (intrinsics + per-frame attitude)",
+        }
+        return doc
+
+
+def _rot(d):
+    """Passive rotation by the small vector ``d``: ``exp(-[d x])`` (Rodrigues)."""
+    from startrack.rotations import quaternion_to_dcm
+
+    angle = float(np.linalg.norm(d))
+    if angle == 0:
+        return np.eye(3)
+    axis = d / angle
+    return quaternion_to_dcm(np.concatenate([axis * math.sin(angle / 2), [math.cos(angle / 2)]]))
+
+
+def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
+    """Fit the camera to ``frames``: list of ``(dcm, xy (n, 2), ref (n, 3))``.
+
+    Parameters
+    ----------
+    camera : Camera
+        Starting values (the parameters not in ``fit`` stay fixed).
+    fit : iterable of str
+        Among ``focal_length_px``, ``cx``, ``cy``, ``k1``, ``k2``.
+    """
+    from dataclasses import replace
+
+    fit = [p for p in PARAMS if p in set(fit)]
+    if not fit:
+        raise BadInputError("--fit", None, f"choose among {', '.join(PARAMS)}")
+    frames = [(np.asarray(a, float), np.asarray(xy, float), np.asarray(r, float)) for a, xy, r in frames if len(xy) >= 3]
+    n_obs = sum(len(xy) for _, xy, _ in frames)
+    n_par = len(fit) + 3 * len(frames)
+    if not frames or 2 * n_obs <= n_par + 2:
+        raise BadInputError("frames", None, f"{n_obs} identified stars in {len(frames)} frame(s): too few to fit "
+                            f"{len(fit)} camera parameters")
+
+    def unpack(p):
+        cam = replace(camera, **{name: float(p[i]) for i, name in enumerate(fit)})
+        deltas = p[len(fit):].reshape(-1, 3)
+        return cam, deltas
+
+    def residuals(p):
+        cam, deltas = unpack(p)
+        out = []
+        for (a, xy, ref), d in zip(frames, deltas):
+            v = ref @ (_rot(d) @ a).T
+            x, y = cam.vectors_to_pixels(v)
+            out.append(np.column_stack([xy[:, 0] - x, xy[:, 1] - y]).ravel())
+        r = np.concatenate(out)
+        return np.where(np.isfinite(r), r, 1e3)
+
+    p = np.concatenate([[getattr(camera, name) for name in fit], np.zeros(3 * len(frames))])
+    scales = np.array([{"focal_length_px": camera.focal_length_px * 1e-6, "cx": 1e-3, "cy": 1e-3, "k1": 1e-6,
+                        "k2": 1e-6}[n] for n in fit] + [1e-7] * (3 * len(frames)))
+    r = residuals(p)
+    rms_before = float(np.sqrt(np.mean(r**2) * 2))
+    lam = 1e-3
+    cost = float(r @ r)
+    for _ in range(iterations):
+        jac = np.empty((len(r), len(p)))
+        for j in range(len(p)):
+            dp = np.zeros_like(p)
+            dp[j] = scales[j]
+            jac[:, j] = (residuals(p + dp) - residuals(p - dp)) / (2 * scales[j])
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        for _ in range(10):
+            step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
+            trial = p + step
+            rt = residuals(trial)
+            ct = float(rt @ rt)
+            if ct < cost:
+                p, r, cost = trial, rt, ct
+                lam = max(lam / 3, 1e-9)
+                improved = True
+                break
+            lam *= 10
+        if not improved or np.max(np.abs(step) / np.maximum(scales * 1e3, 1e-12)) < 1e-3:
+            break
+    dof = max(1, len(r) - len(p))
+    s2 = cost / dof
+    try:
+        cov = np.linalg.inv(jtj) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((len(p), len(p)), np.nan)
+    cam, _ = unpack(p)
+    sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(fit)}
+    rms_after = float(np.sqrt(np.mean(r**2) * 2))
+    fx, fy = cam.fov_deg
+    sf = sigma.get("focal_length_px", 0.0) / cam.focal_length_px
+    # d(FOV)/FOV ~ -(df/f) * (w/2f) / atan(w/2f) ... use the exact derivative of 2 atan(w / 2f).
+    dfx = math.degrees(2 * (cam.width / (2 * cam.focal_length_px)) / (1 + (cam.width / (2 * cam.focal_length_px)) ** 2)) * sf
+    dfy = math.degrees(2 * (cam.height / (2 * cam.focal_length_px)) / (1 + (cam.height / (2 * cam.focal_length_px)) ** 2)) * sf
+    return CalibrationResult(cam, sigma, rms_before, rms_after, len(frames), n_obs, (fx, fy), (dfx, dfy))

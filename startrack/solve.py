@@ -1,0 +1,273 @@
+"""Solving photographs: centroid -> identify -> attitude in one call, with an unknown field of view.
+
+The field of view may be given (``fov_deg`` with a tolerance) or not at all.
+Without it, the labelling identification (paper 004) runs first: its labels are
+ratios of distances, free of the focal length, so with the label database of a
+band of fields (9-13, 13-20, 4-9, 20-32 degrees, in that order) it identifies a group
+of bright stars whatever the lens and measures the focal length from them
+(the common scale of the group's angles), refined twice.  The frame is then
+identified again (pyramid, with the k-vector database of its band) with that
+focal length, matched in full and its attitude solved.  The false-match limit
+is shared among the bands tried (look-elsewhere correction).  A band whose labels
+measure a focal length outside it is skipped.
+
+Databases (``startrack.kvector/1``) are built on first use from the shipped
+catalog and cached in ``$STARTRACK_CACHE``, else ``$XDG_CACHE_HOME/startrack``,
+else ``~/.cache/startrack``; each records the catalog checksum, so a changed
+catalog builds new ones.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from startrack.errors import BadInputError
+
+__all__ = ["FOV_BANDS", "cache_dir", "band_database", "fov_hypotheses", "SolveOptions", "solve_image"]
+
+# (smallest FOV, largest FOV, faintest magnitude of the k-vector database, of the label databases,
+#  field sizes of the label databases).  Which stars are "the 8 brightest of a field" depends on the
+#  field's size, so a band may carry label databases for two sizes.
+FOV_BANDS = ((4.0, 9.0, (6.5,), 6.5, (6.5,)), (9.0, 13.0, (6.5, 6.0), 6.0, (12.7, 10.8)),
+             (13.0, 20.0, (6.0,), 5.5, (16.0,)), (20.0, 32.0, (5.0,), 5.0, (25.0,)))
+
+
+def cache_dir() -> str:
+    path = os.environ.get("STARTRACK_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "startrack")
+    os.makedirs(path, exist_ok=True)
+    return path
+
+
+_DB_MEMO: dict = {}
+
+
+def band_database(band: int, catalog=None, progress=None, which: int = 0):
+    """A cached k-vector database of a FOV band (``which`` of its magnitude limits; built on first use)."""
+    from startrack.catalog import load_catalog
+    from startrack.kvector import build_kvector, load_kvector, max_separation_deg, save_kvector
+
+    lo, hi, mags, _, _ = FOV_BANDS[band]
+    mag = mags[which]
+    cat = (catalog or load_catalog()).filter_magnitude(None, mag)
+    key = (band, mag, cat.checksum())
+    if key in _DB_MEMO:
+        return _DB_MEMO[key]
+    # A 4:3 sensor at the band's largest horizontal field.
+    diag = 2 * math.degrees(math.atan(math.tan(math.radians(hi) / 2) * 1.25))
+    path = os.path.join(cache_dir(), f"kvector-fov{lo:g}-{hi:g}-mag{mag:g}-{key[2][:12]}.h5")
+    if os.path.exists(path):
+        try:
+            db = load_kvector(path)
+            if db.catalog_sha256 == key[2]:
+                _DB_MEMO[key] = db
+                return db
+        except BadInputError:
+            pass
+    db = build_kvector(cat, diag + 0.5, progress=progress,
+                       params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"})
+    save_kvector(db, path)
+    db.path = path
+    _DB_MEMO[key] = db
+    return db
+
+
+def band_labels(band: int, catalog=None, progress=None, which: int = 0):
+    """A cached label database (paper 004) of a FOV band (``which`` of its field sizes)."""
+    from startrack.catalog import load_catalog
+    from startrack.labels import build_labels, load_labels, save_labels
+
+    lo, hi, _, mag, sizes = FOV_BANDS[band]
+    fov = sizes[which]
+    cat = (catalog or load_catalog()).filter_magnitude(None, mag)
+    key = ("labels", band, which, cat.checksum())
+    if key in _DB_MEMO:
+        return _DB_MEMO[key]
+    path = os.path.join(cache_dir(), f"labels-fov{fov:.1f}-mag{mag:g}-{key[3][:12]}.h5")
+    if os.path.exists(path):
+        try:
+            db = load_labels(path)
+            if db.catalog_sha256 == key[3]:
+                _DB_MEMO[key] = db
+                return db
+        except BadInputError:
+            pass
+    db = build_labels(cat, fov, step_deg=min(1.0, fov / 12.0), progress=progress,
+                      params={"band_fov_deg": [lo, hi], "purpose": "startrack solve default"})
+    save_labels(db, path)
+    db.path = path
+    _DB_MEMO[key] = db
+    return db
+
+
+def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: float = 1.04,
+                   lo: float = 5.0, hi: float = 30.0):
+    """Horizontal FOVs to try: around the hint (within its tolerance) or 5-30 degrees from 12 outward."""
+    if hint_deg is not None:
+        lo, hi = hint_deg * (1 - tolerance), hint_deg * (1 + tolerance)
+        centre = hint_deg
+    else:
+        centre = 12.0
+    up = [centre * step**k for k in range(0, 200) if centre * step**k <= hi]
+    down = [centre / step**k for k in range(1, 200) if centre / step**k >= lo]
+    out = []
+    for i in range(max(len(up), len(down))):
+        if i < len(up):
+            out.append(up[i])
+        if i < len(down):
+            out.append(down[i])
+    return out
+
+
+def _band_of(fov):
+    for i, (lo, hi, *_) in enumerate(FOV_BANDS):
+        if lo <= fov < hi:
+            return i
+    return 0 if fov < FOV_BANDS[0][0] else len(FOV_BANDS) - 1
+
+
+@dataclass
+class SolveOptions:
+    fov_deg: float | None = None
+    fov_tolerance: float = 0.1
+    algorithm: str = "pyramid"
+    max_stars: int = 30
+    search_stars: int = 12
+    max_triads: int = 200
+    sigma_px: float | None = None
+    max_false_probability: float = 1e-6
+    timeout_s: float = 5.0
+    epoch: float | None = None
+    method: str = "quest"
+
+
+def solve_image(image, width_height=None, options: SolveOptions | None = None, camera=None, catalog=None,
+                saturation=None, centroid_options=None):
+    """Solve one image.
+
+    Returns a dict with the frame sections ``camera``, ``stars``,
+    ``centroid``, ``identification``, ``attitude`` and ``solve`` (status,
+    fitted FOV, hypotheses tried, time).  Never raises for an unsolvable
+    image: ``solve.status`` is ``"failed"`` with a reason.
+    """
+    from startrack.attitude import estimate_attitude
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.centroid import CentroidOptions, find_stars
+    from startrack.identify import IdentifyParams, identify_stars
+
+    opts = options or SolveOptions()
+    t0 = time.perf_counter()
+    h, w = image.shape
+    cres = find_stars(image, centroid_options or CentroidOptions(max_stars=opts.max_stars), saturation=saturation)
+    out = {"stars": cres.stars, "centroid": cres.section()}
+    if len(cres.stars) < 4:
+        out["solve"] = {"status": "failed", "reason": cres.reason or f"only {len(cres.stars)} stars detected",
+                        "time_ms": (time.perf_counter() - t0) * 1000}
+        return out
+    tried = 0
+    result = None
+    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars, max_triads=opts.max_triads,
+                            max_false_probability=opts.max_false_probability)
+    if camera is not None:
+        b = _band_of(camera.fov_deg[0])
+        for which in range(len(FOV_BANDS[b][2])):
+            db = band_database(b, catalog, which=which)
+            res = identify_stars(cres.stars, camera, db, opts.algorithm, params)
+            tried += 1
+            if res.status == "ok":
+                result = (camera, db, res)
+                break
+    else:
+        # Unknown focal length: paper 004's distance-ratio labels are scale-free, so a label
+        # database per band of fields identifies the brightest stars whatever the focal length
+        # and measures it; the frame is then identified again with that focal length.
+        bands = [_band_of(opts.fov_deg)] if opts.fov_deg is not None else [1, 2, 0, 3]
+        lab_params = IdentifyParams(sigma_px=opts.sigma_px or 0.5, max_false_probability=opts.max_false_probability / 5,
+                                    max_focal_error=0.6, extra={"max_focal_error": 0.6, "label_boundary": 0.3})
+        attempts = [(band, which) for band in bands for which in range(len(FOV_BANDS[band][4]))]
+        for band, which in attempts:
+            if time.perf_counter() - t0 > opts.timeout_s:
+                break
+            lo, hi = FOV_BANDS[band][:2]
+            labels = band_labels(band, catalog, which=which)
+            guess = opts.fov_deg if opts.fov_deg is not None else labels.fov_deg
+            cam = Camera.from_fov(guess, w, h)
+            for _ in range(3):
+                tried += 1
+                lab = identify_stars(cres.stars, cam, labels, "labelling", lab_params)
+                # The label match measures the focal length even when the label database's
+                # stars alone cannot confirm the frame: the pyramid below decides.
+                scale = lab.extra.get("focal_scale")
+                if scale is None:
+                    break
+                cam = cam.with_focal_length(cam.focal_length_px / scale)
+                if abs(scale - 1.0) < 1e-4:
+                    break
+            if lab.extra.get("focal_scale") is None:
+                continue
+            if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
+                continue
+            if not 0.7 * lo <= cam.fov_deg[0] <= 1.4 * hi:
+                continue
+            b = _band_of(cam.fov_deg[0])
+            params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
+            for which in range(len(FOV_BANDS[b][2])):
+                db = band_database(b, catalog, which=which)
+                res = identify_stars(cres.stars, cam, db, opts.algorithm, params)
+                tried += 1
+                if res.status == "ok":
+                    result = (cam, db, res)
+                    break
+            if result is not None:
+                break
+    if result is None and camera is None and opts.fov_deg is not None and time.perf_counter() - t0 <= opts.timeout_s:
+        # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
+        # verification measures and corrects the focal length).
+        cam = Camera.from_fov(opts.fov_deg, w, h)
+        b = _band_of(opts.fov_deg)
+        for which in range(len(FOV_BANDS[b][2])):
+            db = band_database(b, catalog, which=which)
+            res = identify_stars(cres.stars, cam, db, opts.algorithm, params)
+            tried += 1
+            if res.status == "ok":
+                result = (cam, db, res)
+                break
+    if result is None:
+        reason = (f"no star pattern identified ({tried} attempts)"
+                  if time.perf_counter() - t0 <= opts.timeout_s else f"no solution within {opts.timeout_s:g} s")
+        out["solve"] = {"status": "failed", "reason": reason, "hypotheses": tried,
+                        "time_ms": (time.perf_counter() - t0) * 1000}
+        out["identification"] = {"status": "failed", "algorithm": opts.algorithm, "matches": [], "reason": reason}
+        return out
+    cam, db, res = result
+    scale = res.extra.get("focal_scale")
+    if scale:
+        cam = cam.with_focal_length(cam.focal_length_px / scale)
+    cat = catalog or load_catalog()
+    if opts.epoch is not None:
+        cat = cat.propagate(opts.epoch)
+    rows = {int(i): k for k, i in enumerate(cat.id)}
+    vec = cat.vectors()
+    body, ref, sig, labels = [], [], [], []
+    for m in res.matches:
+        s = cres.stars[m["star"]]
+        body.append(cam.pixels_to_vectors(s["x"], s["y"]))
+        ref.append(vec[rows[m["id"]]])
+        sig.append(max(s.get("sigma_px", 0.1), 0.05) / cam.focal_length_px)
+        labels.append((m["star"], m["id"]))
+    att = estimate_attitude(np.array(body), np.array(ref), np.array(sig), opts.method, labels)
+    out["camera"] = cam.to_dict()
+    out["identification"] = res.section()
+    out["attitude"] = att.section()
+    fx, fy = cam.fov_deg
+    out["solve"] = {"status": "ok" if att.status == "ok" else "failed", "fov_deg": [fx, fy],
+                    "hypotheses": tried, "database": os.path.basename(getattr(db, "path", "") or ""),
+                    "time_ms": (time.perf_counter() - t0) * 1000}
+    if att.status != "ok":
+        out["solve"]["reason"] = att.reason
+    return out
