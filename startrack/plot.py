@@ -124,13 +124,15 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
             _, c, r = attitude_error(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
             cross, roll = math.degrees(c) * 3600, math.degrees(r) * 3600
         rows.append((k, mode, cross, roll))
-    colours = {"lis": "tab:blue", "track": "tab:green", "single-star": "tab:orange", "lost": "tab:red"}
+    colours = {"lis": "tab:blue", "track": "tab:green", "single-star": "tab:orange", "lost": "tab:red",
+               None: "tab:purple"}
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), dpi=110, sharex=True)
     for mode, colour in colours.items():
         sel = [r for r in rows if r[1] == mode]
         if not sel:
             continue
-        ax1.scatter([r[0] for r in sel], [r[2] for r in sel], s=8, c=colour, label=f"{mode} ({len(sel)})")
+        ax1.scatter([r[0] for r in sel], [r[2] for r in sel], s=8, c=colour,
+                    label=f"{mode or 'solved'} ({len(sel)})")
         ax2.scatter([r[0] for r in sel], [abs(r[3]) for r in sel], s=8, c=colour)
         for r in sel:
             if mode == "lost":
@@ -148,12 +150,13 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)
-    stats = {"frames": len(rows), "modes": {m: sum(1 for r in rows if r[1] == m) / max(1, len(rows)) for m in colours}}
-    for m in ("track", "lis", "single-star"):
+    stats = {"frames": len(rows), "modes": {m or "solved": sum(1 for r in rows if r[1] == m) / max(1, len(rows))
+                                             for m in colours}}
+    for m in ("track", "lis", "single-star", None):
         sel = [r for r in rows if r[1] == m and r[2] == r[2]]
         if sel:
-            stats[f"rms_cross_{m}_arcsec"] = float(math.sqrt(sum(r[2] ** 2 for r in sel) / len(sel)))
-            stats[f"rms_roll_{m}_arcsec"] = float(math.sqrt(sum(r[3] ** 2 for r in sel) / len(sel)))
+            stats[f"rms_cross_{m or 'solved'}_arcsec"] = float(math.sqrt(sum(r[2] ** 2 for r in sel) / len(sel)))
+            stats[f"rms_roll_{m or 'solved'}_arcsec"] = float(math.sqrt(sum(r[3] ** 2 for r in sel) / len(sel)))
     recoveries = []
     k = 0
     while k < len(rows):

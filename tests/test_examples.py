@@ -1,0 +1,36 @@
+"""The examples really run: the Makefile workflow and the shell pipeline, on small sizes."""
+import json
+import os
+import subprocess
+import sys
+
+from conftest import ROOT
+
+
+def _env():
+    env = dict(os.environ)
+    env["ST"] = os.path.join(os.path.dirname(sys.executable), "startrack")
+    return env
+
+
+def test_makefile_workflow(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run(["make", "-C", os.path.join(ROOT, "examples"), "N=6", f"OUT={out}",
+                           f"ST={_env()['ST']}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    docs = [json.loads(l) for l in (out / "solved.jsonl").read_text().splitlines()]
+    assert len(docs) == 6 and sum(d["attitude"]["status"] == "ok" for d in docs) >= 5
+    rows = json.load(open(out / "evaluate.json"))["rows"]
+    assert len(rows) == 9
+    for name in ("evaluate.png", "errors.png", "first-frame.png"):
+        assert (out / name).stat().st_size > 10000
+
+
+def test_shell_pipeline(tmp_path):
+    proc = subprocess.run(["bash", os.path.join(ROOT, "examples", "pipeline.sh"), str(tmp_path)], capture_output=True,
+                          text=True, env=_env(), timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("RA 286.4")
+    doc = json.load(open(tmp_path / "sky.json"))
+    assert doc["attitude"]["status"] == "ok" and doc["identification"]["status"] == "ok"
+    assert (tmp_path / "sky-solved.png").exists() and (tmp_path / "sky.wcs.fits").exists()
