@@ -3,7 +3,6 @@ pixel-phase bias, and speed against sep on rendered and real images."""
 from __future__ import annotations
 
 import glob
-import math
 import os
 import time
 
@@ -125,7 +124,6 @@ def speed_and_completeness(n_frames=12, seed=3):
     dcms = quaternion_to_dcm(random_quaternions(n_frames, np.random.default_rng(seed)))
     sensor = Sensor(psf_sigma_px=1.2)
     thresh = 5.0
-    rows = []
     stats = {"startrack": [], "sep": []}
     frames = []
     for k in range(n_frames):

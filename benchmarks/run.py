@@ -8,7 +8,6 @@ here, never in unit tests.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import statistics

@@ -63,7 +63,7 @@ def run():
         if cedar_peer.is_available():
             t0 = time.perf_counter()
             with cedar_peer.CedarSolver(db="default") as cs:
-                start = (time.perf_counter() - t0) * 1000
+                (time.perf_counter() - t0) * 1000
                 for path in images:
                     res = cs.solve_image(path, 11.4)
                     r = ref[os.path.basename(path)]

@@ -16,9 +16,8 @@ Times are the identification time per frame as each algorithm reports it
 from __future__ import annotations
 
 import itertools
-import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 

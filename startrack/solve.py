@@ -49,29 +49,36 @@ _DB_MEMO: dict = {}
 def band_database(band: int, catalog=None, progress=None, which: int = 0):
     """A cached k-vector database of a FOV band (``which`` of its magnitude limits; built on first use)."""
     from startrack.catalog import load_catalog
-    from startrack.kvector import build_kvector, load_kvector, max_separation_deg, save_kvector
+    from startrack.kvector import build_kvector, load_kvector, save_kvector
 
     lo, hi, mags, _, _ = FOV_BANDS[band]
     mag = mags[which]
     cat = (catalog or load_catalog()).filter_magnitude(None, mag)
     key = (band, mag, cat.checksum())
-    if key in _DB_MEMO:
-        return _DB_MEMO[key]
     # A 4:3 sensor at the band's largest horizontal field.
     diag = 2 * math.degrees(math.atan(math.tan(math.radians(hi) / 2) * 1.25))
     path = os.path.join(cache_dir(), f"kvector-fov{lo:g}-{hi:g}-mag{mag:g}-{key[2][:12]}.h5")
+    return _cached(key, path, load_kvector, save_kvector, lambda: build_kvector(
+        cat, diag + 0.5, progress=progress,
+        params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"}))
+
+
+def _cached(key, path, load, save, build):
+    """A database from memory, else from the cache file (when its catalog checksum matches), else built and saved."""
+    if key in _DB_MEMO:
+        return _DB_MEMO[key]
+    db = None
     if os.path.exists(path):
         try:
-            db = load_kvector(path)
-            if db.catalog_sha256 == key[2]:
-                _DB_MEMO[key] = db
-                return db
+            db = load(path)
+            if db.catalog_sha256 != key[-1]:
+                db = None
         except BadInputError:
-            pass
-    db = build_kvector(cat, diag + 0.5, progress=progress,
-                       params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"})
-    save_kvector(db, path)
-    db.path = path
+            db = None
+    if db is None:
+        db = build()
+        save(db, path)
+        db.path = path
     _DB_MEMO[key] = db
     return db
 
@@ -85,23 +92,10 @@ def band_labels(band: int, catalog=None, progress=None, which: int = 0):
     fov = sizes[which]
     cat = (catalog or load_catalog()).filter_magnitude(None, mag)
     key = ("labels", band, which, cat.checksum())
-    if key in _DB_MEMO:
-        return _DB_MEMO[key]
     path = os.path.join(cache_dir(), f"labels-fov{fov:.1f}-mag{mag:g}-{key[3][:12]}.h5")
-    if os.path.exists(path):
-        try:
-            db = load_labels(path)
-            if db.catalog_sha256 == key[3]:
-                _DB_MEMO[key] = db
-                return db
-        except BadInputError:
-            pass
-    db = build_labels(cat, fov, step_deg=min(1.0, fov / 12.0), progress=progress,
-                      params={"band_fov_deg": [lo, hi], "purpose": "startrack solve default"})
-    save_labels(db, path)
-    db.path = path
-    _DB_MEMO[key] = db
-    return db
+    return _cached(key, path, load_labels, save_labels, lambda: build_labels(
+        cat, fov, step_deg=min(1.0, fov / 12.0), progress=progress,
+        params={"band_fov_deg": [lo, hi], "purpose": "startrack solve default"}))
 
 
 def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: float = 1.04,

@@ -21,6 +21,17 @@ def run_cli(*args, input=None, check=False, env=None, timeout=300):
     return proc
 
 
+def assert_refused(proc, *needles, stdout_empty=True):
+    """Exit status 2, one line on stderr containing every needle, no traceback, nothing on stdout."""
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+    if stdout_empty:
+        assert proc.stdout == ""
+
+
 @pytest.fixture
 def cli():
     return run_cli

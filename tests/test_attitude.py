@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from startrack.attitude import METHODS, covariance, estimate_attitude, solve_wahba, wahba_loss, wcs_header
+from startrack.attitude import METHODS, estimate_attitude, solve_wahba, wahba_loss, wcs_header
 from startrack.camera import Camera
 from startrack.rotations import quaternion_to_dcm, random_quaternions, rotation_vector
 

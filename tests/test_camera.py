@@ -25,6 +25,11 @@ def test_pixel_vector_pixel_round_trip(fov, width, height, k1, k2, fx, fy):
     # The lens model must be invertible over the image: r_d(r) increasing.
     r2 = ((width / 2) ** 2 + (height / 2) ** 2) / cam.focal_length_px**2
     assume(1 + 3 * k1 * r2 + 5 * k2 * r2 * r2 > 0.2)
+    # ... and the corners lie within the range the lens model reaches (barrel distortion
+    # has a largest distorted radius, beyond which no direction maps).
+    s_max = min(cam.max_valid_r2, 100.0)
+    rd_max = math.sqrt(s_max) * (1 + k1 * s_max + k2 * s_max**2)
+    assume(math.sqrt(r2) < 0.9 * rd_max)
     x = -0.5 + fx * width
     y = -0.5 + fy * height
     v = cam.pixels_to_vectors(x, y)

@@ -51,7 +51,7 @@ def test_false_stars_are_not_matched(setup20):
 def test_result_reports_confidence_and_attitude(setup20):
     cat, db, cam = setup20
     from startrack.render import Scene, Sensor, star_list
-    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+    from startrack.rotations import attitude_error, radec_roll_to_dcm
 
     a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.4)
     stars, truth = star_list(cat, cam, a, Sensor(), Scene(mag_limit=5.0), np.random.default_rng(1), sigma_px=0.2)

@@ -97,7 +97,6 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
     if n < 3:
         return 0, idx, cat, 0, 0
     triads = smart_triads(n)
-    cos_eps_margin = 0.0
     tried = 0
     for t in range(triads.shape[0]):
         if tried >= max_triads:

@@ -41,7 +41,6 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
           | startrack attitude --wcs sky.wcs.fits | jq .attitude.ra,.attitude.dec,.attitude.roll
     """
     import math
-    import os
 
     import numpy as np
 

@@ -1,7 +1,7 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import handle_errors, info, quiet_option
+from startrack.cli.options import load_camera_file, handle_errors, info, quiet_option
 
 
 @click.command("centroid", short_help="Detect and centroid stars in images -> frame documents.")
@@ -60,7 +60,7 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
 
     from startrack.centroid import CentroidOptions, centroid_windows, find_stars
     from startrack.errors import BadInputError
-    from startrack.formats.frame import FRAME_FORMAT, FrameWriter, read_frames, read_json_file, validate_frame
+    from startrack.formats.frame import FRAME_FORMAT, FrameWriter, read_frames, validate_frame
     from startrack.imageio import read_image
     from startrack.progress import ProgressBar
 
@@ -69,10 +69,9 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
                               psf_sigma_px, gain_e_per_dn, saturation_dn)
     camera_doc = None
     if camera_file:
-        from startrack.camera import Camera
+        pass
 
-        doc = read_json_file(camera_file)
-        camera_doc = Camera.from_dict(doc.get("camera", doc) if "camera" in doc else doc, camera_file).to_dict()
+        camera_doc = load_camera_file(camera_file).to_dict()
     if plot:
         from startrack.formats.atomic import check_writable
 

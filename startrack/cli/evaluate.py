@@ -62,7 +62,6 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
           --count 1000 --plot focal.png
     """
     import json
-    import math
 
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError

@@ -1,7 +1,7 @@
 """startrack identify: lost-in-space star identification of frame documents."""
 import click
 
-from startrack.cli.options import handle_errors, input_argument, output_option, quiet_option
+from startrack.cli.options import load_camera_file, handle_errors, input_argument, output_option, quiet_option
 
 
 @click.command("identify", short_help="Identify the stars of frame documents (lost in space).")
@@ -47,7 +47,6 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     from startrack.camera import Camera
     from startrack.cli.batch import run_frames
     from startrack.errors import BadInputError
-    from startrack.formats.frame import read_json_file
     from startrack.identify import ALGORITHMS, DATABASE_KIND, IdentifyParams, identify_stars
 
     if algorithm not in ALGORITHMS:
@@ -57,9 +56,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     db = _load_database(database, DATABASE_KIND[algorithm])
     override = None
     if camera_file:
-        doc = read_json_file(camera_file)
-        override = Camera.from_dict(doc.get("camera", doc) if str(doc.get("format", "")).startswith("startrack.frame")
-                                    else doc, camera_file)
+        override = load_camera_file(camera_file)
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
                             max_false_probability=max_false_probability)
     checked = {}
@@ -110,7 +107,7 @@ def _check(db, camera, kind):
 
 
 def _plot(pattern, index, total, doc, db, camera, result):
-    import numpy as np
+    pass
 
     from startrack.imageio import read_image
     from startrack.names import star_label

@@ -49,7 +49,6 @@ def camera_from_options(camera_file=None, fov_deg=None, focal_length_mm=None, pi
                         size=None, k1=None, k2=None, default_size=None, required=True):
     """Build a :class:`~startrack.camera.Camera` from the camera options (or ``None``)."""
     from startrack.camera import Camera, parse_size
-    from startrack.formats.frame import read_json_file
 
     kw = {}
     if k1 is not None:
@@ -59,18 +58,7 @@ def camera_from_options(camera_file=None, fov_deg=None, focal_length_mm=None, pi
     if camera_file is not None:
         if fov_deg is not None or focal_length_mm is not None:
             raise BadInputError("--camera", None, "give either --camera or --fov-deg/--focal-length-mm, not both")
-        doc = read_json_file(camera_file)
-        if "format" in doc and doc["format"] != "startrack.camera/1":
-            from startrack.formats.frame import check_format_tag
-
-            if str(doc["format"]).startswith("startrack.frame/"):
-                check_format_tag(doc, "startrack.frame/1", camera_file)
-                doc = doc.get("camera")
-                if doc is None:
-                    raise BadInputError(camera_file, "camera", "is missing")
-            else:
-                check_format_tag(doc, "startrack.camera/1", camera_file)
-        cam = Camera.from_dict(doc, camera_file)
+        cam = load_camera_file(camera_file)
         if kw:
             from dataclasses import replace
 
@@ -95,6 +83,23 @@ def camera_from_options(camera_file=None, fov_deg=None, focal_length_mm=None, pi
     if pixel_pitch_um is None:
         raise BadInputError("--pixel-pitch-um", None, "is needed with --focal-length-mm")
     return Camera.from_focal_length_mm(focal_length_mm, pixel_pitch_um, width, height, **kw)
+
+
+def load_camera_file(path):
+    """A camera from a ``startrack.camera/1`` file or from a frame document's ``camera`` section."""
+    from startrack.camera import Camera
+    from startrack.formats.frame import check_format_tag, read_json_file
+
+    doc = read_json_file(path)
+    if "format" in doc and doc["format"] != "startrack.camera/1":
+        if str(doc["format"]).startswith("startrack.frame/"):
+            check_format_tag(doc, "startrack.frame/1", path)
+            doc = doc.get("camera")
+            if doc is None:
+                raise BadInputError(path, "camera", "is missing")
+        else:
+            check_format_tag(doc, "startrack.camera/1", path)
+    return Camera.from_dict(doc, path)
 
 
 def command_path() -> str:

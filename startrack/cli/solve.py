@@ -1,12 +1,11 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
 import click
 
-from startrack.cli.options import handle_errors, info, quiet_option
+from startrack.cli.options import load_camera_file, handle_errors, info, quiet_option
 
 
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
-    import os
     import time
 
     from startrack.errors import BadInputError
@@ -92,7 +91,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
 
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
-    from startrack.formats.frame import FrameWriter, read_json_file
+    from startrack.formats.frame import FrameWriter
     from startrack.progress import ProgressBar
     from startrack.render import numbered_path
     from startrack.solve import SolveOptions, band_database, band_labels
@@ -106,11 +105,9 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
             check_writable(p)
     camera_doc = None
     if camera_file:
-        from startrack.camera import Camera
+        pass
 
-        doc = read_json_file(camera_file)
-        camera_doc = Camera.from_dict(doc.get("camera", doc) if str(doc.get("format", "")).startswith("startrack.frame")
-                                      else doc, camera_file).to_dict()
+        camera_doc = load_camera_file(camera_file).to_dict()
     options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch)
     n = len(images)
     tasks = [(path, options, camera_doc, numbered_path(wcs_path, i, n) if wcs_path else None,

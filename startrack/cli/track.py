@@ -1,7 +1,7 @@
 """startrack track: tracking mode over image sequences."""
 import click
 
-from startrack.cli.options import catalog_option, handle_errors, info, output_option, quiet_option
+from startrack.cli.options import load_camera_file, catalog_option, handle_errors, output_option, quiet_option
 
 
 @click.command("track", short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
@@ -43,7 +43,6 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
       startrack build-kvector --fov-deg 12 --size 1024x768 --mag-max 6.0 -o db12.h5
       startrack track seq.jsonl -d db12.h5 | jq -c '[.track.mode, .attitude.ra, .attitude.dec]'
     """
-    import math
 
     import numpy as np
 
@@ -51,7 +50,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     from startrack.catalog import load_catalog
     from startrack.cli.batch import run_frames
     from startrack.errors import BadInputError
-    from startrack.formats.frame import FRAME_FORMAT, read_json_file
+    from startrack.formats.frame import FRAME_FORMAT
     from startrack.imageio import read_image
     from startrack.kvector import check_database, load_kvector
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm
@@ -61,9 +60,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     db = load_kvector(database)
     cam_override = None
     if camera_file:
-        doc = read_json_file(camera_file)
-        cam_override = Camera.from_dict(doc.get("camera", doc) if str(doc.get("format", "")).startswith("startrack.frame")
-                                        else doc, camera_file)
+        cam_override = load_camera_file(camera_file)
     init = None
     if initial_quaternion:
         q = np.array([float(v) for v in initial_quaternion.split(",")])

@@ -1,13 +1,11 @@
 """startrack centroid through the real entry point, on rendered and real images."""
-import csv
 import glob
 import json
 import os
 
 import numpy as np
-import pytest
 
-from conftest import DATA, run_cli
+from conftest import assert_refused, DATA, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
 
@@ -41,13 +39,6 @@ def test_pipeline_from_render(tmp_path):
     assert win["centroid"]["mode"] == "windows" and len(win["stars"]) >= 15
 
 
-def _one_line_refusal(proc, *needles):
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    lines = [l for l in proc.stderr.splitlines() if l.strip()]
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    for n in needles:
-        assert n in lines[0]
-    assert proc.stdout == ""
 
 
 def test_bad_images(tmp_path):
@@ -55,16 +46,16 @@ def test_bad_images(tmp_path):
 
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
-    _one_line_refusal(run_cli("centroid", empty), "empty.png", "empty")
+    assert_refused(run_cli("centroid", empty), "empty.png", "empty")
     good = tmp_path / "good.png"
     cv2.imwrite(str(good), np.full((40, 40), 10, np.uint8))
     truncated = tmp_path / "trunc.png"
     truncated.write_bytes(good.read_bytes()[:40])
-    _one_line_refusal(run_cli("centroid", truncated), "trunc.png", "not a readable image")
-    _one_line_refusal(run_cli("centroid", tmp_path / "missing.tiff"), "missing.tiff", "no such file")
+    assert_refused(run_cli("centroid", truncated), "trunc.png", "not a readable image")
+    assert_refused(run_cli("centroid", tmp_path / "missing.tiff"), "missing.tiff", "no such file")
     text = tmp_path / "notes.png"
     text.write_text("this is not an image")
-    _one_line_refusal(run_cli("centroid", text), "notes.png")
+    assert_refused(run_cli("centroid", text), "notes.png")
     # A 32-bit integer TIFF is not a depth we read.
     deep = tmp_path / "deep.tiff"
     cv2.imwrite(str(deep), np.full((20, 20), 7, np.int32))
@@ -93,7 +84,7 @@ def test_degenerate_images_give_empty_lists_with_reasons(tmp_path):
     assert docs[0]["stars"] == [] and docs[0]["centroid"]["reason"]
     assert docs[1]["stars"] == [] and "saturated" in docs[1]["centroid"]["reason"]
     assert len(docs[2]["stars"]) <= 2
-    _one_line_refusal(run_cli("centroid", tmp_path / "zero.fits"), "zero.fits")
+    assert_refused(run_cli("centroid", tmp_path / "zero.fits"), "zero.fits")
 
 
 def test_batch_goes_on_past_a_bad_image(tmp_path):

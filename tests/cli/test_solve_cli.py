@@ -46,6 +46,7 @@ def test_calibrate_then_solve_with_the_lens(solved, cache, tmp_path):
     frames.write_text("\n".join(json.dumps(d) for d in docs) + "\n")
     lens = tmp_path / "lens.json"
     proc = run_cli("calibrate", frames, "-o", lens, env=cache, check=True)
+    assert "residual RMS" in proc.stderr
     cal = json.load(open(lens))
     c = cal["calibration"]
     assert c["rms_residual_after_px"] < c["rms_residual_before_px"]
