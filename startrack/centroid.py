@@ -116,13 +116,13 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     from startrack._kernels.centroid import _clipped_stats, background_mesh
 
     h, w = image.shape
-    step = max(1, int(round(math.sqrt(h * w / 20000.0))))
+    step = max(1, int(round(math.sqrt(h * w / 10000.0))))
     sample = np.ascontiguousarray(image[::step, ::step], dtype=np.float64).ravel()
     glevel, gsigma = _clipped_stats(sample, 5, 3.0)
     if options.background == "global" or min(h, w) < 2 * options.mesh_px:
         return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
     cell = options.mesh_px
-    mstep = max(1, cell // 16)
+    mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
     level, sigma = background_mesh(np.ascontiguousarray(image, dtype=np.float32), cell, mstep)
     level = _median3(level)
     sigma = _median3(sigma)
@@ -291,7 +291,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         disc = math.sqrt(max(tr * tr / 4 - det2, 0.0))
         l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 1e-6)
         elong = math.sqrt(l1 / l2)
-        if options.deblend and area >= 6 and elong > 1.2:
+        if options.deblend and area >= 6 and elong > 1.35:
             stats_row = (int(table[lab, 12]), int(table[lab, 13]), int(table[lab, 14] - table[lab, 12] + 1),
                          int(table[lab, 15] - table[lab, 13] + 1))
             peaks = _split_blob(residual, labels, lab, stats_row)
