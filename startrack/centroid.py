@@ -27,6 +27,7 @@ centre of the top-left pixel.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -191,6 +192,27 @@ def _uncertainty(flux, sigma_psf, noise, gain):
     return math.sqrt(shot + bg + 1e-6)
 
 
+_WORKSPACE = threading.local()
+
+
+def _workspace(shape, max_blobs):
+    """Per-thread buffers for one frame shape, reused across frames.
+
+    A 1024 x 1024 frame needs ~10 MB of scratch (residual, mask, labels,
+    blob table, fill stack); allocating it afresh for every frame costs more
+    in page faults than the labelling itself once the allocator has started
+    returning large blocks to the system.  ``labels`` is all zero between calls.
+    """
+    ws = getattr(_WORKSPACE, "buffers", None)
+    if ws is None or ws["shape"] != shape or ws["table"].shape[0] < max_blobs + 1:
+        h, w = shape
+        ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32), "mask": np.empty(shape, dtype=np.uint8),
+              "labels": np.zeros(shape, dtype=np.int32), "table": np.empty((max_blobs + 1, 16)),
+              "stack": np.empty(min(h * w, 4_000_000), dtype=np.int64)}
+        _WORKSPACE.buffers = ws
+    return ws
+
+
 def find_stars(image: np.ndarray, options: CentroidOptions | None = None, saturation: float | None = None,
                source: str = "image") -> CentroidResult:
     """Detect and centroid the stars of one image.
@@ -216,8 +238,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     """
     import cv2
 
-    from startrack._kernels.centroid import (aperture_flux, gaussian_fit, label_blobs, quine_offset,
-                                             subtract_background, windowed_centroid)
+    from startrack._kernels.centroid import clear_labels, label_blobs_into, subtract_background
 
     options = options or CentroidOptions()
     t0 = time.perf_counter()
@@ -245,12 +266,11 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         thresh_mesh = np.full(level_mesh.shape, float(options.threshold_dn))
     else:
         thresh_mesh = options.threshold_sigma * sigma_mesh
-    residual = np.empty(img.shape, dtype=np.float32)
-    mask = np.empty(img.shape, dtype=np.uint8)
+    max_blobs = 20000
+    ws = _workspace(img.shape, max_blobs)
+    residual, mask = ws["residual"], ws["mask"]
     subtract_background(img, np.ascontiguousarray(level_mesh, dtype=np.float64),
                         np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
-    sigma_at = lambda x, y: float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1),
-                                             min(int(x) // cell, sigma_mesh.shape[1] - 1)])
     if options.matched_filter:
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
         # the filtered image is the pixel noise times the kernel's L2 norm.
@@ -261,8 +281,25 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         zero = np.zeros((1, 1))
         subtract_background(det, zero, np.ascontiguousarray(thresh_mesh * norm, dtype=np.float64), float(cell),
                             np.empty_like(det), mask)
-    max_blobs = 20000
-    labels, table, n_found = label_blobs(residual, mask, img, float(sat), max_blobs)
+    labels, table = ws["labels"], ws["table"]
+    n_found = label_blobs_into(residual, mask, img, float(sat), max_blobs, labels, table, ws["stack"])
+    try:
+        return _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma,
+                        result)
+    finally:
+        # Leave the reused label buffer zeroed for the next frame.
+        if n_found > max_blobs:
+            labels.fill(0)
+        else:
+            clear_labels(labels, table, n_found)
+
+
+def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma, result):
+    """Classify the labelled blobs, centroid the stars and build the result (:func:`find_stars`'s second half)."""
+    from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, windowed_centroid
+
+    sigma_at = lambda x, y: float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1),  # noqa: E731
+                                             min(int(x) // cell, sigma_mesh.shape[1] - 1)])
     if n_found == 0:
         return result([], [], glevel, gsigma, "no pixel above the detection threshold")
     if n_found > max_blobs:

@@ -162,3 +162,30 @@ def test_noise_image_finds_no_stars():
     noise = rng.normal(1000, 20, (512, 512))
     res = find_stars(noise, saturation=65535)
     assert len(res.stars) <= 2
+
+
+def test_reused_buffers_give_identical_results_frame_after_frame():
+    """find_stars reuses per-thread scratch buffers: results must not depend on the previous frame."""
+    from startrack import centroid as centroid_module
+
+    rng = np.random.default_rng(11)
+
+    def frame(n_stars, seed):
+        r = np.random.default_rng(seed)
+        img = r.normal(100.0, 3.0, (120, 160)).astype(np.float32)
+        yy, xx = np.mgrid[0:120, 0:160]
+        for _ in range(n_stars):
+            x0, y0 = r.uniform(8, 152), r.uniform(8, 112)
+            img += (r.uniform(300, 3000) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * 1.2**2))).astype(np.float32)
+        return img
+
+    a, b = frame(12, 1), frame(30, 2)
+    small = rng.normal(100.0, 3.0, (40, 50)).astype(np.float32)
+    first = find_stars(a).stars
+    assert len(first) >= 8
+    find_stars(b)
+    find_stars(small)  # another shape: buffers are replaced
+    find_stars(b)
+    again = find_stars(a).stars
+    assert [(s["x"], s["y"], s["flux"]) for s in again] == [(s["x"], s["y"], s["flux"]) for s in first]
+    assert not centroid_module._WORKSPACE.buffers["labels"].any()
