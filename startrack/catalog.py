@@ -86,6 +86,10 @@ class Catalog:
     def sorted_by_magnitude(self) -> "Catalog":
         return self.subset(np.lexsort((self.id, self.mag)))
 
+    def rows_by_id(self) -> dict[int, int]:
+        """``{catalog id: row}``, to look up the rows of identified stars."""
+        return {int(i): k for k, i in enumerate(self.id)}
+
     def vectors(self) -> np.ndarray:
         """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14)."""
         from startrack.rotations import radec_to_vector

@@ -139,6 +139,21 @@ class SolveOptions:
     method: str = "quest"
 
 
+def _identify_in_band(stars, camera, band, catalog, algorithm, params):
+    """Identify ``stars`` with each k-vector database of FOV band ``band`` in turn.
+
+    Returns ``((camera, database, result) or None, databases tried)``.
+    """
+    from startrack.identify import identify_stars
+
+    for which in range(len(FOV_BANDS[band][2])):
+        db = band_database(band, catalog, which=which)
+        res = identify_stars(stars, camera, db, algorithm, params)
+        if res.status == "ok":
+            return (camera, db, res), which + 1
+    return None, len(FOV_BANDS[band][2])
+
+
 def solve_image(image, width_height=None, options: SolveOptions | None = None, camera=None, catalog=None,
                 saturation=None, centroid_options=None):
     """Solve one image.
@@ -168,14 +183,9 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars, max_triads=opts.max_triads,
                             max_false_probability=opts.max_false_probability)
     if camera is not None:
-        b = _band_of(camera.fov_deg[0])
-        for which in range(len(FOV_BANDS[b][2])):
-            db = band_database(b, catalog, which=which)
-            res = identify_stars(cres.stars, camera, db, opts.algorithm, params)
-            tried += 1
-            if res.status == "ok":
-                result = (camera, db, res)
-                break
+        result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), catalog, opts.algorithm,
+                                      params)
+        tried += n
     else:
         # Unknown focal length: paper 004's distance-ratio labels are scale-free, so a label
         # database per band of fields identifies the brightest stars whatever the focal length
@@ -210,27 +220,16 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
                 continue
             b = _band_of(cam.fov_deg[0])
             params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
-            for which in range(len(FOV_BANDS[b][2])):
-                db = band_database(b, catalog, which=which)
-                res = identify_stars(cres.stars, cam, db, opts.algorithm, params)
-                tried += 1
-                if res.status == "ok":
-                    result = (cam, db, res)
-                    break
+            result, n = _identify_in_band(cres.stars, cam, b, catalog, opts.algorithm, params)
+            tried += n
             if result is not None:
                 break
     if result is None and camera is None and opts.fov_deg is not None and time.perf_counter() - t0 <= opts.timeout_s:
         # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
         # verification measures and corrects the focal length).
         cam = Camera.from_fov(opts.fov_deg, w, h)
-        b = _band_of(opts.fov_deg)
-        for which in range(len(FOV_BANDS[b][2])):
-            db = band_database(b, catalog, which=which)
-            res = identify_stars(cres.stars, cam, db, opts.algorithm, params)
-            tried += 1
-            if res.status == "ok":
-                result = (cam, db, res)
-                break
+        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), catalog, opts.algorithm, params)
+        tried += n
     if result is None:
         reason = (f"no star pattern identified ({tried} attempts)"
                   if time.perf_counter() - t0 <= opts.timeout_s else f"no solution within {opts.timeout_s:g} s")
@@ -245,7 +244,7 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     cat = catalog or load_catalog()
     if opts.epoch is not None:
         cat = cat.propagate(opts.epoch)
-    rows = {int(i): k for k, i in enumerate(cat.id)}
+    rows = cat.rows_by_id()
     vec = cat.vectors()
     body, ref, sig, labels = [], [], [], []
     for m in res.matches:

@@ -4,6 +4,8 @@ import math
 import numpy as np
 from numba import njit
 
+from startrack._kernels.sphere import project_to_pixel
+
 
 @njit(cache=True)
 def profile(b, r, w):
@@ -173,12 +175,7 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
             continue
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        u = x / z
-        v = y / z
-        r2 = u * u + v * v
-        sc = 1.0 + k1 * r2 + k2 * r2 * r2
-        px = cx + focal * u * sc
-        py = cy + focal * v * sc
+        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
         if px < -0.5 - margin or px > width - 0.5 + margin or py < -0.5 - margin or py > height - 0.5 + margin:
             continue
         cand[nc] = s

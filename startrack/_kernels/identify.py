@@ -12,6 +12,18 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+@njit(cache=True, inline="always")
+def _angle(u, v):
+    """Angle (rad) between unit vectors ``u`` and ``v``, rounding-safe."""
+    return math.acos(min(1.0, max(-1.0, _dot(u, v))))
+
+
+@njit(cache=True, inline="always")
+def _triple(a, b, c):
+    """Scalar triple product ``a . (b x c)`` (the handedness of a triangle)."""
+    return a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0])
+
+
 @njit(cache=True)
 def _range(kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi):
     s, e = kvector_range(kvector, line[0], line[1], cos_lo, cos_hi)
@@ -105,9 +117,9 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
         i = triads[t, 0]
         j = triads[t, 1]
         k = triads[t, 2]
-        th_ij = math.acos(min(1.0, max(-1.0, _dot(b[i], b[j]))))
-        th_ik = math.acos(min(1.0, max(-1.0, _dot(b[i], b[k]))))
-        th_jk = math.acos(min(1.0, max(-1.0, _dot(b[j], b[k]))))
+        th_ij = _angle(b[i], b[j])
+        th_ik = _angle(b[i], b[k])
+        th_jk = _angle(b[j], b[k])
         e_ij = eps + eps_rel * th_ij
         e_ik = eps + eps_rel * th_ik
         e_jk = eps + eps_rel * th_jk
@@ -123,8 +135,7 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
         side_ik = _side_candidates(pair_i, pair_j, pair_cos, s, e, lo_ik, hi_ik)
         if side_ik.shape[0] == 0:
             continue
-        cb = b[i, 0] * (b[j, 1] * b[k, 2] - b[j, 2] * b[k, 1]) - b[i, 1] * (b[j, 0] * b[k, 2] - b[j, 2] * b[k, 0]) \
-            + b[i, 2] * (b[j, 0] * b[k, 1] - b[j, 1] * b[k, 0])
+        cb = _triple(b[i], b[j], b[k])
         found = 0
         fI = -1
         fJ = -1
@@ -138,16 +149,9 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
                 p += 1
                 if K == J:
                     continue
-                c = _dot(star_vec[J], star_vec[K])
-                th = math.acos(min(1.0, max(-1.0, c)))
-                if abs(th - th_jk) > e_jk:
+                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) > e_jk:
                     continue
-                rI = star_vec[I]
-                rJ = star_vec[J]
-                rK = star_vec[K]
-                cr = rI[0] * (rJ[1] * rK[2] - rJ[2] * rK[1]) - rI[1] * (rJ[0] * rK[2] - rJ[2] * rK[0]) \
-                    + rI[2] * (rJ[0] * rK[1] - rJ[1] * rK[0])
-                if (cr > 0) != (cb > 0):
+                if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
                     continue
                 found += 1
                 fI = I
@@ -171,9 +175,9 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
         for r in range(n):
             if r == i or r == j or r == k:
                 continue
-            th_ir = math.acos(min(1.0, max(-1.0, _dot(b[i], b[r]))))
-            th_jr = math.acos(min(1.0, max(-1.0, _dot(b[j], b[r]))))
-            th_kr = math.acos(min(1.0, max(-1.0, _dot(b[k], b[r]))))
+            th_ir = _angle(b[i], b[r])
+            th_jr = _angle(b[j], b[r])
+            th_kr = _angle(b[k], b[r])
             e_ir = eps + eps_rel * th_ir
             lo = math.cos(th_ir + e_ir)
             hi = math.cos(max(th_ir - e_ir, 0.0))
@@ -192,10 +196,10 @@ def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, 
                     continue
                 if R == fJ or R == fK:
                     continue
-                t1 = math.acos(min(1.0, max(-1.0, _dot(star_vec[fJ], star_vec[R]))))
+                t1 = _angle(star_vec[fJ], star_vec[R])
                 if abs(t1 - th_jr) > eps + eps_rel * th_jr:
                     continue
-                t2 = math.acos(min(1.0, max(-1.0, _dot(star_vec[fK], star_vec[R]))))
+                t2 = _angle(star_vec[fK], star_vec[R])
                 if abs(t2 - th_kr) > eps + eps_rel * th_kr:
                     continue
                 nR += 1
@@ -232,7 +236,7 @@ def geometric_voting(b, star_vec, n_cat, pair_i, pair_j, pair_cos, kvector, line
     pair_id = 0
     for i in range(n):
         for j in range(i + 1, n):
-            th = math.acos(min(1.0, max(-1.0, _dot(b[i], b[j]))))
+            th = _angle(b[i], b[j])
             lo = math.cos(th + eps)
             hi = math.cos(max(th - eps, 0.0))
             s, e = kvector_range(kvector, line[0], line[1], lo, hi)
@@ -273,8 +277,8 @@ def geometric_voting(b, star_vec, n_cat, pair_i, pair_j, pair_cos, kvector, line
         for j in range(i + 1, n):
             if identity[j] < 0 or identity[j] == identity[i]:
                 continue
-            th = math.acos(min(1.0, max(-1.0, _dot(b[i], b[j]))))
-            tc = math.acos(min(1.0, max(-1.0, _dot(star_vec[identity[i]], star_vec[identity[j]]))))
+            th = _angle(b[i], b[j])
+            tc = _angle(star_vec[identity[i]], star_vec[identity[j]])
             if abs(th - tc) <= eps:
                 votes2[i] += 1
                 votes2[j] += 1
@@ -326,8 +330,37 @@ def _partners(sorted_pairs, x):
 
 
 @njit(cache=True)
-def _angle(u, v):
-    return math.acos(min(1.0, max(-1.0, _dot(u, v))))
+def _pair_candidates(b, mags, u, v, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, ref_mag):
+    """Oriented catalog pairs for image pair (u, v) within ``eps`` of its angle (paper 003 Sec. 4.3)."""
+    th = _angle(b[u], b[v])
+    lo = math.cos(th + eps)
+    hi = math.cos(max(th - eps, 0.0))
+    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+    return _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[u] - mags[v], gamma, ref_mag)
+
+
+@njit(cache=True)
+def _unique_triangle(cij, cik, star_vec, th_jk, eps, cat):
+    """Count catalog triples (I, J, K), ``I`` shared by both candidate lists and
+    ``theta_JK`` within ``eps`` of ``th_jk``; stops past two.  The last triple
+    found is written to ``cat[:3]``.  Returns the count (1 = unique)."""
+    found = 0
+    p = 0
+    while p < cij.shape[0]:
+        I = cij[p, 0]
+        js = _partners(cij, I)
+        ks = _partners(cik, I)
+        p += js.shape[0]
+        for J in js:
+            for K in ks:
+                if K != J and abs(_angle(star_vec[J], star_vec[K]) - th_jk) <= eps:
+                    found += 1
+                    cat[0] = I
+                    cat[1] = J
+                    cat[2] = K
+        if found > 1:
+            break
+    return found
 
 
 @njit(cache=True)
@@ -360,170 +393,97 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
     loops = 0
     if n < 3:
         return 0, idx, cat, loops
-    if n >= 4:
-        # Reference-star (three-star) mode.
-        for i in range(0, n - 2):
-            if not ref_flux_ok[i]:
-                break
-            for j in range(n - 1, i + 1, -1):
-                for k in range(j - 1, i, -1):
+    if n == 3:
+        cij = _pair_candidates(b, mags, 0, 1, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
+        cik = _pair_candidates(b, mags, 0, 2, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
+        if _unique_triangle(cij, cik, star_vec, _angle(b[1], b[2]), eps, cat) == 1:
+            idx[:3] = np.arange(3)
+            return 3, idx, cat, 1
+        cat[:] = -1
+        return 0, idx, cat, 1
+    # Reference-star (three-star) mode.
+    for i in range(0, n - 2):
+        if not ref_flux_ok[i]:
+            break
+        for j in range(n - 1, i + 1, -1):
+            for k in range(j - 1, i, -1):
+                loops += 1
+                if loops > max_loops:
+                    return 0, idx, cat, loops
+                cij = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma,
+                                       ref_mag)
+                if cij.shape[0] == 0:
+                    continue
+                cik = _pair_candidates(b, mags, i, k, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma,
+                                       ref_mag)
+                if cik.shape[0] == 0:
+                    continue
+                # R_i = candidates of s_i in both; unique triple (I, J, K) with theta_JK ~ theta_jk.
+                if _unique_triangle(cij, cik, star_vec, _angle(b[j], b[k]), eps, cat) == 1:
+                    idx[0] = i
+                    idx[1] = j
+                    idx[2] = k
+                    return 1, idx, cat, loops
+                cat[:] = -1
+    # Four-star mode.
+    for i in range(0, n - 3):
+        for j in range(n - 1, i + 2, -1):
+            for k in range(j - 1, i + 1, -1):
+                for l in range(k - 1, i, -1):
                     loops += 1
                     if loops > max_loops:
                         return 0, idx, cat, loops
-                    th_ij = _angle(b[i], b[j])
-                    th_ik = _angle(b[i], b[k])
+                    c0 = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line,
+                                          gamma, 1e9)
+                    if c0.shape[0] == 0:
+                        continue
+                    c1 = _pair_candidates(b, mags, i, k, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line,
+                                          gamma, 1e9)
+                    if c1.shape[0] == 0:
+                        continue
+                    c2 = _pair_candidates(b, mags, i, l, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line,
+                                          gamma, 1e9)
+                    if c2.shape[0] == 0:
+                        continue
                     th_jk = _angle(b[j], b[k])
-                    lo = math.cos(th_ij + eps)
-                    hi = math.cos(max(th_ij - eps, 0.0))
-                    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
-                    cij = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[i] - mags[j],
-                                               gamma, ref_mag)
-                    if cij.shape[0] == 0:
-                        continue
-                    lo2 = math.cos(th_ik + eps)
-                    hi2 = math.cos(max(th_ik - eps, 0.0))
-                    s, e = kvector_range(kvector, line[0], line[1], lo2, hi2)
-                    cik = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo2, hi2, mags[i] - mags[k],
-                                               gamma, ref_mag)
-                    if cik.shape[0] == 0:
-                        continue
-                    # R_i = candidates of s_i in both; unique triple (I, J, K) with theta_JK ~ theta_jk.
+                    th_jl = _angle(b[j], b[l])
+                    th_kl = _angle(b[k], b[l])
                     found = 0
-                    fI = -1
-                    fJ = -1
-                    fK = -1
+                    res = np.full(4, -1, dtype=np.int64)
                     p = 0
-                    while p < cij.shape[0]:
-                        I = cij[p, 0]
-                        js = _partners(cij, I)
-                        ks = _partners(cik, I)
+                    while p < c0.shape[0]:
+                        I = c0[p, 0]
+                        js = _partners(c0, I)
                         p += js.shape[0]
+                        ks = _partners(c1, I)
                         if ks.shape[0] == 0:
+                            continue
+                        ls = _partners(c2, I)
+                        if ls.shape[0] == 0:
                             continue
                         for J in js:
                             for K in ks:
-                                if J == K:
+                                if K == J or abs(_angle(star_vec[J], star_vec[K]) - th_jk) > eps:
                                     continue
-                                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) <= eps:
+                                for L in ls:
+                                    if L == J or L == K:
+                                        continue
+                                    if abs(_angle(star_vec[J], star_vec[L]) - th_jl) > eps:
+                                        continue
+                                    if abs(_angle(star_vec[K], star_vec[L]) - th_kl) > eps:
+                                        continue
                                     found += 1
-                                    fI = I
-                                    fJ = J
-                                    fK = K
+                                    res[0] = I
+                                    res[1] = J
+                                    res[2] = K
+                                    res[3] = L
                         if found > 1:
                             break
                     if found == 1:
                         idx[0] = i
                         idx[1] = j
                         idx[2] = k
-                        cat[0] = fI
-                        cat[1] = fJ
-                        cat[2] = fK
-                        return 1, idx, cat, loops
-        # Four-star mode.
-        for i in range(0, n - 3):
-            for j in range(n - 1, i + 2, -1):
-                for k in range(j - 1, i + 1, -1):
-                    for l in range(k - 1, i, -1):
-                        loops += 1
-                        if loops > max_loops:
-                            return 0, idx, cat, loops
-                        th = np.empty(3)
-                        th[0] = _angle(b[i], b[j])
-                        th[1] = _angle(b[i], b[k])
-                        th[2] = _angle(b[i], b[l])
-                        others = np.array([j, k, l])
-                        empty = False
-                        c0 = np.empty((0, 2), dtype=np.int64)
-                        c1 = np.empty((0, 2), dtype=np.int64)
-                        c2 = np.empty((0, 2), dtype=np.int64)
-                        for t in range(3):
-                            lo = math.cos(th[t] + eps)
-                            hi = math.cos(max(th[t] - eps, 0.0))
-                            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
-                            c = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi,
-                                                     mags[i] - mags[others[t]], gamma, 1e9)
-                            if c.shape[0] == 0:
-                                empty = True
-                                break
-                            if t == 0:
-                                c0 = c
-                            elif t == 1:
-                                c1 = c
-                            else:
-                                c2 = c
-                        if empty:
-                            continue
-                        th_jk = _angle(b[j], b[k])
-                        th_jl = _angle(b[j], b[l])
-                        th_kl = _angle(b[k], b[l])
-                        found = 0
-                        res = np.full(4, -1, dtype=np.int64)
-                        p = 0
-                        while p < c0.shape[0]:
-                            I = c0[p, 0]
-                            js = _partners(c0, I)
-                            p += js.shape[0]
-                            ks = _partners(c1, I)
-                            if ks.shape[0] == 0:
-                                continue
-                            ls = _partners(c2, I)
-                            if ls.shape[0] == 0:
-                                continue
-                            for J in js:
-                                for K in ks:
-                                    if K == J or abs(_angle(star_vec[J], star_vec[K]) - th_jk) > eps:
-                                        continue
-                                    for L in ls:
-                                        if L == J or L == K:
-                                            continue
-                                        if abs(_angle(star_vec[J], star_vec[L]) - th_jl) > eps:
-                                            continue
-                                        if abs(_angle(star_vec[K], star_vec[L]) - th_kl) > eps:
-                                            continue
-                                        found += 1
-                                        res[0] = I
-                                        res[1] = J
-                                        res[2] = K
-                                        res[3] = L
-                            if found > 1:
-                                break
-                        if found == 1:
-                            idx[0] = i
-                            idx[1] = j
-                            idx[2] = k
-                            idx[3] = l
-                            cat[:] = res
-                            return 2, idx, cat, loops
-        return 0, idx, cat, loops
-    # n == 3: a unique triangle.
-    th_ij = _angle(b[0], b[1])
-    th_ik = _angle(b[0], b[2])
-    th_jk = _angle(b[1], b[2])
-    lo = math.cos(th_ij + eps)
-    hi = math.cos(max(th_ij - eps, 0.0))
-    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
-    cij = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[0] - mags[1], gamma, 1e9)
-    lo = math.cos(th_ik + eps)
-    hi = math.cos(max(th_ik - eps, 0.0))
-    s, e = kvector_range(kvector, line[0], line[1], lo, hi)
-    cik = _oriented_candidates(pair_i, pair_j, pair_cos, star_mag, s, e, lo, hi, mags[0] - mags[2], gamma, 1e9)
-    found = 0
-    p = 0
-    while p < cij.shape[0]:
-        I = cij[p, 0]
-        js = _partners(cij, I)
-        p += js.shape[0]
-        for J in js:
-            for K in _partners(cik, I):
-                if K != J and abs(_angle(star_vec[J], star_vec[K]) - th_jk) <= eps:
-                    found += 1
-                    cat[0] = I
-                    cat[1] = J
-                    cat[2] = K
-    if found == 1:
-        idx[0] = 0
-        idx[1] = 1
-        idx[2] = 2
-        return 3, idx, cat, 1
-    cat[:] = -1
-    return 0, idx, cat, 1
+                        idx[3] = l
+                        cat[:] = res
+                        return 2, idx, cat, loops
+    return 0, idx, cat, loops

@@ -3,6 +3,17 @@ import numpy as np
 from numba import njit, prange
 
 
+@njit(cache=True, inline="always")
+def project_to_pixel(x, y, z, focal, cx, cy, k1, k2):
+    """Camera-frame direction (``z`` > 0) to pixel ``(x, y)``: pinhole plus radial
+    distortion ``1 + k1 r^2 + k2 r^4``, the model of :class:`startrack.camera.Camera`."""
+    u = x / z
+    v = y / z
+    r2 = u * u + v * v
+    scale = 1.0 + k1 * r2 + k2 * r2 * r2
+    return cx + focal * u * scale, cy + focal * v * scale
+
+
 @njit(cache=True, parallel=True)
 def pairs_within(vectors, dec, order, max_angle, cos_max):
     """All pairs ``i < j`` (in ``order``) whose angle is at most ``max_angle``.
@@ -79,12 +90,7 @@ def count_in_fov(vectors_by_dec, dec_sorted, mags_by_dec, dcms, focal, cx, cy, w
                 continue
             x = dcms[k, 0, 0] * vx + dcms[k, 0, 1] * vy + dcms[k, 0, 2] * vz
             y = dcms[k, 1, 0] * vx + dcms[k, 1, 1] * vy + dcms[k, 1, 2] * vz
-            u = x / z
-            v = y / z
-            r2 = u * u + v * v
-            scale = 1.0 + k1 * r2 + k2 * r2 * r2
-            px = cx + focal * u * scale
-            py = cy + focal * v * scale
+            px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
             if px >= -0.5 and px <= width - 0.5 and py >= -0.5 and py <= height - 0.5:
                 c += 1
                 if mags_by_dec[s] < best:

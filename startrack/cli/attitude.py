@@ -63,7 +63,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         if key not in propagated:
             cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
             propagated.clear()
-            propagated[key] = (cat, {int(i): k for k, i in enumerate(cat.id)}, cat.vectors())
+            propagated[key] = (cat, cat.rows_by_id(), cat.vectors())
         return propagated[key]
 
     def process(doc, source, index, total):

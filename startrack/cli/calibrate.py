@@ -58,7 +58,7 @@ def command(input, output, fit, catalog, quiet):
         ep = float(att.get("epoch", base.epoch))
         if ep not in cache:
             cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
-            cache[ep] = ({int(i): k for k, i in enumerate(cat.id)}, cat.vectors())
+            cache[ep] = (cat.rows_by_id(), cat.vectors())
         rows, vec = cache[ep]
         xy, ref = [], []
         for m in ident["matches"]:

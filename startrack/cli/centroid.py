@@ -1,7 +1,7 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import load_camera_file, handle_errors, info, quiet_option
+from startrack.cli.options import handle_errors, info, load_camera_file, output_option, quiet_option
 
 
 @click.command("centroid", short_help="Detect and centroid stars in images -> frame documents.")
@@ -32,8 +32,7 @@ from startrack.cli.options import load_camera_file, handle_errors, info, quiet_o
 @click.option("--window-px", type=int, default=8, show_default=True, help="Window half-size for --windows-from.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of the detections (numbered per image when several).")
-@click.option("--output", "-o", default="-", show_default=True, type=click.Path(dir_okay=False, allow_dash=True),
-              help="Frame documents (JSON Lines).")
+@output_option("Frame documents (JSON Lines).")
 @quiet_option
 @handle_errors
 def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, matched_filter, filter_sigma_px,

@@ -1,7 +1,7 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
 import click
 
-from startrack.cli.options import load_camera_file, handle_errors, info, quiet_option
+from startrack.cli.options import handle_errors, info, load_camera_file, output_option, quiet_option
 
 
 def _solve_one(args):
@@ -64,8 +64,7 @@ def _solve_one(args):
               help="FITS WCS per image (numbered when several).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated picture per image (numbered when several).")
-@click.option("--output", "-o", default="-", show_default=True, type=click.Path(dir_okay=False, allow_dash=True),
-              help="Frame documents (JSON Lines).")
+@output_option("Frame documents (JSON Lines).")
 @quiet_option
 @handle_errors
 def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, wcs_path, plot, output, quiet):
