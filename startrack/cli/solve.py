@@ -58,7 +58,9 @@ def _solve_one(args):
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="A calibrated camera JSON (then no field-of-view search).")
 @click.option("--epoch", type=float, default=None, help="Epoch of observation (decimal year) for proper motion.")
-@click.option("--timeout-s", type=float, default=5.0, show_default=True, help="Give up on an image after this.")
+@click.option("--timeout-s", type=float, default=5.0, show_default=True,
+              help="Give up on an image after this many seconds of search (building a cached database and "
+                   "compiling kernels on first use do not count).")
 @click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Images solved in parallel.")
 @click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
               help="FITS WCS per image (numbered when several).")
