@@ -1,0 +1,300 @@
+"""Independent tasks on this machine or on a Dask cluster, results in input order.
+
+Batches (images to solve, chunks of Monte Carlo attitudes, frames to render) are
+lists of independent tasks.  :func:`ordered_map` runs one function over them
+
+* in this process (``jobs=1``, no scheduler),
+* in ``jobs`` worker processes of this machine (``multiprocessing``, spawned), or
+* on a Dask distributed cluster (``scheduler="local"`` starts a ``LocalCluster``
+  of ``jobs`` single-threaded worker processes; ``scheduler="tcp://host:8786"``
+  connects to a running ``dask scheduler`` with its ``dask worker`` processes,
+  from a laptop to SLURM/PBS through dask-jobqueue),
+
+and yields the results **in input order**, each as soon as it and every task
+before it are done.  At most ``window`` tasks are in flight, so memory stays
+bounded whatever the number of tasks, and a caller that writes each result as it
+arrives (and flushes) loses only the tasks in flight when it is killed.
+
+When a Dask worker dies, the scheduler gives its tasks to the other workers
+(up to ``distributed.scheduler.allowed-failures`` times); a task that raises is
+retried ``retries`` times.  A task that still fails is reported as a
+:class:`TaskFailure` in its place: the batch goes on.
+
+Workers keep what is expensive to load (catalog, databases, compiled kernels)
+between tasks through :func:`worker_cache`, a dictionary that lives as long as
+the worker process.
+
+Dask is an optional dependency (the ``[cluster]`` extra); nothing here imports it
+unless a scheduler is given.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+
+from startrack.errors import BadInputError
+
+__all__ = ["BatchProgress", "TaskFailure", "check_readable_on_workers", "chunks", "default_chunk", "ordered_map",
+           "worker_cache"]
+
+
+@dataclass(frozen=True)
+class TaskFailure:
+    """A task that raised (after its retries) or whose workers kept dying."""
+
+    index: int
+    error: str
+
+
+@dataclass
+class BatchProgress:
+    """Counts for a progress line: tasks done, failed and in flight, and the rate."""
+
+    total: int
+    done: int = 0
+    failed: int = 0
+    in_flight: int = 0
+    started: float = 0.0
+
+    @property
+    def per_second(self) -> float:
+        elapsed = time.perf_counter() - self.started
+        return self.done / elapsed if elapsed > 0 else 0.0
+
+    def line(self, unit: str = "tasks") -> str:
+        return (f"{self.done}/{self.total} {unit} done, {self.failed} failed, {self.in_flight} in flight, "
+                f"{self.per_second:.1f}/s")
+
+
+# One dictionary per worker process.  In a Dask worker it hangs on the Worker
+# object (so a worker restarted by its nanny starts empty); in a spawned
+# multiprocessing worker or in this process it is this process's own.
+_PROCESS_CACHE: dict = {}
+
+
+def worker_cache() -> dict:
+    """The cache of the process (or Dask worker) that runs the current task."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return _PROCESS_CACHE
+    cache = getattr(worker, "_startrack_cache", None)
+    if cache is None:
+        cache = {}
+        worker._startrack_cache = cache
+    return cache
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def ordered_map(fn: Callable, items: Iterable, *, jobs: int = 1, scheduler: str | None = None,
+                window: int | None = None, retries: int = 1,
+                progress: Callable[[BatchProgress], None] | None = None) -> Iterator[tuple[int, object]]:
+    """Run ``fn(item)`` for every item; yield ``(index, result)`` in input order.
+
+    Parameters
+    ----------
+    fn : callable
+        A module-level function (it is pickled to worker processes).  It should
+        return a result for every item, failures included; an exception becomes
+        a :class:`TaskFailure` in the item's place.
+    items : iterable
+        The tasks' arguments; read lazily, ``window`` ahead of the output.
+    jobs : int
+        Worker processes on this machine (``scheduler=None`` or ``"local"``).
+    scheduler : str or None
+        ``None`` (this machine), ``"local"`` (a Dask ``LocalCluster`` of ``jobs``
+        workers) or the address of a running Dask scheduler.
+    window : int or None
+        Most tasks in flight; default four per worker.
+    retries : int
+        Extra attempts of a task that raised (Dask only; a dead worker's tasks
+        are always moved to another worker).
+    progress : callable or None
+        Called with a :class:`BatchProgress` after every finished task.
+
+    Yields
+    ------
+    (int, object)
+        The item's index and ``fn(item)``, or a :class:`TaskFailure`.
+    """
+    if not (isinstance(jobs, int) and jobs >= 1):
+        raise BadInputError("jobs", None, f"must be a whole number >= 1, got {jobs!r}")
+    if window is not None and not window >= 1:
+        raise BadInputError("window", None, f"must be >= 1, got {window!r}")
+    if scheduler is not None:
+        yield from _dask_map(fn, items, jobs, scheduler, window, retries, progress)
+    elif jobs == 1:
+        yield from _serial_map(fn, items, progress)
+    else:
+        yield from _pool_map(fn, items, jobs, window or 4 * jobs, progress)
+
+
+def _serial_map(fn, items, progress):
+    state = BatchProgress(total=_length(items), started=time.perf_counter())
+    for i, item in enumerate(items):
+        try:
+            result = fn(item)
+        except Exception as exc:  # noqa: BLE001 - a task's failure is reported in its place
+            result = TaskFailure(i, _describe(exc))
+        state.done += 1
+        state.failed += isinstance(result, TaskFailure)
+        if progress:
+            progress(state)
+        yield i, result
+
+
+def _length(items) -> int:
+    try:
+        return len(items)
+    except TypeError:
+        return 0
+
+
+def _pool_map(fn, items, jobs, window, progress):
+    import multiprocessing as mp
+
+    state = BatchProgress(total=_length(items), started=time.perf_counter())
+    # spawn, not fork: numba's threading layer and HDF5 must not be forked.
+    with mp.get_context("spawn").Pool(jobs) as pool:
+        pending = {}
+        source = enumerate(items)
+        exhausted = False
+        next_out = 0
+        while True:
+            while not exhausted and len(pending) < window:
+                try:
+                    i, item = next(source)
+                except StopIteration:
+                    exhausted = True
+                    break
+                pending[i] = pool.apply_async(fn, (item,))
+            if next_out not in pending:
+                return
+            state.in_flight = len(pending)
+            try:
+                result = pending.pop(next_out).get()
+            except Exception as exc:  # noqa: BLE001
+                result = TaskFailure(next_out, _describe(exc))
+            state.done += 1
+            state.failed += isinstance(result, TaskFailure)
+            state.in_flight = len(pending)
+            if progress:
+                progress(state)
+            yield next_out, result
+            next_out += 1
+
+
+def _connect(scheduler: str, jobs: int):
+    """A Dask client (and the LocalCluster it owns, if any)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise BadInputError("scheduler", None, "needs Dask: pip install 'startrack[cluster]'") from None
+    import logging
+
+    if scheduler == "local":
+        cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR)
+        return Client(cluster), cluster
+    if "://" not in scheduler and ":" not in scheduler:
+        raise BadInputError("scheduler", None, f"expected 'local' or an address like tcp://host:8786, got {scheduler!r}")
+    try:
+        return Client(scheduler, timeout="10s"), None
+    except (OSError, TimeoutError) as exc:
+        raise BadInputError("scheduler", None, f"cannot reach the Dask scheduler at {scheduler}: {_describe(exc)}") from None
+
+
+def _dask_map(fn, items, jobs, scheduler, window, retries, progress):
+    from distributed import wait
+
+    client, cluster = _connect(scheduler, jobs)
+    try:
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})) or jobs)
+        window = window or 4 * n_workers
+        state = BatchProgress(total=_length(items), started=time.perf_counter())
+        pending = {}
+        source = enumerate(items)
+        exhausted = False
+        next_out = 0
+        while True:
+            while not exhausted and len(pending) < window:
+                try:
+                    i, item = next(source)
+                except StopIteration:
+                    exhausted = True
+                    break
+                pending[i] = client.submit(fn, item, retries=retries, pure=False, key=f"startrack-{os.getpid()}-{i}")
+            if next_out not in pending:
+                return
+            state.in_flight = len(pending)
+            future = pending.pop(next_out)
+            wait(future)
+            if future.status == "finished":
+                result = future.result()
+            else:
+                exc = future.exception()
+                result = TaskFailure(next_out, _describe(exc) if exc is not None else future.status)
+            future.release()
+            state.done += 1
+            state.failed += isinstance(result, TaskFailure)
+            state.in_flight = len(pending)
+            if progress:
+                progress(state)
+            yield next_out, result
+            next_out += 1
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _first_unreadable(paths: list) -> str | None:
+    for p in paths:
+        if not (os.path.isfile(p) and os.access(p, os.R_OK)):
+            return p
+    return None
+
+
+def check_readable_on_workers(paths: list, scheduler: str, jobs: int = 1) -> None:
+    """Refuse a batch whose input files some Dask worker cannot read.
+
+    Workers read the images themselves, so the paths must name files on a
+    filesystem every worker shares (NFS, a cluster filesystem, or this machine).
+    Raises :class:`BadInputError` naming the first unreadable path and the worker.
+    """
+    if scheduler == "local" or not paths:
+        return
+    client, cluster = _connect(scheduler, jobs)
+    try:
+        absolute = [os.path.abspath(p) for p in paths]
+        found = client.run(_first_unreadable, absolute)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    if not found:
+        raise BadInputError("scheduler", None, f"no Dask worker is connected to {scheduler}")
+    for worker, path in sorted(found.items()):
+        if path is not None:
+            raise BadInputError(path, None, f"cannot be read by Dask worker {worker}: images must be on a "
+                                "filesystem every worker shares")
+
+
+def chunks(total: int, size: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` ranges of at most ``size`` covering ``range(total)``."""
+    size = max(1, int(size))
+    return [(start, min(total, start + size)) for start in range(0, total, size)]
+
+
+def default_chunk(total: int, workers: int, per_worker: int = 8, most: int = 2000) -> int:
+    """A chunk size giving each worker several chunks (progress, load balance), bounded for memory."""
+    return max(1, min(most, math.ceil(total / max(1, workers * per_worker))))

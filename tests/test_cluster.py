@@ -1,0 +1,98 @@
+"""startrack.cluster: ordered results on one machine and on Dask, failures in place, bounded windows."""
+import os
+import random
+import sys
+import time
+
+import pytest
+
+from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map, worker_cache
+
+
+def _slow_square(x):
+    # Later tasks finish first: the output must still come in input order.
+    time.sleep(0.02 * (7 - x % 8) if x < 8 else 0.0)
+    return x * x
+
+
+def _fails_on_three(x):
+    if x == 3:
+        raise ValueError("three is bad\nsecond line")
+    return x
+
+
+def _counted(x):
+    cache = worker_cache()
+    cache["calls"] = cache.get("calls", 0) + 1
+    return os.getpid(), cache["calls"]
+
+
+def test_serial_keeps_order_and_reports_failures_in_place():
+    out = list(ordered_map(_fails_on_three, range(6)))
+    assert [i for i, _ in out] == list(range(6))
+    assert isinstance(out[3][1], TaskFailure) and out[3][1].error == "ValueError: three is bad"
+    assert [r for i, r in out if i != 3] == [0, 1, 2, 4, 5]
+
+
+def test_process_pool_keeps_input_order():
+    out = list(ordered_map(_slow_square, range(12), jobs=2, window=3))
+    assert out == [(i, i * i) for i in range(12)]
+
+
+def test_items_are_read_lazily_within_the_window():
+    seen = []
+
+    def source():
+        for i in range(100):
+            seen.append(i)
+            yield i
+
+    it = ordered_map(_slow_square, source(), jobs=2, window=4)
+    first = next(it)
+    assert first == (0, 0)
+    assert len(seen) <= 5      # the window (4) plus the one that stopped the refill
+    it.close()
+
+
+def test_worker_cache_lives_as_long_as_the_process():
+    results = [r for _, r in ordered_map(_counted, range(5))]
+    assert [calls for _, calls in results][-1] - results[0][1] == 4
+
+
+def test_progress_counts_done_and_failed():
+    states = []
+    list(ordered_map(_fails_on_three, range(5), progress=lambda s: states.append((s.done, s.failed))))
+    assert states[-1] == (5, 1)
+
+
+def test_bad_jobs_and_scheduler_are_refused():
+    from startrack.errors import BadInputError
+
+    with pytest.raises(BadInputError, match="jobs"):
+        list(ordered_map(_slow_square, range(2), jobs=0))
+    with pytest.raises(BadInputError, match="scheduler"):
+        list(ordered_map(_slow_square, range(2), scheduler="nonsense"))
+
+
+def test_chunks_cover_the_range_once():
+    for total, size in [(0, 5), (1, 5), (10, 3), (100000, 2000)]:
+        parts = chunks(total, size)
+        covered = [i for a, b in parts for i in range(a, b)]
+        assert covered == list(range(total))
+        assert all(b - a <= size for a, b in parts)
+    assert default_chunk(100000, 2) == 2000 and default_chunk(10, 2) == 1
+
+
+def test_local_dask_cluster_keeps_order_and_retries():
+    pytest.importorskip("distributed")
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    items = list(range(16))
+    random.Random(1).shuffle(items)
+    out = list(ordered_map(_slow_square, items, jobs=2, scheduler="local", window=5))
+    assert [i for i, _ in out] == list(range(16))
+    assert [r for _, r in out] == [x * x for x in items]
+    failed = list(ordered_map(_fails_on_three, range(5), jobs=1, scheduler="local", retries=1))
+    assert isinstance(failed[3][1], TaskFailure) and "three is bad" in failed[3][1].error
+    assert [r for i, r in failed if i != 3] == [0, 1, 2, 4]
