@@ -11,87 +11,245 @@ import numpy as np
 __all__ = ["stretch", "annotate_stars"]
 
 
-def stretch(image: np.ndarray, low_pct: float = 70.0, high_pct: float = 99.95) -> np.ndarray:
-    """An 8-bit display version: smooth background removed, percentile limits, asinh stretch."""
+# One marker vocabulary for every annotated picture (BGR colours for OpenCV), explained by
+# the legend drawn on every picture.
+MARKERS = {
+    "identified": ((80, 220, 80), "identified (catalog id)"),
+    "detected": ((175, 175, 175), "detected"),
+    "predicted": ((255, 170, 60), "catalog star predicted"),
+    "rejected": ((70, 70, 255), "rejected (hot pixel, trail)"),
+}
+_LABEL = (120, 240, 255)
+_PANEL = (34, 30, 28)
+_TEXT = (235, 235, 235)
+
+
+def stretch(image: np.ndarray) -> np.ndarray:
+    """An 8-bit display version of a sky image: dark sky, faint stars visible, bright stars unsaturated.
+
+    The smooth background (a median mesh, as sky-subtraction does) is removed;
+    the sky noise sigma is measured with the median absolute deviation; the
+    display range runs from two sigma above the sky (so noise stays dark
+    instead of looking like static) to the brightest star peaks, with an asinh
+    stretch (astropy.visualization's ``AsinhStretch``) that shows stars from
+    a few sigma to saturation.
+    """
     import cv2
+    from astropy.visualization import AsinhStretch
 
     img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 3:
+        img = img.mean(axis=2)
     h, w = img.shape
     small = cv2.resize(img, (max(1, w // 32), max(1, h // 32)), interpolation=cv2.INTER_AREA)
     small = cv2.medianBlur(small, 3) if min(small.shape) >= 3 else small
-    img = (img - cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)).astype(np.float64)
-    lo, hi = np.percentile(img[:: max(1, img.shape[0] // 256), :: max(1, img.shape[1] // 256)], [low_pct, high_pct])
-    if hi <= lo:
-        hi = lo + 1.0
-    x = np.clip((img - lo) / (hi - lo), 0, None)
-    y = np.arcsinh(10.0 * x) / np.arcsinh(10.0)
+    img = img - cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    sample = img[:: max(1, h // 512), :: max(1, w // 512)]
+    centre = float(np.median(sample))
+    sigma = 1.4826 * float(np.median(np.abs(sample - centre))) or float(np.std(sample)) or 1.0
+    lo = centre + 2.0 * sigma
+    hi = max(float(np.percentile(img, 99.995)), lo + 60.0 * sigma)
+    x = np.clip((img - lo) / (hi - lo), 0.0, 1.0)
+    y = AsinhStretch(a=0.02)(x, clip=True)
     return np.clip(y * 255.0, 0, 255).astype(np.uint8)
+
+
+class _Picture:
+    """An annotated picture: the stretched image above a legend panel, labels that never overlap."""
+
+    def __init__(self, image: np.ndarray, panel_lines: int = 2):
+        import cv2
+
+        self.cv2 = cv2
+        self.h, self.w = image.shape[:2]
+        self.scale = max(0.8, min(2.5, max(self.h, self.w) / 1024.0))
+        self.thick = max(1, int(round(self.scale)))
+        self.font = cv2.FONT_HERSHEY_SIMPLEX
+        self.font_scale = 0.45 * self.scale
+        self.line_h = int(round(22 * self.scale))
+        self.panel_h = self.line_h * (panel_lines + 2) + int(10 * self.scale)
+        self.canvas = np.zeros((self.h + self.panel_h, self.w, 3), dtype=np.uint8)
+        self.canvas[: self.h] = cv2.cvtColor(stretch(image), cv2.COLOR_GRAY2BGR)
+        self.canvas[self.h:] = _PANEL
+        self.occupied: list[tuple[int, int, int, int]] = []
+        self.labels: list[tuple[str, tuple[int, int]]] = []
+
+    def text_size(self, text: str) -> tuple[int, int]:
+        (tw, th), base = self.cv2.getTextSize(text, self.font, self.font_scale, self.thick)
+        return tw, th + base
+
+    def marker(self, kind: str, x: float, y: float, size: float | None = None) -> tuple[int, int] | None:
+        if not (np.isfinite(x) and np.isfinite(y)):
+            return None
+        cv2 = self.cv2
+        colour = MARKERS[kind][0]
+        c = (int(round(x)), int(round(y)))
+        r = int(round((size or 7.0) * self.scale))
+        if kind in ("identified", "detected"):
+            cv2.circle(self.canvas, c, r, colour, self.thick + (kind == "identified"), lineType=cv2.LINE_AA)
+        elif kind == "predicted":
+            cv2.rectangle(self.canvas, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r), colour, self.thick)
+        else:
+            cv2.drawMarker(self.canvas, c, colour, cv2.MARKER_TILTED_CROSS, 2 * r, self.thick + 1)
+        if kind == "identified":
+            self.occupied.append((c[0] - r, c[1] - r, c[0] + r, c[1] + r))
+        return c
+
+    def label(self, text: str, centre: tuple[int, int], radius: float) -> tuple[int, int, int, int] | None:
+        """Place ``text`` beside a marker: inside the image, over no other label or identified star."""
+        tw, th = self.text_size(text)
+        r = int(round(radius * self.scale)) + 3
+        cx, cy = centre
+        own = (cx - r + 3, cy - r + 3, cx + r - 3, cy + r - 3)
+        best, best_cost = None, None
+        # Rings of candidate spots around the marker, nearest first; each spot is moved inside the
+        # frame before it is judged, so a star at the edge gets its label on the inner side.
+        for ring in range(4):
+            d = r + ring * (th + 2)
+            for x0, y0 in ((cx + d, cy - d + th // 2), (cx + d, cy + d + th // 2), (cx - d - tw, cy - d + th // 2),
+                           (cx - d - tw, cy + d + th // 2), (cx - tw // 2, cy - d), (cx - tw // 2, cy + d + th),
+                           (cx + d, cy + th // 2), (cx - d - tw, cy + th // 2)):
+                x0 = int(min(max(x0, 0), max(0, self.w - tw)))
+                y0 = int(min(max(y0, th), self.h - 1))
+                box = (x0, y0 - th, x0 + tw, y0)
+                cost = sum(_overlap(box, o) for o in self.occupied if o != own) + _overlap(box, own)
+                cost += ring * 0.5
+                if best_cost is None or cost < best_cost:
+                    best, best_cost = (x0, y0), cost
+            if best_cost is not None and best_cost < 1.0:
+                break
+        x0, y0 = best
+        box = (x0, y0 - th, x0 + tw, y0)
+        self.occupied.append(box)
+        self.labels.append((text, (x0, y0)))
+        return box
+
+    def draw_labels(self) -> None:
+        cv2 = self.cv2
+        for text, (x0, y0) in self.labels:
+            # A dark outline keeps the label readable over stars and bright sky.
+            cv2.putText(self.canvas, text, (x0, y0 - 3), self.font, self.font_scale, (0, 0, 0), self.thick + 2,
+                        cv2.LINE_AA)
+            cv2.putText(self.canvas, text, (x0, y0 - 3), self.font, self.font_scale, _LABEL, self.thick,
+                        cv2.LINE_AA)
+
+    def panel(self, lines: list[str], kinds: list[str], compass=None) -> None:
+        """Text lines, the legend of the markers used and the compass, on the panel below the image."""
+        cv2 = self.cv2
+        y = self.h + self.line_h
+        for line in lines:
+            cv2.putText(self.canvas, line, (int(8 * self.scale), y), self.font, 1.1 * self.font_scale, _TEXT,
+                        self.thick, cv2.LINE_AA)
+            y += self.line_h
+        x = int(8 * self.scale)
+        y += int(4 * self.scale)
+        for kind in kinds:
+            c = (x + int(8 * self.scale), y - int(5 * self.scale))
+            r = int(6 * self.scale)
+            colour, words = MARKERS[kind]
+            if kind in ("identified", "detected"):
+                cv2.circle(self.canvas, c, r, colour, self.thick + (kind == "identified"), lineType=cv2.LINE_AA)
+            elif kind == "predicted":
+                cv2.rectangle(self.canvas, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r), colour, self.thick)
+            else:
+                cv2.drawMarker(self.canvas, c, colour, cv2.MARKER_TILTED_CROSS, 2 * r, self.thick + 1)
+            cv2.putText(self.canvas, words, (x + int(20 * self.scale), y), self.font, self.font_scale, _TEXT,
+                        self.thick, cv2.LINE_AA)
+            x += int(20 * self.scale) + self.text_size(words)[0] + int(22 * self.scale)
+        if compass is not None:
+            self._compass(*compass)
+
+    def _compass(self, north: np.ndarray, east: np.ndarray) -> None:
+        """North and east arrows (unit image-plane directions) in the panel's right corner, letters past the tips."""
+        cv2 = self.cv2
+        length = 0.32 * self.panel_h
+        origin = np.array([self.w - 0.55 * self.panel_h, self.h + 0.5 * self.panel_h])
+        for vec, letter, colour in ((north, "N", (90, 90, 255)), (east, "E", (80, 200, 255))):
+            v = np.asarray(vec, dtype=float)
+            n = np.linalg.norm(v)
+            if not n > 0:
+                continue
+            v = v / n
+            tip = origin + length * v
+            cv2.arrowedLine(self.canvas, tuple(int(round(t)) for t in origin), tuple(int(round(t)) for t in tip),
+                            colour, self.thick + 1, cv2.LINE_AA, tipLength=0.3)
+            tw, th = self.text_size(letter)
+            at = origin + (length + 0.5 * max(tw, th) + 3 * self.scale) * v
+            cv2.putText(self.canvas, letter, (int(at[0] - tw / 2), int(at[1] + th / 2 - 2)), self.font,
+                        self.font_scale, colour, self.thick, cv2.LINE_AA)
+
+    def save(self, path: str) -> None:
+        from startrack.errors import BadInputError
+        from startrack.formats.atomic import atomic_path
+
+        self.draw_labels()
+        with atomic_path(path, suffix=".png") as tmp:
+            if not self.cv2.imwrite(tmp, self.canvas):
+                raise BadInputError(path, None, "could not write the PNG")
+
+
+def _overlap(a, b) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    return float(w * h) if w > 0 and h > 0 else 0.0
+
+
+def _radius(flux) -> float:
+    return float(max(5.0, min(14.0, 2.0 + 1.6 * math.log10(max(float(flux or 10.0), 10.0)))))
 
 
 def annotate_stars(path: str, image: np.ndarray, stars: list, rejected: list | None = None, labels: dict | None = None,
                    predicted: list | None = None, title: str | None = None, n_numbered: int = 20) -> None:
-    """Write a PNG of ``image`` with the detected stars circled.
+    """Write a PNG of ``image`` with its detections, in the vocabulary of :data:`MARKERS`.
 
     Parameters
     ----------
     stars : list of dict
-        ``x``, ``y`` (and ``flux``), brightest first: green circles, the
-        ``n_numbered`` brightest numbered by rank (0 = brightest).
+        ``x``, ``y`` (and ``flux``), brightest first: "detected" circles, the
+        ``n_numbered`` brightest numbered by rank (0 = brightest) when no
+        labels are given.
     rejected : list of dict, optional
-        Set-aside detections (hot pixels, trails): red crosses.
+        Set-aside detections (hot pixels, trails): "rejected" crosses.
     labels : dict, optional
-        Star index -> text (e.g. ``"HIP 24436 Rigel"``) drawn beside it.
+        Star index -> text (e.g. ``"HIP 24436 Rigel"``): those stars are drawn
+        "identified" and labelled.
     predicted : list of (x, y), optional
-        Catalog positions predicted from an attitude: small blue squares.
+        Catalog positions predicted from an attitude: "predicted" squares.
     """
-    import cv2
-
-    from startrack.formats.atomic import atomic_path
-
-    base = stretch(image)
-    canvas = cv2.cvtColor(base, cv2.COLOR_GRAY2BGR)
-    scale = max(1.0, max(image.shape) / 1024.0)
-    thick = max(1, int(round(scale)))
-    font = cv2.FONT_HERSHEY_SIMPLEX
+    pic = _Picture(image, panel_lines=1)
+    kinds = []
     for x, y in predicted or []:
-        if np.isfinite(x) and np.isfinite(y):
-            c = (int(round(x)), int(round(y)))
-            cv2.rectangle(canvas, (c[0] - 4, c[1] - 4), (c[0] + 4, c[1] + 4), (255, 160, 0), thick)
-    for r in rejected or []:
-        c = (int(round(r["x"])), int(round(r["y"])))
-        cv2.drawMarker(canvas, c, (0, 0, 255), cv2.MARKER_TILTED_CROSS, int(8 * scale), thick)
+        pic.marker("predicted", x, y, 6)
+    if predicted:
+        kinds.append("predicted")
+    labels = labels or {}
     for i, s in enumerate(stars):
-        c = (int(round(s["x"])), int(round(s["y"])))
-        radius = int(max(5, min(25, 3 + 2 * math.log10(max(s.get("flux", 10.0), 10.0)))) * scale)
-        cv2.circle(canvas, c, radius, (0, 220, 0), thick, lineType=cv2.LINE_AA)
-        text = None
-        if labels and i in labels:
-            text = labels[i]
-        elif i < n_numbered:
-            text = str(i)
+        kind = "identified" if i in labels else "detected"
+        pic.marker(kind, s["x"], s["y"], _radius(s.get("flux")))
+    for r in rejected or []:
+        pic.marker("rejected", r["x"], r["y"], 5)
+    for i, s in enumerate(stars):
+        text = labels.get(i) if labels else (str(i) if i < n_numbered else None)
         if text:
-            cv2.putText(canvas, text, (c[0] + radius + 2, c[1] - radius), font, 0.45 * scale, (0, 255, 255), thick,
-                        cv2.LINE_AA)
-    if title:
-        cv2.putText(canvas, title, (8, int(20 * scale)), font, 0.55 * scale, (255, 255, 255), thick, cv2.LINE_AA)
-    with atomic_path(path, suffix=".png") as tmp:
-        if not cv2.imwrite(tmp, canvas):
-            from startrack.errors import BadInputError
-
-            raise BadInputError(path, None, "could not write the PNG")
+            pic.label(text, (int(round(s["x"])), int(round(s["y"]))), _radius(s.get("flux")))
+    kinds = (["identified"] if labels else []) + ["detected"] + kinds + (["rejected"] if rejected else [])
+    lines = [title or f"{len(stars)} stars detected" + ("" if labels else " (numbered by brightness, 0 = brightest)")]
+    pic.panel(lines, kinds)
+    pic.save(path)
 
 
-def _figure():
+def _figure(**kwargs):
+    """A matplotlib Figure on the Agg canvas (the object-oriented API: no pyplot, no global backend)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
     except ImportError:
         from startrack.errors import BadInputError
 
-        raise BadInputError("--plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
-    return plt
+        raise BadInputError("plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
 
 
 def _save(fig, path):
@@ -114,7 +272,8 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
 
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
-    plt = _figure()
+    from matplotlib.ticker import MaxNLocator
+
     rows = []
     for k, d in enumerate(docs):
         mode = (d.get("track") or {}).get("mode")
@@ -126,7 +285,8 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
         rows.append((k, mode, cross, roll))
     colours = {"lis": "tab:blue", "track": "tab:green", "single-star": "tab:orange", "lost": "tab:red",
                None: "tab:purple"}
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), dpi=110, sharex=True)
+    fig = _figure(figsize=(10, 6), dpi=110)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
     for mode, colour in colours.items():
         sel = [r for r in rows if r[1] == mode]
         if not sel:
@@ -143,13 +303,16 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     ax2.set_xlabel("frame")
     ax1.set_yscale("symlog", linthresh=1)
     ax2.set_yscale("symlog", linthresh=10)
+    for ax in (ax1, ax2):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.tick_params(labelleft=True)
+        ax.set_ylim(bottom=0)
     ax1.grid(alpha=0.3)
     ax2.grid(alpha=0.3)
     ax1.legend(fontsize=8, loc="upper right")
     fig.suptitle(title or "tracking errors per frame")
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
     stats = {"frames": len(rows), "modes": {m or "solved": sum(1 for r in rows if r[1] == m) / max(1, len(rows))
                                              for m in colours}}
     for m in ("track", "lis", "single-star", None):
@@ -180,13 +343,12 @@ def plot_residuals(doc: dict, path: str, scale: float = 200.0) -> None:
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
 
-    plt = _figure()
     att = doc.get("attitude") or {}
     cam = Camera.from_dict(doc["camera"])
-    cat = load_catalog()
+    cat = _catalog_at_epoch(load_catalog(), att)
     rows = cat.rows_by_id()
     vec = cat.vectors()
-    a = np.asarray(att["dcm"])
+    a = _attitude_matrix(att)
     xs, ys, us, vs = [], [], [], []
     for r in att.get("residuals", []):
         s = doc["stars"][r["star"]]
@@ -198,7 +360,8 @@ def plot_residuals(doc: dict, path: str, scale: float = 200.0) -> None:
         ys.append(py)
         us.append(s["x"] - px)
         vs.append(s["y"] - py)
-    fig, ax = plt.subplots(figsize=(8, 8 * cam.height / cam.width + 0.5), dpi=110)
+    fig = _figure(figsize=(8, 8 * cam.height / cam.width + 0.5), dpi=110)
+    ax = fig.subplots()
     ax.quiver(xs, ys, np.array(us) * scale, np.array(vs) * scale, angles="xy", scale_units="xy", scale=1,
               color="tab:blue", width=0.003)
     ax.scatter(xs, ys, s=6, c="k")
@@ -206,77 +369,89 @@ def plot_residuals(doc: dict, path: str, scale: float = 200.0) -> None:
     ax.set_ylim(cam.height - 0.5, -0.5)
     ax.set_aspect("equal")
     rms = att.get("rms_residual_arcsec")
-    ax.set_title(f"residuals x{scale:g} (RMS {rms:.2f} arcsec, {len(xs)} stars)" if rms else "residuals")
+    epoch = cat.epoch
+    ax.set_title((f"residuals x{scale:g} (RMS {rms:.2f} arcsec, {len(xs)} stars, catalog at epoch {epoch:.2f})"
+                  if rms else f"residuals x{scale:g} ({len(xs)} stars, catalog at epoch {epoch:.2f})"))
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
 def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: float | None = None) -> None:
     """The picture of a solved frame: detections, identified stars labelled (HIP and proper name), catalog
-    stars predicted from the attitude, a north/east compass and the boresight coordinates."""
-    import math
-
-    import cv2
-    import numpy as np
-
+    stars predicted from the attitude (at the attitude's epoch), a north/east compass and the boresight
+    coordinates, in the vocabulary of :data:`MARKERS`."""
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
-    from startrack.formats.atomic import atomic_path
     from startrack.names import star_label
 
     cam = Camera.from_dict(doc["camera"])
     stars = doc.get("stars") or []
     ident = doc.get("identification") or {}
     att = doc.get("attitude") or {}
-    base = stretch(image)
-    canvas = cv2.cvtColor(base, cv2.COLOR_GRAY2BGR)
-    scale = max(1.0, max(image.shape) / 1024.0)
-    thick = max(1, int(round(scale)))
-    font = cv2.FONT_HERSHEY_SIMPLEX
+    pic = _Picture(image, panel_lines=2)
+    kinds = []
+    compass = None
+    lines = []
+    labels = {m["star"]: star_label(m["id"]) for m in ident.get("matches", [])} if ident.get("status") == "ok" else {}
     if att.get("status") == "ok":
-        cat = catalog or load_catalog()
+        cat = _catalog_at_epoch(catalog or load_catalog(), att)
         if mag_limit is not None:
             cat = cat.filter_magnitude(None, mag_limit)
-        a = np.asarray(att["dcm"])
+        a = _attitude_matrix(att)
         cam_vec = cat.vectors() @ a.T
         front = cam_vec[:, 2] > 0
         x, y = cam.vectors_to_pixels(cam_vec[front])
         inside = cam.in_image(x, y)
         for px, py in zip(x[inside], y[inside]):
-            c = (int(round(px)), int(round(py)))
-            cv2.rectangle(canvas, (c[0] - 5, c[1] - 5), (c[0] + 5, c[1] + 5), (255, 160, 0), thick)
-        # Compass at the lower left: north and east directions at the image centre.
-        bore = a[2]
-        ra, dec = math.radians(att["ra"]), math.radians(att["dec"])
-        north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
-        east = np.array([-math.sin(ra), math.cos(ra), 0.0])
-        origin = (int(60 * scale), int(image.shape[0] - 60 * scale))
-        for vec_dir, label, colour in ((north, "N", (0, 0, 255)), (east, "E", (0, 200, 255))):
-            d = a @ (bore + 0.01 * vec_dir)
-            px, py = cam.vectors_to_pixels(d)
-            v = np.array([px - cam.cx, py - cam.cy])
-            v = v / max(np.linalg.norm(v), 1e-9) * 40 * scale
-            tip = (int(origin[0] + v[0]), int(origin[1] + v[1]))
-            cv2.arrowedLine(canvas, origin, tip, colour, thick + 1, tipLength=0.25)
-            cv2.putText(canvas, label, (tip[0] + 4, tip[1] + 4), font, 0.6 * scale, colour, thick + 1, cv2.LINE_AA)
-        text = (f"RA {att['ra']:.4f}  Dec {att['dec']:+.4f}  roll {att['roll']:.2f} deg   "
-                f"({att.get('n_stars', 0)} stars, sigma {att.get('sigma_cross_boresight_arcsec', float('nan')):.1f}\" / "
-                f"{att.get('sigma_roll_arcsec', float('nan')):.0f}\")")
-        cv2.putText(canvas, text, (8, int(image.shape[0] - 10 * scale)), font, 0.5 * scale, (255, 255, 255), thick,
-                    cv2.LINE_AA)
-    labels = {m["star"]: star_label(m["id"]) for m in ident.get("matches", [])}
+            pic.marker("predicted", px, py, 6)
+        kinds.append("predicted")
+        compass = _north_east_in_image(a, cam)
+        lines.append(f"RA {att['ra']:.4f} deg   Dec {att['dec']:+.4f} deg   roll {att['roll']:.2f} deg   "
+                     f"1-sigma {att.get('sigma_cross_boresight_arcsec', float('nan')):.1f}\" cross-boresight, "
+                     f"{att.get('sigma_roll_arcsec', float('nan')):.0f}\" roll")
     for i, s in enumerate(stars):
-        c = (int(round(s["x"])), int(round(s["y"])))
-        colour = (0, 220, 0) if i in labels else (140, 140, 140)
-        cv2.circle(canvas, c, int(8 * scale), colour, thick, lineType=cv2.LINE_AA)
-        if i in labels:
-            cv2.putText(canvas, labels[i], (c[0] + int(10 * scale), c[1] - int(6 * scale)), font, 0.42 * scale,
-                        (0, 255, 255), thick, cv2.LINE_AA)
+        pic.marker("identified" if i in labels else "detected", s["x"], s["y"], _radius(s.get("flux")))
+    for i in sorted(labels):
+        if 0 <= i < len(stars):
+            s = stars[i]
+            pic.label(labels[i], (int(round(s["x"])), int(round(s["y"]))), _radius(s.get("flux")))
     status = ident.get("status", "?")
-    title = f"{status}: {len(labels)} of {len(stars)} stars identified ({ident.get('algorithm', '')})"
-    cv2.putText(canvas, title, (8, int(20 * scale)), font, 0.55 * scale, (255, 255, 255), thick, cv2.LINE_AA)
-    with atomic_path(path, suffix=".png") as tmp:
-        cv2.imwrite(tmp, canvas)
+    title = f"{status}: {len(labels)} of {len(stars)} detected stars identified"
+    if ident.get("algorithm"):
+        title += f" ({ident['algorithm']})"
+    pic.panel([title] + lines, ["identified", "detected"] + kinds, compass)
+    pic.save(path)
+
+
+def _attitude_matrix(att: dict) -> np.ndarray:
+    if "dcm" in att:
+        return np.asarray(att["dcm"], dtype=float)
+    from startrack.rotations import quaternion_to_dcm
+
+    return quaternion_to_dcm(att["quaternion"])
+
+
+def _catalog_at_epoch(catalog, att: dict):
+    """The catalog propagated to the attitude's epoch (decimal year), when it records one."""
+    epoch = att.get("epoch")
+    if isinstance(epoch, (int, float)) and math.isfinite(epoch) and abs(epoch - float(catalog.epoch)) > 1e-6:
+        return catalog.propagate(float(epoch))
+    return catalog
+
+
+def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
+    """Image-plane unit directions of celestial north and east at the image centre."""
+    centre = cam.pixels_to_vectors(np.array([(cam.width - 1) / 2.0]), np.array([(cam.height - 1) / 2.0]))[0]
+    inertial = a.T @ centre
+    ra = math.atan2(inertial[1], inertial[0])
+    dec = math.asin(max(-1.0, min(1.0, inertial[2])))
+    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
+    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
+    x0, y0 = cam.vectors_to_pixels(centre)
+    out = []
+    for d in (north, east):
+        x1, y1 = cam.vectors_to_pixels(a @ (inertial + 1e-3 * d))
+        out.append(np.array([float(x1 - x0), float(y1 - y0)]))
+    return out[0], out[1]
