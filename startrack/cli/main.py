@@ -16,6 +16,7 @@ COMMANDS = {
     "centroid": "centroid",
     "build-kvector": "build_kvector",
     "build-labels": "build_labels",
+    "build-triangles": "build_triangles",
     "identify": "identify",
     "attitude": "attitude",
     "track": "track",

@@ -1,0 +1,88 @@
+"""Paper 000's modified pyramid: four stars, four triangles, the triangle database searched by its smallest angle.
+
+Hashemi et al. (2019) Sec. 3.2: the measured stars give triangles whose internal
+angles (Eq. 2) are looked up in the triangle database
+(:mod:`startrack.triangles`) by the smallest angle, through the quadratic fit
+of Eqs. 7-12.  A catalog triangle that matches the first three stars is
+confirmed by a fourth star: the triangle of two of its stars and the fourth
+must be in the database with the same two catalog stars, and the fourth
+star's angle to the third must agree (Mortari's "confirming fourth star").
+Each confirmed four-star pattern is a proposal for the shared verification;
+the paper takes the four brightest stars, and the search goes on to the next
+four when verification refuses a pattern.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+
+from startrack.identify.base import Proposal
+
+MAX_CANDIDATES = 4096      # catalog triangles kept per look-up
+
+
+def _quadruples(n: int):
+    """Four-star sets of the ``n`` brightest stars, those made of brighter stars first (the paper's four first)."""
+    return sorted(itertools.combinations(range(n), 4), key=lambda q: (q[3], q[2], q[1], q[0]))
+
+
+def _sides_ok(b, stars, cos_max) -> bool:
+    return all(float(b[p] @ b[q]) >= cos_max for p, q in itertools.combinations(stars, 2))
+
+
+def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200):
+    """Proposals of paper 000's modified pyramid, in its order; ``trials`` counts the triangles tried."""
+    from startrack._kernels.triangles import triangle_candidates
+
+    n = len(b)
+    if n < 4:
+        return
+    cos_max = math.cos(math.radians(db.max_separation_deg))
+    args = (db.tri_key, db.tri_stars, db.tri_angles, db.tri_hand, db.kquad, *db.quad)
+    trials = 0
+    cos_eps = eps
+    for count, (i, j, k, r) in enumerate(_quadruples(n)):
+        if count >= max_quadruples:
+            return
+        # A base triangle and a confirming triangle, each with every side in the database's range.
+        bases = [(i, j, k, r), (i, j, r, k), (i, k, r, j), (j, k, r, i)]
+        base = next((q for q in bases if _sides_ok(b, q[:3], cos_max)), None)
+        if base is None:
+            continue
+        p0, p1, p2, p3 = base
+        confirm = next(((x, y) for x, y in ((p0, p1), (p0, p2), (p1, p2)) if _sides_ok(b, (x, y, p3), cos_max)),
+                       None)
+        if confirm is None:
+            continue
+        cands, _ = triangle_candidates(b, p0, p1, p2, *args, cos_eps, db.star_vector, MAX_CANDIDATES)
+        trials += len(cands)
+        if len(cands) == 0:
+            continue
+        x, y = confirm
+        fourth, _ = triangle_candidates(b, x, y, p3, *args, cos_eps, db.star_vector, MAX_CANDIDATES)
+        trials += len(fourth)
+        if len(fourth) == 0:
+            continue
+        pos = {p0: 0, p1: 1, p2: 2}
+        other = ({p0, p1, p2} - {x, y}).pop()
+        theta_other = math.acos(min(1.0, max(-1.0, float(b[other] @ b[p3]))))
+        for c in cands:
+            cx, cy, co = c[pos[x]], c[pos[y]], c[pos[other]]
+            for f in fourth:
+                if f[0] != cx or f[1] != cy or f[2] in (c[0], c[1], c[2]):
+                    continue
+                cr = f[2]
+                theta = math.acos(min(1.0, max(-1.0, float(db.star_vector[co] @ db.star_vector[cr]))))
+                if abs(theta - theta_other) > cos_eps:
+                    continue
+                yield Proposal([int(p0), int(p1), int(p2), int(p3)], [int(c[0]), int(c[1]), int(c[2]), int(cr)],
+                               trials)
+
+
+def propose_modified_pyramid(b, db, eps, params, stars, camera):
+    """The first proposal (the shared driver verifies it)."""
+    for proposal in iter_modified_pyramid(np.ascontiguousarray(b), db, eps, params.max_triads):
+        return proposal
+    return Proposal([], [], 0, {"reason": "no confirmed four-star pattern in the triangle database"})
