@@ -1,0 +1,340 @@
+"""Typed records <-> frame-document sections, from one schema.
+
+The schema is the ``metadata`` of the fields of the records in
+:mod:`startrack.records` (see :func:`startrack.records.schema_field`).  This
+module reads a section into a record (validating it: one
+:class:`~startrack.errors.BadInputError` naming source, field path and
+problem), writes a record as its section (JSON-ready: lists, floats, no NaN,
+enum values as strings), and renders the field tables of ``docs/formats.md``
+(``python -m startrack.formats.sections`` prints them).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+
+from startrack.errors import BadInputError
+from startrack.records import (
+    Attitude,
+    Identification,
+    Match,
+    ReasonCode,
+    SolveResult,
+    StarTable,
+    Status,
+    TrackState,
+)
+
+__all__ = [
+    "SECTIONS",
+    "from_section",
+    "to_section",
+    "field_table",
+    "stars_from_section",
+    "stars_to_section",
+    "solve_result_to_frame",
+    "solve_result_from_frame",
+]
+
+# frame-document section -> record class
+SECTIONS = {"identification": Identification, "attitude": Attitude, "track": TrackState, "solve": SolveResult}
+
+
+def _schema_fields(cls):
+    return [f for f in dataclasses.fields(cls) if "kind" in f.metadata]
+
+
+def _key(f) -> str:
+    return f.metadata.get("key") or f.name
+
+
+def _json_value(value):
+    """A JSON-ready copy: NumPy to Python, non-finite floats to ``None``, enums to their value."""
+    if isinstance(value, enum_types()):
+        return value.value
+    if isinstance(value, dict):
+        return {str(k): _json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_value(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_value(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
+
+
+def enum_types():
+    return (Status, ReasonCode)
+
+
+def to_section(record) -> dict:
+    """The frame-document section of a record: only the fields that are set, in schema order.
+
+    ``details`` (algorithm-specific or other fields) are merged in last.
+    """
+    out = {}
+    for f in _schema_fields(type(record)):
+        value = getattr(record, f.name)
+        if f.name == "details":
+            continue
+        if value is None or (f.metadata["kind"] in ("list",) and not value and not f.metadata["required"]):
+            continue
+        if f.metadata["kind"] == "matches":
+            value = [{"star": int(m[0]), "id": int(m[1])} for m in value]
+        out[_key(f)] = _json_value(value)
+    details = getattr(record, "details", None)
+    if details:
+        for k, v in details.items():
+            out.setdefault(k, _json_value(v))
+    return out
+
+
+def _number(value, source, path, integer=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise BadInputError(source, path, f"must be a number, got {json.dumps(value)[:40]}")
+    if not math.isfinite(value):
+        raise BadInputError(source, path, f"must be a finite number, got {value}")
+    if integer:
+        if int(value) != value:
+            raise BadInputError(source, path, f"must be an integer, got {value}")
+        return int(value)
+    return float(value)
+
+
+def _read_value(kind, value, source, path):
+    if kind == "number":
+        return _number(value, source, path)
+    if kind == "int":
+        return _number(value, source, path, integer=True)
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise BadInputError(source, path, "must be true or false")
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise BadInputError(source, path, f"must be a string, got {json.dumps(value)[:40]}")
+        return value
+    if kind == "status":
+        try:
+            return Status(value)
+        except ValueError:
+            raise BadInputError(source, path, f"must be 'ok' or 'failed', got {json.dumps(value)[:40]}") from None
+    if kind == "reason_code":
+        if not isinstance(value, str):
+            raise BadInputError(source, path, "must be a string")
+        try:
+            return ReasonCode(value)
+        except ValueError:
+            return value        # a code of a newer version: kept as it is
+    if kind == "vector":
+        if not isinstance(value, list):
+            raise BadInputError(source, path, "must be a list of numbers")
+        return np.array([_number(v, source, f"{path}[{i}]") for i, v in enumerate(value)])
+    if kind == "matrix":
+        if not isinstance(value, list) or not all(isinstance(r, list) for r in value):
+            raise BadInputError(source, path, "must be a list of lists of numbers")
+        return np.array([[_number(v, source, f"{path}[{i}][{j}]") for j, v in enumerate(row)]
+                         for i, row in enumerate(value)])
+    if kind == "list":
+        if not isinstance(value, list):
+            raise BadInputError(source, path, "must be a list")
+        return value
+    if kind == "object":
+        if not isinstance(value, dict):
+            raise BadInputError(source, path, "must be an object")
+        return value
+    if kind == "matches":
+        if not isinstance(value, list):
+            raise BadInputError(source, path, "must be a list")
+        out = []
+        for i, m in enumerate(value):
+            if not isinstance(m, dict) or "star" not in m or "id" not in m:
+                raise BadInputError(source, f"{path}[{i}]", "needs 'star' and 'id'")
+            out.append(Match(_number(m["star"], source, f"{path}[{i}].star", integer=True),
+                             _number(m["id"], source, f"{path}[{i}].id", integer=True)))
+        return out
+    raise ValueError(f"unknown schema kind {kind!r}")
+
+
+def from_section(cls, doc, source: str = "<frame>", section: str | None = None):
+    """Read and validate a frame-document section into a record of class ``cls``.
+
+    Parameters
+    ----------
+    cls : type
+        :class:`~startrack.records.Identification`, :class:`~startrack.records.Attitude`,
+        :class:`~startrack.records.TrackState` or :class:`~startrack.records.SolveResult`
+        (its ``solve`` section only; see :func:`solve_result_from_frame`).
+    doc : dict
+        The section, as parsed from JSON.
+    source : str
+        Where it came from (``file:line``), for messages.
+    section : str, optional
+        The section's name, prefixed to field paths in messages.
+
+    Raises
+    ------
+    BadInputError
+        Naming the source, the field (``identification.matches[3].star``) and the problem.
+    """
+    prefix = f"{section}." if section else ""
+    if not isinstance(doc, dict):
+        raise BadInputError(source, section, "must be an object")
+    kw = {}
+    known = set()
+    for f in _schema_fields(cls):
+        key = _key(f)
+        known.add(key)
+        if f.name == "details":
+            continue
+        if key not in doc or doc[key] is None:
+            if f.metadata["required"] and not f.metadata["derived"] and not (
+                    cls is Attitude and doc.get("status") == "failed" and key != "status"):
+                raise BadInputError(source, prefix + key, "is missing")
+            continue
+        kw[f.name] = _read_value(f.metadata["kind"], doc[key], source, prefix + key)
+    if "details" in {f.name for f in dataclasses.fields(cls)}:
+        kw["details"] = {k: v for k, v in doc.items() if k not in known}
+    record = cls(**kw)
+    if cls is Attitude and record.quaternion is not None:
+        if record.quaternion.shape != (4,):
+            raise BadInputError(source, prefix + "quaternion", "must be a list of 4 numbers")
+        norm = float(np.linalg.norm(record.quaternion))
+        if not 0.99 < norm < 1.01:
+            raise BadInputError(source, prefix + "quaternion", f"must be a unit quaternion, norm is {norm:.4g}")
+        if record.ra is None:
+            from startrack.rotations import dcm_to_radec_roll
+
+            ra, dec, roll = dcm_to_radec_roll(record.dcm)
+            record.ra, record.dec, record.roll = (float(np.degrees(ra)) % 360.0, float(np.degrees(dec)),
+                                                  float(np.degrees(roll)))
+    return record
+
+
+def stars_from_section(stars, source: str = "<frame>") -> StarTable:
+    """Validate a ``stars`` section (finite ``x``, ``y``; ``flux`` a number when given) into a :class:`StarTable`."""
+    if not isinstance(stars, list):
+        raise BadInputError(source, "stars", "must be a list")
+    for i, star in enumerate(stars):
+        if not isinstance(star, dict):
+            raise BadInputError(source, f"stars[{i}]", "must be an object")
+        for name in ("x", "y"):
+            if name not in star:
+                raise BadInputError(source, f"stars[{i}].{name}", "is missing")
+            _number(star[name], source, f"stars[{i}].{name}")
+        if star.get("flux") is not None:
+            _number(star["flux"], source, f"stars[{i}].flux")
+    return StarTable.from_list(stars)
+
+
+def stars_to_section(stars) -> list:
+    """The ``stars`` section of a :class:`StarTable` (or a list of star objects, returned JSON-ready)."""
+    if isinstance(stars, StarTable):
+        return stars.to_list()
+    return _json_value(list(stars))
+
+
+def solve_result_to_frame(result: SolveResult) -> dict:
+    """The frame sections of a :class:`SolveResult`: ``camera``, ``stars``, ``centroid``, ``identification``,
+    ``attitude`` (those that are set) and ``solve``."""
+    out = {}
+    if result.camera is not None:
+        out["camera"] = result.camera.to_dict() if hasattr(result.camera, "to_dict") else result.camera
+    if result.stars is not None:
+        out["stars"] = stars_to_section(result.stars)
+    if result.centroid is not None:
+        out["centroid"] = _json_value(result.centroid)
+    if result.identification is not None:
+        out["identification"] = to_section(result.identification)
+    if result.attitude is not None:
+        out["attitude"] = to_section(result.attitude)
+    out["solve"] = to_section(result)
+    return out
+
+
+def solve_result_from_frame(doc: dict, source: str = "<frame>") -> SolveResult:
+    """A :class:`SolveResult` from a frame document that ``solve`` wrote."""
+    from startrack.camera import Camera
+
+    result = from_section(SolveResult, doc.get("solve", {}), source, "solve")
+    if "camera" in doc:
+        result.camera = Camera.from_dict(doc["camera"], source)
+    if "stars" in doc:
+        result.stars = stars_from_section(doc["stars"], source)
+    result.centroid = doc.get("centroid")
+    if "identification" in doc:
+        result.identification = from_section(Identification, doc["identification"], source, "identification")
+    if "attitude" in doc:
+        result.attitude = from_section(Attitude, doc["attitude"], source, "attitude")
+    return result
+
+
+_KIND_TYPE = {"number": "number", "int": "integer", "bool": "boolean", "str": "string",
+              "status": "`\"ok\"` or `\"failed\"`", "reason_code": "string (reason code)",
+              "vector": "list of numbers", "matrix": "list of lists", "list": "list", "object": "object",
+              "matches": "list of `{star, id}`"}
+
+
+def field_table(cls) -> str:
+    """The Markdown field table of a record's section, for ``docs/formats.md``."""
+    lines = ["| field | type | unit | |", "|---|---|---|---|"]
+    for f in _schema_fields(cls):
+        if f.name == "details":
+            continue
+        doc = f.metadata["doc"]
+        if f.metadata["required"]:
+            doc = f"*required*; {doc}"
+        lines.append(f"| `{_key(f)}` | {_KIND_TYPE[f.metadata['kind']]} | {f.metadata['unit']} | {doc} |")
+    return "\n".join(lines)
+
+
+def reason_code_table() -> str:
+    """The Markdown table of :class:`~startrack.records.ReasonCode` values."""
+    lines = ["| `reason_code` | meaning |", "|---|---|"]
+    for member in ReasonCode:
+        lines.append(f"| `{member.value}` | {member.description} |")
+    return "\n".join(lines)
+
+
+BEGIN_MARK = "<!-- BEGIN GENERATED FIELD TABLES -->"
+END_MARK = "<!-- END GENERATED FIELD TABLES -->"
+
+
+def generated_tables() -> str:
+    """Every section's field table and the reason codes, as the Markdown of ``docs/formats.md``."""
+    parts = [f"#### `{name}`\n\n{field_table(cls)}\n" for name, cls in SECTIONS.items()]
+    parts.append(f"#### Reason codes\n\n{reason_code_table()}\n")
+    return "\n".join(parts)
+
+
+def update_docs(text: str) -> str:
+    """``text`` (``docs/formats.md``) with the generated tables put between the markers."""
+    head, _, rest = text.partition(BEGIN_MARK)
+    _, _, tail = rest.partition(END_MARK)
+    return f"{head}{BEGIN_MARK}\n{generated_tables()}{END_MARK}{tail}"
+
+
+def main(argv=None) -> None:
+    """``python -m startrack.formats.sections [docs/formats.md]``: print the tables, or rewrite the file."""
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv:
+        print(generated_tables())
+        return
+    with open(argv[0], encoding="utf-8") as fh:
+        text = fh.read()
+    with open(argv[0], "w", encoding="utf-8") as fh:
+        fh.write(update_docs(text))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,398 @@
+"""Typed records: what flows between startrack's stages.
+
+Each record is a dataclass whose fields carry their frame-document name, unit
+and meaning in ``metadata`` (see :func:`schema_field`).  That one schema is used
+three ways, all by :mod:`startrack.formats.sections`:
+
+* to **read** a frame-document section into a record, validating every field
+  (type, finiteness, required) with a one-line :class:`~startrack.errors.BadInputError`;
+* to **write** a record back as its section (``docs/formats.md``: degrees,
+  arcseconds, milliseconds; no radians, no NaN);
+* to **generate** the field tables of ``docs/formats.md``.
+
+Records hold numbers in the units of the file (degrees, arcseconds, pixels,
+milliseconds) so that what a user reads in Python is what the file says;
+rotation matrices and quaternions are plain NumPy arrays (scalar-last
+quaternion, ``A`` maps ICRS to the camera frame).
+
+This module imports only NumPy.
+
+Why dataclasses and a small schema table rather than msgspec: the records hold
+NumPy arrays (star columns, rotation and covariance matrices) that msgspec does
+not type; frame documents must pass unknown fields through untouched; and the
+project's error contract (one line naming file, field path and problem) needs
+control of every message.  The table below costs ~100 lines and no dependency.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+__all__ = [
+    "Attitude",
+    "Identification",
+    "Match",
+    "ReasonCode",
+    "SolveResult",
+    "StarTable",
+    "Status",
+    "TrackState",
+    "schema_field",
+]
+
+
+class Status(str, enum.Enum):
+    """Outcome of a stage on one frame; the value is what the file says."""
+
+    OK = "ok"
+    FAILED = "failed"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class ReasonCode(str, enum.Enum):
+    """Machine-readable reason a stage failed on a frame (the ``reason_code`` field).
+
+    The human-readable ``reason`` stays beside it.  Add members freely; never
+    rename one (files and scripts match on the value).  A reader keeps a code it
+    does not know as a plain string.
+    """
+
+    TOO_FEW_STARS = "too_few_stars"
+    NO_STARS = "no_stars"
+    NO_PATTERN = "no_pattern"
+    FALSE_MATCH_PROBABILITY = "false_match_probability"
+    VERIFICATION_FAILED = "verification_failed"
+    TIMEOUT = "timeout"
+    BAD_INPUT = "bad_input"
+    RESIDUALS_TOO_LARGE = "residuals_too_large"
+    NOT_IDENTIFIED = "not_identified"
+    FOCAL_LENGTH = "focal_length"
+    LOST = "lost"
+    OTHER = "other"
+
+    @property
+    def description(self) -> str:
+        """One line saying what the code means (for the documentation)."""
+        return _REASON_DOCS.get(self.value, "")
+
+    def __str__(self) -> str:
+        return self.value
+
+
+_REASON_DOCS = {
+    "too_few_stars": "Fewer stars detected or identified than the stage needs.",
+    "no_stars": "Nothing was detected in the image.",
+    "no_pattern": "No star pattern of the database matched.",
+    "false_match_probability": "A match was found but its chance of being a coincidence is above the limit.",
+    "verification_failed": "The proposal's stars do not agree with the refined attitude, or too few others match.",
+    "timeout": "The time limit ran out before an answer.",
+    "bad_input": "The frame's input is unusable (non-finite values, missing section).",
+    "residuals_too_large": "The attitude's residuals are larger than the centroid noise allows.",
+    "not_identified": "An upstream stage (identification) failed, so this one could not run.",
+    "focal_length": "The measured focal length is outside the range searched or given.",
+    "lost": "Tracking lost the attitude and lost-in-space recovery failed.",
+    "other": "A reason without a code of its own (see ``reason``).",
+}
+
+
+def schema_field(default: Any = None, *, key: str | None = None, kind: str = "number", unit: str = "",
+                 doc: str = "", required: bool = False, factory=None, derived: bool = False):
+    """A dataclass field carrying its frame-document schema.
+
+    Parameters
+    ----------
+    default : object
+        Default value (``None``: absent, not written).
+    key : str, optional
+        Name in the file when it differs from the attribute.
+    kind : str
+        ``number``, ``int``, ``bool``, ``str``, ``status``, ``reason_code``,
+        ``vector`` (list of numbers -> float array), ``matrix`` (list of lists ->
+        2-D float array), ``list`` (list of JSON values), ``object`` (JSON
+        object), ``matches``, ``stars``, ``camera``, or ``record:<Name>``.
+    unit : str
+        Unit in the file (``deg``, ``arcsec``, ``px``, ``ms``, ...).
+    doc : str
+        One line for the documentation table.
+    required : bool
+        Required by the contract (``../shared/FORMATS.md``).
+    factory : callable, optional
+        ``default_factory`` for mutable defaults.
+    derived : bool
+        Written for readers but recomputed from other fields when read.
+    """
+    meta = {"key": key, "kind": kind, "unit": unit, "doc": doc, "required": required, "derived": derived}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+class Match(NamedTuple):
+    """One identified star: ``star`` indexes the frame's star table, ``id`` is the catalog id (HIP)."""
+
+    star: int
+    id: int
+
+
+# Columns of a star table beyond x, y, flux that are numbers for every star.
+_STAR_NUMERIC = ("sigma_px", "peak", "npix", "snr", "fwhm_px", "mag")
+
+
+@dataclass
+class StarTable:
+    """Detected (or listed) stars of one frame, brightest first, as columns.
+
+    Parameters
+    ----------
+    x, y : ndarray of float64, shape (n,)
+        Centroid, pixels; ``x`` is the column, ``y`` the row, ``(0, 0)`` the
+        centre of the top-left pixel.
+    flux : ndarray of float64, shape (n,)
+        Background-subtracted flux (DN in the aperture); NaN when unknown.
+    sigma_px : ndarray of float64, shape (n,), optional
+        Estimated 1-sigma centroid uncertainty per axis, pixels.
+    columns : dict of str to ndarray
+        Other numeric per-star columns (``peak``, ``npix``, ``snr``, ``fwhm_px``, ...).
+    other : list of dict, optional
+        Per-star fields that are not numeric columns (``saturated``,
+        ``deblended``, ``prior``, ``window``, ...), passed through unchanged.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    sigma_px: np.ndarray | None = None
+    columns: dict = field(default_factory=dict)
+    other: list | None = None
+
+    def __post_init__(self):
+        self.x = np.asarray(self.x, dtype=np.float64).reshape(-1)
+        self.y = np.asarray(self.y, dtype=np.float64).reshape(-1)
+        n = len(self.x)
+        self.flux = np.full(n, np.nan) if self.flux is None else np.asarray(self.flux, dtype=np.float64).reshape(-1)
+        if self.sigma_px is not None:
+            self.sigma_px = np.asarray(self.sigma_px, dtype=np.float64).reshape(-1)
+        for name, col in [("y", self.y), ("flux", self.flux), ("sigma_px", self.sigma_px),
+                          *self.columns.items()]:
+            if col is not None and len(col) != n:
+                raise ValueError(f"star table column {name!r} has {len(col)} values for {n} stars")
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    @property
+    def xy(self) -> np.ndarray:
+        """Centroids as an ``(n, 2)`` array of ``(x, y)`` pixels."""
+        return np.column_stack([self.x, self.y])
+
+    @classmethod
+    def empty(cls) -> StarTable:
+        return cls(np.zeros(0), np.zeros(0), np.zeros(0))
+
+    @classmethod
+    def from_list(cls, stars: list) -> StarTable:
+        """From the ``stars`` section: a list of objects with ``x``, ``y`` and optionally ``flux``, ...
+
+        No validation here: :func:`startrack.formats.sections.stars_from_section`
+        validates a section read from a file.
+        """
+        n = len(stars)
+        x = np.array([s["x"] for s in stars], dtype=np.float64)
+        y = np.array([s["y"] for s in stars], dtype=np.float64)
+        flux = np.array([s.get("flux", np.nan) if s.get("flux") is not None else np.nan for s in stars],
+                        dtype=np.float64)
+        columns = {}
+        sigma = None
+        for name in _STAR_NUMERIC:
+            if n and all(_is_number(s.get(name)) for s in stars):
+                col = np.array([s[name] for s in stars], dtype=np.float64)
+                if name == "sigma_px":
+                    sigma = col
+                else:
+                    columns[name] = col
+        known = {"x", "y", "flux", "sigma_px", *columns}
+        other = [{k: v for k, v in s.items() if k not in known} for s in stars]
+        return cls(x, y, flux, sigma, columns, other if any(other) else None)
+
+    def to_list(self) -> list:
+        """The ``stars`` section: one object per star, ``x``, ``y``, ``flux`` first."""
+        out = []
+        for i in range(len(self)):
+            star = {"x": float(self.x[i]), "y": float(self.y[i])}
+            if math.isfinite(self.flux[i]):
+                star["flux"] = float(self.flux[i])
+            if self.sigma_px is not None:
+                star["sigma_px"] = float(self.sigma_px[i])
+            for name, col in self.columns.items():
+                v = col[i]
+                star[name] = int(v) if name == "npix" and math.isfinite(v) else float(v)
+            if self.other is not None:
+                star.update(self.other[i])
+            out.append(star)
+        return out
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+
+@dataclass
+class Attitude:
+    """The ``attitude`` section: the rotation from ICRS to the camera frame and its quality.
+
+    ``quaternion`` is authoritative (scalar last, ``A(q)`` maps ICRS unit
+    vectors to camera-frame unit vectors, paper 000 Eqs. 20-22); ``ra``,
+    ``dec`` (boresight, degrees) and ``roll`` (degrees, ``docs/formats.md``)
+    are derived from it and written for readers.
+    """
+
+    status: Status = schema_field(Status.OK, kind="status", required=True, doc="`ok` or `failed`")
+    method: str = schema_field("quest", kind="str", required=True, doc="Wahba solver (`quest`, `svd`, ...)")
+    quaternion: np.ndarray | None = schema_field(kind="vector", required=True,
+                                                 doc="`[q1, q2, q3, q4]`, scalar last, ICRS to camera")
+    ra: float | None = schema_field(unit="deg", required=True, derived=True, doc="boresight right ascension, [0, 360)")
+    dec: float | None = schema_field(unit="deg", required=True, derived=True, doc="boresight declination")
+    roll: float | None = schema_field(unit="deg", required=True, derived=True,
+                                      doc="position angle of image up, east of north")
+    reason: str | None = schema_field(kind="str", doc="why it failed (human-readable)")
+    reason_code: ReasonCode | str | None = schema_field(kind="reason_code", doc="why it failed (machine-readable)")
+    n_stars: int | None = schema_field(kind="int", doc="stars used")
+    loss: float | None = schema_field(doc="Wahba loss (paper 000 Eq. 15), normalised weights")
+    residuals: list = schema_field(kind="list", factory=list, doc="each `star`, `id`, `residual_arcsec`")
+    rms_residual_arcsec: float | None = schema_field(unit="arcsec", doc="RMS of the residuals")
+    covariance_arcsec2: np.ndarray | None = schema_field(kind="matrix", unit="arcsec^2",
+                                                         doc="3 x 3 attitude covariance, camera axes")
+    variance_factor: float | None = schema_field(doc="> 1 when the residuals showed the centroid sigmas too small")
+    rejected: list = schema_field(kind="list", factory=list, doc="stars dropped by the chi-square gate")
+    epoch: float | None = schema_field(unit="yr", doc="decimal year of the catalog positions")
+    time_ms: float | None = schema_field(unit="ms", doc="time taken")
+    details: dict = schema_field(kind="object", factory=dict,
+                                 doc="other fields (`dcm`, `euler123_deg`, `sigma_*_arcsec`, `wcs`, ...)")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == Status.OK
+
+    @property
+    def dcm(self) -> np.ndarray | None:
+        """The 3 x 3 rotation matrix ``A`` (ICRS to camera; rows are the camera axes in ICRS)."""
+        if self.quaternion is None:
+            return None
+        from startrack.rotations import quaternion_to_dcm
+
+        return quaternion_to_dcm(self.quaternion)
+
+    @classmethod
+    def from_dcm(cls, dcm, method: str = "quest", **kw) -> Attitude:
+        """An ``ok`` attitude from a rotation matrix, with ``ra``, ``dec``, ``roll`` derived (degrees)."""
+        from startrack.rotations import dcm_to_quaternion, dcm_to_radec_roll
+
+        dcm = np.asarray(dcm, dtype=np.float64)
+        ra, dec, roll = dcm_to_radec_roll(dcm)
+        q = dcm_to_quaternion(dcm)
+        return cls(Status.OK, method, np.asarray(q, dtype=np.float64), float(np.degrees(ra)) % 360.0,
+                   float(np.degrees(dec)), float(np.degrees(roll)), **kw)
+
+    @classmethod
+    def failed(cls, reason: str, reason_code: ReasonCode | str = ReasonCode.OTHER, method: str = "quest",
+               **kw) -> Attitude:
+        return cls(Status.FAILED, method, reason=reason, reason_code=reason_code, **kw)
+
+
+@dataclass
+class Identification:
+    """The ``identification`` section: which detected star is which catalog star.
+
+    ``matches`` pair an index into the frame's star table with a catalog id
+    (HIP for the shipped catalog).
+    """
+
+    status: Status = schema_field(Status.OK, kind="status", required=True, doc="`ok` or `failed`")
+    algorithm: str = schema_field("pyramid", kind="str", required=True, doc="identification algorithm")
+    matches: list = schema_field(kind="matches", factory=list, required=True,
+                                 doc="each `star` (index into `stars`) and `id` (catalog id)")
+    time_ms: float | None = schema_field(unit="ms", doc="time taken")
+    reason: str | None = schema_field(kind="str", doc="why it failed (human-readable)")
+    reason_code: ReasonCode | str | None = schema_field(kind="reason_code", doc="why it failed (machine-readable)")
+    false_match_probability: float | None = schema_field(
+        doc="probability that the identification is a coincidence")
+    trials: int | None = schema_field(kind="int", doc="patterns tried")
+    tolerance_arcsec: float | None = schema_field(unit="arcsec", doc="half-width of the inter-star angle window")
+    focal_scale: float | None = schema_field(doc="measured `theta_catalog / theta_measured` (true f = f / scale)")
+    quaternion_estimate: np.ndarray | None = schema_field(kind="vector", doc="attitude of the verification")
+    details: dict = schema_field(kind="object", factory=dict,
+                                 doc="algorithm-specific fields (`mode`, `votes`, `label_error_arcsec`, ...)")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == Status.OK
+
+    @classmethod
+    def failed(cls, algorithm: str, reason: str, reason_code: ReasonCode | str = ReasonCode.OTHER,
+               **kw) -> Identification:
+        return cls(Status.FAILED, algorithm, [], reason=reason, reason_code=reason_code, **kw)
+
+
+@dataclass
+class TrackState:
+    """The ``track`` section: what the tracker did on one frame."""
+
+    mode: str | None = schema_field(kind="str", doc="`lis`, `track`, `single-star` or `lost`")
+    t_s: float | None = schema_field(unit="s", doc="frame time")
+    dt_s: float | None = schema_field(unit="s", doc="time since the previous frame")
+    window_px: float | None = schema_field(unit="px", doc="search window half-size")
+    predicted: int | None = schema_field(kind="int", doc="catalog stars predicted in the image")
+    found: int | None = schema_field(kind="int", doc="predicted stars found in their windows")
+    used: int | None = schema_field(kind="int", doc="stars used for the attitude")
+    stars: list = schema_field(kind="list", factory=list, doc="each `id`, `predicted` [x, y], `measured` [x, y] or null")
+    rate_deg_s: np.ndarray | None = schema_field(kind="vector", unit="deg/s", doc="angular rate, camera frame")
+    fallback_reason: str | None = schema_field(kind="str", doc="why tracking fell back to lost-in-space")
+    empirical_stars: int | None = schema_field(kind="int", doc="uncatalogued stars used (single-star mode)")
+    time_ms: float | None = schema_field(unit="ms", doc="time taken")
+    details: dict = schema_field(kind="object", factory=dict, doc="other fields")
+
+
+@dataclass
+class SolveResult:
+    """Everything :meth:`startrack.Solver.solve` learnt about one image.
+
+    Written as the frame sections ``camera``, ``stars``, ``centroid``,
+    ``identification``, ``attitude`` and ``solve`` (:meth:`to_frame`).
+    ``status`` is ``ok`` only when the attitude is; otherwise ``reason`` and
+    ``reason_code`` say why.  ``ra``/``dec`` of ``attitude`` are the boresight's
+    (the principal point); ``center_ra``/``center_dec`` are the image centre's.
+    """
+
+    status: Status = schema_field(Status.FAILED, kind="status", doc="`ok` or `failed`")
+    reason: str | None = schema_field(kind="str", doc="why it failed (human-readable)")
+    reason_code: ReasonCode | str | None = schema_field(kind="reason_code", doc="why it failed (machine-readable)")
+    fov_deg: np.ndarray | None = schema_field(kind="vector", unit="deg",
+                                              doc="fitted field of view `[horizontal, vertical]`")
+    center_ra: float | None = schema_field(unit="deg", doc="right ascension of the image centre")
+    center_dec: float | None = schema_field(unit="deg", doc="declination of the image centre")
+    hypotheses: int | None = schema_field(kind="int", doc="attempts (bands, focal lengths, databases)")
+    database: str | None = schema_field(kind="str", doc="file name of the database that identified it")
+    time_ms: float | None = schema_field(unit="ms", doc="time taken")
+    details: dict = schema_field(kind="object", factory=dict, doc="other fields (`wcs_path`, `plot_path`, ...)")
+    # Not part of the ``solve`` section: the other sections of the frame.
+    camera: Any = field(default=None, metadata={"section": "camera"})
+    stars: StarTable | None = field(default=None, metadata={"section": "stars"})
+    centroid: dict | None = field(default=None, metadata={"section": "centroid"})
+    identification: Identification | None = field(default=None, metadata={"section": "identification"})
+    attitude: Attitude | None = field(default=None, metadata={"section": "attitude"})
+
+    @property
+    def ok(self) -> bool:
+        return self.status == Status.OK
+
+    def to_frame(self) -> dict:
+        """The frame sections this result fills (``camera``, ``stars``, ..., ``solve``)."""
+        from startrack.formats.sections import solve_result_to_frame
+
+        return solve_result_to_frame(self)
