@@ -96,7 +96,8 @@ def test_a_measured_triangle_finds_its_catalog_triangle(small_db):
         perm = rng.permutation(3)
         b = np.ascontiguousarray(b[perm])
         cands, interval = triangle_candidates(b, 0, 1, 2, db.tri_key, db.tri_stars, db.tri_angles, db.tri_hand,
-                                              db.kquad, *db.quad, math.radians(5 / 3600), db.star_vector, 1000)
+                                              db.kquad, *db.quad, math.radians(5 / 3600), db.star_vector, 1000,
+                                              db.kvector, *db.line)
         assert interval >= len(cands)
         found += any(list(c) == list(s[perm]) for c in cands)
     assert found == 50
@@ -109,7 +110,8 @@ def test_mirror_image_is_not_matched(small_db):
     b = db.star_vector[s].copy()
     b[:, 0] = -b[:, 0]          # a reflection: same angles, opposite handedness
     cands, _ = triangle_candidates(np.ascontiguousarray(b), 0, 1, 2, db.tri_key, db.tri_stars, db.tri_angles,
-                                   db.tri_hand, db.kquad, *db.quad, math.radians(5 / 3600), db.star_vector, 1000)
+                                   db.tri_hand, db.kquad, *db.quad, math.radians(5 / 3600), db.star_vector, 1000,
+                                   db.kvector, *db.line)
     assert not any(list(c) == list(s) for c in cands)
 
 

@@ -110,11 +110,12 @@ def _angle_tolerances(p, eps):
 
 @njit(cache=True)
 def triangle_candidates(b, i0, i1, i2, tri_key, tri_stars, tri_angles, tri_hand, kquad, p1, p2, p3, eps,
-                        star_vec, max_out):
+                        star_vec, max_out, kvector, m, q, quadratic=True):
     """Catalog triangles matching the image triangle ``(i0, i1, i2)``, with the vertex map.
 
     The smallest internal angle selects the search range through the fitted
-    quadratic (paper 000 Eqs. 10-12); candidates are then kept when the second
+    quadratic (paper 000 Eqs. 10-12), or with ``quadratic=False`` through
+    Mortari's k-vector line (``kvector``, ``m``, ``q``); candidates are then kept when the second
     angle agrees, the handedness agrees and, star by star, the three
     inter-star angles agree within ``eps``.  Returns an ``(m, 3)`` array of
     catalog star indices in the image order ``i0, i1, i2``, and the length
@@ -131,11 +132,14 @@ def triangle_candidates(b, i0, i1, i2, tri_key, tri_stars, tri_angles, tri_hand,
     lo = ang[order[0]] - tol[order[0]]
     hi = ang[order[0]] + tol[order[0]]
     n = tri_key.shape[0]
-    kb = _quad_inverse(p1, p2, p3, lo, n)
-    kt = _quad_inverse(p1, p2, p3, hi, n)
-    kb = min(max(int(math.floor(kb)), 0), n)
-    kt = min(max(int(math.ceil(kt)), 0), n)
-    start, end = kquad[kb], kquad[kt]
+    if quadratic:
+        kb = min(max(int(math.floor(_quad_inverse(p1, p2, p3, lo, n))), 0), n)
+        kt = min(max(int(math.ceil(_quad_inverse(p1, p2, p3, hi, n))), 0), n)
+        start, end = kquad[kb], kquad[kt]
+    else:
+        kb = min(max(int(math.floor((lo - q) / m)), 0), n)
+        kt = min(max(int(math.ceil((hi - q) / m)), 0), n)
+        start, end = kvector[kb], kvector[kt]
     # The second-smallest angle may swap with its neighbours within the tolerances (near-isosceles
     # triangles): the star-by-star check below decides the vertex map.
     a1 = ang[order[1]]

@@ -3,13 +3,14 @@
 Hashemi et al. (2019) Sec. 3.2: the measured stars give triangles whose internal
 angles (Eq. 2) are looked up in the triangle database
 (:mod:`startrack.triangles`) by the smallest angle, through the quadratic fit
-of Eqs. 7-12.  A catalog triangle that matches the first three stars is
-confirmed by a fourth star: the triangle of two of its stars and the fourth
-must be in the database with the same two catalog stars, and the fourth
-star's angle to the third must agree (Mortari's "confirming fourth star").
-Each confirmed four-star pattern is a proposal for the shared verification;
-the paper takes the four brightest stars, and the search goes on to the next
-four when verification refuses a pattern.
+of Eqs. 7-12 (or, to compare, Mortari's k-vector line: Table 5).  A catalog
+triangle that matches three of the stars is confirmed by the fourth star: the
+triangle of two of its stars and the fourth must be in the database with the
+same two catalog stars, and the fourth star's angle to the third must agree
+(Mortari's "confirming fourth star").  Each confirmed four-star pattern is a
+proposal for the shared verification; the paper takes the four brightest
+stars, and the search goes on to the next four when verification refuses a
+pattern.
 """
 from __future__ import annotations
 
@@ -32,17 +33,31 @@ def _sides_ok(b, stars, cos_max) -> bool:
     return all(float(b[p] @ b[q]) >= cos_max for p, q in itertools.combinations(stars, 2))
 
 
-def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200):
-    """Proposals of paper 000's modified pyramid, in its order; ``trials`` counts the triangles tried."""
+def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200, quadratic: bool = True):
+    """Proposals of paper 000's modified pyramid, in its order; ``trials`` counts the catalog triangles tried.
+
+    Parameters
+    ----------
+    b : ndarray, shape (n, 3)
+        Unit vectors of the measured stars (camera frame), brightest first.
+    db : TriangleDatabase
+    eps : float
+        Tolerance of an inter-star angle (radians).
+    max_quadruples : int
+        Four-star sets tried.
+    quadratic : bool
+        Paper 000's quadratic range search (Eqs. 10-12); ``False``: Mortari's line.
+    """
     from startrack._kernels.triangles import triangle_candidates
 
+    b = np.ascontiguousarray(b, dtype=np.float64)
     n = len(b)
     if n < 4:
         return
     cos_max = math.cos(math.radians(db.max_separation_deg))
-    args = (db.tri_key, db.tri_stars, db.tri_angles, db.tri_hand, db.kquad, *db.quad)
+    head = (db.tri_key, db.tri_stars, db.tri_angles, db.tri_hand, db.kquad, *db.quad)
+    tail = (db.kvector, *db.line, quadratic)
     trials = 0
-    cos_eps = eps
     for count, (i, j, k, r) in enumerate(_quadruples(n)):
         if count >= max_quadruples:
             return
@@ -56,12 +71,12 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200):
                        None)
         if confirm is None:
             continue
-        cands, _ = triangle_candidates(b, p0, p1, p2, *args, cos_eps, db.star_vector, MAX_CANDIDATES)
+        cands, _ = triangle_candidates(b, p0, p1, p2, *head, eps, db.star_vector, MAX_CANDIDATES, *tail)
         trials += len(cands)
         if len(cands) == 0:
             continue
         x, y = confirm
-        fourth, _ = triangle_candidates(b, x, y, p3, *args, cos_eps, db.star_vector, MAX_CANDIDATES)
+        fourth, _ = triangle_candidates(b, x, y, p3, *head, eps, db.star_vector, MAX_CANDIDATES, *tail)
         trials += len(fourth)
         if len(fourth) == 0:
             continue
@@ -75,7 +90,7 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200):
                     continue
                 cr = f[2]
                 theta = math.acos(min(1.0, max(-1.0, float(db.star_vector[co] @ db.star_vector[cr]))))
-                if abs(theta - theta_other) > cos_eps:
+                if abs(theta - theta_other) > eps:
                     continue
                 yield Proposal([int(p0), int(p1), int(p2), int(p3)], [int(c[0]), int(c[1]), int(c[2]), int(cr)],
                                trials)
@@ -83,6 +98,6 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200):
 
 def propose_modified_pyramid(b, db, eps, params, stars, camera):
     """The first proposal (the shared driver verifies it)."""
-    for proposal in iter_modified_pyramid(np.ascontiguousarray(b), db, eps, params.max_triads):
+    for proposal in iter_modified_pyramid(b, db, eps, params.max_triads):
         return proposal
     return Proposal([], [], 0, {"reason": "no confirmed four-star pattern in the triangle database"})
