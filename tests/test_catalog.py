@@ -12,8 +12,10 @@ from naive import count_in_fov_naive, pairs_within_naive
 
 
 def test_shipped_catalog(catalog):
-    assert len(catalog) > 37000
-    assert catalog.mag.max() <= 8.0
+    # The whole Hipparcos 2 catalogue (catalogs/README.md): 117,955 stars, Hp -1.09 to 14.56.
+    assert len(catalog) == 117955
+    assert catalog.mag.max() == pytest.approx(14.5622, abs=1e-3)
+    assert int(np.sum(catalog.mag <= 8.0)) == 37622
     assert catalog.epoch == 1991.25
     assert np.all(np.diff(catalog.mag) >= 0)            # brightest first
     assert len(np.unique(catalog.id)) == len(catalog)
@@ -111,3 +113,52 @@ def test_write_formats(tmp_path, catalog):
     assert len(lines) == len(sub) + 2
     with pytest.raises(BadInputError, match="unknown output extension"):
         write_catalog(sub, str(tmp_path / "c.txt"))
+
+
+def test_load_catalog_mag_max_reads_only_the_bright_stars(catalog):
+    bright = load_catalog(mag_max=6.0)
+    ref = catalog.filter_magnitude(None, 6.0)
+    assert len(bright) == len(ref) == 4559
+    assert np.array_equal(bright.id, ref.id) and np.array_equal(bright.ra, ref.ra)
+    assert np.array_equal(bright.mag, ref.mag)
+
+
+def test_merge_close_names_the_brighter_and_lists_the_others(tmp_path):
+    # A chain: 1 (mag 5) - 6" - 2 (mag 4) - 6" - 3 (mag 6); an 8" radius joins all three.
+    d = 6.0 / 3600.0
+    cat = _toy([10.0, 10.0 + d, 10.0 + 2 * d, 40.0], [0.0, 0.0, 0.0, 0.0], [5.0, 4.0, 6.0, 3.0])
+    merged = cat.merge_close(8.0)
+    assert sorted(merged.id.tolist()) == [2, 4]
+    assert merged.merged == {2: [1, 3]}
+    flux = 10 ** (-0.4 * np.array([5.0, 4.0, 6.0]))
+    k = int(np.flatnonzero(merged.id == 2)[0])
+    assert merged.mag[k] == pytest.approx(-2.5 * math.log10(flux.sum()), abs=1e-9)
+    assert merged.ra[k] == pytest.approx(10.0 + d * (flux[1] + 2 * flux[2]) / flux.sum(), abs=1e-9)
+    # The merged list survives a round trip through the catalog file.
+    path = str(tmp_path / "m.h5")
+    write_catalog(merged, path)
+    assert load_catalog(path).merged == {2: [1, 3]}
+
+
+def test_merge_close_unresolved_doubles_of_the_issue(catalog):
+    # Pairs 20-35" apart that a 15 deg 1280 px sensor (42"/px) sees as one star.
+    merged = catalog.filter_magnitude(None, 6.0).merge_close(2 * 15 * 3600 / 1280)
+    for bright, faint in ((86614, 86620), (63003, 63005), (5131, 5132)):
+        assert bright in merged.id and faint not in merged.id
+        assert faint in merged.merged[bright]
+
+
+def test_thin_for_field_gives_every_field_about_the_same_stars(catalog):
+    from startrack.catalog import thin_for_field
+
+    cam = Camera.from_fov(6.0, 1392, 1040)
+    thin = thin_for_field(catalog, *cam.fov_deg, stars_per_field=30)
+    limit = thin.params["depth_mag_max"]
+    assert thin.mag.max() <= limit and 8.0 < limit < 10.5
+    counts = field_statistics(thin, cam, 300, np.random.default_rng(3)).counts
+    full = field_statistics(catalog.filter_magnitude(None, limit), cam, 300, np.random.default_rng(3)).counts
+    p5, p95 = np.percentile(counts, [5, 95])
+    # 95 % of the sky holds at least about two thirds of the wanted 30 stars ...
+    assert p5 >= 20
+    # ... and thinning evens out the Milky Way: the spread is far below the unthinned catalog's.
+    assert p95 / p5 < 2.0 and np.percentile(full, 95) / np.percentile(full, 5) > 2.0

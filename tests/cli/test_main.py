@@ -38,7 +38,7 @@ def test_version():
 def test_catalog_filter_hdf5_and_csv(tmp_path):
     out = tmp_path / "p000.h5"
     proc = run_cli("catalog-filter", "--mag-min", "2.5", "--mag-max", "6.59", "--epoch", "2026.9", "-o", out, check=True)
-    assert "kept 8752 of 37622" in proc.stderr
+    assert "kept 8752 of 117955" in proc.stderr
     from startrack.catalog import load_catalog
 
     cat = load_catalog(str(out))
@@ -119,7 +119,7 @@ def test_refuses_unwritable_output(tmp_path):
 
 def test_refuses_empty_selection(tmp_path):
     out = tmp_path / "o.h5"
-    assert_refused(run_cli("catalog-filter", "--mag-min", "9", "-o", out), "no star is left")
+    assert_refused(run_cli("catalog-filter", "--mag-min", "15", "-o", out), "no star is left")
     assert not out.exists()
 
 
