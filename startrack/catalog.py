@@ -28,6 +28,9 @@ __all__ = [
     "default_catalog_path",
     "load_catalog",
     "write_catalog",
+    "merged_arrays",
+    "merge_radius_arcsec",
+    "thin_for_field",
     "star_pairs",
     "FieldStatistics",
     "field_statistics",
@@ -65,6 +68,8 @@ class Catalog:
     epoch: float
     params: dict = field(default_factory=dict)
     source: str = ""
+    merged: dict = field(default_factory=dict)
+    """``{id of an entry: [ids of the fainter stars merged into it]}`` (see :meth:`merge_close`)."""
 
     def __post_init__(self):
         self.id = np.asarray(self.id, dtype=np.int64)
@@ -80,8 +85,12 @@ class Catalog:
 
     def subset(self, index) -> "Catalog":
         """The stars selected by a boolean mask or an index array, in that order."""
-        return replace(self, **{name: getattr(self, name)[index] for name in _COLUMNS},
-                       params=dict(self.params))
+        out = replace(self, **{name: getattr(self, name)[index] for name in _COLUMNS},
+                      params=dict(self.params))
+        if self.merged:
+            kept = set(out.id.tolist())
+            out.merged = {k: list(v) for k, v in self.merged.items() if k in kept}
+        return out
 
     def sorted_by_magnitude(self) -> "Catalog":
         return self.subset(np.lexsort((self.id, self.mag)))
@@ -167,21 +176,33 @@ class Catalog:
     def merge_close(self, radius_arcsec: float) -> "Catalog":
         """Merge stars closer than ``radius_arcsec`` into one entry (paper 004 Sec. 3).
 
-        Close stars image as one blob, so the catalog should hold one entry of their
-        combined brightness, ``m = -2.5 log10(sum 10^(-0.4 m_i))``, at their
-        flux-weighted mean direction.  Groups are the connected components of the
-        "closer than radius" relation; the merged entry keeps the id, proper motion
-        and colour of the group's brightest star.
+        Close stars image as one blob (an unresolved double), so the catalog
+        should hold one entry where the sensor sees one star: the combined
+        brightness ``m = -2.5 log10(sum 10^(-0.4 m_i))`` at the flux-weighted
+        mean direction (the photocentre).  Groups are the connected components of
+        the "closer than radius" relation; the entry keeps the id, proper motion
+        and colour of the group's brightest star, and :attr:`merged` lists the
+        others under that id, so an identification names the star the sensor
+        sees brightest.
+
+        Parameters
+        ----------
+        radius_arcsec : float
+            Separation (arcsec) below which stars are unresolved, e.g. about
+            2 pixels of the sensor (:func:`merge_radius_arcsec`).
         """
+        from startrack.rotations import vector_to_radec
+
         if not radius_arcsec > 0:
             raise BadInputError("--merge-arcsec", None, f"must be positive, got {radius_arcsec:g}")
         first, second, _ = star_pairs(self, math.radians(radius_arcsec / 3600.0))
         out = self.subset(np.arange(len(self)))
         out.params["merge_arcsec"] = float(radius_arcsec)
+        out.params["merged_groups"] = 0
         if len(first) == 0:
-            out.params["merged_groups"] = 0
             return out
-        parent = np.arange(len(self))
+        n = len(self)
+        parent = np.arange(n)
 
         def root(i):
             while parent[i] != i:
@@ -193,32 +214,34 @@ class Catalog:
             ra_, rb = root(a), root(b)
             if ra_ != rb:
                 parent[max(ra_, rb)] = min(ra_, rb)
-        roots = np.array([root(i) for i in range(len(self))])
+        involved = np.unique(np.concatenate([first, second]))
+        roots = np.array([root(int(i)) for i in involved])
+        order = np.argsort(roots, kind="stable")
+        involved, roots = involved[order], roots[order]
+        starts = np.r_[0, np.flatnonzero(np.diff(roots)) + 1, len(roots)]
         vec = self.vectors()
         flux = 10.0 ** (-0.4 * self.mag)
-        keep = np.ones(len(self), dtype=bool)
-        ra = out.ra.copy()
-        dec = out.dec.copy()
-        mag = out.mag.copy()
-        ids = out.id.copy()
-        groups = 0
-        from startrack.rotations import vector_to_radec
-
-        for r in np.unique(roots[np.bincount(roots, minlength=len(self))[roots] > 1]):
-            members = np.flatnonzero(roots == r)
-            brightest = members[np.argmin(self.mag[members])]
+        keep = np.ones(n, dtype=bool)
+        ra, dec, mag = out.ra.copy(), out.dec.copy(), out.mag.copy()
+        merged = {k: list(v) for k, v in self.merged.items()}
+        for g in range(len(starts) - 1):
+            members = involved[starts[g]:starts[g + 1]]
+            members = members[np.lexsort((self.id[members], self.mag[members]))]
+            brightest = members[0]
             w = flux[members]
             mean = (vec[members] * w[:, None]).sum(axis=0)
             a, d = vector_to_radec(mean / np.linalg.norm(mean))
-            keep[members] = False
-            keep[brightest] = True
+            keep[members[1:]] = False
             ra[brightest], dec[brightest] = math.degrees(a), math.degrees(d)
             mag[brightest] = -2.5 * math.log10(w.sum())
-            ids[brightest] = self.id[brightest]
-            groups += 1
-        merged = replace(out, ra=ra, dec=dec, mag=mag, id=ids).subset(keep).sorted_by_magnitude()
-        merged.params["merged_groups"] = groups
-        return merged
+            absorbed = []
+            for m in members[1:]:
+                absorbed.append(int(self.id[m]))
+                absorbed += merged.pop(int(self.id[m]), [])
+            merged[int(self.id[brightest])] = merged.get(int(self.id[brightest]), []) + absorbed
+        result = replace(out, ra=ra, dec=dec, mag=mag, merged=merged).subset(keep).sorted_by_magnitude()
+        result.params["merged_groups"] = len(starts) - 1
+        return result
 
     def thin_uniform(self, per_cell: int, cell_deg: float = 4.0) -> "Catalog":
         """Keep the ``per_cell`` brightest stars in each sky cell of about ``cell_deg``.
@@ -233,12 +256,7 @@ class Catalog:
             raise BadInputError("--uniform", None, f"must be at least 1, got {per_cell}")
         if not 0 < cell_deg <= 90:
             raise BadInputError("--cell-deg", None, f"must be in (0, 90], got {cell_deg:g}")
-        n_bands = max(1, int(round(180.0 / cell_deg)))
-        band = np.minimum(((self.dec + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
-        centre = -90.0 + (band + 0.5) * 180.0 / n_bands
-        n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(centre)) / cell_deg)).astype(np.int64)
-        ra_cell = np.minimum((np.mod(self.ra, 360.0) / 360.0 * n_ra).astype(np.int64), n_ra - 1)
-        cell = band * 100000 + ra_cell
+        cell, _ = _cells(self.ra, self.dec, cell_deg)
         order = np.lexsort((self.id, self.mag, cell))
         sorted_cell = cell[order]
         start = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
@@ -250,34 +268,158 @@ class Catalog:
         return out
 
 
-def load_catalog(path: str | None = None) -> Catalog:
+DEFAULT_MERGE_PX = 2.0
+"""Default unresolved separation (pixels): two PSF sigmas at ``render``'s default sigma of 1 px.
+
+Two equal Gaussian images show no dip between them closer than 2 sigma, and
+``render`` blends stars closer than that into one blob."""
+
+
+def merge_radius_arcsec(camera, merge_px: float = DEFAULT_MERGE_PX) -> float:
+    """The separation (arcsec) of ``merge_px`` pixels at the camera's centre pixel scale."""
+    if not merge_px > 0:
+        raise BadInputError("--merge-px", None, f"must be positive, got {merge_px:g}")
+    return float(merge_px) * float(camera.pixel_scale_arcsec)
+
+
+def _cells(ra_deg, dec_deg, cell_deg: float):
+    """Cell number of each direction on the equal-area igloo grid of :meth:`Catalog.thin_uniform`."""
+    n_bands = max(1, int(round(180.0 / cell_deg)))
+    band = np.minimum(((np.asarray(dec_deg) + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
+    centre = -90.0 + (band + 0.5) * 180.0 / n_bands
+    n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(centre)) / cell_deg)).astype(np.int64)
+    ra_cell = np.minimum((np.mod(ra_deg, 360.0) / 360.0 * n_ra).astype(np.int64), n_ra - 1)
+    band_cells = np.maximum(1, np.round(360.0 * np.cos(np.radians(
+        -90.0 + (np.arange(n_bands) + 0.5) * 180.0 / n_bands)) / cell_deg)).astype(np.int64)
+    return band * 100000 + ra_cell, int(band_cells.sum())
+
+
+def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 30.0,
+                   sky_fraction: float = 0.95, cell_deg: float | None = None) -> Catalog:
+    """The database stars for a field: a magnitude limit and a uniform thinning.
+
+    The sky is cut into equal-area cells about half the field's short side
+    (:meth:`Catalog.thin_uniform`), each with a quota of
+    ``ceil(stars_per_field * cell area / field area)`` stars.  The magnitude
+    limit is the depth at which ``sky_fraction`` of the cells fill their quota
+    (the quota's faintest star, at that quantile over all cells; cells with
+    fewer catalog stars count as needing infinite depth); then each cell keeps
+    its quota of brightest stars at or brighter than that limit.  Dense
+    regions (the Milky Way) are thinned to the quota, sparse ones go as deep as
+    the limit allows: a field holds about ``stars_per_field`` stars almost
+    everywhere, and they are the brightest of their cell, the ones a sensor
+    detects first.  In the spirit of tetra3's and cedar-solve's per-field star
+    budget, with the igloo grid of Samaan et al.'s uniform catalog.
+
+    Parameters
+    ----------
+    catalog : Catalog
+    field_w_deg, field_h_deg : float
+        The sensor's field (degrees).
+    stars_per_field : float
+        Stars wanted in one field.
+    sky_fraction : float
+        Fraction of the cells whose quota sets the magnitude limit (0, 1].
+    cell_deg : float, optional
+        Cell side (degrees); default half the short side of the field.
+
+    Returns
+    -------
+    Catalog
+        Brightest first, with ``params``: ``depth_mag_max``, ``uniform_per_cell``,
+        ``uniform_cell_deg``, ``stars_per_field``, ``sky_fraction``.
+    """
+    if not stars_per_field >= 1:
+        raise BadInputError("--stars-per-field", None, f"must be at least 1, got {stars_per_field:g}")
+    if not 0 < sky_fraction <= 1:
+        raise BadInputError("--sky-fraction", None, f"must be in (0, 1], got {sky_fraction:g}")
+    if not (field_w_deg > 0 and field_h_deg > 0):
+        raise BadInputError("--fov-deg", None, "the field must have a positive size")
+    cell = float(cell_deg) if cell_deg is not None else min(field_w_deg, field_h_deg) / 2.0
+    cell = min(max(cell, 0.05), 90.0)
+    per_cell = max(1, int(math.ceil(stars_per_field * cell * cell / (field_w_deg * field_h_deg))))
+    cells, n_cells = _cells(catalog.ra, catalog.dec, cell)
+    order = np.lexsort((catalog.id, catalog.mag, cells))
+    sorted_cells = cells[order]
+    start = np.r_[0, np.flatnonzero(np.diff(sorted_cells)) + 1]
+    counts = np.diff(np.r_[start, len(order)])
+    # The quota's faintest star in each cell that has one; other cells need infinite depth.
+    full = counts >= per_cell
+    quota_mag = np.full(n_cells, np.inf)
+    quota_mag[:int(full.sum())] = catalog.mag[order[start[full] + per_cell - 1]]
+    limit = float(np.quantile(quota_mag, sky_fraction, method="higher"))
+    if not math.isfinite(limit):
+        limit = float(catalog.mag.max()) if len(catalog) else math.inf
+    out = catalog.filter_magnitude(None, limit).thin_uniform(per_cell, cell)
+    out.params.update(depth_mag_max=limit, stars_per_field=float(stars_per_field), sky_fraction=float(sky_fraction))
+    return out
+
+
+def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catalog:
     """Read a ``startrack.catalog/1`` HDF5 file (default: the shipped catalog).
+
+    Parameters
+    ----------
+    path : str, optional
+        The file; default :func:`default_catalog_path`.
+    mag_max : float, optional
+        Read only the stars at most this faint.  The shipped file is sorted
+        brightest first, so only its first rows are read and decompressed:
+        commands that need bright stars do not pay for the deep catalog.
 
     Raises
     ------
     BadInputError
         If the file is missing, not HDF5, not a catalog, or holds NaN positions.
     """
+    import h5py
+
     from startrack.formats.hdf5 import read_hdf5
 
     path = path or default_catalog_path()
-    f = read_hdf5(path, CATALOG_FORMAT)
-    cols = {}
-    for name in ("id", "ra", "dec", "mag"):
-        cols[name] = np.asarray(f[name])
-    n = len(cols["id"])
-    for name in ("pm_ra", "pm_dec", "bv"):
-        cols[name] = np.asarray(f[name]) if name in f else np.full(n, np.nan if name == "bv" else 0.0)
+    f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
+    mag = np.asarray(f["mag"])
+    rows = slice(None)
+    if mag_max is not None:
+        if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
+            rows = slice(0, int(np.searchsorted(mag, mag_max, side="right")))
+        else:
+            rows = np.flatnonzero(mag <= mag_max)
+    cols = {"mag": mag[rows]}
+    with h5py.File(path, "r") as h5:
+        for name in ("id", "ra", "dec"):
+            if name not in h5:
+                raise BadInputError(path, name, "dataset is missing")
+            cols[name] = np.asarray(h5[name][rows])
+        n = len(cols["id"])
+        for name in ("pm_ra", "pm_dec", "bv"):
+            cols[name] = np.asarray(h5[name][rows]) if name in h5 else np.full(n, np.nan if name == "bv" else 0.0)
+        merged = {}
+        if "merged_id" in h5 and "merged_into" in h5:
+            for into, mid in zip(np.asarray(h5["merged_into"]).tolist(), np.asarray(h5["merged_id"]).tolist()):
+                merged.setdefault(int(into), []).append(int(mid))
     for name in ("ra", "dec", "mag"):
         bad = ~np.isfinite(cols[name])
         if bad.any():
             raise BadInputError(path, name, f"has {int(bad.sum())} non-finite values (first at row {int(np.argmax(bad))})")
     epoch = float(f.attrs.get("epoch", f.params.get("epoch", 2000.0)))
-    return Catalog(epoch=epoch, params=dict(f.params), source=path, **cols)
+    params = dict(f.params)
+    if mag_max is not None:
+        params["read_mag_max"] = float(mag_max)
+    cat = Catalog(epoch=epoch, params=params, source=path, **cols)
+    if merged:
+        kept = set(cat.id.tolist())
+        cat.merged = {k: v for k, v in merged.items() if k in kept}
+    return cat
 
 
 def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> None:
-    """Write a catalog as HDF5 (``.h5``/``.hdf5``) or CSV (``.csv``, or ``-`` for stdout)."""
+    """Write a catalog as HDF5 (``.h5``/``.hdf5``) or CSV (``.csv``, or ``-`` for stdout).
+
+    In HDF5, merged stars (:meth:`Catalog.merge_close`) are listed in two more
+    datasets: ``merged_id`` (the fainter star) and ``merged_into`` (the id of
+    the entry that holds it).
+    """
     all_params = dict(catalog.params)
     all_params.update(params or {})
     all_params["epoch"] = catalog.epoch
@@ -299,7 +441,19 @@ def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> No
         "pm_dec": (catalog.pm_dec.astype(np.float32), {"unit": "mas/yr"}),
         "bv": (catalog.bv.astype(np.float32), {"unit": "mag"}),
     }
+    if catalog.merged:
+        into, mid = merged_arrays(catalog.merged)
+        datasets["merged_id"] = (mid, {"note": "a star merged into another entry (unresolved double)"})
+        datasets["merged_into"] = (into, {"note": "id of the entry holding merged_id"})
     write_hdf5(path, CATALOG_FORMAT, all_params, datasets, attrs={"epoch": float(catalog.epoch)})
+
+
+def merged_arrays(merged: dict):
+    """``(into, merged_id)`` int64 arrays of a ``{entry id: [merged ids]}`` mapping, sorted by entry."""
+    pairs = sorted((int(k), int(m)) for k, v in merged.items() for m in v)
+    into = np.array([p[0] for p in pairs], dtype=np.int64)
+    mid = np.array([p[1] for p in pairs], dtype=np.int64)
+    return into, mid
 
 
 def _write_csv(catalog: Catalog, path: str, params: dict) -> None:
