@@ -26,7 +26,7 @@ import numpy as np
 from startrack.errors import BadInputError, DatabaseMismatchError
 
 __all__ = ["KVECTOR_FORMAT", "KVectorDatabase", "build_kvector", "load_kvector", "check_database",
-           "max_separation_deg"]
+           "max_separation_deg", "choose_database_stars", "DEFAULT_MAX_PAIRS", "DEFAULT_STARS_PER_FIELD"]
 
 KVECTOR_FORMAT = "startrack.kvector/1"
 
@@ -63,6 +63,9 @@ class KVectorDatabase:
     catalog_sha256: str
     params: dict = field(default_factory=dict)
     path: str = ""
+    merged_into: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    merged_id: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    """Unresolved doubles: star ``merged_id[k]`` is held by the entry of id ``merged_into[k]``."""
 
     @property
     def n_stars(self) -> int:
@@ -190,22 +193,82 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
     kquad, coeffs = (quad if quad is not None else (kvec.copy(), (0.0, line[0], line[1])))
     # Neighbour lists (CSR), each star's neighbours sorted by index.
     n = len(cat)
-    both_a = np.concatenate([pair_i, pair_j]).astype(np.int64)
-    both_b = np.concatenate([pair_j, pair_i]).astype(np.int32)
-    order = np.lexsort((both_b, both_a))
-    neighbor_idx = both_b[order]
-    neighbor_ptr = np.zeros(n + 1, dtype=np.int64)
-    np.add.at(neighbor_ptr, both_a + 1, 1)
-    neighbor_ptr = np.cumsum(neighbor_ptr)
+    # One sort of the combined key a * n + b (faster than a two-key lexsort on millions of pairs).
+    key = np.concatenate([pair_i.astype(np.int64) * n + pair_j, pair_j.astype(np.int64) * n + pair_i])
+    key.sort()
+    neighbor_idx = (key % n).astype(np.int32)
+    neighbor_ptr = np.r_[0, np.cumsum(np.bincount(key // n, minlength=n))].astype(np.int64)
+    del key
     if progress:
         progress(3, 3)
     all_params = dict(params or {})
     all_params.update(max_angle_deg=float(max_angle_deg), n_stars=int(n), n_pairs=int(len(pair_cos)),
                       mag_min=float(cat.mag.min()), mag_max=float(cat.mag.max()), epoch=float(cat.epoch),
                       quadratic_monotonic=quad is not None, build_seconds=round(time.perf_counter() - t0, 3))
+    from startrack.catalog import merged_arrays
+
+    merged_into, merged_id = merged_arrays(getattr(cat, "merged", {}) or {})
+    all_params["merged_stars"] = int(len(merged_id))
     return KVectorDatabase(cat.id.astype(np.int64), vec, cat.mag.astype(np.float64), pair_i, pair_j, pair_cos,
                            kvec, line, kquad, coeffs, neighbor_ptr, neighbor_idx, float(max_angle_deg),
-                           cat.checksum(), all_params)
+                           cat.checksum(), all_params, "", merged_into, merged_id)
+
+
+DEFAULT_STARS_PER_FIELD = 30.0
+"""Database stars wanted in one field when ``build-kvector`` chooses the depth."""
+DEFAULT_MAX_PAIRS = 4_000_000
+"""Pair budget of a chosen depth: about 50 MB on disk (12-13 bytes a pair with gzip)."""
+
+
+def choose_database_stars(catalog, field_w_deg: float, field_h_deg: float, max_angle_deg: float,
+                          stars_per_field: float = DEFAULT_STARS_PER_FIELD, sky_fraction: float = 0.95,
+                          max_pairs: int = DEFAULT_MAX_PAIRS):
+    """The stars of a database whose depth the builder chooses for a sensor.
+
+    :func:`startrack.catalog.thin_for_field` sets a magnitude limit and thins
+    the sky to a near-uniform ``stars_per_field``; when the pairs that would
+    give exceed ``max_pairs``, the stars per field are lowered until they fit
+    (pairs of ``n`` nearly uniform stars up to ``r`` apart:
+    ``n^2 (1 - cos r) / 4``).
+
+    Parameters
+    ----------
+    catalog : startrack.catalog.Catalog
+        Stars (already merged for the sensor's resolution, propagated).
+    field_w_deg, field_h_deg : float
+        The sensor's field (degrees).
+    max_angle_deg : float
+        The database's largest pair separation (degrees).
+    stars_per_field : float
+        Wanted stars per field.
+    sky_fraction : float
+        Fraction of the sky whose cells must reach their quota at the limit.
+    max_pairs : int
+        Pair budget (sets size and build time).
+
+    Returns
+    -------
+    Catalog
+        With ``params`` ``depth_mag_max``, ``uniform_per_cell``,
+        ``uniform_cell_deg``, ``stars_per_field`` (the one used),
+        ``stars_per_field_wanted`` and ``estimated_pairs``.
+    """
+    from startrack.catalog import thin_for_field
+
+    if not max_pairs >= 1:
+        raise BadInputError("--max-pairs", None, f"must be at least 1, got {max_pairs}")
+    cap = (1.0 - math.cos(math.radians(max_angle_deg))) / 4.0
+    want = float(stars_per_field)
+    spf = want
+    for _ in range(60):
+        out = thin_for_field(catalog, field_w_deg, field_h_deg, spf, sky_fraction)
+        estimate = len(out) ** 2 * cap
+        if estimate <= max_pairs or spf <= 4.0:
+            break
+        spf = max(4.0, spf * min(0.95, math.sqrt(max_pairs / estimate)))
+    out.params.update(stars_per_field=round(spf, 3), stars_per_field_wanted=want,
+                      estimated_pairs=int(estimate), max_pairs=int(max_pairs))
+    return out
 
 
 def save_kvector(db: KVectorDatabase, path: str) -> None:
@@ -220,6 +283,9 @@ def save_kvector(db: KVectorDatabase, path: str) -> None:
         "kvector": db.kvector, "kquad": db.kquad,
         "neighbor_ptr": db.neighbor_ptr, "neighbor_idx": db.neighbor_idx,
     }
+    if len(db.merged_id):
+        datasets["merged_id"] = (db.merged_id, {"note": "a star merged into another entry (unresolved double)"})
+        datasets["merged_into"] = (db.merged_into, {"note": "star_id of the entry holding merged_id"})
     write_hdf5(path, KVECTOR_FORMAT, db.params, datasets, attrs={
         "catalog_sha256": db.catalog_sha256, "max_angle_deg": db.max_angle_deg,
         "kvector_line": np.array(db.line), "quadratic": np.array(db.quad)})
@@ -239,7 +305,9 @@ def load_kvector(path: str) -> KVectorDatabase:
         get("pair_i", np.int32), get("pair_j", np.int32), get("pair_cos", np.float64),
         get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]), get("kquad", np.int64),
         tuple(float(v) for v in f.attrs["quadratic"]), get("neighbor_ptr", np.int64), get("neighbor_idx", np.int32),
-        float(f.attrs["max_angle_deg"]), str(f.attrs["catalog_sha256"]), f.params, path)
+        float(f.attrs["max_angle_deg"]), str(f.attrs["catalog_sha256"]), f.params, path,
+        get("merged_into", np.int64) if "merged_into" in f else np.zeros(0, dtype=np.int64),
+        get("merged_id", np.int64) if "merged_id" in f else np.zeros(0, dtype=np.int64))
 
 
 def check_database(db, camera=None, catalog=None, tolerance: float = 0.5) -> None:
