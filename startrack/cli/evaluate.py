@@ -125,6 +125,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         bar(len(rows), len(conds) * len(algos))
     click.echo(summarise(rows))
     for r in rows:
+        if r.get("double_frames"):
+            info(quiet, f"unresolved doubles: {r['algorithm']} [{r['condition']}] {r['double_frames']} frames with one "
+                        f"in view: {r['double_success']} identified, {r['double_bad']} wrong")
+    for r in rows:
         for b in r["bad_seeds"]:
             info(quiet, f"bad match: {r['algorithm']} [{r['condition']}] frame seed {b['frame_seed']}: "
                         f"{b['wrong']}")
