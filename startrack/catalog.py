@@ -284,7 +284,7 @@ def merge_radius_arcsec(camera, merge_px: float = DEFAULT_MERGE_PX) -> float:
 
 def _cells(ra_deg, dec_deg, cell_deg: float):
     """Cell number of each direction on the equal-area igloo grid of :meth:`Catalog.thin_uniform`."""
-    n_bands = max(1, int(round(180.0 / cell_deg)))
+    n_bands = max(1, round(180.0 / cell_deg))
     band = np.minimum(((np.asarray(dec_deg) + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
     centre = -90.0 + (band + 0.5) * 180.0 / n_bands
     n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(centre)) / cell_deg)).astype(np.int64)
@@ -337,7 +337,7 @@ def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, sta
         raise BadInputError("--fov-deg", None, "the field must have a positive size")
     cell = float(cell_deg) if cell_deg is not None else min(field_w_deg, field_h_deg) / 2.0
     cell = min(max(cell, 0.05), 90.0)
-    per_cell = max(1, int(math.ceil(stars_per_field * cell * cell / (field_w_deg * field_h_deg))))
+    per_cell = max(1, math.ceil(stars_per_field * cell * cell / (field_w_deg * field_h_deg)))
     cells, n_cells = _cells(catalog.ra, catalog.dec, cell)
     order = np.lexsort((catalog.id, catalog.mag, cells))
     sorted_cells = cells[order]

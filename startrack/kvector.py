@@ -208,7 +208,7 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
     from startrack.catalog import merged_arrays
 
     merged_into, merged_id = merged_arrays(getattr(cat, "merged", {}) or {})
-    all_params["merged_stars"] = int(len(merged_id))
+    all_params["merged_stars"] = len(merged_id)
     return KVectorDatabase(cat.id.astype(np.int64), vec, cat.mag.astype(np.float64), pair_i, pair_j, pair_cos,
                            kvec, line, kquad, coeffs, neighbor_ptr, neighbor_idx, float(max_angle_deg),
                            cat.checksum(), all_params, "", merged_into, merged_id)
