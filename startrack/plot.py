@@ -283,7 +283,8 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
             _, c, r = attitude_error(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
             cross, roll = math.degrees(c) * 3600, math.degrees(r) * 3600
         rows.append((k, mode, cross, roll))
-    colours = {"lis": "tab:blue", "track": "tab:green", "single-star": "tab:orange", "lost": "tab:red",
+    # Frames without a track section (e.g. centroid | identify | attitude) are "solved".
+    colours = {"tracking": "tab:green", "single-star": "tab:orange", "lost-in-space": "tab:blue", "lost": "tab:red",
                None: "tab:purple"}
     fig = _figure(figsize=(10, 6), dpi=110)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
@@ -291,8 +292,7 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
         sel = [r for r in rows if r[1] == mode]
         if not sel:
             continue
-        ax1.scatter([r[0] for r in sel], [r[2] for r in sel], s=8, c=colour,
-                    label=f"{mode or 'solved'} ({len(sel)})")
+        ax1.scatter([r[0] for r in sel], [r[2] for r in sel], s=8, c=colour, label=f"{mode or 'solved'} ({len(sel)})")
         ax2.scatter([r[0] for r in sel], [abs(r[3]) for r in sel], s=8, c=colour)
         for r in sel:
             if mode == "lost":
@@ -313,9 +313,9 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     fig.suptitle(title or "tracking errors per frame")
     fig.tight_layout()
     _save(fig, path)
-    stats = {"frames": len(rows), "modes": {m or "solved": sum(1 for r in rows if r[1] == m) / max(1, len(rows))
-                                             for m in colours}}
-    for m in ("track", "lis", "single-star", None):
+    stats = {"frames": len(rows), "with_attitude": sum(1 for r in rows if r[2] == r[2]),
+             "modes": {m or "solved": sum(1 for r in rows if r[1] == m) / max(1, len(rows)) for m in colours}}
+    for m in colours:
         sel = [r for r in rows if r[1] == m and r[2] == r[2]]
         if sel:
             stats[f"rms_cross_{m or 'solved'}_arcsec"] = float(math.sqrt(sum(r[2] ** 2 for r in sel) / len(sel)))

@@ -483,7 +483,9 @@ class RenderRun:
     ``attitude`` is a DCM or ``None`` for random attitudes (one per frame with
     ``count``).  A sequence (``frames > 1``) starts at ``attitude`` (or a random
     one) and turns at ``scene.rate_deg_s`` (camera frame) every
-    ``frame_interval_s``.
+    ``frame_interval_s``.  Every frame's ``image`` section carries its
+    ``time`` (ISO-8601, mid-exposure: ``start_time``, or the catalog's epoch
+    when none is given, plus ``k * frame_interval_s``) and ``exposure_ms``.
     """
 
     catalog: object
@@ -519,6 +521,7 @@ class RenderRun:
 
         vectors = self.catalog.vectors()
         rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
+        start = self.start_time if self.start_time is not None else epoch_time(self.catalog.epoch)
         index = 0
         for c in range(self.count):
             base = None
@@ -533,9 +536,9 @@ class RenderRun:
                 dcm = propagate_attitude(base, rate, k * self.frame_interval_s) if k else base
                 doc = {"format": FRAME_FORMAT}
                 image_doc = {"width": self.camera.width, "height": self.camera.height}
-                if self.start_time is not None:
-                    t = self.start_time + _dt.timedelta(seconds=k * self.frame_interval_s)
-                    image_doc["time"] = format_time(t)
+                # Every frame carries its time (mid-exposure) and exposure, so `track` needs no option.
+                image_doc["time"] = format_time(start + _dt.timedelta(seconds=k * self.frame_interval_s))
+                image_doc["exposure_ms"] = float(self.sensor.exposure_ms)
                 image = None
                 path = None
                 if self.stars_only:
@@ -569,6 +572,15 @@ class RenderRun:
                 }
                 yield doc, image, path
                 index += 1
+
+
+def epoch_time(epoch: float):
+    """The UTC time of a decimal Julian year (the catalog's epoch when no --time is given: the sky as rendered)."""
+    import datetime as _dt
+
+    from startrack.timeutil import _J2000
+
+    return _J2000 + _dt.timedelta(days=(float(epoch) - 2000.0) * 365.25)
 
 
 def random_quaternions_one(rng):

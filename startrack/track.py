@@ -1,28 +1,60 @@
-"""Tracking mode: predictive windows, angular rate, single-star attitude, fall-back to lost in space.
+"""Tracking mode: predictive windows, smear-aware centroids, a Kalman filter on attitude and rate,
+single-star attitude (paper 001 Case 2) and fall-back to lost in space.
 
-Per frame (papers 000 and 001; Samaan, Pollock & Junkins 2002):
+Per frame at time ``t`` (seconds; exposure ``T``):
 
-1. **Predict.**  The last attitude is propagated with the estimated body rate
-   over the time since the last frame (``A(t) = exp(-[w x] dt) A``); catalog
-   stars are projected with it.  Stars entering the field are predicted as soon
-   as they do; stars leaving it drop out.
-2. **Windowed centroiding** around each predicted position (half-size: a
-   base margin plus the image motion the rate uncertainty allows plus the
-   smear), numba kernel :func:`startrack._kernels.centroid.window_centroids`.
-3. **Match by prediction** and reject outliers: each star's offset from its
-   prediction is compared with the median offset; a star off by more than
-   ``outlier_px`` (a false star or a neighbour inside the window) is dropped.
-4. **Attitude** by QUEST (:func:`startrack.attitude.estimate_attitude`, with
-   its chi-square gate).  With one star left: paper 001's **single-star**
-   attitude (Case 2): other catalog stars predicted in the field are shifted by
-   the observed star's offset to make "empirical" image stars, and weighted
-   QUEST solves with the real star weighted ``single_star_weight`` times more.
-5. **Rate** from successive attitudes, ``w = rotvec(A_k A_{k-1}^T) / dt``,
-   smoothed (``rate_smoothing``).
-6. **Fall-back**: too few stars, residuals beyond ``max_rms_arcsec``, a
-   washed-out frame, or a gap in time longer than ``max_gap_s`` -> lost-in-space
-   on that frame (centroid + identify + attitude); tracking resumes once it
-   solves; if it does not, the frame is ``lost``.
+1. **Predict** (when an attitude is known and the last one is at most
+   ``max_gap_s`` old).  The filter (:class:`AttitudeRateFilter`) propagates
+   the attitude with its rate estimate and grows its covariance; catalog stars
+   are projected with the predicted attitude.
+2. **Windowed centroiding** around each prediction (half-size: a base
+   ``window_px`` plus 3 sigma of the predicted position plus half the
+   expected smear), numba kernel :func:`startrack._kernels.centroid.window_centroids`;
+   when the expected smear is at least ``streak_min_px`` the found stars are
+   refined by the **line-segment PSF fit** (:mod:`startrack.streak`), giving the
+   mid-exposure position, its sigma, and the streak.  Right after an
+   acquisition whose rate came from streaks (known only up to its sign), both
+   signs are tried and the one whose windows find more stars, closer to their
+   predictions, is kept.
+3. **Match by prediction**, outliers dropped (offsets from the median offset
+   beyond ``outlier_px``).
+4. **Attitude**: with ``min_stars`` (2) or more, QUEST with per-star sigmas and
+   its chi-square gate (:func:`startrack.attitude.estimate_attitude`), mode
+   ``tracking``; with one star, paper 001's **single-star** attitude (Case 2:
+   the other predicted stars shifted by the observed star's offset act as
+   "empirical" stars, weighted QUEST), mode ``single-star``.
+5. **Filter update** with the measured attitude (and, with streaks, the rate
+   measured from them).
+6. **Fall-back**: no attitude yet, a gap since the last attitude longer than
+   ``max_gap_s`` (a blackout), or a failed tracking step -> **lost in space**:
+   detection, streak fits, the angular rate from the streaks
+   (:func:`startrack.streak.rate_from_streaks`), identification by
+   :func:`startrack.identify.identify_stars` with identify's own defaults and the
+   stars' per-star sigmas (the machinery of ``startrack identify``, the same
+   database), QUEST; mode ``lost-in-space``.  If that fails too the frame is
+   ``lost``: no attitude (the filter coasts, its covariance grows).
+
+The filter (:class:`AttitudeRateFilter`) is a multiplicative extended Kalman
+filter with state ``x = [dtheta, w]`` (attitude error and body rate, rad and
+rad/s, camera frame), ``A_true = exp(-[dtheta x]) A_est``; constant-rate model
+with white angular-acceleration noise of spectral density ``q`` (rad^2/s^3):
+
+.. math::
+
+    A^- = \\exp(-[\\hat w \\times] \\Delta t) A, \\quad
+    F = \\begin{bmatrix} I & \\Delta t I \\\\ 0 & I \\end{bmatrix}, \\quad
+    Q = q \\begin{bmatrix} \\Delta t^3/3 \\, I & \\Delta t^2/2 \\, I \\\\
+                           \\Delta t^2/2 \\, I & \\Delta t \\, I \\end{bmatrix}, \\quad
+    P^- = F P F^T + Q
+
+    z = \\mathrm{rotvec}(A_{meas} A^{-T}), \\ H = [I \\ 0], \\ R = P_{QUEST}; \\quad
+    K = P^- H^T (H P^- H^T + R)^{-1}, \\ \\delta x = K z, \\ P = (I - K H) P^-
+
+    A = \\exp(-[\\delta\\theta \\times]) A^-, \\quad \\hat w \\mathrel{+}= \\delta w
+
+A rate measured from streaks updates with ``H = [0 I]``, ``R`` its covariance;
+a single star ``b`` (unit vector) with ``z = b_meas - A^- r``,
+``H = [[b x] 0]``, ``R = sigma^2 (I - b b^T)`` (regularised).
 """
 from __future__ import annotations
 
@@ -34,27 +66,44 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["TrackerConfig", "Tracker", "single_star_attitude", "empirical_stars"]
+__all__ = ["TrackerConfig", "Tracker", "AttitudeRateFilter", "single_star_attitude", "empirical_stars", "MODES"]
+
+#: The modes a frame can be in, in the order summaries list them.
+MODES = ("tracking", "single-star", "lost-in-space", "lost")
 
 
 @dataclass
 class TrackerConfig:
-    """Tracking settings (pixels, seconds, arcseconds)."""
+    """Tracking settings (pixels, seconds, arcseconds, degrees per second).
+
+    ``rate_noise_deg_s2``: spectral density of the angular acceleration the
+    filter allows, as (deg/s)/sqrt(s) (a constant-rate model with this much
+    random walk of the rate).  ``rate_sigma0_deg_s``: 1-sigma rate uncertainty
+    after an acquisition without a rate from streaks.  ``streak_rate_until_deg_s``:
+    while tracking, rates from streaks update the filter only while its rate
+    sigma is above this (then the attitude differences dominate).
+    """
 
     mag_limit: float | None = None
     window_px: int = 8
     min_stars: int = 2
     outlier_px: float = 3.0
     sigma_px: float = 0.3
+    sigma_floor_px: float = 0.05
     max_rms_arcsec: float | None = None
-    max_gap_s: float = 2.0
-    rate_smoothing: float = 0.5
+    max_gap_s: float = 0.5
     exposure_s: float = 0.1
+    rate_noise_deg_s2: float = 0.01
+    rate_sigma0_deg_s: float = 0.5
     single_star_weight: float = 10.0
     empirical_stars: int = 3
     k_sigma: float = 5.0
     algorithm: str = "pyramid"
     max_predicted: int = 40
+    streak_min_px: float = 3.0
+    max_streaks: int = 8
+    max_window_px: int = 160
+    streak_rate_until_deg_s: float = 0.02
     extra: dict = field(default_factory=dict)
 
 
@@ -83,6 +132,95 @@ def single_star_attitude(camera, observed_xy, predicted_xy, ref_vector, others_p
     return quest(body, ref, w / w.sum())
 
 
+_I3 = np.eye(3)
+
+
+def _cross(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _exp_minus(phi):
+    """``exp(-[phi x])`` (Rodrigues): the passive rotation by ``|phi|`` about ``phi`` (as
+    :func:`startrack.render.propagate_attitude`)."""
+    angle = math.sqrt(float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]))
+    if angle < 1e-12:
+        return _I3 - _cross(phi)
+    k = _cross(np.asarray(phi) / angle)
+    return _I3 - math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+class AttitudeRateFilter:
+    """Multiplicative EKF on attitude and body rate (equations in the module docstring).
+
+    Parameters
+    ----------
+    dcm : ndarray (3, 3)
+        Initial attitude (ICRS to camera).
+    rate : ndarray (3,)
+        Initial body rate (rad/s).
+    cov : ndarray (6, 6)
+        Initial covariance of ``[dtheta, w]`` (rad^2, rad^2/s^2).
+    q : float
+        Angular-acceleration spectral density (rad^2/s^3).
+    """
+
+    def __init__(self, dcm, rate, cov, q):
+        self.dcm = np.asarray(dcm, dtype=np.float64)
+        self.rate = np.asarray(rate, dtype=np.float64).copy()
+        self.P = np.asarray(cov, dtype=np.float64).copy()
+        self.q = float(q)
+
+    def predicted(self, dt, rate=None):
+        """``(A^-, P^-)`` after ``dt`` seconds, without changing the state (optionally with another rate)."""
+        w = self.rate if rate is None else rate
+        a = _exp_minus(np.asarray(w, dtype=np.float64) * dt) @ self.dcm
+        p = self.P
+        # F P F^T + Q with F = [[I, dt I], [0, I]], written out by blocks.
+        paa, pab, pbb = p[:3, :3], p[:3, 3:], p[3:, 3:]
+        out = np.empty((6, 6))
+        q = self.q
+        out[:3, :3] = paa + dt * (pab + pab.T) + dt * dt * pbb + (q * dt ** 3 / 3) * _I3
+        out[:3, 3:] = pab + dt * pbb + (q * dt ** 2 / 2) * _I3
+        out[3:, :3] = out[:3, 3:].T
+        out[3:, 3:] = pbb + (q * dt) * _I3
+        return a, out
+
+    def predict(self, dt):
+        self.dcm, self.P = self.predicted(dt)
+
+    def _update(self, z, h, r):
+        s = h @ self.P @ h.T + r
+        k = np.linalg.solve(s.T, (self.P @ h.T).T).T
+        dx = k @ z
+        self.P = (np.eye(6) - k @ h) @ self.P
+        self.P = 0.5 * (self.P + self.P.T)
+        self.dcm = _exp_minus(dx[:3]) @ self.dcm
+        self.rate = self.rate + dx[3:]
+        return float(z @ np.linalg.solve(s, z))
+
+    def update_attitude(self, dcm_meas, cov):
+        """Update with a measured attitude and its covariance (rad^2, camera frame); returns the NIS."""
+        from startrack.rotations import rotation_vector
+
+        z = rotation_vector(np.asarray(dcm_meas) @ self.dcm.T)
+        h = np.hstack([np.eye(3), np.zeros((3, 3))])
+        return self._update(z, h, np.asarray(cov, dtype=np.float64))
+
+    def update_rate(self, rate_meas, cov):
+        """Update with a measured body rate (rad/s) and its covariance."""
+        z = np.asarray(rate_meas, dtype=np.float64) - self.rate
+        h = np.hstack([np.zeros((3, 3)), np.eye(3)])
+        return self._update(z, h, np.asarray(cov, dtype=np.float64))
+
+    def update_star(self, body, ref, sigma_rad):
+        """Update with one star: measured camera-frame unit vector ``body``, catalog vector ``ref``."""
+        b_pred = self.dcm @ np.asarray(ref, dtype=np.float64)
+        z = np.asarray(body, dtype=np.float64) - b_pred
+        h = np.hstack([_cross(b_pred), np.zeros((3, 3))])
+        r = sigma_rad ** 2 * (np.eye(3) - np.outer(b_pred, b_pred)) + (sigma_rad * 1e-3) ** 2 * np.eye(3)
+        return self._update(z, h, r)
+
+
 class Tracker:
     """Stateful tracker; :meth:`step` processes one frame (image in memory) at time ``t`` (seconds)."""
 
@@ -93,169 +231,339 @@ class Tracker:
         self.catalog = cat.sorted_by_magnitude()
         self.vectors = np.ascontiguousarray(self.catalog.vectors())
         self.ids = self.catalog.id
+        self.row_of_id = {int(i): k for k, i in enumerate(self.ids)}
         self.camera = camera
         self.db = database
-        self.dcm = None if initial_dcm is None else np.asarray(initial_dcm, dtype=np.float64)
-        self.rate = np.zeros(3) if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
-        self.rate_known = initial_rate is not None
+        self.filter = None
+        self.sign_ambiguous = False
         self.last_t = None
-        self.mode = "lis"
+        self.last_fix_t = None
+        self.mode = None
+        self.rate_prior = None if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
+        self.r_max = math.hypot(camera.width, camera.height) / 2.0
+        if initial_dcm is not None:
+            rate = np.zeros(3) if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
+            s_rate = 1e-4 if initial_rate is not None else math.radians(self.config.rate_sigma0_deg_s)
+            s_att = math.radians(60.0 / 3600.0)
+            self.filter = AttitudeRateFilter(initial_dcm, rate, np.diag([s_att ** 2] * 3 + [s_rate ** 2] * 3),
+                                             self._q())
+
+    def _q(self):
+        return math.radians(self.config.rate_noise_deg_s2) ** 2
 
     # ------------------------------------------------------------------ helpers
-    def predict(self, dcm):
+    def predict_stars(self, dcm):
         """Predicted pixel positions and catalog rows of the stars in the field (brightest first)."""
         from startrack.render import project_stars
 
         rows, x, y = project_stars(self.vectors, dcm, self.camera, margin_px=-2.0)
-        return rows[: self.config.max_predicted], x[: self.config.max_predicted], y[: self.config.max_predicted]
+        n = self.config.max_predicted
+        return rows[:n], x[:n], y[:n]
 
-    def _lis(self, image, saturation):
+    def _sigma_px(self, p_theta):
+        """1-sigma predicted position (px) at the edge of the field from the attitude covariance."""
+        f = self.camera.focal_length_px
+        return math.sqrt(f * f * max(p_theta[0, 0], p_theta[1, 1]) + self.r_max ** 2 * p_theta[2, 2])
+
+    def _windows(self, img, dcm, half, box):
+        from startrack._kernels.centroid import window_centroids
+
+        rows, px, py = self.predict_stars(dcm)
+        mx, my, flux, peak, snr, found = window_centroids(img, px.astype(np.float64), py.astype(np.float64),
+                                                          half, self.config.k_sigma, 3, box)
+        return rows, px, py, mx, my, flux, snr, found
+
+    def _acquire(self, img, saturation, exposure_s):
+        """Lost in space: detection, streak fits, rate from streaks, identify's search, QUEST."""
         from startrack.attitude import estimate_attitude
         from startrack.centroid import CentroidOptions, find_stars
         from startrack.identify import IdentifyParams, identify_stars
+        from startrack.streak import fit_streaks, rate_from_streaks
 
-        # Smear expected from the current rate estimate: trails that long are stars, not defects.
-        smear = float(np.linalg.norm(self.rate)) * self.camera.focal_length_px * self.config.exposure_s
-        elong = max(2.5, 1.0 + smear / 2.0)
-        res = find_stars(image, CentroidOptions(max_stars=40, max_elongation=elong,
-                                                method="iwc" if smear > 3 else "gauss"), saturation=saturation)
-        if len(res.stars) < 3:
-            return None, {"status": "failed", "algorithm": self.config.algorithm, "matches": [],
-                          "reason": res.reason or f"{len(res.stars)} stars found"}, res.stars
-        ident = identify_stars(res.stars, self.camera, self.db, self.config.algorithm,
-                               IdentifyParams(sigma_px=max(self.config.sigma_px, 0.2)))
+        cfg = self.config
+        res = find_stars(img, CentroidOptions(), saturation=saturation)
+        trails = [r for r in res.rejected if str(r.get("reason", "")).startswith("elongated")]
+        prior = self.filter.rate if self.filter is not None else self.rate_prior
+        expect = 0.0 if prior is None else float(np.linalg.norm(prior)) * self.camera.focal_length_px * exposure_s
+        streaky = bool(trails) or expect >= cfg.streak_min_px
+        if streaky:
+            # Streaks: no deblending (a streak's noisy ridge is not two stars), no elongation cut.
+            res = find_stars(img, CentroidOptions(deblend=False, max_elongation=1e9), saturation=saturation)
+        stars = [dict(s) for s in res.stars]
+        rate_est = None
+        info = {"detected": len(stars), "streaks": 0}
+        if stars:
+            n_fit = min(len(stars), max(cfg.max_streaks, 12))
+            fits = fit_streaks(img, [s["x"] for s in stars[:n_fit]], [s["y"] for s in stars[:n_fit]])
+            for s, ft in zip(stars[:n_fit], fits, strict=True):
+                if ft is None or not ft.length_px > 2.0 * max(ft.sigma_length_px, 0.5):
+                    continue
+                # A significant streak: its mid-exposure position and sigma replace the point-source centroid.
+                st = ft.as_star()
+                s.update(x=st["x"], y=st["y"], sigma_px=st["sigma_px"], streak=st["streak"])
+                info["streaks"] += 1
+            rate_est = rate_from_streaks(self.camera, fits[: cfg.max_streaks], exposure_s)
+        if len(stars) < 3:
+            return None, {"status": "failed", "algorithm": cfg.algorithm, "matches": [],
+                          "reason": res.reason or f"{len(stars)} star(s) found: at least 3 are needed"}, stars, None, info
+        ident = identify_stars(stars, self.camera, self.db, cfg.algorithm, IdentifyParams())
         if ident.status != "ok":
-            return None, ident.section(), res.stars
-        rows = {int(i): k for k, i in enumerate(self.ids)}
-        body, ref, labels = [], [], []
+            return None, ident.section(), stars, rate_est, info
+        body, ref, labels, sig = [], [], [], []
+        f = self.camera.focal_length_px
         for m in ident.matches:
-            k = rows.get(int(m["id"]))
+            k = self.row_of_id.get(int(m["id"]))
             if k is None:
                 continue
-            s = res.stars[m["star"]]
+            s = stars[m["star"]]
             body.append(self.camera.pixels_to_vectors(s["x"], s["y"]))
             ref.append(self.vectors[k])
-            labels.append((m["star"], m["id"]))
-        sig = np.full(len(body), max(self.config.sigma_px, 0.05) / self.camera.focal_length_px)
-        att = estimate_attitude(np.array(body).reshape(-1, 3), np.array(ref).reshape(-1, 3), sig, "quest", labels)
+            labels.append((m["star"], int(m["id"])))
+            sp = s.get("sigma_px")
+            sp = sp if isinstance(sp, (int, float)) and sp > 0 else 0.5
+            sig.append(max(sp, cfg.sigma_floor_px) / f)
+        att = estimate_attitude(np.array(body).reshape(-1, 3), np.array(ref).reshape(-1, 3), np.array(sig),
+                                "quest", labels)
         if att.status != "ok":
-            return None, ident.section(), res.stars
-        return att, ident.section(), res.stars
+            return None, ident.section(), stars, rate_est, info
+        return att, ident.section(), stars, rate_est, info
+
+    def _track(self, img, dcm_pred, p_pred, exposure_s, track):
+        """Windowed tracking at the predicted attitude; returns ``(result, stars, reason)``."""
+        from startrack.attitude import AttitudeResult, estimate_attitude
+
+        cfg = self.config
+        f = self.camera.focal_length_px
+        rate = self.filter.rate
+        speed = float(np.linalg.norm(rate)) * f
+        smear = speed * exposure_s
+        sig_pos = self._sigma_px(p_pred[:3, :3])
+        half = int(min(cfg.max_window_px, math.ceil(cfg.window_px + 3.0 * sig_pos + smear / 2.0)))
+        box = int(max(2, math.ceil(1.0 + smear / 2.0)))
+        candidates = [dcm_pred]
+        if self.sign_ambiguous:
+            dt = track["dt_s"]
+            alt, _ = self.filter.predicted(dt, rate=-rate)
+            candidates.append(alt)
+        best = None
+        for c, dcm in enumerate(candidates):
+            rows, px, py, mx, my, flux, snr, found = self._windows(img, dcm, half, box)
+            ok = np.flatnonzero(found)
+            off = np.hypot(mx[ok] - px[ok], my[ok] - py[ok]) if len(ok) else np.array([np.inf])
+            score = (len(ok), -float(np.median(off)))
+            if best is None or score > best[0]:
+                best = (score, c, dcm, rows, px, py, mx, my, flux, snr, found)
+        _, choice, dcm_pred, rows, px, py, mx, my, flux, snr, found = best
+        if self.sign_ambiguous:
+            if choice == 1:
+                self.filter.rate = -self.filter.rate
+                track["rate_sign"] = "flipped"
+            self.sign_ambiguous = False
+        ok = np.flatnonzero(found)
+        sig = np.full(len(rows), max(cfg.sigma_px, cfg.sigma_floor_px))
+        streaks = []
+        if smear >= cfg.streak_min_px and len(ok):
+            from startrack.streak import _streak, fit_streaks_array
+
+            use = ok[: cfg.max_streaks]
+            fits = fit_streaks_array(img, mx[use], my[use], half_px=int(math.ceil(smear / 2.0 + 6)),
+                                     max_half_px=int(math.ceil(smear + 12)))
+            for j, k in enumerate(use):
+                row = fits[j]
+                st = _streak(row)
+                if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < smear / 2.0 + 3.0:
+                    mx[k], my[k] = st.x, st.y
+                    sig[k] = max(math.sqrt(0.5 * (st.sigma_x ** 2 + st.sigma_y ** 2)), cfg.sigma_floor_px)
+                    streaks.append(st)
+        # Outliers: offsets far from the common offset (a false star or a neighbour in the window).
+        if len(ok) >= 3:
+            off = np.column_stack([mx[ok] - px[ok], my[ok] - py[ok]])
+            med = np.median(off, axis=0)
+            dist = np.hypot(*(off - med).T)
+            ok = ok[dist <= max(cfg.outlier_px, 3 * cfg.sigma_px)]
+        track.update(window_px=half, predicted=len(rows), found=int(found.sum()), used=len(ok))
+        track["stars"] = [{"id": int(self.ids[rows[k]]), "predicted": [round(float(px[k]), 3), round(float(py[k]), 3)],
+                           "measured": [round(float(mx[k]), 3), round(float(my[k]), 3)] if found[k] else None}
+                          for k in range(len(rows))]
+        stars = [{"x": float(mx[k]), "y": float(my[k]), "flux": float(flux[k]), "snr": float(snr[k]),
+                  "sigma_px": float(sig[k])} for k in ok]
+        rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
+        if len(streaks) >= 2 and rate_sigma > math.radians(cfg.streak_rate_until_deg_s):
+            from startrack.streak import rate_from_streaks
+
+            track["streaks"] = len(streaks)
+            est = rate_from_streaks(self.camera, streaks, exposure_s)
+            if est is not None and np.all(np.isfinite(est.cov)):
+                w = est.resolved(self.filter.rate)
+                track["streak_rate_deg_s"] = [round(float(v), 5) for v in np.degrees(w)]
+                self._streak_rate = (w, est.cov)
+        if len(ok) >= max(cfg.min_stars, 2):
+            body = self.camera.pixels_to_vectors(mx[ok], my[ok])
+            ref = self.vectors[rows[ok]]
+            labels = [(i, int(self.ids[rows[k]])) for i, k in enumerate(ok)]
+            att = estimate_attitude(body, ref, sig[ok] / f, "quest", labels)
+            if att.status != "ok":
+                return None, stars, att.reason or "attitude failed"
+            rms = float(np.sqrt(np.mean(np.square(att.residuals_arcsec))))
+            scale = self.camera.pixel_scale_arcsec
+            limit = cfg.max_rms_arcsec if cfg.max_rms_arcsec is not None else \
+                max(10.0, 5.0 * float(np.max(sig[ok])) * scale + 0.1 * smear * scale)
+            if rms > limit:
+                return None, stars, f"tracking residuals {rms:.1f} arcsec above {limit:.1f}"
+            track["mode"] = "tracking"
+            return att, stars, None
+        if len(ok) == 1:
+            k = ok[0]
+            others = [j for j in range(len(rows)) if j != k][: cfg.empirical_stars]
+            if not others:
+                return None, stars, "one star and no other predicted star for empirical stars"
+            dcm1 = single_star_attitude(self.camera, (mx[k], my[k]), (px[k], py[k]), self.vectors[rows[k]],
+                                        np.column_stack([px[others], py[others]]), self.vectors[rows[others]],
+                                        cfg.single_star_weight)
+            track["mode"] = "single-star"
+            track["empirical_stars"] = len(others)
+            body = self.camera.pixels_to_vectors(mx[k], my[k]).reshape(3)
+            self._single = (body, self.vectors[rows[k]], sig[k] / f)
+            return AttitudeResult("ok", "single-star", dcm1, None, [(0, int(self.ids[rows[k]]))], [], [0.0]), stars, None
+        return None, stars, f"{len(ok)} stars found in the prediction windows"
 
     # --------------------------------------------------------------------- step
-    def step(self, image, t: float, saturation: float | None = None) -> dict:
-        """Process one frame; returns ``{"stars", "identification", "attitude", "track"}`` sections."""
-        from startrack._kernels.centroid import window_centroids
-        from startrack.attitude import estimate_attitude
-        from startrack.render import propagate_attitude
-        from startrack.rotations import rotation_vector
+    def step(self, image, t: float, saturation: float | None = None, exposure_s: float | None = None) -> dict:
+        """Process one frame; returns ``{"stars", "identification", "attitude", "track"}`` sections.
 
+        Parameters
+        ----------
+        image : ndarray (height, width)
+        t : float
+            Mid-exposure time (s) on any fixed origin; must increase.
+        saturation : float, optional
+            The image's saturation level (DN).
+        exposure_s : float, optional
+            This frame's exposure (s); default ``config.exposure_s``.
+        """
         t0 = time.perf_counter()
         if self.last_t is not None and t <= self.last_t:
             raise BadInputError("image.time", None, f"time {t:.6f} s is not after the previous frame's "
                                 f"{self.last_t:.6f} s (out-of-order or repeated time stamps)")
         img = np.ascontiguousarray(image, dtype=np.float32)
         cfg = self.config
-        f = self.camera.focal_length_px
+        exposure = cfg.exposure_s if exposure_s is None else float(exposure_s)
         dt = None if self.last_t is None else t - self.last_t
         track = {"mode": None, "dt_s": dt}
-        reason_lis = None
-        result = None
-        stars_out = []
-        if self.dcm is not None and dt is not None and dt <= cfg.max_gap_s:
-            pred_dcm = propagate_attitude(self.dcm, self.rate, dt)
-            rows, px, py = self.predict(pred_dcm)
-            speed = float(np.linalg.norm(self.rate)) * f
-            uncertainty = (0.5 if self.rate_known else 1.0) * speed * dt
-            smear = speed * cfg.exposure_s
-            half = int(math.ceil(cfg.window_px + uncertainty + smear / 2.0))
-            box = int(max(2, math.ceil(1.0 + smear / 2.0)))
-            mx, my, flux, peak, snr, found = window_centroids(img, px.astype(np.float64), py.astype(np.float64),
-                                                              half, cfg.k_sigma, 3, box)
-            ok = np.flatnonzero(found)
-            # Outliers: offsets far from the common offset (false star or neighbour in the window).
-            if len(ok) >= 3:
-                off = np.column_stack([mx[ok] - px[ok], my[ok] - py[ok]])
-                med = np.median(off, axis=0)
-                dist = np.hypot(*(off - med).T)
-                ok = ok[dist <= max(cfg.outlier_px, 3 * cfg.sigma_px)]
-            track.update(window_px=half, predicted=len(rows), found=int(found.sum()), used=len(ok))
-            track["stars"] = [{"id": int(self.ids[rows[k]]), "predicted": [round(float(px[k]), 3), round(float(py[k]), 3)],
-                               "measured": [round(float(mx[k]), 3), round(float(my[k]), 3)] if found[k] else None}
-                              for k in range(len(rows))]
-            stars_out = [{"x": float(mx[k]), "y": float(my[k]), "flux": float(flux[k]), "peak": float(peak[k]),
-                          "snr": float(snr[k])} for k in ok]
-            if len(ok) >= max(cfg.min_stars, 2):
-                body = self.camera.pixels_to_vectors(mx[ok], my[ok])
-                ref = self.vectors[rows[ok]]
-                labels = [(i, int(self.ids[rows[k]])) for i, k in enumerate(ok)]
-                sig = np.full(len(ok), max(cfg.sigma_px, 0.05) / f)
-                att = estimate_attitude(body, ref, sig, "quest", labels)
-                rms = float(np.sqrt(np.mean(np.square(att.residuals_arcsec)))) if att.status == "ok" else None
-                limit = cfg.max_rms_arcsec if cfg.max_rms_arcsec is not None else \
-                    max(10.0, 5.0 * cfg.sigma_px * self.camera.pixel_scale_arcsec + 0.1 * smear * self.camera.pixel_scale_arcsec)
-                if att.status == "ok" and rms <= limit:
-                    result = att
-                    track["mode"] = "track"
-                else:
-                    reason_lis = f"tracking residuals {rms:.1f} arcsec above {limit:.1f}" if rms else "attitude failed"
-            elif len(ok) == 1:
-                k = ok[0]
-                others = [j for j in range(len(rows)) if j != k][: cfg.empirical_stars]
-                if others:
-                    dcm1 = single_star_attitude(self.camera, (mx[k], my[k]), (px[k], py[k]), self.vectors[rows[k]],
-                                                np.column_stack([px[others], py[others]]), self.vectors[rows[others]],
-                                                cfg.single_star_weight)
-                    from startrack.attitude import AttitudeResult
-
-                    result = AttitudeResult("ok", "quest-single-star", dcm1, None,
-                                            [(0, int(self.ids[rows[k]]))], [], [0.0], None, None)
-                    track["mode"] = "single-star"
-                    track["empirical_stars"] = len(others)
-                else:
-                    reason_lis = "one star and no other predicted star for empirical stars"
+        self._streak_rate = None
+        self._single = None
+        result, stars_out, reason_lis, ident_section = None, [], None, None
+        since_fix = None if self.last_fix_t is None else t - self.last_fix_t
+        self._pred = None
+        if self.filter is not None and dt is not None:
+            dcm_pred, p_pred = self.filter.predicted(dt)
+            self._pred = (dcm_pred, p_pred)
+            if since_fix is not None and since_fix <= cfg.max_gap_s:
+                result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track)
             else:
-                reason_lis = f"{len(ok)} stars found in the prediction windows"
+                reason_lis = f"{since_fix:.3f} s since the last attitude (above {cfg.max_gap_s:g} s)" \
+                    if since_fix is not None else "no attitude yet"
+        elif self.filter is not None:
+            # A given initial attitude: track from it on the first frame.
+            dcm_pred, p_pred = self.filter.dcm, self.filter.P
+            result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track)
         else:
-            reason_lis = "no attitude yet" if self.dcm is None else \
-                (f"gap of {dt:.3f} s above {cfg.max_gap_s:g} s" if dt is not None else "first frame")
-        ident_section = None
+            reason_lis = "no attitude yet"
+        rate_est = None
         if result is None:
-            att, ident_section, lis_stars = self._lis(img, saturation)
+            att, ident_section, lis_stars, rate_est, info = self._acquire(img, saturation, exposure)
             stars_out = lis_stars
+            track.update(info)
+            track["fallback_reason"] = reason_lis
             if att is not None:
                 result = att
-                track["mode"] = "lis"
+                track["mode"] = "lost-in-space"
             else:
                 track["mode"] = "lost"
-            track["fallback_reason"] = reason_lis
         else:
+            labels = result.used
             ident_section = {"status": "ok", "algorithm": f"track-{track['mode']}",
-                             "matches": [{"star": i, "id": int(lbl[1])} for i, lbl in enumerate(result.used)]
-                             if track["mode"] == "track" else [{"star": 0, "id": result.used[0][1]}]}
-        # Rate and state.
-        if result is not None:
-            if self.dcm is not None and dt is not None and dt > 0 and track["mode"] in ("track", "single-star", "lis") \
-                    and dt <= cfg.max_gap_s:
-                measured = rotation_vector(result.dcm @ self.dcm.T) / dt
-                if self.rate_known:
-                    a = cfg.rate_smoothing
-                    self.rate = a * self.rate + (1 - a) * measured
-                else:
-                    self.rate = measured
-                    self.rate_known = True
-            self.dcm = result.dcm
-        else:
-            # Lost: keep coasting on the last rate; the next frame tries again.
-            if self.dcm is not None and dt is not None:
-                self.dcm = propagate_attitude(self.dcm, self.rate, dt)
-            self.rate_known = False
+                             "matches": [{"star": int(s), "id": int(i)} for s, i in labels]}
+        self._update_filter(result, track, dt, rate_est)
         self.last_t = t
+        if result is not None:
+            self.last_fix_t = t
         self.mode = track["mode"]
-        track["rate_deg_s"] = [float(v) for v in np.degrees(self.rate)]
+        if self.filter is not None:
+            track["rate_deg_s"] = [float(v) for v in np.degrees(self.filter.rate)]
+            track["rate_sigma_deg_s"] = [float(v) for v in np.degrees(np.sqrt(np.diag(self.filter.P)[3:]))]
+            if self.sign_ambiguous:
+                track["rate_sign_known"] = False
         track["time_ms"] = round((time.perf_counter() - t0) * 1000, 4)
         if result is None:
-            att_section = {"status": "failed", "method": "quest", "reason": "lost: no attitude in this frame"}
+            att_section = {"status": "failed", "method": "quest",
+                           "reason": "lost: no attitude in this frame"
+                           + (f" ({ident_section.get('reason')})" if ident_section and ident_section.get("reason") else "")}
         else:
             att_section = result.section()
+            att_section["mode"] = track["mode"]
+            if track["mode"] == "single-star" and self.filter is not None:
+                arcsec = math.degrees(1.0) * 3600.0
+                p = self.filter.P
+                att_section["sigma_cross_boresight_arcsec"] = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
+                att_section["sigma_roll_arcsec"] = float(math.sqrt(p[2, 2]) * arcsec)
         return {"stars": stars_out, "identification": ident_section, "attitude": att_section, "track": track}
+
+    def _update_filter(self, result, track, dt, rate_est):
+        cfg = self.config
+        mode = track["mode"]
+        if mode == "lost-in-space":
+            # (Re)start the filter at the acquired attitude; the rate from the streaks (sign unknown) or the
+            # previous estimate.
+            cov_att = result.cov_rad2 if result.cov_rad2 is not None else np.eye(3) * math.radians(60 / 3600) ** 2
+            s0 = math.radians(cfg.rate_sigma0_deg_s)
+            if self.filter is None and self.rate_prior is not None:
+                # A rate given by the caller (a gyro): its sign is known.
+                rate, cov_rate = self.rate_prior, np.eye(3) * math.radians(0.01) ** 2
+                self.sign_ambiguous = False
+            elif rate_est is not None and np.all(np.isfinite(rate_est.cov)):
+                rate, cov_rate = rate_est.rate, rate_est.cov + np.eye(3) * 1e-8
+                sig = np.sqrt(np.diag(cov_rate))
+                self.sign_ambiguous = bool(np.linalg.norm(rate) > 3.0 * np.linalg.norm(sig))
+                track["streak_rate_deg_s"] = [round(float(v), 5) for v in np.degrees(rate)]
+                if not self.sign_ambiguous:
+                    cov_rate = cov_rate + np.outer(rate, rate)     # a rate not clear of zero: either sign
+            elif self.filter is not None and dt is not None and self.last_fix_t is not None:
+                rate, cov_rate = self.filter.rate, self.filter.P[3:, 3:]
+                self.sign_ambiguous = False
+            else:
+                rate, cov_rate = np.zeros(3), np.eye(3) * s0 ** 2
+                self.sign_ambiguous = False
+            cov = np.zeros((6, 6))
+            cov[:3, :3] = cov_att
+            cov[3:, 3:] = cov_rate
+            prev = self.filter
+            self.filter = AttitudeRateFilter(result.dcm, rate, cov, self._q())
+            # Consecutive fixes: the attitude difference measures the rate (resolving the streak sign).
+            if prev is not None and dt is not None and self.last_fix_t is not None and self.mode is not None \
+                    and self.mode != "lost" and dt <= cfg.max_gap_s:
+                from startrack.rotations import rotation_vector
+
+                measured = rotation_vector(result.dcm @ prev.dcm.T) / dt
+                cov_m = (cov_att + prev.P[:3, :3]) / dt ** 2
+                if self.sign_ambiguous and np.dot(measured, rate) < 0:
+                    self.filter.rate = -rate
+                self.sign_ambiguous = False
+                self.filter.update_rate(measured, cov_m)
+            return
+        if self.filter is None:
+            return
+        if dt is not None:
+            if self._pred is not None:
+                self.filter.dcm, self.filter.P = self._pred
+            else:
+                self.filter.predict(dt)
+        if mode == "tracking":
+            cov = result.cov_rad2 if result.cov_rad2 is not None else np.eye(3) * math.radians(10 / 3600) ** 2
+            track["nis"] = round(self.filter.update_attitude(result.dcm, cov), 3)
+        elif mode == "single-star" and self._single is not None:
+            body, ref, sig = self._single
+            track["nis"] = round(self.filter.update_star(body, ref, sig), 3)
+        if mode in ("tracking", "single-star") and self._streak_rate is not None:
+            w, cov_w = self._streak_rate
+            self.filter.update_rate(w, cov_w + np.eye(3) * 1e-10)

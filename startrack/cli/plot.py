@@ -57,6 +57,12 @@ def command(input, kind, output, mag_limit, title, quiet):
     if kind == "track":
         from startrack.plot import plot_track_errors
 
+        if not any((d.get("attitude") or {}).get("status") == "ok" for d in docs):
+            raise BadInputError(input, "attitude", f"no frame of {len(docs)} has an attitude: nothing to plot "
+                                "(give the output of `startrack track`)")
+        if not any("truth" in d for d in docs):
+            raise BadInputError(input, "truth", "no frame has a truth section: the errors need rendered frames")
+
         stats = plot_track_errors(docs, output, title)
         click.echo(json.dumps(stats, indent=1))
         info(quiet, f"plot: {output}")

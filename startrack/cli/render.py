@@ -52,7 +52,8 @@ def _floats(text, name, n):
 @click.option("--frames", type=int, default=1, show_default=True, help="Frames in a sequence.")
 @click.option("--frame-interval-s", type=float, default=0.1, show_default=True, help="Time between frames.")
 @click.option("--time", "start_time", type=str, default=None,
-              help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch.")
+              help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch. "
+                   "Default: the catalog's epoch. Every frame's image.time is written.")
 @click.option("--blackout", type=str, default=None,
               help="START:COUNT: frames of a sequence rendered without stars (covered or blinded), e.g. 50:10.")
 @click.option("--stars-only", is_flag=True, help="No image: stars straight from the truth, with noise.")

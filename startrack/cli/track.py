@@ -13,14 +13,15 @@ from startrack.cli.options import load_camera_file, catalog_option, handle_error
 @catalog_option
 @click.option("--mag-limit", type=float, default=None, help="Faintest catalog star predicted (default: the database's).")
 @click.option("--frame-interval-s", type=float, default=None,
-              help="Time between frames when the documents have no image.time (bare images).")
+              help="Time between frames, used only for frames without image.time (e.g. bare images).")
 @click.option("--initial-quaternion", type=str, default=None, help="Start from this attitude (q1,q2,q3,q4).")
 @click.option("--rate-prior", type=str, default=None, help="Initial body rate wx,wy,wz (deg/s).")
 @click.option("--window-px", type=int, default=8, show_default=True, help="Base half-size of the prediction windows.")
 @click.option("--sigma-px", type=float, default=0.3, show_default=True, help="Centroid noise (1 sigma) for weights.")
-@click.option("--exposure-ms", type=float, default=100.0, show_default=True, help="Exposure (for smear-aware windows).")
-@click.option("--max-gap-s", type=float, default=2.0, show_default=True,
-              help="A longer gap between frames restarts from lost in space.")
+@click.option("--exposure-ms", type=float, default=None,
+              help="Exposure for frames without image.exposure_ms (default 100).")
+@click.option("--max-gap-s", type=float, default=0.5, show_default=True,
+              help="Longer without an attitude (a gap or a blackout) restarts from lost in space.")
 @click.option("--algorithm", default="pyramid", show_default=True, help="Lost-in-space algorithm.")
 @output_option()
 @quiet_option
@@ -30,18 +31,23 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
 
     Input: frame documents naming images (JSON Lines, e.g. from `startrack
-    render --frames N`), in time order, or image files with --camera and
-    --frame-interval-s.  Each output frame has a `track` section: mode (lis,
-    track, single-star, lost), predicted vs measured positions, the rate
-    estimate (deg/s), the window size and the time per frame.  Out-of-order
-    time stamps are refused.
+    render --frames N`, whose image.time and image.exposure_ms it reads), in
+    time order, or image files with --camera and --frame-interval-s.  Each
+    output frame has a `track` section: mode (tracking, single-star,
+    lost-in-space, lost), predicted vs measured positions, the filtered rate
+    and its sigma (deg/s), the rate from the streaks, the window size and the
+    time per frame.  Stars of a turning camera are fitted as streaks (position
+    at mid-exposure).  The first frame, and any frame after a gap or blackout
+    longer than --max-gap-s, is solved lost in space with identify's search.
+    Out-of-order time stamps are refused.  Exit status 1 when any frame has no
+    attitude.
 
     \b
-    Example (a rendered slew, then tracking):
-      startrack render --fov-deg 12 --size 1024x768 --frames 200 --rate-deg-s 0.3,0.4,0 --seed 2 \\
-          -o seq/frame.png > seq.jsonl
-      startrack build-kvector --fov-deg 12 --size 1024x768 --mag-max 6.0 -o db12.h5
-      startrack track seq.jsonl -d db12.h5 | jq -c '[.track.mode, .attitude.ra, .attitude.dec]'
+    Example (a rendered sequence, then tracking):
+      startrack build-kvector --fov-deg 12 --size 1024x768 --mag-max 6.5 -o db12.h5
+      startrack render --fov-deg 12 --size 1024x768 --frames 60 --rate-deg-s 0.3,-0.2,0.5 \\
+          --frame-interval-s 0.1 --seed 1 -o seq/frame.png > seq.jsonl
+      startrack track --database db12.h5 < seq.jsonl | jq -c '[.track.mode, .attitude.ra, .attitude.dec]'
     """
 
     import numpy as np
@@ -55,7 +61,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     from startrack.kvector import check_database, load_kvector
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm
     from startrack.timeutil import parse_time
-    from startrack.track import Tracker, TrackerConfig
+    from startrack.track import MODES, Tracker, TrackerConfig
 
     db = load_kvector(database)
     cam_override = None
@@ -74,9 +80,9 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
             raise BadInputError("--rate-prior", None, "expected wx,wy,wz in deg/s")
     cat = load_catalog(catalog)
     config = TrackerConfig(mag_limit=mag_limit if mag_limit is not None else float(db.star_mag.max()),
-                           window_px=window_px, sigma_px=sigma_px, max_gap_s=max_gap_s, exposure_s=exposure_ms / 1000,
-                           algorithm=algorithm)
-    state = {"tracker": None, "t0": None}
+                           window_px=window_px, sigma_px=sigma_px, max_gap_s=max_gap_s,
+                           exposure_s=(exposure_ms if exposure_ms is not None else 100.0) / 1000, algorithm=algorithm)
+    state = {"tracker": None, "t0": None, "t_prev": None, "modes": {m: 0 for m in MODES}}
 
     # Bare image files become minimal frame documents.
     names = list(inputs) or ["-"]
@@ -110,19 +116,27 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")
         image, meta = read_image(path)
-        tstr = (doc.get("image") or {}).get("time")
+        image_doc = doc.get("image") or {}
+        tstr = image_doc.get("time")
         if tstr:
             t_abs = parse_time(tstr, f"{src}: image.time")
             if state["t0"] is None:
                 state["t0"] = t_abs
             t = (t_abs - state["t0"]).total_seconds()
         elif frame_interval_s:
-            t = index * frame_interval_s
+            # A gap in the time stamps: one frame interval after the previous frame.
+            t = 0.0 if state["t_prev"] is None else state["t_prev"] + frame_interval_s
         else:
             raise BadInputError(src, "image.time", "is missing (give --frame-interval-s)")
+        exp_ms = image_doc.get("exposure_ms")
+        if exp_ms is not None and not (isinstance(exp_ms, (int, float)) and exp_ms > 0):
+            raise BadInputError(src, "image.exposure_ms", f"must be a positive number, got {exp_ms!r}")
+        exposure_s = exp_ms / 1000.0 if exp_ms is not None else config.exposure_s
         doc["image"] = {**(doc.get("image") or {}), "width": image.shape[1], "height": image.shape[0]}
         doc["camera"] = cam.to_dict()
-        out = state["tracker"].step(image, t, meta["saturation"])
+        out = state["tracker"].step(image, t, meta["saturation"], exposure_s)
+        state["t_prev"] = t
+        state["modes"][out["track"]["mode"]] += 1
         doc["stars"] = out["stars"]
         doc["identification"] = out["identification"]
         doc["attitude"] = out["attitude"]
@@ -130,4 +144,13 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         doc["track"]["t_s"] = t
         return doc
 
-    run_frames(source, output, "track", process, quiet, "track")
+    run_frames(source, output, "attitude", process, quiet, "track")
+    modes = state["modes"]
+    n = sum(modes.values())
+    with_att = n - modes["lost"]
+    if not quiet or modes["lost"]:
+        click.echo(f"track: {with_att} of {n} frame(s) with an attitude ("
+                    + ", ".join(f"{modes[m]} {m}" for m in MODES if m != "lost") + f"), {modes['lost']} lost",
+                    err=True)
+    if modes["lost"]:
+        raise SystemExit(1)
