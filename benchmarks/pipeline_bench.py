@@ -125,7 +125,7 @@ def tracking_speed(n=60, seed=5):
         t0 = time.perf_counter()
         out = tr.step(img, 0.1 * k, 65535)
         dt = (time.perf_counter() - t0) * 1000
-        if out["track"]["mode"] == "track" and k >= 3:
+        if out["track"]["mode"] == "tracking" and k >= 3:
             track_ms.append(dt)
     rows = {int(i): k for k, i in enumerate(tr.ids)}
     lis_ms = []

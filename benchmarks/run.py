@@ -191,11 +191,13 @@ def bench_attitude():
 def bench_track():
     import pipeline_bench as pb
 
+    import track_bench
+
     track_ms, lis_ms, n = pb.tracking_speed()
     return "track", table(["mode (1024 x 768, 12 deg, image in memory)", "median ms per frame", "frames/s"], [
         ["tracking (predict + windows + QUEST)", f"{track_ms:.3f}", f"{1000 / track_ms:.0f}"],
         ["lost in space (centroid + identify + attitude)", f"{lis_ms:.3f}", f"{1000 / lis_ms:.0f}"],
-        ["ratio", f"{lis_ms / track_ms:.1f}x faster", ""]]) + f"\n\n({n} tracked frames)"
+        ["ratio", f"{lis_ms / track_ms:.1f}x faster", ""]]) + f"\n\n({n} tracked frames)\n\n" + track_bench.report()
 
 
 def bench_solve():

@@ -59,7 +59,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Streak", "fit_streaks", "rate_from_streaks", "RateEstimate", "streak_jacobians"]
+__all__ = ["RateEstimate", "Streak", "fit_streaks", "fit_streaks_array", "predicted_streaks", "rate_from_streaks",
+           "streak_jacobians"]
 
 
 @dataclass
@@ -89,7 +90,7 @@ class Streak:
 
 
 def fit_streaks(image, xs, ys, psf_sigma_px: float = 1.0, half_px: int = 8, max_half_px: int = 128,
-                k_sigma: float = 3.0, max_iter: int = 30):
+                k_sigma: float = 3.0, max_iter: int = 30, lengths_px=None, angles_rad=None):
     """Fit Eq. (1) to the streak around each start position.
 
     Parameters
@@ -104,6 +105,10 @@ def fit_streaks(image, xs, ys, psf_sigma_px: float = 1.0, half_px: int = 8, max_
         Starting PSF width (px); fitted.
     k_sigma : float
         Threshold (background noise units) of the moments that start the fit.
+    lengths_px, angles_rad : array_like, optional
+        Predicted streak lengths and directions (e.g. from a known rate,
+        :func:`predicted_streaks`); where finite they start the fit instead of
+        the moments (faint streaks).
 
     Returns
     -------
@@ -114,23 +119,31 @@ def fit_streaks(image, xs, ys, psf_sigma_px: float = 1.0, half_px: int = 8, max_
     from startrack._kernels.streak import fit_streaks as kernel
 
     img = np.ascontiguousarray(image, dtype=np.float32)
-    xs = np.ascontiguousarray(xs, dtype=np.float64).reshape(-1)
-    ys = np.ascontiguousarray(ys, dtype=np.float64).reshape(-1)
-    out = np.empty((len(xs), N_OUT))
-    kernel(img, xs, ys, int(half_px), int(max_half_px), float(psf_sigma_px), float(k_sigma), int(max_iter), out)
+    out = fit_streaks_array(img, xs, ys, psf_sigma_px, half_px, max_half_px, k_sigma, max_iter, lengths_px, angles_rad)
     return [_streak(row) for row in out]
 
 
-def fit_streaks_array(image, xs, ys, psf_sigma_px=1.0, half_px=8, max_half_px=128, k_sigma=3.0, max_iter=30):
+def fit_streaks_array(image, xs, ys, psf_sigma_px=1.0, half_px=8, max_half_px=128, k_sigma=3.0, max_iter=30,
+                      lengths_px=None, angles_rad=None):
     """:func:`fit_streaks` returning the raw ``(n, 14)`` array (for speed in loops)."""
     from startrack._kernels.streak import N_OUT
     from startrack._kernels.streak import fit_streaks as kernel
 
     xs = np.ascontiguousarray(xs, dtype=np.float64).reshape(-1)
     ys = np.ascontiguousarray(ys, dtype=np.float64).reshape(-1)
-    out = np.empty((len(xs), N_OUT))
-    kernel(image, xs, ys, int(half_px), int(max_half_px), float(psf_sigma_px), float(k_sigma), int(max_iter), out)
+    n = len(xs)
+    l0 = np.full(n, np.nan) if lengths_px is None else 0.5 * np.asarray(lengths_px, dtype=np.float64).reshape(-1)
+    th0 = np.zeros(n) if angles_rad is None else np.asarray(angles_rad, dtype=np.float64).reshape(-1)
+    out = np.empty((n, N_OUT))
+    kernel(np.ascontiguousarray(image, dtype=np.float32), xs, ys, np.ascontiguousarray(l0), np.ascontiguousarray(th0),
+           int(half_px), int(max_half_px), float(psf_sigma_px), float(k_sigma), int(max_iter), out)
     return out
+
+
+def predicted_streaks(camera, x, y, rate, exposure_s):
+    """Length (px) and direction (rad) of the streaks a body rate ``rate`` (rad/s) draws at ``(x, y)``."""
+    v = np.einsum("ijk,k->ij", streak_jacobians(camera, x, y), np.asarray(rate, dtype=np.float64)) * exposure_s
+    return np.hypot(v[:, 0], v[:, 1]), np.arctan2(v[:, 1], v[:, 0])
 
 
 def _streak(row):

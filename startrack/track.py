@@ -139,6 +139,15 @@ def _cross(v):
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _log_minus(r):
+    """``phi`` with ``exp(-[phi x]) = r`` (the inverse of :func:`_exp_minus`, angles below pi)."""
+    v = 0.5 * np.array([r[1, 2] - r[2, 1], r[2, 0] - r[0, 2], r[0, 1] - r[1, 0]])
+    s = math.sqrt(float(v @ v))
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
+    angle = math.atan2(s, c)
+    return v if s < 1e-12 else v * (angle / s)
+
+
 def _exp_minus(phi):
     """``exp(-[phi x])`` (Rodrigues): the passive rotation by ``|phi|`` about ``phi`` (as
     :func:`startrack.render.propagate_attitude`)."""
@@ -200,9 +209,7 @@ class AttitudeRateFilter:
 
     def update_attitude(self, dcm_meas, cov):
         """Update with a measured attitude and its covariance (rad^2, camera frame); returns the NIS."""
-        from startrack.rotations import rotation_vector
-
-        z = rotation_vector(np.asarray(dcm_meas) @ self.dcm.T)
+        z = _log_minus(np.asarray(dcm_meas) @ self.dcm.T)
         h = np.hstack([np.eye(3), np.zeros((3, 3))])
         return self._update(z, h, np.asarray(cov, dtype=np.float64))
 
@@ -285,24 +292,41 @@ class Tracker:
         trails = [r for r in res.rejected if str(r.get("reason", "")).startswith("elongated")]
         prior = self.filter.rate if self.filter is not None else self.rate_prior
         expect = 0.0 if prior is None else float(np.linalg.norm(prior)) * self.camera.focal_length_px * exposure_s
-        streaky = bool(trails) or expect >= cfg.streak_min_px
+        probe = res.stars[: cfg.max_streaks]
+        fits = fit_streaks(img, [s["x"] for s in probe], [s["y"] for s in probe]) if probe else []
+        long_fits = [ft for ft in fits if ft is not None and ft.length_px > cfg.streak_min_px
+                     and ft.length_px > 3.0 * ft.sigma_length_px]
+        streaky = bool(trails) or expect >= cfg.streak_min_px or len(long_fits) >= max(1, len(probe) // 2)
+        info = {"detected": len(res.stars), "streaks": 0, "streak_detection": streaky}
         if streaky:
-            # Streaks: no deblending (a streak's noisy ridge is not two stars), no elongation cut.
-            res = find_stars(img, CentroidOptions(deblend=False, max_elongation=1e9), saturation=saturation)
+            # Streaks: a matched filter (their signal is spread along them), no deblending (a streak's noisy
+            # ridge is not two stars) and no elongation cut; then the line-segment fits on the brightest.
+            res = find_stars(img, CentroidOptions(deblend=False, max_elongation=1e9, matched_filter=True,
+                                                  filter_sigma_px=2.0), saturation=saturation)
+            info["detected"] = len(res.stars)
+            n_fit = min(len(res.stars), max(cfg.max_streaks, 12))
+            fits = fit_streaks(img, [s["x"] for s in res.stars[:n_fit]], [s["y"] for s in res.stars[:n_fit]])
         stars = [dict(s) for s in res.stars]
-        rate_est = None
-        info = {"detected": len(stars), "streaks": 0}
-        if stars:
-            n_fit = min(len(stars), max(cfg.max_streaks, 12))
-            fits = fit_streaks(img, [s["x"] for s in stars[:n_fit]], [s["y"] for s in stars[:n_fit]])
-            for s, ft in zip(stars[:n_fit], fits, strict=True):
-                if ft is None or not ft.length_px > 2.0 * max(ft.sigma_length_px, 0.5):
-                    continue
-                # A significant streak: its mid-exposure position and sigma replace the point-source centroid.
-                st = ft.as_star()
-                s.update(x=st["x"], y=st["y"], sigma_px=st["sigma_px"], streak=st["streak"])
-                info["streaks"] += 1
-            rate_est = rate_from_streaks(self.camera, fits[: cfg.max_streaks], exposure_s)
+        rate_est = rate_from_streaks(self.camera, fits[: cfg.max_streaks], exposure_s) if fits else None
+        if streaky and rate_est is not None and np.all(np.isfinite(rate_est.cov)):
+            # Faint streaks the moments could not start: start them from the streaks the rate predicts.
+            from startrack.streak import predicted_streaks
+
+            redo = [j for j, ft in enumerate(fits) if ft is None]
+            if redo:
+                xs = np.array([stars[j]["x"] for j in redo])
+                ys = np.array([stars[j]["y"] for j in redo])
+                length, angle = predicted_streaks(self.camera, xs, ys, rate_est.rate, exposure_s)
+                for j, ft in zip(redo, fit_streaks(img, xs, ys, lengths_px=length, angles_rad=angle), strict=True):
+                    if ft is not None and math.hypot(ft.x - stars[j]["x"], ft.y - stars[j]["y"]) < 0.5 * ft.length_px + 3:
+                        fits[j] = ft
+        for s, ft in zip(stars[: len(fits)], fits, strict=True):
+            if ft is None or not ft.length_px > 2.0 * max(ft.sigma_length_px, 0.5):
+                continue
+            # A significant streak: its mid-exposure position and sigma replace the point-source centroid.
+            st = ft.as_star()
+            s.update(x=st["x"], y=st["y"], sigma_px=st["sigma_px"], streak=st["streak"])
+            info["streaks"] += 1
         if len(stars) < 3:
             return None, {"status": "failed", "algorithm": cfg.algorithm, "matches": [],
                           "reason": res.reason or f"{len(stars)} star(s) found: at least 3 are needed"}, stars, None, info
@@ -356,25 +380,32 @@ class Tracker:
         _, choice, dcm_pred, rows, px, py, mx, my, flux, snr, found = best
         if self.sign_ambiguous:
             if choice == 1:
+                # The streaks' rate had the other sign: the filter's state and its prediction turn with it.
                 self.filter.rate = -self.filter.rate
+                self._pred = self.filter.predicted(track["dt_s"])
                 track["rate_sign"] = "flipped"
             self.sign_ambiguous = False
         ok = np.flatnonzero(found)
         sig = np.full(len(rows), max(cfg.sigma_px, cfg.sigma_floor_px))
         streaks = []
         if smear >= cfg.streak_min_px and len(ok):
-            from startrack.streak import _streak, fit_streaks_array
+            from startrack.streak import _streak, fit_streaks_array, predicted_streaks
 
-            use = ok[: cfg.max_streaks]
-            fits = fit_streaks_array(img, mx[use], my[use], half_px=int(math.ceil(smear / 2.0 + 6)),
-                                     max_half_px=int(math.ceil(smear + 12)))
+            # The brightest found stars, fitted as streaks started from the shape the rate predicts; a box
+            # centroid of a long streak is not its mid-exposure position, so unfitted stars are not used.
+            use = ok[np.argsort(-flux[ok], kind="stable")][: cfg.max_streaks]
+            length, angle = predicted_streaks(self.camera, mx[use], my[use], rate, exposure_s)
+            fits = fit_streaks_array(img, mx[use], my[use], max_half_px=int(math.ceil(smear + 12)),
+                                     lengths_px=length, angles_rad=angle)
+            fitted = []
             for j, k in enumerate(use):
-                row = fits[j]
-                st = _streak(row)
+                st = _streak(fits[j])
                 if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < smear / 2.0 + 3.0:
                     mx[k], my[k] = st.x, st.y
                     sig[k] = max(math.sqrt(0.5 * (st.sigma_x ** 2 + st.sigma_y ** 2)), cfg.sigma_floor_px)
+                    fitted.append(k)
                     streaks.append(st)
+            ok = np.array(sorted(fitted), dtype=np.int64)
         # Outliers: offsets far from the common offset (a false star or a neighbour in the window).
         if len(ok) >= 3:
             off = np.column_stack([mx[ok] - px[ok], my[ok] - py[ok]])
@@ -382,11 +413,14 @@ class Tracker:
             dist = np.hypot(*(off - med).T)
             ok = ok[dist <= max(cfg.outlier_px, 3 * cfg.sigma_px)]
         track.update(window_px=half, predicted=len(rows), found=int(found.sum()), used=len(ok))
-        track["stars"] = [{"id": int(self.ids[rows[k]]), "predicted": [round(float(px[k]), 3), round(float(py[k]), 3)],
-                           "measured": [round(float(mx[k]), 3), round(float(my[k]), 3)] if found[k] else None}
-                          for k in range(len(rows))]
-        stars = [{"x": float(mx[k]), "y": float(my[k]), "flux": float(flux[k]), "snr": float(snr[k]),
-                  "sigma_px": float(sig[k])} for k in ok]
+        ids = self.ids[rows].tolist()
+        pxl, pyl, mxl, myl = (np.round(v, 3).tolist() for v in (px, py, mx, my))
+        fl = found.tolist()
+        track["stars"] = [{"id": ids[k], "predicted": [pxl[k], pyl[k]], "measured": [mxl[k], myl[k]] if fl[k] else None}
+                          for k in range(len(ids))]
+        stars = [{"x": x, "y": y, "flux": fx, "snr": sn, "sigma_px": sg} for x, y, fx, sn, sg in
+                 zip(mx[ok].tolist(), my[ok].tolist(), flux[ok].tolist(), snr[ok].tolist(), sig[ok].tolist(),
+                     strict=True)]
         rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
         if len(streaks) >= 2 and rate_sigma > math.radians(cfg.streak_rate_until_deg_s):
             from startrack.streak import rate_from_streaks

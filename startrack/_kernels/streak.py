@@ -187,7 +187,7 @@ def _moments(image, xc, yc, half, k_sigma):
 
 
 @njit(cache=True)
-def fit_streaks(image, xs, ys, half0, max_half, psf_sigma, k_sigma, max_iter, out):
+def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, max_iter, out):
     """Fit a line-segment PSF to the streak near each ``(xs[k], ys[k])``; results in ``out[k, :N_OUT]``.
 
     Start: the thresholded moments in a box of half-size ``half0`` (doubled,
@@ -195,6 +195,10 @@ def fit_streaks(image, xs, ys, half0, max_half, psf_sigma, k_sigma, max_iter, ou
     Levenberg-Marquardt on the pixels within ``3 sigma + 2`` px of the
     starting segment; parameters ``cx, cy`` (mid-exposure position), ``l``
     (half length), ``theta`` (direction), flux, background and PSF sigma.
+    Where ``l0s[k]`` is finite the start is given instead: centre
+    ``(xs[k], ys[k])``, half length ``l0s[k]``, direction ``th0s[k]`` (a streak
+    predicted from a known rate: faint streaks whose pixels are too few above
+    the threshold for the moments).
     Uncertainties: the sandwich estimator ``(J^T J)^-1 (sum r^2 J J^T) (J^T J)^-1``
     (right under shot noise, whose variance grows with the signal).  ``out[k, 13]`` is 1 when the fit converged.
     """
@@ -211,10 +215,17 @@ def fit_streaks(image, xs, ys, half0, max_half, psf_sigma, k_sigma, max_iter, ou
         out[k, :] = np.nan
         out[k, 13] = 0.0
         half = half0
-        ok, bg, noise, mx, my, l0, th0, f0, touches = _moments(image, xs[k], ys[k], half, k_sigma)
-        while ok and touches and half < max_half:
-            half = min(2 * half, max_half)
-            ok, bg, noise, mx, my, l0, th0, f0, touches = _moments(image, mx, my, half, k_sigma)
+        if np.isfinite(l0s[k]):
+            half = min(max_half, int(math.ceil(l0s[k] + 3.0 * psf_sigma + 4.0)))
+            ok, bg, noise, mx, my, l0, th0, f0, touches = _moments(image, xs[k], ys[k], half, k_sigma)
+            if noise <= 0.0:
+                continue
+            mx, my, l0, th0, f0, ok = xs[k], ys[k], max(l0s[k], 0.3), th0s[k], 0.0, True
+        else:
+            ok, bg, noise, mx, my, l0, th0, f0, touches = _moments(image, xs[k], ys[k], half, k_sigma)
+            while ok and touches and half < max_half:
+                half = min(2 * half, max_half)
+                ok, bg, noise, mx, my, l0, th0, f0, touches = _moments(image, mx, my, half, k_sigma)
         if not ok:
             continue
         # Pixels near the starting segment.
