@@ -320,6 +320,8 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
         if sel:
             stats[f"rms_cross_{m or 'solved'}_arcsec"] = float(math.sqrt(sum(r[2] ** 2 for r in sel) / len(sel)))
             stats[f"rms_roll_{m or 'solved'}_arcsec"] = float(math.sqrt(sum(r[3] ** 2 for r in sel) / len(sel)))
+            stats[f"max_cross_{m or 'solved'}_arcsec"] = float(max(r[2] for r in sel))
+            stats[f"max_roll_{m or 'solved'}_arcsec"] = float(max(abs(r[3]) for r in sel))
     recoveries = []
     k = 0
     while k < len(rows):

@@ -352,7 +352,7 @@ class Tracker:
             return None, ident.section(), stars, rate_est, info
         return att, ident.section(), stars, rate_est, info
 
-    def _track(self, img, dcm_pred, p_pred, exposure_s, track):
+    def _track(self, img, dcm_pred, p_pred, exposure_s, track, details=True):
         """Windowed tracking at the predicted attitude; returns ``(result, stars, reason)``."""
         from startrack.attitude import AttitudeResult, estimate_attitude
 
@@ -413,14 +413,16 @@ class Tracker:
             dist = np.hypot(*(off - med).T)
             ok = ok[dist <= max(cfg.outlier_px, 3 * cfg.sigma_px)]
         track.update(window_px=half, predicted=len(rows), found=int(found.sum()), used=len(ok))
-        ids = self.ids[rows].tolist()
-        pxl, pyl, mxl, myl = (np.round(v, 3).tolist() for v in (px, py, mx, my))
-        fl = found.tolist()
-        track["stars"] = [{"id": ids[k], "predicted": [pxl[k], pyl[k]], "measured": [mxl[k], myl[k]] if fl[k] else None}
-                          for k in range(len(ids))]
-        stars = [{"x": x, "y": y, "flux": fx, "snr": sn, "sigma_px": sg} for x, y, fx, sn, sg in
-                 zip(mx[ok].tolist(), my[ok].tolist(), flux[ok].tolist(), snr[ok].tolist(), sig[ok].tolist(),
-                     strict=True)]
+        stars = []
+        if details:
+            ids = self.ids[rows].tolist()
+            pxl, pyl, mxl, myl = (np.round(v, 3).tolist() for v in (px, py, mx, my))
+            fl = found.tolist()
+            track["stars"] = [{"id": ids[k], "predicted": [pxl[k], pyl[k]],
+                               "measured": [mxl[k], myl[k]] if fl[k] else None} for k in range(len(ids))]
+            stars = [{"x": x, "y": y, "flux": fx, "snr": sn, "sigma_px": sg} for x, y, fx, sn, sg in
+                     zip(mx[ok].tolist(), my[ok].tolist(), flux[ok].tolist(), snr[ok].tolist(), sig[ok].tolist(),
+                         strict=True)]
         rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
         if len(streaks) >= 2 and rate_sigma > math.radians(cfg.streak_rate_until_deg_s):
             from startrack.streak import rate_from_streaks
@@ -462,8 +464,15 @@ class Tracker:
         return None, stars, f"{len(ok)} stars found in the prediction windows"
 
     # --------------------------------------------------------------------- step
-    def step(self, image, t: float, saturation: float | None = None, exposure_s: float | None = None) -> dict:
+    def step(self, image, t: float, saturation: float | None = None, exposure_s: float | None = None,
+             details: bool = True) -> dict:
         """Process one frame; returns ``{"stars", "identification", "attitude", "track"}`` sections.
+
+        With ``details=False`` (a tracking loop in memory) it returns
+        ``{"mode", "dcm", "rate_rad_s", "result", "track"}`` instead: the attitude
+        (ICRS to camera, or ``None``), the filter's rate, the
+        :class:`~startrack.attitude.AttitudeResult`, and a ``track`` dict without
+        the per-star list; no document section is built.
 
         Parameters
         ----------
@@ -493,14 +502,14 @@ class Tracker:
             dcm_pred, p_pred = self.filter.predicted(dt)
             self._pred = (dcm_pred, p_pred)
             if since_fix is not None and since_fix <= cfg.max_gap_s:
-                result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track)
+                result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track, details)
             else:
                 reason_lis = f"{since_fix:.3f} s since the last attitude (above {cfg.max_gap_s:g} s)" \
                     if since_fix is not None else "no attitude yet"
         elif self.filter is not None:
             # A given initial attitude: track from it on the first frame.
             dcm_pred, p_pred = self.filter.dcm, self.filter.P
-            result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track)
+            result, stars_out, reason_lis = self._track(img, dcm_pred, p_pred, exposure, track, details)
         else:
             reason_lis = "no attitude yet"
         rate_est = None
@@ -514,7 +523,7 @@ class Tracker:
                 track["mode"] = "lost-in-space"
             else:
                 track["mode"] = "lost"
-        else:
+        elif details:
             labels = result.used
             ident_section = {"status": "ok", "algorithm": f"track-{track['mode']}",
                              "matches": [{"star": int(s), "id": int(i)} for s, i in labels]}
@@ -523,6 +532,11 @@ class Tracker:
         if result is not None:
             self.last_fix_t = t
         self.mode = track["mode"]
+        if not details:
+            track["time_ms"] = (time.perf_counter() - t0) * 1000
+            return {"mode": track["mode"], "dcm": None if result is None else result.dcm,
+                    "rate_rad_s": None if self.filter is None else self.filter.rate.copy(), "result": result,
+                    "track": track}
         if self.filter is not None:
             track["rate_deg_s"] = [float(v) for v in np.degrees(self.filter.rate)]
             track["rate_sigma_deg_s"] = [float(v) for v in np.degrees(np.sqrt(np.diag(self.filter.P)[3:]))]

@@ -12,6 +12,15 @@ def test_render_then_track(tmp_path):
     run_cli("build-kvector", "--fov-deg", "12", "--size", "1024x768", "--mag-max", "6.0", "-o", db, check=True)
     # No option but the database: the frames carry their time and exposure.
     proc = run_cli("track", "-d", db, input=frames)
+    # A frame without image.time: --frame-interval-s fills the gap (one interval after the previous frame).
+    lines = frames.splitlines()
+    gap = json.loads(lines[8])
+    del gap["image"]["time"]
+    gapped = "\n".join(lines[:8] + [json.dumps(gap)] + lines[9:]) + "\n"
+    assert_refused(run_cli("track", "-d", db, input=json.dumps(gap) + "\n"), "image.time")
+    filled = [json.loads(l) for l in run_cli("track", "-d", db, "--frame-interval-s", "0.1", "-q",
+                                             input=gapped).stdout.splitlines()]
+    assert [round(d["track"]["t_s"], 6) for d in filled[7:10]] == [0.7, 0.8, 0.9]
     assert proc.returncode == 1, proc.stderr        # two blacked-out frames have no attitude
     assert "10 of 12 frame(s) with an attitude" in proc.stderr and "2 lost" in proc.stderr
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
