@@ -111,6 +111,18 @@ class Sensor:
         """Expected sky + dark electrons per pixel in one exposure."""
         return (self.background_e_per_s + self.dark_current_e_per_s) * self.exposure_s
 
+    def detection_limit_mag(self, snr: float = 5.0) -> float:
+        """Magnitude of a star seen at signal-to-noise ``snr`` in one exposure.
+
+        Its ``S`` photo-electrons (paper 003 Eq. 9) over an aperture of
+        ``4 pi sigma^2`` pixels, each with variance ``background + dark + read^2``:
+        ``S / sqrt(S + n var) = snr``, so ``S = (snr^2 + sqrt(snr^4 + 4 snr^2 n var)) / 2``.
+        Fainter catalog stars add nothing a centroider could find.
+        """
+        n_var = 4.0 * math.pi * self.psf_sigma_px ** 2 * (self.background_e + self.read_noise_e ** 2)
+        signal = 0.5 * (snr * snr + math.sqrt(snr ** 4 + 4.0 * snr * snr * n_var))
+        return -2.5 * math.log10(signal / (self.zero_point_e_per_s * self.exposure_s))
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d.update(gain_e_per_dn=self.gain, bias_dn=self.bias)

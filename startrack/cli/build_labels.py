@@ -42,7 +42,7 @@ def command(catalog, fov_deg, mag_max, merge_arcsec, stars_per_field, group_size
     check_writable(output)
     if not 0 < fov_deg <= 90:
         raise BadInputError("--fov-deg", None, f"must be in (0, 90], got {fov_deg:g}")
-    cat = load_catalog(catalog).filter_magnitude(None, mag_max)
+    cat = load_catalog(catalog, mag_max=mag_max).filter_magnitude(None, mag_max)
     if epoch is not None:
         cat = cat.propagate(epoch)
     if merge_arcsec:

@@ -107,11 +107,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
                             max_stars=[max_stars])
     algos = [a.strip() for a in algorithms.split(",") if a.strip()]
-    cat = load_catalog(catalog)
     lim = mag_limit
     if lim is None:
         lim = min(float(db.star_mag.max()) for db in loaded.values())
-    cat = cat.filter_magnitude(None, lim)
+    cat = load_catalog(catalog, mag_max=lim).filter_magnitude(None, lim)
     import numpy as np
 
     if seed is None:

@@ -28,7 +28,8 @@ def _floats(text, name, n):
               help="Image file (.png, .tif/.tiff, .fits); numbered (sky-0000.png) for several frames.")
 @click.option("--documents", type=click.Path(dir_okay=False, allow_dash=True), default="-", show_default=True,
               help="Where the frame documents (JSON Lines) go.")
-@click.option("--mag-limit", type=float, default=None, help="Faintest magnitude rendered (default: the catalog's).")
+@click.option("--mag-limit", type=float, default=None,
+              help="Faintest magnitude rendered (default: the sensor's 5-sigma detection limit).")
 @click.option("--zero-point", "zero_point", type=float, default=2.0e6, show_default=True,
               help="Photo-electrons per second from a magnitude-0 star (aperture, optics, QE folded in).")
 @click.option("--exposure-ms", type=float, default=100.0, show_default=True, help="Exposure time.")
@@ -161,9 +162,12 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
 
     sensor = Sensor(zero_point, exposure_ms, psf_sigma_px, full_well_e, int(bit_depth), gain_e_per_dn, bias_dn,
                     read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, not no_noise)
+    if mag_limit is None:
+        # The deep catalog goes to Hp 14.6: render what this sensor can detect (about Hp 8.1 by default).
+        mag_limit = round(sensor.detection_limit_mag(), 2)
     scene = Scene(mag_limit, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)))
     t0 = parse_time(start_time) if start_time else None
-    cat = load_catalog(catalog)
+    cat = load_catalog(catalog, mag_max=mag_limit)
     if mag_limit is not None:
         cat = cat.filter_magnitude(None, mag_limit)
         if len(cat) == 0:

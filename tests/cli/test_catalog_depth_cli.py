@@ -76,3 +76,17 @@ def test_build_kvector_depth_options_are_checked(tmp_path):
     assert_refused(run_cli("build-kvector", "--fov-deg", "20", "--merge-px", "2", "--mag-max", "5", "-o", out),
                    "--merge-px", "--size")
     assert_refused(run_cli("build-kvector", *SENSOR, "--merge-px", "-1", "--mag-max", "5", "-o", out), "--merge-px")
+
+
+def test_render_default_depth_is_the_sensor_detection_limit():
+    # The catalog goes to Hp 14.6; render stops where the sensor's 5-sigma detection stops.
+    def render(*extra):
+        doc = json.loads(run_cli("render", "--stars-only", "--fov-deg", "20", "--size", "1024x1024", "--ra", "83.8",
+                                 "--dec", "-1.2", "--seed", "1", *extra, check=True).stdout)
+        return doc["render"]["params"]["scene"]["mag_limit"], [s["mag"] for s in doc["truth"]["stars"]]
+
+    limit, mags = render()
+    assert limit == pytest.approx(8.11, abs=0.01)          # default sensor: ~114 e- at SNR 5
+    assert max(mags) <= limit and max(mags) > limit - 0.1
+    deeper, mags = render("--exposure-ms", "1000")
+    assert deeper > limit + 1.0 and max(mags) <= deeper
