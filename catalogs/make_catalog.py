@@ -167,7 +167,7 @@ def write_catalog(path: str, data: dict[str, np.ndarray], params: dict) -> None:
                 arr = data[name]
                 kw = {"track_times": False}
                 if n > 0:
-                    kw.update(chunks=(min(n, 1 << 16),), compression="gzip", compression_opts=9, shuffle=True)
+                    kw.update(chunks=(min(n, 1 << 13),), compression="gzip", compression_opts=9, shuffle=True)
                 ds = f.create_dataset(name, data=arr, **kw)
                 for k, v in DATASET_ATTRS[name].items():
                     ds.attrs[k] = v
