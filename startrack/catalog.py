@@ -210,7 +210,7 @@ class Catalog:
                 i = parent[i]
             return i
 
-        for a, b in zip(first.tolist(), second.tolist()):
+        for a, b in zip(first.tolist(), second.tolist(), strict=True):
             ra_, rb = root(a), root(b)
             if ra_ != rb:
                 parent[max(ra_, rb)] = min(ra_, rb)
@@ -396,7 +396,8 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
             cols[name] = np.asarray(h5[name][rows]) if name in h5 else np.full(n, np.nan if name == "bv" else 0.0)
         merged = {}
         if "merged_id" in h5 and "merged_into" in h5:
-            for into, mid in zip(np.asarray(h5["merged_into"]).tolist(), np.asarray(h5["merged_id"]).tolist()):
+            into_ids = np.asarray(h5["merged_into"]).tolist()
+            for into, mid in zip(into_ids, np.asarray(h5["merged_id"]).tolist(), strict=True):
                 merged.setdefault(int(into), []).append(int(mid))
     for name in ("ra", "dec", "mag"):
         bad = ~np.isfinite(cols[name])

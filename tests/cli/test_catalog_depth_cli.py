@@ -24,7 +24,7 @@ def test_database_lists_merged_doubles(db15):
 
     db = load_kvector(str(db15))
     assert db.params["merge_arcsec"] == pytest.approx(2 * 15 * 3600 / 1280, rel=1e-2)   # 2 px at the centre
-    held = dict(zip(db.merged_id.tolist(), db.merged_into.tolist()))
+    held = dict(zip(db.merged_id.tolist(), db.merged_into.tolist(), strict=True))
     for bright, faint in DOUBLES:
         assert bright in db.star_id and faint not in db.star_id
         assert held[faint] == bright
@@ -32,7 +32,7 @@ def test_database_lists_merged_doubles(db15):
 
 def test_frames_centred_on_doubles_name_the_brighter_star(db15, catalog):
     frames = []
-    for n, (bright, faint) in enumerate(DOUBLES):
+    for n, (bright, _faint) in enumerate(DOUBLES):
         k = int(np.flatnonzero(catalog.id == bright)[0])
         for j, roll in enumerate((0.0, 100.0, 230.0)):
             # The pair near the centre, then off-centre, under different rolls and noise.
@@ -43,7 +43,7 @@ def test_frames_centred_on_doubles_name_the_brighter_star(db15, catalog):
     proc = run_cli("identify", "-d", db15, input="".join(frames))
     docs = [json.loads(line) for line in proc.stdout.splitlines()]
     assert len(docs) == 9
-    for doc, (bright, faint) in zip(docs, [d for d in DOUBLES for _ in range(3)]):
+    for doc, (bright, faint) in zip(docs, [d for d in DOUBLES for _ in range(3)], strict=True):
         truth = doc["truth"]
         blend = next(s for s in truth["stars"] if s["id"] == bright)
         assert faint in blend.get("blended", [])          # render sees one star, named after the brighter
