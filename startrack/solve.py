@@ -137,6 +137,7 @@ class SolveOptions:
     timeout_s: float = 5.0
     epoch: float | None = None
     method: str = "quest"
+    blind: str = "patterns"
 
 
 class _SearchClock:
@@ -190,8 +191,62 @@ def _identify_in_band(stars, camera, band, catalog, algorithm, params, clock):
     return None, len(FOV_BANDS[band][2])
 
 
+def pointing(dcm, camera) -> dict:
+    """Where the camera points: the image centre's and the principal point's RA/Dec (degrees).
+
+    The attitude's boresight is the principal point (the optical axis); an
+    observer asks where the middle of the picture is.  They differ when the
+    principal point is not at the image centre (a calibrated camera).
+    """
+    def radec(x, y):
+        v = np.asarray(dcm).T @ camera.pixels_to_vectors(np.array([x]), np.array([y]))[0]
+        return {"ra": math.degrees(math.atan2(v[1], v[0])) % 360.0,
+                "dec": math.degrees(math.asin(max(-1.0, min(1.0, float(v[2])))))}
+
+    return {"image_centre": radec((camera.width - 1) / 2.0, (camera.height - 1) / 2.0),
+            "principal_point": radec(camera.cx, camera.cy)}
+
+
+def _solve_with_patterns(stars, w, h, opts, index, clock):
+    """Blind identification with the scale-invariant pattern index (:mod:`startrack.patterns`)."""
+    from startrack.patterns import BlindOptions, default_index, solve_blind
+
+    if index is None:
+        index = clock.setup(default_index, notice=_notice)
+    bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
+                      timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)))
+    if opts.fov_deg is not None:
+        bo.fov_min_deg = opts.fov_deg * (1 - opts.fov_tolerance)
+        bo.fov_max_deg = opts.fov_deg * (1 + opts.fov_tolerance)
+    clock.setup(_warm, index)
+    cam, res, info = solve_blind(stars, w, h, index, bo)
+    if cam is None:
+        return None, info["verified"]
+    return (cam, index, res), info["verified"]
+
+
+def _warm(index):
+    """Compile or load the pattern kernels (a notice when numba has no cached copy yet)."""
+    import glob
+
+    from startrack.patterns import warm_kernels
+
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels", "__pycache__")
+    if not glob.glob(os.path.join(here, "patterns.query_patterns-*.nbi")):
+        _notice("compiling the solver's kernels once, ~30 s (cached afterwards)")
+    warm_kernels(index)
+
+
+def _notice(text: str) -> None:
+    """A one-line notice on stderr, shown whether or not stderr is a terminal (long one-time set-up)."""
+    import sys
+
+    sys.stderr.write(f"startrack: {text}\n")
+    sys.stderr.flush()
+
+
 def solve_image(image, width_height=None, options: SolveOptions | None = None, camera=None, catalog=None,
-                saturation=None, centroid_options=None):
+                saturation=None, centroid_options=None, index=None):
     """Solve one image.
 
     Returns a dict with the frame sections ``camera``, ``stars``,
@@ -223,6 +278,9 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     if camera is not None:
         result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), catalog, opts.algorithm,
                                       params, clock)
+        tried += n
+    elif opts.algorithm == "patterns" or opts.blind == "patterns":
+        result, n = _solve_with_patterns(cres.stars, w, h, opts, index, clock)
         tried += n
     else:
         # Unknown focal length: paper 004's distance-ratio labels are scale-free, so a label
@@ -262,7 +320,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
             tried += n
             if result is not None:
                 break
-    if result is None and camera is None and opts.fov_deg is not None and not clock.expired():
+    if result is None and camera is None and opts.fov_deg is not None and opts.blind != "patterns" \
+            and not clock.expired():
         # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
         # verification measures and corrects the focal length).
         cam = Camera.from_fov(opts.fov_deg, w, h)
@@ -271,6 +330,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     if result is None:
         reason = (f"no star pattern identified ({tried} attempts)"
                   if not clock.expired() else f"no solution within {opts.timeout_s:g} s of search")
+        if camera is None and opts.fov_deg is None:
+            reason += "; a field-of-view hint (--fov-deg) may help"
         out["solve"] = {"status": "failed", "reason": reason, "hypotheses": tried,
                         "time_ms": (time.perf_counter() - t0) * 1000}
         out["identification"] = {"status": "failed", "algorithm": opts.algorithm, "matches": [], "reason": reason}
@@ -279,11 +340,15 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     scale = res.extra.get("focal_scale")
     if scale:
         cam = cam.with_focal_length(cam.focal_length_px / scale)
-    cat = catalog or load_catalog()
-    if opts.epoch is not None:
-        cat = cat.propagate(opts.epoch)
-    rows = cat.rows_by_id()
-    vec = cat.vectors()
+    if db is not None and hasattr(db, "star_vec") and opts.epoch is None and catalog is None:
+        vec = db.star_vec
+        rows = {int(m["id"]): int(m["index"]) for m in res.matches}
+    else:
+        cat = catalog or load_catalog()
+        if opts.epoch is not None:
+            cat = cat.propagate(opts.epoch)
+        rows = cat.rows_by_id()
+        vec = cat.vectors()
     body, ref, sig, labels = [], [], [], []
     for m in res.matches:
         s = cres.stars[m["star"]]
@@ -299,6 +364,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     out["solve"] = {"status": "ok" if att.status == "ok" else "failed", "fov_deg": [fx, fy],
                     "hypotheses": tried, "database": os.path.basename(getattr(db, "path", "") or ""),
                     "time_ms": (time.perf_counter() - t0) * 1000}
+    if att.dcm is not None:
+        out["solve"].update(pointing(att.dcm, cam))
     if att.status != "ok":
         out["solve"]["reason"] = att.reason
     return out

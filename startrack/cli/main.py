@@ -23,6 +23,7 @@ COMMANDS = {
     "plot": "plot",
     "solve": "solve",
     "calibrate": "calibrate",
+    "cache": "cache",
     "evaluate": "evaluate",
 }
 

@@ -95,7 +95,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     from startrack.formats.frame import FrameWriter
     from startrack.progress import ProgressBar
     from startrack.render import numbered_path
-    from startrack.solve import SolveOptions, band_database, band_labels
+    from startrack.solve import SolveOptions, band_database
 
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
@@ -113,16 +113,19 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     n = len(images)
     tasks = [(path, options, camera_doc, numbered_path(wcs_path, i, n) if wcs_path else None,
               numbered_path(plot, i, n) if plot else None) for i, path in enumerate(images)]
-    # Build the cached databases once, before any worker needs them.
-    from startrack.solve import FOV_BANDS
+    # Build (or open) what the workers need once, before any of them starts.
+    if camera_doc is None:
+        from startrack.patterns import default_index
+        from startrack.solve import _notice
 
-    bar = ProgressBar("databases", quiet)
-    for b in range(len(FOV_BANDS)):
+        default_index(notice=_notice)
+    else:
+        from startrack.camera import Camera
+        from startrack.solve import FOV_BANDS, _band_of
+
+        b = _band_of(Camera.from_dict(camera_doc).fov_deg[0])
         for which in range(len(FOV_BANDS[b][2])):
             band_database(b, which=which)
-        for which in range(len(FOV_BANDS[b][4])):
-            band_labels(b, which=which)
-        bar(b + 1, len(FOV_BANDS))
     bar = ProgressBar("solve", quiet)
     n_ok = n_bad = 0
     with FrameWriter(output) as writer:
@@ -150,3 +153,5 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     info(quiet, f"solve: {n_ok} of {n} image(s) solved" + (f", {n_bad} unreadable" if n_bad else ""))
     if n_bad:
         raise SystemExit(2)
+    if n_ok < n:
+        raise SystemExit(1)

@@ -16,7 +16,13 @@ REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
-    return {"STARTRACK_CACHE": str(tmp_path_factory.mktemp("cache"))}
+    env = {"STARTRACK_CACHE": str(tmp_path_factory.mktemp("cache"))}
+    proc = run_cli("cache", "build", env=env, check=True, timeout=600)
+    # The one-line notice is printed even though stderr is not a terminal here.
+    assert "building the star index once" in proc.stderr
+    listing = run_cli("cache", "list", env=env, check=True).stdout
+    assert "patterns-" in listing
+    return env
 
 
 @pytest.fixture(scope="module")
@@ -68,10 +74,11 @@ def test_not_star_fields_fail_fast_and_cleanly(cache, tmp_path):
     t0 = time.time()
     proc = run_cli("solve", tmp_path / "daylight.png", tmp_path / "black.png", tmp_path / "noise.png", env=cache)
     elapsed = time.time() - t0
-    assert proc.returncode == 0 and "Traceback" not in proc.stderr
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
     assert [d["solve"]["status"] for d in docs] == ["failed"] * 3
     assert all(d["solve"]["reason"] and "attitude" not in d for d in docs)
+    assert all(d["solve"]["time_ms"] < 5000 for d in docs)
     assert elapsed < 30
 
 

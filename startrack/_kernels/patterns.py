@@ -1,0 +1,423 @@
+"""Pattern-index kernels: neighbour grid, uniform thinning, 4-star patterns, keys and look-up.
+
+A pattern is four stars; its key is the five smaller of its six edge angles
+divided by the largest, each quantised into ``NBINS`` bins (a 25-bit integer).
+Keys are free of the focal length, so one index serves every field of view.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from startrack._kernels.attitude import quat_to_dcm, quest
+
+NBINS = 32
+PREFIX_SHIFT = 9            # a 25-bit key >> 9 is a 16-bit prefix
+PREFIX_SIZE = 1 << 16
+
+
+@njit(cache=True, inline="always")
+def _angle(a, b):
+    """Angle (rad) between unit vectors, accurate for small and large angles (atan2 of |a x b| and a.b)."""
+    cx = a[1] * b[2] - a[2] * b[1]
+    cy = a[2] * b[0] - a[0] * b[2]
+    cz = a[0] * b[1] - a[1] * b[0]
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+
+
+@njit(cache=True)
+def _cells(vec, h):
+    """Cube-grid cell of each unit vector (cell side ``h``): (cell id, n per axis)."""
+    n = int(math.ceil(2.0 / h)) + 1
+    out = np.empty(vec.shape[0], dtype=np.int64)
+    for i in range(vec.shape[0]):
+        ix = int((vec[i, 0] + 1.0) / h)
+        iy = int((vec[i, 1] + 1.0) / h)
+        iz = int((vec[i, 2] + 1.0) / h)
+        out[i] = (ix * n + iy) * n + iz
+    return out, n
+
+
+@njit(cache=True)
+def _cell_range(sorted_cells, cell):
+    lo = np.searchsorted(sorted_cells, cell)
+    hi = np.searchsorted(sorted_cells, cell + 1)
+    return lo, hi
+
+
+@njit(cache=True)
+def thin_uniform_radius(vec, radius, keep_per_disk):
+    """Brightest first, keep a star unless ``keep_per_disk`` kept stars already lie within ``radius`` (rad).
+
+    ``vec`` is sorted brightest first.  Returns the kept indices (ascending).
+    The result has a nearly uniform density (about ``keep_per_disk`` stars per
+    disk of ``radius``) without the cell-boundary effects of a fixed grid.
+    """
+    h = 2.0 * math.sin(radius / 2.0)
+    cells, n = _cells(vec, h)
+    order = np.argsort(cells, kind="mergesort")
+    sc = cells[order]
+    kept = np.zeros(vec.shape[0], dtype=np.bool_)
+    cosr = math.cos(radius)
+    for i in range(vec.shape[0]):
+        c = cells[i]
+        cz = c % n
+        cy = (c // n) % n
+        cx = c // (n * n)
+        cnt = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    cc = ((cx + dx) * n + cy + dy) * n + cz + dz
+                    lo, hi = _cell_range(sc, cc)
+                    for t in range(lo, hi):
+                        j = order[t]
+                        if kept[j] and vec[i, 0] * vec[j, 0] + vec[i, 1] * vec[j, 1] + vec[i, 2] * vec[j, 2] >= cosr:
+                            cnt += 1
+        if cnt < keep_per_disk:
+            kept[i] = True
+    return np.flatnonzero(kept)
+
+
+@njit(cache=True)
+def _neighbours(vec, radius):
+    """CSR lists of later (fainter) neighbours within ``radius`` of each star."""
+    h = 2.0 * math.sin(radius / 2.0)
+    cells, n = _cells(vec, h)
+    order = np.argsort(cells, kind="mergesort")
+    sc = cells[order]
+    cosr = math.cos(radius)
+    m = vec.shape[0]
+    counts = np.zeros(m + 1, dtype=np.int64)
+    for p in range(2):
+        fill = np.zeros(m, dtype=np.int64)
+        if p == 1:
+            for i in range(m):
+                counts[i + 1] += counts[i]
+            nb = np.empty(counts[m], dtype=np.int64)
+        else:
+            nb = np.empty(0, dtype=np.int64)
+        for i in range(m):
+            c = cells[i]
+            cz = c % n
+            cy = (c // n) % n
+            cx = c // (n * n)
+            for dx in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dz in range(-1, 2):
+                        cc = ((cx + dx) * n + cy + dy) * n + cz + dz
+                        lo, hi = _cell_range(sc, cc)
+                        for t in range(lo, hi):
+                            j = order[t]
+                            if j > i and vec[i, 0] * vec[j, 0] + vec[i, 1] * vec[j, 1] + vec[i, 2] * vec[j, 2] >= cosr:
+                                if p == 0:
+                                    counts[i + 1] += 1
+                                else:
+                                    nb[counts[i] + fill[i]] = j
+                                    fill[i] += 1
+    for i in range(m):
+        nb[counts[i]:counts[i + 1]] = np.sort(nb[counts[i]:counts[i + 1]])
+    return counts, nb
+
+
+@njit(cache=True, inline="always")
+def _edges(v0, v1, v2, v3, e):
+    e[0] = _angle(v0, v1)
+    e[1] = _angle(v0, v2)
+    e[2] = _angle(v0, v3)
+    e[3] = _angle(v1, v2)
+    e[4] = _angle(v1, v3)
+    e[5] = _angle(v2, v3)
+
+
+@njit(cache=True)
+def _key(e_sorted):
+    key = 0
+    for i in range(5):
+        q = int(e_sorted[i] / e_sorted[5] * NBINS)
+        if q >= NBINS:
+            q = NBINS - 1
+        key = key * NBINS + q
+    return key
+
+
+@njit(cache=True)
+def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor):
+    """Every 4-star pattern of ``vec`` with largest edge in (rho_min, rho_max] (rad).
+
+    Each pattern is made once, from its brightest star (the anchor) and three of
+    its fainter neighbours; patterns whose smallest edge is under ``min_ratio``
+    of the largest (nearly coincident stars, whose ratios are noisy) are left
+    out, and an anchor makes at most ``max_per_anchor`` patterns (the most
+    compact first: neighbours are taken nearest first).
+    Returns ``(stars (P, 4) int64 local indices, keys (P,) int64)``.
+    """
+    counts, nb = _neighbours(vec, rho_max)
+    m = vec.shape[0]
+    e = np.empty(6)
+    out_p = np.empty((0, 4), dtype=np.int64)
+    out_k = np.empty(0, dtype=np.int64)
+    for p in range(2):
+        total = 0
+        for a in range(m):
+            lst = nb[counts[a]:counts[a + 1]]
+            k = lst.shape[0]
+            if k < 3:
+                continue
+            # nearest first
+            d = np.empty(k)
+            for t in range(k):
+                d[t] = -(vec[a, 0] * vec[lst[t], 0] + vec[a, 1] * vec[lst[t], 1] + vec[a, 2] * vec[lst[t], 2])
+            lst = lst[np.argsort(d)]
+            made = 0
+            for ib in range(k):
+                if made >= max_per_anchor:
+                    break
+                b = lst[ib]
+                for ic in range(ib):
+                    if made >= max_per_anchor:
+                        break
+                    c = lst[ic]
+                    if _angle(vec[b], vec[c]) > rho_max:
+                        continue
+                    for idd in range(ic):
+                        dd = lst[idd]
+                        _edges(vec[a], vec[b], vec[c], vec[dd], e)
+                        es = np.sort(e)
+                        if es[5] > rho_max or es[5] <= rho_min or es[0] < min_ratio * es[5]:
+                            continue
+                        if p == 1:
+                            out_p[total, 0] = a
+                            out_p[total, 1] = b
+                            out_p[total, 2] = c
+                            out_p[total, 3] = dd
+                            out_k[total] = _key(es)
+                        total += 1
+                        made += 1
+                        if made >= max_per_anchor:
+                            break
+        if p == 0:
+            out_p = np.empty((total, 4), dtype=np.int64)
+            out_k = np.empty(total, dtype=np.int64)
+    return out_p, out_k
+
+
+@njit(cache=True)
+def prefix_table(sorted_keys):
+    """``table[p]`` = first position whose key prefix is >= p (PREFIX_SIZE + 1 entries)."""
+    table = np.empty(PREFIX_SIZE + 1, dtype=np.int64)
+    j = 0
+    n = sorted_keys.shape[0]
+    for p in range(PREFIX_SIZE + 1):
+        while j < n and (sorted_keys[j] >> PREFIX_SHIFT) < p:
+            j += 1
+        table[p] = j
+    return table
+
+
+@njit(cache=True, inline="always")
+def _pixel_vec(x, y, cx, cy, f, out):
+    u = (x - cx) / f
+    v = (y - cy) / f
+    n = math.sqrt(u * u + v * v + 1.0)
+    out[0] = u / n
+    out[1] = v / n
+    out[2] = 1.0 / n
+
+
+_PERMS = np.array([[a, b, c, d] for a in range(4) for b in range(4) for c in range(4) for d in range(4)
+                   if len({a, b, c, d}) == 4], dtype=np.int64)
+_PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+
+
+@njit(cache=True)
+def _best_permutation(ie, ce, perms, pairs, sig_ang, rel_geom):
+    """The star correspondence (image i -> catalog perm[i]) that fits the six edges best.
+
+    ``ie``/``ce``: the six edges (rad) in pair order.  The scale (catalog / image)
+    is the ratio of the edge sums.  Each edge's misfit ``|ce / scale - ie|`` is
+    divided by its tolerance ``sig_ang + rel_geom * ie`` (centroid noise, plus
+    the geometry allowance); returns ``(perm index, worst normalised misfit, scale)``.
+    """
+    best = -1
+    best_err = 1e9
+    si = 0.0
+    sc = 0.0
+    for t in range(6):
+        si += ie[t]
+        sc += ce[t]
+    scale = sc / si
+    for q in range(perms.shape[0]):
+        worst = 0.0
+        for t in range(6):
+            a = perms[q, pairs[t, 0]]
+            b = perms[q, pairs[t, 1]]
+            lo = min(a, b)
+            hi = max(a, b)
+            if lo == 0:
+                idx = hi - 1
+            elif lo == 1:
+                idx = hi + 1
+            else:
+                idx = 5
+            r = abs(ce[idx] / scale - ie[t]) / (sig_ang + rel_geom * ie[t])
+            if r > worst:
+                worst = r
+                if worst > best_err:
+                    break
+        if worst < best_err:
+            best_err = worst
+            best = q
+    return best, best_err, scale
+
+
+@njit(cache=True)
+def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, vec,
+                   sigma_px, tol_geom, f_lo, f_hi, max_out):
+    """Catalog candidates for image 4-star patterns.
+
+    For each image pattern (``combos``, rows of 4 star indices into ``xy``) and
+    each level, the focal length is first guessed from the level's pattern
+    sizes, the image pattern's ratio key computed, the key bins within the
+    tolerance probed, and every catalog pattern found there compared edge by
+    edge (all 24 correspondences); a match fixes the focal length, which is
+    then refined on the pattern and the edges compared again.
+
+    Returns rows ``(combo, level, i0..i3 -> catalog c0..c3 , f, misfit)`` as two arrays:
+    ints (n, 6) = combo, level, c0, c1, c2, c3 (catalog star of image star combos[combo, k]),
+    floats (n, 2) = focal length (px), worst relative edge misfit.
+    """
+    out_i = np.empty((max_out, 6), dtype=np.int64)
+    out_f = np.empty((max_out, 2))
+    n_out = 0
+    perms = _PERMS
+    pairs = _PAIRS
+    iv = np.empty((4, 3))
+    ie = np.empty(6)
+    ce = np.empty(6)
+    lo_b = np.empty(5, dtype=np.int64)
+    hi_b = np.empty(5, dtype=np.int64)
+    cur = np.empty(5, dtype=np.int64)
+    for ci in range(combos.shape[0]):
+        # pixel extent
+        lpx = 0.0
+        spx = 1e18
+        for t in range(6):
+            a = combos[ci, pairs[t, 0]]
+            b = combos[ci, pairs[t, 1]]
+            d = math.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])
+            lpx = max(lpx, d)
+            spx = min(spx, d)
+        if lpx <= 0.0 or spx < 0.05 * lpx:
+            continue
+        for lv in range(level_rho.shape[0]):
+            rho = level_rho[lv]
+            rmin = rho / level_ratio
+            f_big = lpx / math.tan(rmin)      # the largest focal length this level allows
+            f_small = lpx / math.tan(rho)
+            if f_small > f_hi or f_big < f_lo:
+                continue
+            n_sub = 1 if rho < 0.15 else (2 if rho < 0.35 else 4)
+            for sub in range(n_sub):
+                f0 = f_small * (f_big / f_small) ** ((sub + 0.5) / n_sub)
+                for k in range(4):
+                    _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
+                _edges(iv[0], iv[1], iv[2], iv[3], ie)
+                es = np.sort(ie)
+                # tolerance per ratio: centroid noise on the two edges plus the geometry allowance
+                g = tol_geom * (rho * rho) + 0.06 * (rho * rho) * math.log(f_big / f_small) / n_sub
+                for t in range(5):
+                    r = es[t] / es[5]
+                    tol = 3.0 * 1.4142 * sigma_px * (1.0 / (es[t] * f0) + 1.0 / (es[5] * f0)) * r + g + 0.002
+                    lo_b[t] = max(0, int((r - tol) * NBINS))
+                    hi_b[t] = min(NBINS - 1, int((r + tol) * NBINS))
+                    cur[t] = lo_b[t]
+                base = level_start[lv]
+                while True:
+                    key = 0
+                    for t in range(5):
+                        key = key * NBINS + cur[t]
+                    pre = key >> PREFIX_SHIFT
+                    s = level_prefix[lv, pre]
+                    e_ = level_prefix[lv, pre + 1]
+                    for j in range(s, e_):
+                        if keys[base + j] != key:
+                            continue
+                        pj = base + j
+                        _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
+                        q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
+                                                          g + 0.002)
+                        if err > 1.0:
+                            continue
+                        # refine the focal length on the pattern, then compare again
+                        f = f0
+                        for _ in range(3):
+                            f = f / scale
+                            for k in range(4):
+                                _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f, iv[k])
+                            _edges(iv[0], iv[1], iv[2], iv[3], ie)
+                            q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f,
+                                                              tol_geom * rho * rho + 0.001)
+                        if f < f_lo or f > f_hi or err > 1.0:
+                            continue
+                        if n_out < max_out:
+                            out_i[n_out, 0] = ci
+                            out_i[n_out, 1] = lv
+                            for k in range(4):
+                                out_i[n_out, 2 + k] = pats[pj, perms[q, k]]
+                            out_f[n_out, 0] = f
+                            out_f[n_out, 1] = err
+                            n_out += 1
+                        # recompute the image edges at f0 for the remaining catalog patterns
+                        for k in range(4):
+                            _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
+                        _edges(iv[0], iv[1], iv[2], iv[3], ie)
+                    # next bin combination
+                    t = 4
+                    while t >= 0:
+                        cur[t] += 1
+                        if cur[t] <= hi_b[t]:
+                            break
+                        cur[t] = lo_b[t]
+                        t -= 1
+                    if t < 0:
+                        break
+    return out_i[:n_out], out_f[:n_out]
+
+
+@njit(cache=True)
+def quick_check(b, star_vec, img, cat, cos_fov, radius):
+    """How many image stars other than the pattern's have a catalog star within ``radius`` (rad).
+
+    The attitude is QUEST on the four pattern stars; a cheap screen before the
+    full verification (which then decides, with its false-match probability).
+    """
+    q, _ = quest(b[img], star_vec[cat], np.ones(img.shape[0]))
+    dcm = quat_to_dcm(q)
+    # image stars in the reference frame
+    n = b.shape[0]
+    ref = np.empty((n, 3))
+    for i in range(n):
+        for k in range(3):
+            ref[i, k] = dcm[0, k] * b[i, 0] + dcm[1, k] * b[i, 1] + dcm[2, k] * b[i, 2]
+    is_pat = np.zeros(n, dtype=np.bool_)
+    for k in range(img.shape[0]):
+        is_pat[img[k]] = True
+    hit = np.zeros(n, dtype=np.bool_)
+    cosr = math.cos(radius)
+    bz0 = dcm[2, 0]
+    bz1 = dcm[2, 1]
+    bz2 = dcm[2, 2]
+    for s in range(star_vec.shape[0]):
+        if bz0 * star_vec[s, 0] + bz1 * star_vec[s, 1] + bz2 * star_vec[s, 2] < cos_fov:
+            continue
+        for i in range(n):
+            if is_pat[i] or hit[i]:
+                continue
+            if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cosr:
+                hit[i] = True
+    count = 0
+    for i in range(n):
+        if hit[i]:
+            count += 1
+    return count

@@ -1,0 +1,439 @@
+"""A scale-invariant 4-star pattern index for blind solving, from about 2 to 70 degree fields.
+
+The idea is tetra3's (Pettersson, ESA) and astrometry.net's (Lang et al. 2010):
+a *pattern* of four stars is described by numbers that do not depend on the
+focal length, and those numbers are hashed so that the image's patterns are
+looked up in constant time.  Here:
+
+* **Key**: the six edge angles of the pattern, sorted; the five smaller divided by
+  the largest, each quantised in ``NBINS`` = 32 bins (25 bits).  A look-up probes
+  every bin within the measured ratio's tolerance (centroid noise on both edges,
+  plus a geometry allowance that grows with the pattern's size), so a ratio near
+  a bin edge is never missed.  The 24 star correspondences are then tested on the
+  six edges, which also fixes the focal length.
+* **Scales**: one *level* per pattern size, a factor sqrt(2) apart (0.9 to 58
+  degrees).  At each level the catalog is thinned to a uniform density, brightest
+  first: a star is kept unless ``keep`` brighter kept stars lie within half the
+  level's pattern size (no cell boundaries, unlike a fixed grid).  A level holds
+  every pattern of its stars whose largest edge falls in that level's size range,
+  each made once from its brightest star, at most ``max_per_anchor`` per anchor,
+  the most compact first.  The image's bright stars form patterns of all sizes;
+  whichever size their level holds is found.
+* **Focal length**: a level's size range bounds the focal length an image pattern
+  implies; the image's angles are computed with a focal length in that range
+  (several for wide levels, where the projection matters) and refined on the match.
+* **File**: one flat binary file (a JSON header and aligned arrays) opened by
+  ``numpy.memmap`` in milliseconds and shared by processes through the page cache.
+
+Differences from tetra3/cedar-solve: the catalog patterns are uniform at every
+scale instead of one field of view; the key is probed over all bins within the
+measured tolerance; the correspondence is the best of 24 over all six edges; the
+focal length range is a property of the level.  From astrometry.net: several
+scales, uniform thinning.  Verification (attitude, every star matched, false-match
+probability) is :func:`startrack.identify.base.verify`, shared with the other
+identification algorithms.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from startrack.errors import BadInputError
+
+__all__ = ["INDEX_FORMAT", "LEVELS_DEG", "PatternIndex", "build_index", "save_index", "open_index",
+           "default_index_path", "default_index", "BlindOptions", "solve_blind", "cache_dir"]
+
+INDEX_FORMAT = "startrack.patterns/1"
+_MAGIC = b"STPATIDX"
+LEVEL_RATIO = math.sqrt(2.0)
+LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
+BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
+                "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "version": 1}
+
+
+def cache_dir() -> str:
+    """``$STARTRACK_CACHE``, else ``$XDG_CACHE_HOME/startrack``, else ``~/.cache/startrack`` (created)."""
+    path = os.environ.get("STARTRACK_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "startrack")
+    os.makedirs(path, exist_ok=True)
+    return path
+
+
+@dataclass
+class PatternIndex:
+    """The arrays of a pattern index (memory-mapped when opened from a file)."""
+
+    star_id: np.ndarray          # (N,) int64 catalog ids, brightest first
+    star_vec: np.ndarray         # (N, 3) float64 ICRS unit vectors
+    star_mag: np.ndarray         # (N,) float32
+    level_rho: np.ndarray        # (L,) float64 largest pattern edge of each level (rad)
+    level_start: np.ndarray      # (L,) int64 first pattern of each level
+    level_count: np.ndarray      # (L,) int64
+    level_prefix: np.ndarray     # (L, 65537) int64 key-prefix offsets within each level
+    patterns: np.ndarray         # (P, 4) uint32 star rows
+    keys: np.ndarray             # (P,) uint32 25-bit keys, sorted within each level
+    params: dict = field(default_factory=dict)
+    path: str | None = None
+
+    @property
+    def size_bytes(self) -> int:
+        return int(sum(getattr(self, n).nbytes for n in _ARRAYS))
+
+
+_ARRAYS = ("star_id", "star_vec", "star_mag", "level_rho", "level_start", "level_count", "level_prefix",
+           "patterns", "keys")
+
+
+def build_index(catalog=None, progress=None, params: dict | None = None) -> PatternIndex:
+    """Build the pattern index from ``catalog`` (default: the shipped catalog).
+
+    Parameters
+    ----------
+    catalog : Catalog, optional
+    progress : callable(done, total), optional
+    params : dict, optional
+        Overrides of :data:`BUILD_PARAMS`.
+
+    Returns
+    -------
+    PatternIndex
+    """
+    from startrack._kernels.patterns import level_patterns, prefix_table, thin_uniform_radius
+    from startrack.catalog import load_catalog
+
+    p = dict(BUILD_PARAMS)
+    p.update(params or {})
+    cat = (catalog or load_catalog()).sorted_by_magnitude()
+    vec = np.ascontiguousarray(cat.vectors())
+    rhos = [math.radians(v) for v in p["levels_deg"]]
+    all_p, all_k, starts, counts, prefixes = [], [], [], [], []
+    start = 0
+    pool = np.arange(len(vec))
+    for i, rho in enumerate(rhos):
+        # Each level is thinned from the finer level's stars: the levels nest, and the
+        # coarse levels cost little.
+        kept = pool[thin_uniform_radius(np.ascontiguousarray(vec[pool]), rho * p["thin_radius_fraction"],
+                                        int(p["keep"]))]
+        pool = kept
+        lp, lk = level_patterns(np.ascontiguousarray(vec[kept]), rho, rho / p["level_ratio"], p["min_edge_ratio"],
+                                int(p["max_per_anchor"]))
+        order = np.argsort(lk, kind="stable")
+        lk = lk[order]
+        rows = kept[lp[order]].astype(np.uint32)
+        all_p.append(rows)
+        all_k.append(lk.astype(np.uint32))
+        prefixes.append(prefix_table(lk))
+        starts.append(start)
+        counts.append(len(lk))
+        start += len(lk)
+        if progress:
+            progress(i + 1, len(rhos))
+    p.update(catalog_sha256=cat.checksum(), catalog_source=os.path.basename(cat.source or ""),
+             n_stars=int(len(cat)), patterns_per_level=[int(c) for c in counts])
+    return PatternIndex(cat.id.astype(np.int64), vec, cat.mag.astype(np.float32), np.array(rhos),
+                        np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64),
+                        np.stack(prefixes).astype(np.int64), np.concatenate(all_p), np.concatenate(all_k), p)
+
+
+def save_index(index: PatternIndex, path: str) -> None:
+    """Write ``index`` as one flat file: magic, header length, JSON header, 64-byte aligned arrays."""
+    from startrack._version import __version__
+    from startrack.formats.atomic import atomic_path
+
+    arrays = {}
+    offset = 0
+    for name in _ARRAYS:
+        a = np.ascontiguousarray(getattr(index, name))
+        arrays[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
+        offset += (a.nbytes + 63) // 64 * 64
+    header = {"format": INDEX_FORMAT, "version": __version__, "params": index.params, "arrays": arrays}
+    blob = json.dumps(header).encode()
+    head_len = (16 + len(blob) + 63) // 64 * 64
+    with atomic_path(path, suffix=".idx") as tmp, open(tmp, "wb") as fh:
+        fh.write(_MAGIC + np.uint64(head_len).tobytes())
+        fh.write(blob + b" " * (head_len - 16 - len(blob)))
+        for name in _ARRAYS:
+            a = np.ascontiguousarray(getattr(index, name))
+            fh.write(a.tobytes())
+            fh.write(b"\0" * ((a.nbytes + 63) // 64 * 64 - a.nbytes))
+
+
+def open_index(path: str) -> PatternIndex:
+    """Open a pattern index file by memory map (milliseconds; pages are read when used)."""
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(8)
+            if magic != _MAGIC:
+                raise BadInputError(path, None, "is not a startrack pattern index")
+            head_len = int(np.frombuffer(fh.read(8), dtype=np.uint64)[0])
+            header = json.loads(fh.read(head_len - 16).decode())
+    except (OSError, ValueError, IndexError) as exc:
+        raise BadInputError(path, None, f"cannot read the pattern index: {exc}") from None
+    if header.get("format") != INDEX_FORMAT:
+        raise BadInputError(path, "format", f"expected {INDEX_FORMAT}, got {header.get('format')!r}")
+    size = os.path.getsize(path)
+    out = {}
+    for name in _ARRAYS:
+        spec = header["arrays"][name]
+        dt = np.dtype(spec["dtype"])
+        shape = tuple(spec["shape"])
+        n = int(np.prod(shape)) if shape else 1
+        if head_len + spec["offset"] + n * dt.itemsize > size:
+            raise BadInputError(path, name, "is truncated")
+        if n == 0:
+            out[name] = np.zeros(shape, dtype=dt)
+        else:
+            out[name] = np.asarray(np.memmap(path, dtype=dt, mode="r", offset=head_len + spec["offset"], shape=shape))
+    return PatternIndex(**out, params=header["params"], path=path)
+
+
+def default_index_path(catalog=None) -> str:
+    """The cache file of the default index for ``catalog`` (its checksum and the build parameters in the name)."""
+    import hashlib
+
+    from startrack.catalog import load_catalog
+
+    cat = catalog or load_catalog()
+    tag = hashlib.sha256(json.dumps(BUILD_PARAMS, sort_keys=True).encode()).hexdigest()[:8]
+    return os.path.join(cache_dir(), f"patterns-{cat.checksum()[:12]}-{tag}.idx")
+
+
+def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
+    """The default pattern index: opened from the cache, else built once (calling ``notice(text)`` first)."""
+    path = default_index_path(catalog)
+    if os.path.exists(path):
+        try:
+            return open_index(path)
+        except BadInputError:
+            pass
+    if notice is not None:
+        notice(f"building the star index once, ~{estimated_build_s():.0f} s, into {os.path.dirname(path)}")
+    index = build_index(catalog, progress=progress)
+    save_index(index, path)
+    return open_index(path)
+
+
+def estimated_build_s() -> float:
+    """A rough build time (s) of the default index, kernels' first compilation included."""
+    return 40.0
+
+
+# ---------------------------------------------------------------------------------------------- solving
+@dataclass
+class BlindOptions:
+    """Settings of :func:`solve_blind` (degrees, pixels, seconds)."""
+
+    fov_min_deg: float = 1.5
+    fov_max_deg: float = 100.0
+    pattern_stars: int = 16
+    verify_stars: int = 40
+    sigma_px: float | None = None
+    max_false_probability: float = 1e-6
+    timeout_s: float = 5.0
+    tol_geom: float = 0.12
+    fit_distortion_deg: float = 25.0
+
+
+def _combos(n: int):
+    """4-star combinations of the ``n`` brightest stars, those of the brightest stars first (tetra3's order)."""
+    out = []
+    for d in range(3, n):
+        for c in range(2, d):
+            for b in range(1, c):
+                for a in range(b):
+                    out.append((a, b, c, d))
+    return np.array(out, dtype=np.int64).reshape(-1, 4)
+
+
+def _catalog_prefix(index: PatternIndex, solid_angle: float, want: int) -> int:
+    """Rows (brightest first) such that the field holds about ``want`` catalog stars on average."""
+    n = int(want * 4 * math.pi / max(solid_angle, 1e-9))
+    return max(50, min(len(index.star_id), n))
+
+
+def _fit_camera(cam, dcm, xy, ref, fit_k1):
+    """Least-squares focal length (and k1) for fixed attitude: x - c = f u (1 + k1 r^2) per axis (linear in f, f k1)."""
+    from startrack.camera import Camera
+
+    v = ref @ dcm.T
+    u = v[:, 0] / v[:, 2]
+    w = v[:, 1] / v[:, 2]
+    r2 = u * u + w * w
+    obs = np.concatenate([xy[:, 0] - cam.cx, xy[:, 1] - cam.cy])
+    a = np.concatenate([u, w])
+    if fit_k1:
+        m = np.stack([a, a * np.concatenate([r2, r2])], axis=1)
+        sol, *_ = np.linalg.lstsq(m, obs, rcond=None)
+        f, fk1 = float(sol[0]), float(sol[1])
+        k1 = fk1 / f if f > 0 else 0.0
+    else:
+        f = float(a @ obs / (a @ a))
+        k1 = 0.0
+    if not f > 0 or not math.isfinite(f) or abs(k1) > 1.0:
+        return cam
+    return Camera(cam.width, cam.height, f, cam.cx, cam.cy, k1, 0.0, cam.pixel_pitch_um, dict(cam.extra))
+
+
+def warm_kernels(index: PatternIndex) -> None:
+    """Compile (or load from numba's cache) the look-up and verification kernels: one-time set-up, not search."""
+    from startrack._kernels.attitude import refine
+    from startrack._kernels.patterns import query_patterns, quick_check
+
+    xy = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 12.0]])
+    query_patterns(xy, 5.0, 5.0, np.zeros((0, 4), dtype=np.int64), index.level_rho, LEVEL_RATIO,
+                   index.level_start, index.level_prefix, index.keys, index.patterns, index.star_vec, 0.5, 0.1,
+                   1.0, 2.0, 1)
+    b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]])
+    b /= np.linalg.norm(b, axis=1)[:, None]
+    refine(b, b.copy(), np.array([0, 1]), np.array([0, 1]), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
+    quick_check(b, b.copy(), np.array([0, 1]), np.array([0, 1]), 0.5, 0.01)
+
+
+def solve_blind(stars: list, width: int, height: int, index: PatternIndex, options: BlindOptions | None = None,
+                deadline: float | None = None):
+    """Identify the stars of an image of unknown field of view with the pattern index.
+
+    Parameters
+    ----------
+    stars : list of dict
+        ``x``, ``y`` (pixels), brightest first (``sigma_px`` optional).
+    width, height : int
+        Image size (pixels); the principal point is taken at the image centre.
+    index : PatternIndex
+    options : BlindOptions
+    deadline : float, optional
+        ``time.perf_counter()`` value after which the search stops.
+
+    Returns
+    -------
+    (camera, IdentifyResult, info dict)
+        ``camera`` is None when nothing was identified; ``info`` counts the
+        patterns and candidates tried.
+    """
+    from startrack._kernels.patterns import query_patterns
+    from startrack.camera import Camera
+    from startrack.identify.base import (
+        IdentifyParams,
+        IdentifyResult,
+        Proposal,
+        centroid_sigma_px,
+        tolerance_rad,
+        verify,
+    )
+
+    opts = options or BlindOptions()
+    warm_kernels(index)
+    t0 = time.perf_counter()
+    if deadline is None:
+        deadline = t0 + opts.timeout_s
+    info = {"patterns": 0, "candidates": 0, "verified": 0}
+    n_all = len(stars)
+    if n_all < 4:
+        return None, IdentifyResult("failed", "patterns", [], 0.0, f"{n_all} star(s): at least 4 are needed"), info
+    m = min(n_all, opts.verify_stars)
+    xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
+    n_pat = min(m, opts.pattern_stars)
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    f_lo = (width / 2.0) / math.tan(math.radians(opts.fov_max_deg) / 2.0)
+    f_hi = (width / 2.0) / math.tan(math.radians(opts.fov_min_deg) / 2.0)
+    params = IdentifyParams(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability)
+    sigma = centroid_sigma_px(stars[:m], params)
+    combos = _combos(n_pat)
+    xy_pat = np.ascontiguousarray(xy_all[:n_pat])
+    seen = set()
+    chunk = 6
+    reason = "no star pattern identified"
+    for s0 in range(0, len(combos), chunk):
+        if time.perf_counter() > deadline:
+            reason = f"no solution within {opts.timeout_s:g} s of search"
+            break
+        block = combos[s0:s0 + chunk]
+        ci, cf = query_patterns(xy_pat, cx, cy, block, index.level_rho, LEVEL_RATIO, index.level_start,
+                                index.level_prefix, index.keys, index.patterns, index.star_vec, float(sigma),
+                                float(opts.tol_geom), f_lo, f_hi, 4096)
+        info["patterns"] += len(block)
+        info["candidates"] += len(ci)
+        order = np.lexsort((cf[:, 1], ci[:, 0]))      # by image pattern (brightest first), best fit first
+        for row, (f, _err) in zip(ci[order], cf[order], strict=True):
+            if time.perf_counter() > deadline:
+                break
+            img = [int(v) for v in block[row[0]]]
+            cat_rows = [int(v) for v in row[2:6]]
+            key = (tuple(sorted(zip(img, cat_rows, strict=True))), round(math.log(f), 2))
+            if key in seen:
+                continue
+            seen.add(key)
+            info["verified"] += 1
+            res = _verify_candidate(stars[:m], xy_all, img, cat_rows, f, width, height, index, params, sigma,
+                                    info["verified"], f_lo, f_hi, opts, Camera, Proposal, tolerance_rad, verify)
+            if res is not None:
+                cam, matches, dcm, p_false = res
+                elapsed = (time.perf_counter() - t0) * 1000
+                extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
+                         "patterns_tried": info["patterns"], "candidates": info["candidates"],
+                         "verified": info["verified"]}
+                return cam, IdentifyResult("ok", "patterns", matches, elapsed, None, p_false, dcm, extra), info
+    elapsed = (time.perf_counter() - t0) * 1000
+    reason = f"{reason} ({info['patterns']} patterns, {info['verified']} candidates verified)"
+    return None, IdentifyResult("failed", "patterns", [], elapsed, reason, extra=dict(info)), info
+
+
+def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params, sigma, n_verified, f_lo, f_hi,
+                      opts, Camera, Proposal, tolerance_rad, verify):
+    """Verify one candidate strictly; fit the focal length (and k1 for wide fields) and verify again."""
+    from startrack._kernels.patterns import quick_check
+
+    cam = Camera(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0)
+    fov = cam.fov_deg
+    wide = fov[0] > opts.fit_distortion_deg
+    solid = math.radians(fov[0]) * math.radians(fov[1])
+    n_rows = max(_catalog_prefix(index, solid, max(2 * len(stars), 30)), max(cat_rows) + 1)
+    star_vec = index.star_vec[:n_rows]
+    star_id = index.star_id[:n_rows]
+    # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
+    pattern_px = max(math.hypot(*(xy[a] - xy[b])) for a in img for b in img)
+    n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
+    vparams = params
+    if wide:
+        # Unknown distortion: first a wider match radius (the false-match probability accounts for it).
+        from dataclasses import replace
+
+        r_px = max(5.0 * sigma, 0.01 * math.hypot(width, height) * (fov[0] / 60.0) ** 2)
+        vparams = replace(params, match_radius_px=r_px)
+    eps = tolerance_rad(cam, sigma, params)
+    b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
+    # Screen: at least two more stars (of the brightest) on catalog stars, else not worth verifying.
+    r_px = vparams.match_radius_px or max(1.0, params.match_sigma * sigma)
+    cos_fov = math.cos(math.radians(cam.max_off_axis_deg + 0.5))
+    n_screen = min(len(b), 20)
+    if quick_check(np.ascontiguousarray(b[:n_screen]), star_vec, np.array(img), np.array(cat_rows), cos_fov,
+                   r_px / cam.focal_length_px) < min(2, n_screen - 4):
+        return None
+    prop = Proposal(img, cat_rows, trials=int(n_verified * n_scales))
+    matches, dcm, p_false, reason = verify(prop, b, stars, cam, star_vec, star_id, eps, sigma, vparams)
+    if matches is None:
+        return None
+    # Fit the camera on the matches, re-solve and verify again with the fitted camera.
+    for _ in range(3):
+        idx = np.array([mm["star"] for mm in matches])
+        rows = np.array([mm["index"] for mm in matches])
+        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], wide and len(matches) >= 8)
+        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+            return None
+        b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
+        prop = Proposal([mm["star"] for mm in matches], [mm["index"] for mm in matches],
+                        trials=int(n_verified * n_scales))
+        eps = tolerance_rad(cam, sigma, params)
+        m2, dcm2, p2, _ = verify(prop, b, stars, cam, star_vec, star_id, eps, sigma,
+                                 params if not wide else vparams)
+        if m2 is None:
+            break
+        matches, dcm, p_false = m2, dcm2, p2
+        if wide:
+            vparams = params
+    return cam, matches, dcm, p_false
