@@ -60,12 +60,16 @@ class CentroidOptions:
     psf_sigma_px: float | None = None
     gain_e_per_dn: float | None = None
     saturation_dn: float | None = None
+    tophat_px: float | None = None
+    max_fwhm_ratio: float | None = None
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise BadInputError("--method", None, f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
-        if self.background not in ("mesh", "global"):
-            raise BadInputError("--background", None, "must be 'mesh' or 'global'")
+        if self.background not in ("mesh", "global", "tophat"):
+            raise BadInputError("--background", None, "must be 'mesh', 'global' or 'tophat'")
+        if self.tophat_px is not None and not self.tophat_px >= 1:
+            raise BadInputError("--tophat-px", None, f"must be at least 1, got {self.tophat_px}")
         if not self.threshold_sigma > 0:
             raise BadInputError("--threshold-sigma", None, f"must be positive, got {self.threshold_sigma}")
         if self.threshold_dn is not None and not self.threshold_dn > 0:
@@ -129,6 +133,31 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     sigma = _median3(sigma)
     sigma = np.where(sigma > 0, sigma, gsigma)
     return level, sigma, float(glevel), float(gsigma)
+
+
+def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
+    """The image minus its grey opening by a disk: what is smaller than the disk (stars) stays.
+
+    Nebulae, gradients, the Milky Way's glow, twilight and vignetting are
+    broader than a star and are removed with the opening; a star is removed by
+    it entirely when the disk is wider than the star.  The disk's radius is
+    ``tophat_px``, else three times the median FWHM of the stars a first, plain
+    (mesh background) detection finds, within 3-25 px.
+    """
+    import cv2
+
+    r = options.tophat_px
+    if r is None:
+        from dataclasses import replace
+
+        first = find_stars(img, replace(options, background="mesh", max_stars=30, max_fwhm_ratio=None))
+        fwhm = [s_["fwhm_px"] for s_ in first.stars if not s_["saturated"]]
+        r = 3.0 * float(np.median(fwhm)) if fwhm else 6.0
+        r = min(25.0, max(3.0, r))
+    k = 2 * int(round(r)) + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, kernel)
+    return np.ascontiguousarray(img - opened, dtype=np.float32)
 
 
 def expand_mesh(mesh, shape, cell):
@@ -257,7 +286,10 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     frac_sat = float(np.mean(probe >= sat)) if sat > img.min() else 1.0
     if frac_sat > 0.5:
         return result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of pixels)")
-    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(img, options)
+    det_img = img
+    if options.background == "tophat":
+        det_img = _tophat(img, options)
+    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options)
     if not gsigma > 0 and float(img.max()) - float(img.min()) <= 0:
         return result([], [], glevel, 0.0, "image is constant: no signal")
     sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
@@ -269,7 +301,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     max_blobs = 20000
     ws = _workspace(img.shape, max_blobs)
     residual, mask = ws["residual"], ws["mask"]
-    subtract_background(img, np.ascontiguousarray(level_mesh, dtype=np.float64),
+    subtract_background(det_img, np.ascontiguousarray(level_mesh, dtype=np.float64),
                         np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
     if options.matched_filter:
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
@@ -380,10 +412,57 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             **({"deblended": True} if deblended else {}),
         })
     stars.sort(key=lambda s: -s["flux"])
+    stars = _unique(stars)
+    if options.max_fwhm_ratio is not None:
+        stars, wide = _by_shape(stars, options.max_fwhm_ratio)
+        rejected.extend(wide)
     if options.max_stars is not None:
         stars = stars[: options.max_stars]
     reason = None if stars else "no star-like detection (all rejected)"
     return result(stars, rejected, glevel, gsigma, reason)
+
+
+def _unique(stars: list) -> list:
+    """Drop a detection within 1.5 px (or half its FWHM) of a brighter one: two peaks of one blob that converged."""
+    kept = []
+    grid: dict = {}
+    cell = 8.0
+    for s_ in stars:
+        r = max(1.5, 0.5 * s_.get("fwhm_px", 0.0))
+        gx, gy = int(s_["x"] // cell), int(s_["y"] // cell)
+        reach = int(r // cell) + 1
+        dup = False
+        for ix in range(gx - reach, gx + reach + 1):
+            for iy in range(gy - reach, gy + reach + 1):
+                for k in grid.get((ix, iy), ()):
+                    if (s_["x"] - k["x"]) ** 2 + (s_["y"] - k["y"]) ** 2 <= r * r:
+                        dup = True
+                        break
+        if not dup:
+            kept.append(s_)
+            grid.setdefault((gx, gy), []).append(s_)
+    return kept
+
+
+def _by_shape(stars: list, max_ratio: float):
+    """Keep point sources: FWHM within ``max_ratio`` of the median FWHM of the unsaturated stars.
+
+    Nebula knots, galaxies, comets' comae and out-of-focus blobs are wider than
+    the stars of the same image; saturated stars are wider too but kept (their
+    width says nothing about their nature).
+    """
+    widths = [s_["fwhm_px"] for s_ in stars[:60] if not s_["saturated"]]
+    if len(widths) < 5:
+        return stars, []
+    med = float(np.median(widths))
+    keep, out = [], []
+    for s_ in stars:
+        if s_["saturated"] or s_["fwhm_px"] <= max_ratio * med:
+            keep.append(s_)
+        else:
+            out.append({"x": s_["x"], "y": s_["y"], "flux": s_["flux"], "fwhm_px": s_["fwhm_px"],
+                        "reason": f"wider than a star (FWHM {s_['fwhm_px']:.1f} px, median {med:.1f} px)"})
+    return keep, out
 
 
 def centroid_windows(image: np.ndarray, centres, half_size: int, options: CentroidOptions | None = None,
