@@ -21,7 +21,7 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["CalibrationResult", "calibrate"]
+__all__ = ["CalibrationResult", "calibrate", "calibrate_significant"]
 
 PARAMS = ("focal_length_px", "cx", "cy", "k1", "k2")
 
@@ -36,6 +36,8 @@ class CalibrationResult:
     n_stars: int
     fov_deg: tuple
     fov_sigma_deg: tuple
+    significance: dict = None
+    dropped: dict = None
 
     def to_dict(self) -> dict:
         doc = self.camera.to_dict(standalone=True)
@@ -49,6 +51,11 @@ class CalibrationResult:
             "fov_deg": list(self.fov_deg), "fov_sigma_deg": list(self.fov_sigma_deg),
             "method": "Levenberg-Marquardt bundle adjustment (intrinsics + per-frame attitude)",
         }
+        if self.significance:
+            doc["calibration"]["significance_sigma"] = {k: float(v) for k, v in self.significance.items()}
+        if self.dropped:
+            doc["calibration"]["not_fitted"] = {k: f"not significant ({v:.1f} sigma): fixed at its default"
+                                                for k, v in self.dropped.items()}
         return doc
 
 
@@ -61,6 +68,57 @@ def _rot(d):
         return np.eye(3)
     axis = d / angle
     return quaternion_to_dcm(np.concatenate([axis * math.sin(angle / 2), [math.cos(angle / 2)]]))
+
+
+# The value a parameter takes when it is not fitted: no distortion, the image centre.
+def _default(camera, name):
+    return {"k1": 0.0, "k2": 0.0, "cx": (camera.width - 1) / 2.0, "cy": (camera.height - 1) / 2.0}.get(name)
+
+
+def calibrate_significant(frames, camera, fit=PARAMS, min_sigma: float = 3.0, iterations: int = 30):
+    """Fit only what the data constrain.
+
+    All of ``fit`` is fitted; then, while the least significant optional
+    parameter (k2, k1, then the principal point) differs from its default (no
+    distortion, the image centre) by less than ``min_sigma`` of its
+    uncertainty, it is fixed at its default and the rest fitted again.  The
+    focal length is always fitted.  The result reports every fitted parameter's
+    significance (|value - default| / sigma) and the parameters left out with theirs.
+    """
+    from dataclasses import replace
+
+    fit = [p for p in PARAMS if p in set(fit)]
+    dropped = {}
+    base = camera
+    while True:
+        res = calibrate(frames, base, fit, iterations)
+        sig = {}
+        for name in fit:
+            d = _default(camera, name)
+            s_ = res.sigma.get(name, 0.0)
+            if d is not None:
+                sig[name] = abs(getattr(res.camera, name) - d) / s_ if s_ > 0 else float("inf")
+        pair = max(sig.get("cx", 0.0), sig.get("cy", 0.0))
+        optional = [n for n in ("k2", "k1") if n in fit and sig[n] < min_sigma]
+        if ("cx" in fit or "cy" in fit) and pair < min_sigma:
+            optional.append("cx" if "cx" in fit else "cy")
+            sig["cx" if "cx" in fit else "cy"] = pair
+        if not optional:
+            res.significance = sig
+            res.dropped = dropped
+            return res
+        worst = min(optional, key=lambda n: sig[n])
+        if worst in ("cx", "cy"):
+            # the principal point goes as a pair
+            for n in ("cx", "cy"):
+                if n in fit:
+                    dropped[n] = sig[n]
+                    fit.remove(n)
+                    base = replace(base, **{n: _default(camera, n)})
+        else:
+            dropped[worst] = sig[worst]
+            fit.remove(worst)
+            base = replace(base, **{worst: 0.0})
 
 
 def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
@@ -93,7 +151,7 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
     def residuals(p):
         cam, deltas = unpack(p)
         out = []
-        for (a, xy, ref), d in zip(frames, deltas):
+        for (a, xy, ref), d in zip(frames, deltas, strict=True):
             v = ref @ (_rot(d) @ a).T
             x, y = cam.vectors_to_pixels(v)
             out.append(np.column_stack([xy[:, 0] - x, xy[:, 1] - y]).ravel())

@@ -141,8 +141,8 @@ def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
     Nebulae, gradients, the Milky Way's glow, twilight and vignetting are
     broader than a star and are removed with the opening; a star is removed by
     it entirely when the disk is wider than the star.  The disk's radius is
-    ``tophat_px``, else three times the median FWHM of the stars a first, plain
-    (mesh background) detection finds, within 3-25 px.
+    ``tophat_px``, else three times the lower-quartile FWHM of the stars a first,
+    plain (mesh background) detection finds, within 3-25 px.
     """
     import cv2
 
@@ -152,7 +152,8 @@ def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
 
         first = find_stars(img, replace(options, background="mesh", max_stars=30, max_fwhm_ratio=None))
         fwhm = [s_["fwhm_px"] for s_ in first.stars if not s_["saturated"]]
-        r = 3.0 * float(np.median(fwhm)) if fwhm else 6.0
+        # The narrower stars set the scale: in a nebula the wide detections are knots, not stars.
+        r = 3.0 * float(np.percentile(fwhm, 25)) if fwhm else 6.0
         r = min(25.0, max(3.0, r))
     k = 2 * int(round(r)) + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
@@ -367,16 +368,22 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             if len(peaks) >= 2:
                 for (qx, qy) in peaks:
                     candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), nsat,
-                                       math.sqrt(max(l2, 0.25)), True))
+                                       math.sqrt(max(l2, 0.25)), True, flux / len(peaks)))
                 continue
         if elong > options.max_elongation and area >= 8:
             rejected.append({"x": float(cx), "y": float(cy), "flux": float(flux), "npix": area,
                              "elongation": float(elong), "reason": "elongated (trail or extended object)"})
             continue
-        candidates.append((float(cx), float(cy), float(peak), float(npix), nsat, math.sqrt(max(l2, 0.25)), False))
+        candidates.append((float(cx), float(cy), float(peak), float(npix), nsat, math.sqrt(max(l2, 0.25)), False,
+                           float(flux)))
+    if options.max_stars is not None and len(candidates) > 3 * options.max_stars + 20:
+        # Only the brightest blobs can be among the max_stars brightest stars: centroid those
+        # (with room for duplicates and shape rejections) and skip the faint majority.
+        candidates.sort(key=lambda c: -c[7])
+        candidates = candidates[:3 * options.max_stars + 20]
     stars = []
     method = options.method
-    for (cx, cy, peak, npix, nsat, sig_est, deblended) in candidates:
+    for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
         x, y, ok = cx, cy, True

@@ -235,7 +235,7 @@ class BlindOptions:
     sigma_px: float | None = None
     max_false_probability: float = 1e-6
     timeout_s: float = 5.0
-    tol_geom: float = 0.12
+    tol_geom: float = 0.05
     fit_distortion_deg: float = 25.0
 
 
@@ -388,32 +388,37 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     """Verify one candidate strictly; fit the focal length (and k1 for wide fields) and verify again."""
     from startrack._kernels.patterns import quick_check
 
-    cam = Camera(width, height, float(f), (width - 1) / 2.0, (height - 1) / 2.0)
-    fov = cam.fov_deg
+    # Pinhole geometry from f alone (cheap: most candidates end at the screen below).
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    fov = (2 * math.degrees(math.atan(width / 2.0 / f)), 2 * math.degrees(math.atan(height / 2.0 / f)))
     wide = fov[0] > opts.fit_distortion_deg
     solid = math.radians(fov[0]) * math.radians(fov[1])
     n_rows = max(_catalog_prefix(index, solid, max(2 * len(stars), 30)), max(cat_rows) + 1)
     star_vec = index.star_vec[:n_rows]
     star_id = index.star_id[:n_rows]
+    u = np.column_stack([(xy[:, 0] - cx) / f, (xy[:, 1] - cy) / f, np.ones(len(xy))])
+    b = u / np.linalg.norm(u, axis=1)[:, None]
+    r_px = max(1.0, params.match_sigma * sigma)
+    if wide:
+        # Unknown distortion: first a wider match radius (the false-match probability accounts for it).
+        r_px = max(r_px, 0.01 * math.hypot(width, height) * (fov[0] / 60.0) ** 2)
+    half_diag = math.atan(math.hypot(width, height) / 2.0 / f)
+    cos_fov = math.cos(half_diag + math.radians(0.5))
+    # Screen: at least two more of the brightest stars on catalog stars, else not worth verifying.
+    n_screen = min(len(b), 20)
+    if quick_check(np.ascontiguousarray(b[:n_screen]), star_vec, np.asarray(img, dtype=np.int64),
+                   np.asarray(cat_rows, dtype=np.int64), cos_fov, r_px / f) < min(2, n_screen - 4):
+        return None
+    cam = Camera(width, height, float(f), cx, cy)
     # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
-    pattern_px = max(math.hypot(*(xy[a] - xy[b])) for a in img for b in img)
+    pattern_px = max(math.hypot(*(xy[a] - xy[b_])) for a in img for b_ in img)
     n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
     vparams = params
     if wide:
-        # Unknown distortion: first a wider match radius (the false-match probability accounts for it).
         from dataclasses import replace
 
-        r_px = max(5.0 * sigma, 0.01 * math.hypot(width, height) * (fov[0] / 60.0) ** 2)
         vparams = replace(params, match_radius_px=r_px)
     eps = tolerance_rad(cam, sigma, params)
-    b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
-    # Screen: at least two more stars (of the brightest) on catalog stars, else not worth verifying.
-    r_px = vparams.match_radius_px or max(1.0, params.match_sigma * sigma)
-    cos_fov = math.cos(math.radians(cam.max_off_axis_deg + 0.5))
-    n_screen = min(len(b), 20)
-    if quick_check(np.ascontiguousarray(b[:n_screen]), star_vec, np.array(img), np.array(cat_rows), cos_fov,
-                   r_px / cam.focal_length_px) < min(2, n_screen - 4):
-        return None
     prop = Proposal(img, cat_rows, trials=int(n_verified * n_scales))
     matches, dcm, p_false, reason = verify(prop, b, stars, cam, star_vec, star_id, eps, sigma, vparams)
     if matches is None:

@@ -18,6 +18,7 @@ catalog builds new ones.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -209,10 +210,10 @@ def pointing(dcm, camera) -> dict:
 
 def _solve_with_patterns(stars, w, h, opts, index, clock):
     """Blind identification with the scale-invariant pattern index (:mod:`startrack.patterns`)."""
-    from startrack.patterns import BlindOptions, default_index, solve_blind
+    from startrack.patterns import BlindOptions, solve_blind
 
     if index is None:
-        index = clock.setup(default_index, notice=_notice)
+        index = clock.setup(_process_index)
     bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                       timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)))
     if opts.fov_deg is not None:
@@ -223,6 +224,16 @@ def _solve_with_patterns(stars, w, h, opts, index, clock):
     if cam is None:
         return None, info["verified"]
     return (cam, index, res), info["verified"]
+
+
+@functools.lru_cache(maxsize=1)
+def _process_index():
+    """The default pattern index, opened (or built) once per process, its kernels ready."""
+    from startrack.patterns import default_index
+
+    index = default_index(notice=_notice)
+    _warm(index)
+    return index
 
 
 def _warm(index):

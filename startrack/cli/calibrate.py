@@ -7,7 +7,9 @@ from startrack.cli.options import catalog_option, handle_errors, info, input_arg
 @click.command("calibrate", short_help="Fit focal length, principal point and k1, k2 from solved frames.")
 @input_argument
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
-@click.option("--fit", default="focal_length_px,cx,cy,k1,k2", show_default=True, help="Parameters to fit.")
+@click.option("--fit", default="auto", show_default=True,
+              help="Parameters to fit (focal_length_px,cx,cy,k1,k2), or auto: all of them, then those the data do "
+                   "not constrain (under 3 sigma from no distortion / the image centre) left out.")
 @catalog_option
 @quiet_option
 @handle_errors
@@ -15,7 +17,10 @@ def command(input, output, fit, catalog, quiet):
     """Calibrate the camera from frames with identification and attitude (paper 000's ground calibration).
 
     A least-squares bundle adjustment over all frames: the camera intrinsics
-    and a small attitude correction per frame.  Writes a startrack.camera/1
+    and a small attitude correction per frame.  By default (--fit auto) a
+    parameter the data do not constrain (k2, k1, the principal point: under 3
+    sigma from no distortion or the image centre) is left out and fixed at its
+    default; every parameter's significance is reported.  Writes a startrack.camera/1
     JSON with the fitted values, their 1-sigma uncertainties, the residual RMS
     before and after, and the field of view with its uncertainty.
 
@@ -29,7 +34,7 @@ def command(input, output, fit, catalog, quiet):
 
     import numpy as np
 
-    from startrack.calibrate import calibrate
+    from startrack.calibrate import calibrate, calibrate_significant
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError
@@ -71,7 +76,10 @@ def command(input, output, fit, catalog, quiet):
         frames.append((np.asarray(att["dcm"]), np.array(xy), np.array(ref)))
     if camera is None:
         raise BadInputError(input, "attitude", "no frame with a solved attitude to calibrate from")
-    result = calibrate(frames, camera, [p.strip() for p in fit.split(",") if p.strip()])
+    if fit.strip() == "auto":
+        result = calibrate_significant(frames, camera)
+    else:
+        result = calibrate(frames, camera, [p.strip() for p in fit.split(",") if p.strip()])
     doc = result.to_dict()
     with atomic_open(output, "w") as fh:
         json.dump(doc, fh, indent=1)
@@ -79,3 +87,11 @@ def command(input, output, fit, catalog, quiet):
     info(quiet, f"calibrate: {result.n_frames} frame(s), {result.n_stars} stars; f = {result.camera.focal_length_px:.2f}"
                 f" +- {result.sigma.get('focal_length_px', 0):.2f} px, FOV {c['fov_deg'][0]:.4f} x {c['fov_deg'][1]:.4f} deg; "
                 f"residual RMS {c['rms_residual_before_arcsec']:.2f}\" -> {c['rms_residual_after_arcsec']:.2f}\" -> {output}")
+    if not quiet:
+        sig = c.get("significance_sigma", {})
+        for name in ("focal_length_px", "cx", "cy", "k1", "k2"):
+            if name in result.sigma:
+                click.echo(f"  {name:16s} {getattr(result.camera, name):14.6g} +- {result.sigma[name]:.3g}"
+                           + (f"  ({sig[name]:.1f} sigma)" if name in sig else ""), err=True)
+            elif result.dropped and name in result.dropped:
+                click.echo(f"  {name:16s} not fitted: {result.dropped[name]:.1f} sigma, not significant", err=True)

@@ -4,6 +4,56 @@ import click
 from startrack.cli.options import handle_errors, info, load_camera_file, output_option, quiet_option
 
 
+def output_for(template: str | None, image_path: str, total: int, suffix: str) -> str | None:
+    """Where an image's output goes, named after the image.
+
+    ``{name}`` in ``template`` is replaced by the image's file name without its
+    extension; a template that is a directory (or ends with ``/``) receives
+    ``NAME<suffix>``; with one image the template is the file; with several,
+    ``sky.wcs.fits`` becomes ``sky.wcs-NAME.fits``.  The directory is created.
+    """
+    import os
+
+    if not template:
+        return None
+    name = os.path.splitext(os.path.basename(image_path))[0]
+    if "{name}" in template:
+        path = template.replace("{name}", name)
+    elif template.endswith(("/", os.sep)) or os.path.isdir(template):
+        path = os.path.join(template, name + suffix)
+    elif total <= 1:
+        path = template
+    else:
+        root, ext = os.path.splitext(template)
+        path = f"{root}-{name}{ext}"
+    parent = os.path.dirname(path)
+    if parent:
+        os.makedirs(parent, exist_ok=True)
+    return path
+
+
+def _write_matches(path, doc):
+    """The matched stars of a solved image as CSV: catalog id, RA/Dec, x/y, magnitude, residual."""
+    import csv
+
+    from startrack.catalog import load_catalog
+    from startrack.formats.atomic import atomic_path
+
+    cat = load_catalog()
+    rows = cat.rows_by_id()
+    resid = {(r["star"], r["id"]): r["residual_arcsec"] for r in doc["attitude"].get("residuals", [])}
+    with atomic_path(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["catalog_id", "ra_deg", "dec_deg", "mag", "x_px", "y_px", "residual_arcsec", "used"])
+        for m in doc["identification"]["matches"]:
+            r = rows.get(int(m["id"]))
+            s = doc["stars"][m["star"]]
+            res = resid.get((m["star"], m["id"]))
+            w.writerow([m["id"], f"{cat.ra[r]:.7f}" if r is not None else "", f"{cat.dec[r]:.7f}" if r is not None
+                        else "", f"{cat.mag[r]:.3f}" if r is not None else "", f"{s['x']:.3f}", f"{s['y']:.3f}",
+                        f"{res:.3f}" if res is not None else "", int(res is not None)])
+
+
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
     import time
@@ -13,7 +63,7 @@ def _solve_one(args):
     from startrack.imageio import read_image
     from startrack.solve import solve_image
 
-    path, options, camera_doc, wcs_path, plot_path = args
+    path, options, camera_doc, outputs = args
     t0 = time.perf_counter()
     doc = {"format": FRAME_FORMAT, "image": {"path": path}}
     try:
@@ -31,7 +81,8 @@ def _solve_one(args):
     doc.update(out)
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if doc["solve"]["status"] == "ok":
-        if wcs_path:
+        wcs_path, plot_path, fits_path, matches_path = outputs
+        if wcs_path or fits_path:
             import numpy as np
             from astropy.io import fits
 
@@ -40,9 +91,20 @@ def _solve_one(args):
             from startrack.formats.atomic import atomic_path
 
             hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]))
-            with atomic_path(wcs_path, suffix=".fits") as tmp:
-                fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
-            doc["solve"]["wcs_path"] = wcs_path
+            if wcs_path:
+                with atomic_path(wcs_path, suffix=".fits") as tmp:
+                    fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
+                doc["solve"]["wcs_path"] = wcs_path
+            if fits_path:
+                # The image itself with its WCS, like astrometry.net's new-image.fits.
+                full = hdr.copy()
+                full["HISTORY"] = f"solved by startrack from {path}"
+                with atomic_path(fits_path, suffix=".fits") as tmp:
+                    fits.PrimaryHDU(data=image, header=full).writeto(tmp, overwrite=True)
+                doc["solve"]["fits_path"] = fits_path
+        if matches_path:
+            _write_matches(matches_path, doc)
+            doc["solve"]["matches_path"] = matches_path
         if plot_path:
             from startrack.plot import annotate_solution
 
@@ -62,57 +124,67 @@ def _solve_one(args):
               help="Give up on an image after this many seconds of search (building a cached database and "
                    "compiling kernels on first use do not count).")
 @click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Images solved in parallel.")
-@click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
-              help="FITS WCS per image (numbered when several).")
-@click.option("--plot", type=click.Path(dir_okay=False), default=None,
-              help="Annotated picture per image (numbered when several).")
+@click.option("--wcs", "wcs_path", type=click.Path(), default=None,
+              help="FITS WCS header per image (named after the image when several; {name} = image name).")
+@click.option("--plot", type=click.Path(), default=None,
+              help="Annotated picture per image (named after the image when several; {name} = image name).")
+@click.option("--fits-out", type=click.Path(), default=None,
+              help="The image with its WCS as FITS (like astrometry.net's new-image.fits); a directory, a file, "
+                   "or a pattern with {name}.")
+@click.option("--matches-out", type=click.Path(), default=None,
+              help="Matched stars per image as CSV (catalog id, RA/Dec, x/y, residual); a directory, a file, or "
+                   "a pattern with {name}.")
 @output_option("Frame documents (JSON Lines).")
 @quiet_option
 @handle_errors
-def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, wcs_path, plot, output, quiet):
+def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, wcs_path, plot, fits_out,
+            matches_out, output, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
-    process.  The field of view may be unknown: paper 004's scale-free labels
-    identify the brightest stars and measure the focal length, then the frame
-    is matched in full.  Databases are built on first use from the shipped
-    catalog and cached (in $STARTRACK_CACHE, else ~/.cache/startrack).  A
-    frame document per image (JSON Lines) goes to stdout, with a `solve`
-    section: status, fitted field of view, time.  Failures (not a star field,
-    too few stars, timeout) are reported and the batch goes on.
+    process.  The field of view may be unknown (about 2 to 70 degrees): a
+    scale-free index of 4-star patterns, built once from the shipped catalog
+    and cached (in $STARTRACK_CACHE, else ~/.cache/startrack; see `startrack
+    cache`), identifies the stars and measures the focal length (and, for
+    fields over 25 degrees, the radial distortion k1).  A frame document per
+    image (JSON Lines) goes to stdout, with a `solve` section: status, fitted
+    field of view, the RA/Dec of the image centre and of the principal point,
+    time.  An image that cannot be solved is reported on stderr and the batch
+    goes on.  Exit status: 0 when every image was solved, 1 when any could not
+    be, 2 when any could not be read.
 
     \b
-    Example (a directory of photos, two processes, pictures and WCS files):
-      startrack solve photos/*.tiff -j 2 --plot solved/sky.png --wcs solved/sky.wcs.fits > solved.jsonl
+    Example (a directory of photos, two processes; outputs named after each photo):
+      startrack solve photos/*.jpg -j 2 --plot solved/ --fits-out solved/ --matches-out solved/ > solved.jsonl
     \b
-    Example (one photo with a known lens):
-      startrack solve sky.tiff --fov-deg 11.4 | jq .attitude.ra,.attitude.dec,.attitude.roll
+    Example (one photo with a field-of-view hint):
+      startrack solve sky.tiff --fov-deg 11.4 | jq .solve.image_centre
+    \b
+    Example (several photos, the WCS of each as sky.wcs-NAME.fits):
+      startrack solve a.tiff b.tiff --wcs out/sky.wcs.fits > solved.jsonl
     """
-    import os
-
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
     from startrack.formats.frame import FrameWriter
     from startrack.progress import ProgressBar
-    from startrack.render import numbered_path
     from startrack.solve import SolveOptions, band_database
 
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
     if fov_deg is not None and not 0 < fov_deg < 90:
         raise BadInputError("--fov-deg", None, f"must be in (0, 90), got {fov_deg}")
-    for p in (wcs_path, plot):
-        if p:
-            check_writable(p)
     camera_doc = None
     if camera_file:
-        pass
-
         camera_doc = load_camera_file(camera_file).to_dict()
     options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch)
     n = len(images)
-    tasks = [(path, options, camera_doc, numbered_path(wcs_path, i, n) if wcs_path else None,
-              numbered_path(plot, i, n) if plot else None) for i, path in enumerate(images)]
+    tasks = [(path, options, camera_doc, (output_for(wcs_path, path, n, ".wcs.fits"),
+                                          output_for(plot, path, n, ".solved.png"),
+                                          output_for(fits_out, path, n, ".new.fits"),
+                                          output_for(matches_out, path, n, ".matches.csv")))
+             for path in images]
+    for outs in {p for t in tasks for p in t[3] if p}:
+        check_writable(outs)
     # Build (or open) what the workers need once, before any of them starts.
     if camera_doc is None:
         from startrack.patterns import default_index
@@ -137,6 +209,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
                 for i, doc in enumerate(results):
                     n_ok += doc["solve"]["status"] == "ok"
                     n_bad += bool(doc["solve"].get("bad_input"))
+                    if doc["solve"]["status"] != "ok":
+                        click.echo(f"startrack solve: {tasks[i][0]}: {doc['solve']['reason']}", err=True)
                     writer.write(doc)
                     bar(i + 1, n)
         else:
@@ -146,8 +220,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
                     raise BadInputError(task[0], None, doc["solve"]["reason"].split(": ", 1)[-1])
                 n_ok += doc["solve"]["status"] == "ok"
                 n_bad += bool(doc["solve"].get("bad_input"))
-                if doc["solve"]["status"] != "ok" and not quiet:
-                    click.echo(f"startrack solve: {os.path.basename(task[0])}: {doc['solve']['reason']}", err=True)
+                if doc["solve"]["status"] != "ok":
+                    click.echo(f"startrack solve: {task[0]}: {doc['solve']['reason']}", err=True)
                 writer.write(doc)
                 bar(i + 1, n)
     info(quiet, f"solve: {n_ok} of {n} image(s) solved" + (f", {n_bad} unreadable" if n_bad else ""))

@@ -89,3 +89,34 @@ def test_plot_kinds(solved, tmp_path):
     run_cli("plot", one, "--kind", "image", "-o", tmp_path / "img.png", check=True)
     run_cli("plot", one, "--kind", "residuals", "-o", tmp_path / "res.png", check=True)
     assert (tmp_path / "img.png").stat().st_size > 50000 and (tmp_path / "res.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("fov,size,k1", [(5.0, "800x600", 0.0), (40.0, "1024x768", -0.05)])
+def test_rendered_fields_solve_blind_with_named_outputs(cache, tmp_path, fov, size, k1):
+    """A 5 deg and a 40 deg field with barrel distortion, no hint; outputs named after the image."""
+    img = tmp_path / "field.png"
+    truth = json.loads(run_cli("render", "--fov-deg", fov, "--size", size, "--ra", 150, "--dec", 40, "--roll", 30,
+                               "--k1", k1, "--exposure-ms", 300, "--seed", 3, "-o", img, "-q", check=True).stdout)
+    out = tmp_path / "out"
+    proc = run_cli("solve", img, "--fits-out", f"{out}/", "--matches-out", f"{out}/", env=cache, check=True)
+    d = json.loads(proc.stdout)
+    assert d["solve"]["status"] == "ok", d["solve"]
+    c = d["solve"]["image_centre"]
+    sep = math.degrees(math.acos(min(1.0, math.sin(math.radians(c["dec"])) * math.sin(math.radians(40))
+                                     + math.cos(math.radians(c["dec"])) * math.cos(math.radians(40))
+                                     * math.cos(math.radians(c["ra"] - 150)))))
+    assert sep * 3600 < 60
+    assert d["camera"]["fov_deg"][0] == pytest.approx(truth["camera"]["fov_deg"][0], rel=0.005)
+    if k1:
+        assert d["camera"]["distortion"]["k1"] == pytest.approx(k1, abs=0.01)
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    with fits.open(out / "field.new.fits") as hdul:
+        assert hdul[0].data.shape == tuple(int(v) for v in size.split("x")[::-1])
+        ra, dec = WCS(hdul[0].header).all_pix2world([d["stars"][0]["x"]], [d["stars"][0]["y"]], 0)
+    rows = list(csv.DictReader(open(out / "field.matches.csv")))
+    assert len(rows) == len(d["identification"]["matches"]) >= 10
+    first = next(r for r in rows if float(r["x_px"]) == pytest.approx(d["stars"][0]["x"], abs=1e-3))
+    assert float(first["ra_deg"]) == pytest.approx(float(ra[0]), abs=0.02)
+    assert float(first["dec_deg"]) == pytest.approx(float(dec[0]), abs=0.02)

@@ -1,0 +1,301 @@
+"""Blind solving (issue 15), every figure in one run: real photos beside astrometry.net and cedar-solve,
+time per image (whole process, in one process, first use), -j 1 vs -j 2, rendered 2-70 degree fields,
+and non-star images.
+
+    .venv/bin/python benchmarks/blind_bench.py [--out bench-output/blind.md] [--skip-peers]
+
+The three astrophotographs of ../shared/data/real-extra/ are used when present (they are
+copyrighted and never copied into the repository); the 8 ESA images are in tests/data/real/.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, os.path.join(HERE, "peers"))
+EXTRA = os.environ.get("STARTRACK_REAL_EXTRA", os.path.join(os.path.dirname(ROOT), "shared", "data", "real-extra"))
+if not os.path.isdir(EXTRA):
+    EXTRA = "/work/shared/data/real-extra"
+ST = [sys.executable, "-m", "startrack"]
+
+
+def _sep_deg(ra, dec, ra0, dec0):
+    a = np.radians([ra, dec, ra0, dec0])
+    c = math.sin(a[1]) * math.sin(a[3]) + math.cos(a[1]) * math.cos(a[3]) * math.cos(a[0] - a[2])
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def table(header, rows):
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def references():
+    refs = {}
+    for path in (os.path.join(ROOT, "tests", "data", "real", "solutions.csv"), os.path.join(EXTRA, "solutions.csv")):
+        if os.path.exists(path):
+            d = os.path.dirname(path)
+            for r in csv.DictReader(open(path)):
+                refs[os.path.join(d, r["file"])] = r
+    return refs
+
+
+def run_st(args, env=None, timeout=600):
+    full = dict(os.environ)
+    full.update(env or {})
+    t0 = time.perf_counter()
+    proc = subprocess.run(ST + list(args), capture_output=True, text=True, env=full, timeout=timeout)
+    return proc, time.perf_counter() - t0
+
+
+def real_photos(refs, cache_env, skip_peers):
+    rows = []
+    proc, _ = run_st(["cache", "build", "-q"], cache_env)
+    walls = []
+    for path, r in refs.items():
+        proc, wall = run_st(["solve", path, "-q"], cache_env)
+        walls.append(wall)
+        name = os.path.basename(path)
+        docs = [json.loads(line) for line in proc.stdout.splitlines() if line.strip()]
+        d = docs[0] if docs else {"solve": {"status": "no output"}}
+        s = d["solve"]
+        if s["status"] == "ok":
+            c = s["image_centre"]
+            dist = _sep_deg(c["ra"], c["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+            width = s["fov_deg"][0] / float(r["fov_x_deg"]) - 1
+            rows.append(["startrack", name, "ok", proc.returncode, f"{dist:.4f}", f"{100 * width:+.2f} %",
+                         f"{wall:.2f}"])
+        else:
+            rows.append(["startrack", name, s["status"], proc.returncode, "", "", f"{wall:.2f}"])
+    if not skip_peers:
+        rows += _peers(refs)
+    return rows, walls
+
+
+def _peers(refs):
+    rows = []
+    try:
+        import astrometry_peer
+
+        if astrometry_peer.is_available():
+            for path, r in refs.items():
+                res = astrometry_peer.solve_field(path, 1, 100, timeout_s=60)
+                if res["status"] == "solved":
+                    dist = _sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+                    rows.append(["astrometry.net (scale 1-100 deg)", os.path.basename(path), "ok", "",
+                                 f"{dist:.4f}", f"{100 * (res['fov_x_deg'] / float(r['fov_x_deg']) - 1):+.2f} %",
+                                 f"{res['elapsed_ms'] / 1000:.2f}"])
+                else:
+                    rows.append(["astrometry.net (scale 1-100 deg)", os.path.basename(path), res["status"], "", "",
+                                 "", f"{(res.get('elapsed_ms') or 0) / 1000:.2f}"])
+        else:
+            rows.append(["astrometry.net", "-", "not installed", "", "", "", ""])
+    except Exception as exc:  # noqa: BLE001 - a broken peer is reported, not fatal
+        rows.append(["astrometry.net", "-", f"error {type(exc).__name__}", "", "", "", ""])
+    try:
+        import cedar_peer
+
+        if cedar_peer.is_available():
+            with cedar_peer.CedarSolver(db="default") as cs:
+                for path, r in refs.items():
+                    res = cs.solve_image(path, float(r["fov_x_deg"]))
+                    if res.get("ra") is not None:
+                        dist = _sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+                        rows.append(["cedar-solve (FOV given)", os.path.basename(path), "ok", "", f"{dist:.4f}",
+                                     f"{100 * (res['fov'] / float(r['fov_x_deg']) - 1):+.2f} %",
+                                     f"{res.get('t_wall_ms', float('nan')) / 1000:.3f} (in-process)"])
+                    else:
+                        rows.append(["cedar-solve (FOV given)", os.path.basename(path), str(res.get("status")), "",
+                                     "", "", f"{res.get('t_wall_ms', float('nan')) / 1000:.3f} (in-process)"])
+        else:
+            rows.append(["cedar-solve", "-", "not installed", "", "", "", ""])
+    except Exception as exc:  # noqa: BLE001
+        rows.append(["cedar-solve", "-", f"error {type(exc).__name__}", "", "", "", ""])
+    return rows
+
+
+def in_process(esa, cache_env, repeats=5):
+    """Median ms per ESA image of solve_image (image in memory, index open, kernels warm)."""
+    os.environ.update(cache_env)
+    from startrack.imageio import read_image
+    from startrack.patterns import default_index
+    from startrack.solve import SolveOptions, solve_image
+
+    index = default_index()
+    images = [read_image(p) for p in esa]
+    for im, meta in images:
+        solve_image(im, options=SolveOptions(), saturation=meta["saturation"], index=index)
+    per = []
+    for im, meta in images:
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            out = solve_image(im, options=SolveOptions(), saturation=meta["saturation"], index=index)
+            ts.append((time.perf_counter() - t0) * 1000)
+            assert out["solve"]["status"] == "ok", out["solve"]
+        per.append(float(np.median(ts)))
+    cedar = []
+    try:
+        import cedar_peer
+
+        if cedar_peer.is_available():
+            with cedar_peer.CedarSolver(db="default") as cs:
+                for p in esa:
+                    cs.solve_image(p, 11.4)
+                    ts = [cs.solve_image(p, 11.4).get("t_wall_ms", float("nan")) for _ in range(repeats)]
+                    cedar.append(float(np.median(ts)))
+    except Exception:  # noqa: BLE001
+        cedar = []
+    return per, cedar
+
+
+def first_use(image):
+    """Whole `startrack solve IMAGE` with an empty cache and an empty numba cache (kernels compiled)."""
+    tmp = tempfile.mkdtemp(prefix="st-cold-")
+    try:
+        env = {"STARTRACK_CACHE": os.path.join(tmp, "cache"), "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
+        proc, wall = run_st(["solve", image], env)
+        notice = [line for line in proc.stderr.splitlines() if "once" in line]
+        env2 = {"STARTRACK_CACHE": os.path.join(tmp, "cache2")}
+        proc2, wall2 = run_st(["solve", image], env2)
+        return wall, proc.returncode, notice, wall2, proc2.returncode
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def jobs(esa, cache_env):
+    tmp = tempfile.mkdtemp(prefix="st-jobs-")
+    try:
+        paths = []
+        for k in range(2):
+            for p in esa:
+                q = os.path.join(tmp, f"{k}-{os.path.basename(p)}")
+                os.symlink(p, q)
+                paths.append(q)
+        out = {}
+        for j in (1, 2):
+            proc, wall = run_st(["solve", *paths, "-j", str(j), "-q"], cache_env)
+            ok = sum(json.loads(line)["solve"]["status"] == "ok" for line in proc.stdout.splitlines())
+            out[j] = (wall, ok, proc.returncode)
+        return out, len(paths)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+RENDERS = [  # fov, size, ra, dec, roll, k1, exposure ms
+    (2.0, "1024x768", 83.8, -1.2, 30.0, 0.0, 1000),
+    (5.0, "1024x768", 201.3, -11.2, 100.0, 0.0, 500),
+    (40.0, "1280x960", 150.0, 40.0, -60.0, -0.05, 100),
+    (70.0, "1280x960", 280.0, -30.0, 200.0, -0.1, 100),
+]
+
+
+def rendered(cache_env):
+    rows = []
+    tmp = tempfile.mkdtemp(prefix="st-render-")
+    try:
+        for i, (fov, size, ra, dec, roll, k1, exp) in enumerate(RENDERS):
+            img = os.path.join(tmp, f"f{fov:g}.png")
+            run_st(["render", "--fov-deg", str(fov), "--size", size, "--ra", str(ra), "--dec", str(dec), "--roll",
+                    str(roll), "--k1", str(k1), "--exposure-ms", str(exp), "--seed", str(i + 1), "-o", img, "-q"])
+            proc, wall = run_st(["solve", img, "-q"], cache_env)
+            d = json.loads(proc.stdout.splitlines()[0])
+            s = d["solve"]
+            if s["status"] == "ok":
+                dist = _sep_deg(d["attitude"]["ra"], d["attitude"]["dec"], ra, dec)
+                rows.append([f"{fov:g} deg {size}, k1 {k1:g}", "ok", proc.returncode, f"{dist * 3600:.1f}",
+                             f"{s['fov_deg'][0]:.3f}", f"{d['camera'].get('distortion', {}).get('k1', 0):+.4f}",
+                             d["attitude"]["n_stars"], f"{s['time_ms']:.0f}", f"{wall:.2f}"])
+            else:
+                rows.append([f"{fov:g} deg {size}, k1 {k1:g}", s["status"], proc.returncode, "", "", "", "", "",
+                             f"{wall:.2f}"])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return rows
+
+
+def non_stars(cache_env):
+    import cv2
+
+    tmp = tempfile.mkdtemp(prefix="st-nonstar-")
+    rows = []
+    try:
+        rng = np.random.default_rng(0)
+        yy, xx = np.mgrid[0:768, 0:1024]
+        day = (120 + 60 * np.sin(xx / 23.0) * np.cos(yy / 17.0) + rng.normal(0, 8, (768, 1024))).clip(0, 255)
+        files = {"noise.png": rng.normal(1000, 40, (768, 1024)).astype(np.uint16),
+                 "black.png": np.zeros((768, 1024), np.uint8), "daylight.png": day.astype(np.uint8)}
+        for name, arr in files.items():
+            p = os.path.join(tmp, name)
+            cv2.imwrite(p, arr)
+            proc, wall = run_st(["solve", p, "-q"], cache_env)
+            d = json.loads(proc.stdout.splitlines()[0])
+            rows.append([name, d["solve"]["status"], proc.returncode, d["solve"].get("reason", ""), f"{wall:.2f}"])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", default=os.path.join(ROOT, "bench-output", "blind.md"))
+    parser.add_argument("--skip-peers", action="store_true")
+    args = parser.parse_args()
+    tmp_cache = tempfile.mkdtemp(prefix="st-bench-cache-")
+    cache_env = {"STARTRACK_CACHE": tmp_cache}
+    refs = references()
+    esa = sorted(p for p in refs if p.endswith(".tiff"))
+    parts = [f"# Blind solving (issue 15) — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+             f"{os.cpu_count()} cores\n\nCommand: `{sys.executable} benchmarks/blind_bench.py`\n"]
+
+    def emit(text):
+        print(text, flush=True)
+        parts.append(text)
+
+    wall, rc, notice, wall2, rc2 = first_use(esa[0])
+    emit(f"## First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty numba "
+         f"cache: **{wall:.1f} s** (exit {rc}); notice on stderr: {notice!r}. With compiled kernels but an empty "
+         f"index cache: **{wall2:.1f} s** (exit {rc2}).\n")
+    rows, walls = real_photos(refs, cache_env, args.skip_peers)
+    emit("## Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
+         "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole process "
+         "(s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"], rows)
+         + f"\n\nstartrack whole process, median {np.median(walls):.2f} s, max {max(walls):.2f} s.\n")
+    per, cedar = in_process(esa, cache_env)
+    txt = (f"## In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + identify + "
+           f"attitude): per image {', '.join(f'{v:.0f}' for v in per)} ms; **median {np.median(per):.1f} ms**.")
+    if cedar:
+        txt += (f"\ncedar-solve solve_from_image (FOV given): per image {', '.join(f'{v:.0f}' for v in cedar)} ms; "
+                f"**median {np.median(cedar):.1f} ms**; ratio {np.median(cedar) / np.median(per):.2f}x.")
+    emit(txt + "\n")
+    jb, n = jobs(esa, cache_env)
+    emit(f"## Batch of {n} images\n\n" + table(["-j", "wall (s)", "solved", "exit"],
+                                                [[j, f"{w:.2f}", f"{ok}/{n}", rc] for j, (w, ok, rc) in jb.items()])
+         + "\n")
+    emit("## Rendered fields, solved blind\n\n" + table(
+        ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
+         "solve ms", "process s"], rendered(cache_env)) + "\n")
+    emit("## Not star fields\n\n" + table(["image", "status", "exit", "reason", "process s"], non_stars(cache_env))
+         + "\n")
+    shutil.rmtree(tmp_cache, ignore_errors=True)
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    with open(args.out, "w") as fh:
+        fh.write("\n".join(parts))
+    print(f"report: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
