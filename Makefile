@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ST     := $(VENV)/bin/startrack
 OUT    ?= demo-output
 
-.PHONY: install demo test bench bench-peers reproduce clean
+.PHONY: install demo test bench bench-blind bench-peers reproduce clean
 
 install: $(VENV)/.installed
 
@@ -13,6 +13,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,plot,cluster]'
+	$(ST) cache build
 	@touch $@
 
 demo: install
@@ -51,6 +52,9 @@ bench-peers: install
 
 bench: bench-peers
 	$(PY) benchmarks/run.py
+
+bench-blind: bench-peers
+	$(PY) benchmarks/blind_bench.py
 
 reproduce: install
 	bash examples/reproduce-papers.sh

@@ -249,51 +249,63 @@ def non_stars(cache_env):
     return rows
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--out", default=os.path.join(ROOT, "bench-output", "blind.md"))
-    parser.add_argument("--skip-peers", action="store_true")
-    args = parser.parse_args()
+def report(skip_peers: bool = False) -> str:
+    """Run every measurement once and return the Markdown report."""
     tmp_cache = tempfile.mkdtemp(prefix="st-bench-cache-")
     cache_env = {"STARTRACK_CACHE": tmp_cache}
     refs = references()
     esa = sorted(p for p in refs if p.endswith(".tiff"))
-    parts = [f"# Blind solving (issue 15) — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-             f"{os.cpu_count()} cores\n\nCommand: `{sys.executable} benchmarks/blind_bench.py`\n"]
+    parts = [f"Blind solving (issue 15), {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+             f"{os.cpu_count()} cores; command: `python benchmarks/blind_bench.py`"
+             + (" --skip-peers" if skip_peers else "") + "\n"]
 
     def emit(text):
         print(text, flush=True)
         parts.append(text)
 
-    wall, rc, notice, wall2, rc2 = first_use(esa[0])
-    emit(f"## First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty numba "
-         f"cache: **{wall:.1f} s** (exit {rc}); notice on stderr: {notice!r}. With compiled kernels but an empty "
-         f"index cache: **{wall2:.1f} s** (exit {rc2}).\n")
-    rows, walls = real_photos(refs, cache_env, args.skip_peers)
-    emit("## Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
-         "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole process "
-         "(s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"], rows)
-         + f"\n\nstartrack whole process, median {np.median(walls):.2f} s, max {max(walls):.2f} s.\n")
-    per, cedar = in_process(esa, cache_env)
-    txt = (f"## In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + identify + "
-           f"attitude): per image {', '.join(f'{v:.0f}' for v in per)} ms; **median {np.median(per):.1f} ms**.")
-    if cedar:
-        txt += (f"\ncedar-solve solve_from_image (FOV given): per image {', '.join(f'{v:.0f}' for v in cedar)} ms; "
-                f"**median {np.median(cedar):.1f} ms**; ratio {np.median(cedar) / np.median(per):.2f}x.")
-    emit(txt + "\n")
-    jb, n = jobs(esa, cache_env)
-    emit(f"## Batch of {n} images\n\n" + table(["-j", "wall (s)", "solved", "exit"],
-                                                [[j, f"{w:.2f}", f"{ok}/{n}", rc] for j, (w, ok, rc) in jb.items()])
-         + "\n")
-    emit("## Rendered fields, solved blind\n\n" + table(
-        ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
-         "solve ms", "process s"], rendered(cache_env)) + "\n")
-    emit("## Not star fields\n\n" + table(["image", "status", "exit", "reason", "process s"], non_stars(cache_env))
-         + "\n")
-    shutil.rmtree(tmp_cache, ignore_errors=True)
+    try:
+        wall, rc, notice, wall2, rc2 = first_use(esa[0])
+        emit(f"### First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty "
+             f"numba cache: **{wall:.1f} s** (exit {rc}); notices on stderr: {notice!r}. With compiled kernels and "
+             f"an empty index cache: **{wall2:.1f} s** (exit {rc2}).\n")
+        rows, walls = real_photos(refs, cache_env, skip_peers)
+        emit("### Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
+             "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole "
+             "process (s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"],
+                                          rows)
+             + f"\n\nstartrack whole process: median {np.median(walls):.2f} s, max {max(walls):.2f} s.\n")
+        per, cedar = in_process(esa, cache_env)
+        txt = (f"### In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + "
+               f"identify + attitude): per image {', '.join(f'{v:.0f}' for v in per)} ms; "
+               f"**median {np.median(per):.1f} ms**.")
+        if cedar:
+            txt += (f"\ncedar-solve solve_from_image (FOV given): per image {', '.join(f'{v:.0f}' for v in cedar)} "
+                    f"ms; **median {np.median(cedar):.1f} ms**; cedar / startrack = "
+                    f"{np.median(cedar) / np.median(per):.2f}.")
+        emit(txt + "\n")
+        jb, n = jobs(esa, cache_env)
+        emit(f"### Batch of {n} images\n\n" + table(["-j", "wall (s)", "solved", "exit"],
+                                                    [[j, f"{w:.2f}", f"{ok}/{n}", rc] for j, (w, ok, rc) in jb.items()])
+             + "\n")
+        emit("### Rendered fields, solved blind\n\n" + table(
+            ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
+             "solve ms", "process s"], rendered(cache_env)) + "\n")
+        emit("### Not star fields\n\n" + table(["image", "status", "exit", "reason", "process s"],
+                                               non_stars(cache_env)) + "\n")
+    finally:
+        shutil.rmtree(tmp_cache, ignore_errors=True)
+    return "\n".join(parts)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", default=os.path.join(ROOT, "bench-output", "blind.md"))
+    parser.add_argument("--skip-peers", action="store_true")
+    args = parser.parse_args()
+    text = report(args.skip_peers)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as fh:
-        fh.write("\n".join(parts))
+        fh.write(text)
     print(f"report: {args.out}")
 
 

@@ -219,7 +219,13 @@ def bench_solve():
     return "solve (real images)", text
 
 
-SECTIONS = {"solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
+def bench_blind():
+    import blind_bench
+
+    return "blind solving (issue 15)", blind_bench.report()
+
+
+SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
             "identify": bench_identify, "attitude": bench_attitude, "track": bench_track}
 
 

@@ -231,12 +231,13 @@ class BlindOptions:
     fov_min_deg: float = 1.5
     fov_max_deg: float = 100.0
     pattern_stars: int = 16
-    verify_stars: int = 40
+    verify_stars: int = 60
     sigma_px: float | None = None
     max_false_probability: float = 1e-6
     timeout_s: float = 5.0
     tol_geom: float = 0.05
     fit_distortion_deg: float = 25.0
+    rank: str = "peak"
 
 
 def _combos(n: int):
@@ -335,6 +336,14 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     n_all = len(stars)
     if n_all < 4:
         return None, IdentifyResult("failed", "patterns", [], 0.0, f"{n_all} star(s): at least 4 are needed"), info
+    # Rank by peak (flux breaks ties): compact sources first.  In a photograph with nebulae, a
+    # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
+    # stars of one PSF the order is the flux order.
+    ranked = sorted(range(n_all), key=lambda i: (-stars[i].get("peak", stars[i].get("flux", 0.0)),
+                                                -stars[i].get("flux", 0.0)))
+    if opts.rank != "peak":
+        ranked = list(range(n_all))
+    stars = [stars[i] for i in ranked]
     m = min(n_all, opts.verify_stars)
     xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
     n_pat = min(m, opts.pattern_stars)
@@ -373,6 +382,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                                     info["verified"], f_lo, f_hi, opts, Camera, Proposal, tolerance_rad, verify)
             if res is not None:
                 cam, matches, dcm, p_false = res
+                matches = [dict(mm, star=ranked[mm["star"]]) for mm in matches]
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],

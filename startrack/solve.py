@@ -130,7 +130,7 @@ class SolveOptions:
     fov_deg: float | None = None
     fov_tolerance: float = 0.1
     algorithm: str = "pyramid"
-    max_stars: int = 30
+    max_stars: int = 60
     search_stars: int = 12
     max_triads: int = 200
     sigma_px: float | None = None
