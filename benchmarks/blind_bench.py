@@ -73,8 +73,7 @@ def real_photos(refs, cache_env, skip_peers):
         d = docs[0] if docs else {"solve": {"status": "no output"}}
         s = d["solve"]
         if s["status"] == "ok":
-            c = s["image_centre"]
-            dist = _sep_deg(c["ra"], c["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+            dist = _sep_deg(s["center_ra"], s["center_dec"], float(r["ra_deg"]), float(r["dec_deg"]))
             width = s["fov_deg"][0] / float(r["fov_x_deg"]) - 1
             rows.append(["startrack", name, "ok", proc.returncode, f"{dist:.4f}", f"{100 * width:+.2f} %",
                          f"{wall:.2f}"])

@@ -204,8 +204,8 @@ def pointing(dcm, camera) -> dict:
         return {"ra": math.degrees(math.atan2(v[1], v[0])) % 360.0,
                 "dec": math.degrees(math.asin(max(-1.0, min(1.0, float(v[2])))))}
 
-    return {"image_centre": radec((camera.width - 1) / 2.0, (camera.height - 1) / 2.0),
-            "principal_point": radec(camera.cx, camera.cy)}
+    c = radec((camera.width - 1) / 2.0, (camera.height - 1) / 2.0)
+    return {"center_ra": c["ra"], "center_dec": c["dec"], "principal_point": radec(camera.cx, camera.cy)}
 
 
 def _solve_with_patterns(stars, w, h, opts, index, clock):

@@ -148,7 +148,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     cache`), identifies the stars and measures the focal length (and, for
     fields over 25 degrees, the radial distortion k1).  A frame document per
     image (JSON Lines) goes to stdout, with a `solve` section: status, fitted
-    field of view, the RA/Dec of the image centre and of the principal point,
+    field of view, the RA/Dec of the image centre (center_ra, center_dec) and
+    of the principal point,
     time.  An image that cannot be solved is reported on stderr and the batch
     goes on.  Exit status: 0 when every image was solved, 1 when any could not
     be, 2 when any could not be read.
@@ -158,7 +159,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
       startrack solve photos/*.jpg -j 2 --plot solved/ --fits-out solved/ --matches-out solved/ > solved.jsonl
     \b
     Example (one photo with a field-of-view hint):
-      startrack solve sky.tiff --fov-deg 11.4 | jq .solve.image_centre
+      startrack solve sky.tiff --fov-deg 11.4 | jq .solve.center_ra,.solve.center_dec
     \b
     Example (several photos, the WCS of each as sky.wcs-NAME.fits):
       startrack solve a.tiff b.tiff --wcs out/sky.wcs.fits > solved.jsonl

@@ -101,7 +101,7 @@ def test_rendered_fields_solve_blind_with_named_outputs(cache, tmp_path, fov, si
     proc = run_cli("solve", img, "--fits-out", f"{out}/", "--matches-out", f"{out}/", env=cache, check=True)
     d = json.loads(proc.stdout)
     assert d["solve"]["status"] == "ok", d["solve"]
-    c = d["solve"]["image_centre"]
+    c = {"ra": d["solve"]["center_ra"], "dec": d["solve"]["center_dec"]}
     sep = math.degrees(math.acos(min(1.0, math.sin(math.radians(c["dec"])) * math.sin(math.radians(40))
                                      + math.cos(math.radians(c["dec"])) * math.cos(math.radians(40))
                                      * math.cos(math.radians(c["ra"] - 150)))))
