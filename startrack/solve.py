@@ -236,15 +236,28 @@ def _process_index():
     return index
 
 
-def _warm(index):
-    """Compile or load the pattern kernels (a notice when numba has no cached copy yet)."""
+def _kernels_cached() -> bool:
+    """Whether numba has a cached copy of the pattern look-up kernel (else the first solve compiles)."""
     import glob
 
+    pattern = "patterns.query_patterns-*.nbi"
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels", "__pycache__")
+    if glob.glob(os.path.join(here, pattern)):
+        return True
+    custom = os.environ.get("NUMBA_CACHE_DIR")
+    return bool(custom and glob.glob(os.path.join(custom, "**", pattern), recursive=True))
+
+
+def _warm(index):
+    """Compile or load the solver's kernels (a notice first when numba has no cached copy yet)."""
+    from startrack.centroid import CentroidOptions, find_stars
     from startrack.patterns import warm_kernels
 
-    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels", "__pycache__")
-    if not glob.glob(os.path.join(here, "patterns.query_patterns-*.nbi")):
+    if not _kernels_cached():
         _notice("compiling the solver's kernels once, ~30 s (cached afterwards)")
+    yy, xx = np.mgrid[0:64, 0:64]
+    tiny = (100.0 + 1000.0 * np.exp(-((xx - 30.3) ** 2 + (yy - 20.7) ** 2) / 2.0)).astype(np.float32)
+    find_stars(tiny, CentroidOptions(max_stars=5, mesh_px=16))
     warm_kernels(index)
 
 

@@ -44,13 +44,12 @@ def command(action, quiet):
             click.echo(f"{size / 1e6:9.1f} MB  {os.path.basename(p)}")
         click.echo(f"{total / 1e6:9.1f} MB  in {root} ({len(files)} file(s))")
     elif action == "build":
-        from startrack.patterns import default_index, default_index_path
-        from startrack.solve import _notice, _warm
+        from startrack.patterns import default_index_path
+        from startrack.solve import _process_index
 
         t0 = time.perf_counter()
         existed = os.path.exists(default_index_path())
-        index = default_index(notice=None if quiet else _notice)
-        _warm(index)
+        index = _process_index()
         if not quiet:
             verb = "opened" if existed else "built"
             click.echo(f"cache: {verb} {index.path} ({index.size_bytes / 1e6:.1f} MB, "

@@ -188,10 +188,9 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         check_writable(outs)
     # Build (or open) what the workers need once, before any of them starts.
     if camera_doc is None:
-        from startrack.patterns import default_index
-        from startrack.solve import _notice
+        from startrack.solve import _process_index
 
-        default_index(notice=_notice)
+        _process_index()
     else:
         from startrack.camera import Camera
         from startrack.solve import FOV_BANDS, _band_of
