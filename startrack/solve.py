@@ -241,11 +241,11 @@ def _kernels_cached() -> bool:
     import glob
 
     pattern = "patterns.query_patterns-*.nbi"
-    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels", "__pycache__")
-    if glob.glob(os.path.join(here, pattern)):
-        return True
     custom = os.environ.get("NUMBA_CACHE_DIR")
-    return bool(custom and glob.glob(os.path.join(custom, "**", pattern), recursive=True))
+    if custom:      # numba then caches there only
+        return bool(glob.glob(os.path.join(custom, "**", pattern), recursive=True))
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels", "__pycache__")
+    return bool(glob.glob(os.path.join(here, pattern)))
 
 
 def _warm(index):
