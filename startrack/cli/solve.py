@@ -164,9 +164,10 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     Example (several photos, the WCS of each as sky.wcs-NAME.fits):
       startrack solve a.tiff b.tiff --wcs out/sky.wcs.fits > solved.jsonl
     """
+    from startrack.cluster import TaskFailure, ordered_map
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
-    from startrack.formats.frame import FrameWriter
+    from startrack.formats.frame import FRAME_FORMAT, FrameWriter
     from startrack.progress import ProgressBar
     from startrack.solve import SolveOptions, band_database
 
@@ -201,29 +202,20 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     bar = ProgressBar("solve", quiet)
     n_ok = n_bad = 0
     with FrameWriter(output) as writer:
-        if jobs > 1 and n > 1:
-            import multiprocessing as mp
-
-            with mp.get_context("spawn").Pool(jobs) as pool:
-                results = pool.imap(_solve_one, tasks)
-                for i, doc in enumerate(results):
-                    n_ok += doc["solve"]["status"] == "ok"
-                    n_bad += bool(doc["solve"].get("bad_input"))
-                    if doc["solve"]["status"] != "ok":
-                        click.echo(f"startrack solve: {tasks[i][0]}: {doc['solve']['reason']}", err=True)
-                    writer.write(doc)
-                    bar(i + 1, n)
-        else:
-            for i, task in enumerate(tasks):
-                doc = _solve_one(task)
-                if n == 1 and doc["solve"].get("bad_input"):
-                    raise BadInputError(task[0], None, doc["solve"]["reason"].split(": ", 1)[-1])
-                n_ok += doc["solve"]["status"] == "ok"
-                n_bad += bool(doc["solve"].get("bad_input"))
-                if doc["solve"]["status"] != "ok":
-                    click.echo(f"startrack solve: {task[0]}: {doc['solve']['reason']}", err=True)
-                writer.write(doc)
-                bar(i + 1, n)
+        # In input order; with -j N, spawned workers share the pattern index through the page cache.
+        for i, doc in ordered_map(_solve_one, tasks, jobs=min(jobs, n)):
+            if isinstance(doc, TaskFailure):
+                doc = {"format": FRAME_FORMAT, "image": {"path": tasks[i][0]},
+                       "solve": {"status": "failed", "reason": f"internal error: {doc.error}"}}
+            if n == 1 and doc["solve"].get("bad_input"):
+                raise BadInputError(tasks[i][0], None, doc["solve"]["reason"].split(": ", 1)[-1])
+            n_ok += doc["solve"]["status"] == "ok"
+            n_bad += bool(doc["solve"].get("bad_input"))
+            if doc["solve"]["status"] != "ok":
+                where = "" if doc["solve"].get("bad_input") else f"{tasks[i][0]}: "
+                click.echo(f"startrack solve: {where}{doc['solve']['reason']}", err=True)
+            writer.write(doc)
+            bar(i + 1, n)
     info(quiet, f"solve: {n_ok} of {n} image(s) solved" + (f", {n_bad} unreadable" if n_bad else ""))
     if n_bad:
         raise SystemExit(2)
