@@ -53,7 +53,8 @@ _MAGIC = b"STPATIDX"
 LEVEL_RATIO = math.sqrt(2.0)
 LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
-                "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "version": 1}
+                "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "mag_max": 10.0,
+                "version": 1}
 
 
 def cache_dir() -> str:
@@ -109,6 +110,9 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
     p = dict(BUILD_PARAMS)
     p.update(params or {})
     cat = (catalog or load_catalog()).sorted_by_magnitude()
+    if p.get("mag_max") is not None:
+        # Fainter stars add build time and size for fields under ~2 degrees only.
+        cat = cat.filter_magnitude(None, p["mag_max"])
     vec = np.ascontiguousarray(cat.vectors())
     rhos = [math.radians(v) for v in p["levels_deg"]]
     all_p, all_k, starts, counts, prefixes = [], [], [], [], []
