@@ -197,14 +197,24 @@ def open_index(path: str) -> PatternIndex:
 
 
 def default_index_path(catalog=None) -> str:
-    """The cache file of the default index for ``catalog`` (its checksum and the build parameters in the name)."""
+    """The cache file of the default index for ``catalog`` (default: the shipped catalog file).
+
+    The name carries a hash of the build parameters and of the catalog: its
+    content checksum when a catalog is given, else the shipped file's path,
+    size and modification time (so that a warm start does not read the catalog).
+    """
     import hashlib
 
-    from startrack.catalog import load_catalog
-
-    cat = catalog or load_catalog()
     tag = hashlib.sha256(json.dumps(BUILD_PARAMS, sort_keys=True).encode()).hexdigest()[:8]
-    return os.path.join(cache_dir(), f"patterns-{cat.checksum()[:12]}-{tag}.idx")
+    if catalog is not None:
+        cat_tag = catalog.checksum()[:12]
+    else:
+        from startrack.catalog import default_catalog_path
+
+        path = os.path.abspath(default_catalog_path())
+        st = os.stat(path)
+        cat_tag = hashlib.sha256(f"{path}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()[:12]
+    return os.path.join(cache_dir(), f"patterns-{cat_tag}-{tag}.idx")
 
 
 def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
