@@ -109,7 +109,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
 
     p = dict(BUILD_PARAMS)
     p.update(params or {})
-    cat = (catalog or load_catalog()).sorted_by_magnitude()
+    cat = (catalog or load_catalog(mag_max=p.get("mag_max"))).sorted_by_magnitude()
     if p.get("mag_max") is not None:
         # Fainter stars add build time and size for fields under ~2 degrees only.
         cat = cat.filter_magnitude(None, p["mag_max"])
