@@ -53,11 +53,19 @@ def references():
     return refs
 
 
-def run_st(args, env=None, timeout=600):
+CPU = {"last": 0.0}     # CPU seconds (user + system) of the last run_st child: the machine may be shared
+
+
+def run_st(args, env=None, timeout=1200):
+    import resource
+
     full = dict(os.environ)
     full.update(env or {})
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(ST + list(args), capture_output=True, text=True, env=full, timeout=timeout)
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU["last"] = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     return proc, time.perf_counter() - t0
 
 
@@ -67,7 +75,7 @@ def real_photos(refs, cache_env, skip_peers):
     walls = []
     for path, r in refs.items():
         proc, wall = run_st(["solve", path, "-q"], cache_env)
-        walls.append(wall)
+        walls.append((wall, CPU["last"]))
         name = os.path.basename(path)
         docs = [json.loads(line) for line in proc.stdout.splitlines() if line.strip()]
         d = docs[0] if docs else {"solve": {"status": "no output"}}
@@ -76,9 +84,10 @@ def real_photos(refs, cache_env, skip_peers):
             dist = _sep_deg(s["center_ra"], s["center_dec"], float(r["ra_deg"]), float(r["dec_deg"]))
             width = s["fov_deg"][0] / float(r["fov_x_deg"]) - 1
             rows.append(["startrack", name, "ok", proc.returncode, f"{dist:.4f}", f"{100 * width:+.2f} %",
-                         f"{wall:.2f}"])
+                         f"{wall:.2f} (CPU {CPU['last']:.2f})"])
         else:
-            rows.append(["startrack", name, s["status"], proc.returncode, "", "", f"{wall:.2f}"])
+            rows.append(["startrack", name, s["status"], proc.returncode, "", "",
+                         f"{wall:.2f} (CPU {CPU['last']:.2f})"])
     if not skip_peers:
         rows += _peers(refs)
     return rows, walls
@@ -174,10 +183,11 @@ def first_use(image):
     try:
         env = {"STARTRACK_CACHE": os.path.join(tmp, "cache"), "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
         proc, wall = run_st(["solve", image], env)
+        cpu = CPU["last"]
         notice = [line for line in proc.stderr.splitlines() if "once" in line]
         env2 = {"STARTRACK_CACHE": os.path.join(tmp, "cache2")}
         proc2, wall2 = run_st(["solve", image], env2)
-        return wall, proc.returncode, notice, wall2, proc2.returncode
+        return wall, proc.returncode, notice, wall2, proc2.returncode, cpu, CPU["last"]
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -195,7 +205,7 @@ def jobs(esa, cache_env):
         for j in (1, 2):
             proc, wall = run_st(["solve", *paths, "-j", str(j), "-q"], cache_env)
             ok = sum(json.loads(line)["solve"]["status"] == "ok" for line in proc.stdout.splitlines())
-            out[j] = (wall, ok, proc.returncode)
+            out[j] = (wall, ok, proc.returncode, CPU["last"])
         return out, len(paths)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -270,16 +280,18 @@ def report(skip_peers: bool = False) -> str:
         parts.append(text)
 
     try:
-        wall, rc, notice, wall2, rc2 = first_use(esa[0])
+        wall, rc, notice, wall2, rc2, cpu, cpu2 = first_use(esa[0])
         emit(f"### First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty "
-             f"numba cache: **{wall:.1f} s** (exit {rc}); notices on stderr: {notice!r}. With compiled kernels and "
-             f"an empty index cache: **{wall2:.1f} s** (exit {rc2}).\n")
+             f"numba cache: **{wall:.1f} s** wall, {cpu:.1f} s CPU (exit {rc}); notices on stderr: {notice!r}. With "
+             f"compiled kernels and an empty index cache: **{wall2:.1f} s** wall, {cpu2:.1f} s CPU (exit {rc2}).\n")
         rows, walls = real_photos(refs, cache_env, skip_peers)
         emit("### Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
              "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole "
              "process (s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"],
                                           rows)
-             + f"\n\nstartrack whole process: median {np.median(walls):.2f} s, max {max(walls):.2f} s.\n")
+             + f"\n\nstartrack whole process: median {np.median([w for w, _ in walls]):.2f} s wall, "
+               f"{np.median([c for _, c in walls]):.2f} s CPU (user + system); max {max(w for w, _ in walls):.2f} s "
+               f"wall.\n")
         per, cedar, labels = in_process(esa, cache_env)
         txt = (f"### In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + "
                f"identify + attitude): per image {', '.join(f'{v:.0f}' for v in per)} ms; "
@@ -292,9 +304,10 @@ def report(skip_peers: bool = False) -> str:
                     f"{np.median(cedar) / np.median(per):.2f}.")
         emit(txt + "\n")
         jb, n = jobs(esa, cache_env)
-        emit(f"### Batch of {n} images\n\n" + table(["-j", "wall (s)", "solved", "exit"],
-                                                    [[j, f"{w:.2f}", f"{ok}/{n}", rc] for j, (w, ok, rc) in jb.items()])
-             + "\n")
+        emit(f"### Batch of {n} images\n\n" + table(["-j", "wall (s)", "CPU (s)", "solved", "exit"],
+                                                    [[j, f"{w:.2f}", f"{c:.2f}", f"{ok}/{n}", rc]
+                                                     for j, (w, ok, rc, c) in jb.items()])
+             + f"\n\nLoad average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n")
         emit("### Rendered fields, solved blind\n\n" + table(
             ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
              "solve ms", "process s"], rendered(cache_env)) + "\n")
