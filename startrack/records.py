@@ -343,7 +343,7 @@ class Identification:
 class TrackState:
     """The ``track`` section: what the tracker did on one frame."""
 
-    mode: str | None = schema_field(kind="str", doc="`lis`, `track`, `single-star` or `lost`")
+    mode: str | None = schema_field(kind="str", doc="`tracking`, `single-star`, `lost-in-space` or `lost`")
     t_s: float | None = schema_field(unit="s", doc="frame time")
     dt_s: float | None = schema_field(unit="s", doc="time since the previous frame")
     window_px: float | None = schema_field(unit="px", doc="search window half-size")
@@ -351,9 +351,9 @@ class TrackState:
     found: int | None = schema_field(kind="int", doc="predicted stars found in their windows")
     used: int | None = schema_field(kind="int", doc="stars used for the attitude")
     stars: list = schema_field(kind="list", factory=list, doc="each `id`, `predicted` [x, y], `measured` [x, y] or null")
-    rate_deg_s: np.ndarray | None = schema_field(kind="vector", unit="deg/s", doc="angular rate, camera frame")
+    rate_deg_s: np.ndarray | None = schema_field(kind="vector", unit="deg/s", doc="angular rate (filtered), camera frame")
     fallback_reason: str | None = schema_field(kind="str", doc="why tracking fell back to lost-in-space")
-    empirical_stars: int | None = schema_field(kind="int", doc="uncatalogued stars used (single-star mode)")
+    empirical_stars: int | None = schema_field(kind="int", doc="empirical stars used (single-star mode, paper 001 Case 2)")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
     details: dict = schema_field(kind="object", factory=dict, doc="other fields")
 

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RateEstimate", "Streak", "fit_streaks", "fit_streaks_array", "predicted_streaks", "rate_from_streaks",
-           "streak_jacobians"]
+           "segment_centroids", "streak_jacobians"]
 
 
 @dataclass
@@ -115,8 +115,6 @@ def fit_streaks(image, xs, ys, psf_sigma_px: float = 1.0, half_px: int = 8, max_
     list of Streak or None
         ``None`` where no fit converged.
     """
-    from startrack._kernels.streak import N_OUT
-    from startrack._kernels.streak import fit_streaks as kernel
 
     img = np.ascontiguousarray(image, dtype=np.float32)
     out = fit_streaks_array(img, xs, ys, psf_sigma_px, half_px, max_half_px, k_sigma, max_iter, lengths_px, angles_rad)
@@ -137,6 +135,24 @@ def fit_streaks_array(image, xs, ys, psf_sigma_px=1.0, half_px=8, max_half_px=12
     out = np.empty((n, N_OUT))
     kernel(np.ascontiguousarray(image, dtype=np.float32), xs, ys, np.ascontiguousarray(l0), np.ascontiguousarray(th0),
            int(half_px), int(max_half_px), float(psf_sigma_px), float(k_sigma), int(max_iter), out)
+    return out
+
+
+def segment_centroids(image, xs, ys, lengths_px, angles_rad, radius_px: float = 4.0, iters: int = 3):
+    """Mid-exposure positions of streaks of known shape by a capsule-aperture centroid (tracking's fast path).
+
+    See :func:`startrack._kernels.streak.segment_centroids`.  Returns an
+    ``(n, 5)`` array: ``x, y, flux, sigma_px, ok``.
+    """
+    from startrack._kernels.streak import segment_centroids as kernel
+
+    xs = np.ascontiguousarray(xs, dtype=np.float64).reshape(-1)
+    ys = np.ascontiguousarray(ys, dtype=np.float64).reshape(-1)
+    half = 0.5 * np.asarray(lengths_px, dtype=np.float64).reshape(-1)
+    ang = np.asarray(angles_rad, dtype=np.float64).reshape(-1)
+    out = np.empty((len(xs), 5))
+    kernel(np.ascontiguousarray(image, dtype=np.float32), xs, ys, np.ascontiguousarray(half * np.cos(ang)),
+           np.ascontiguousarray(half * np.sin(ang)), float(radius_px), int(iters), out)
     return out
 
 
@@ -162,15 +178,17 @@ def streak_jacobians(camera, x, y, eps: float = 1e-6):
     """
     x = np.asarray(x, dtype=np.float64).reshape(-1)
     y = np.asarray(y, dtype=np.float64).reshape(-1)
+    n = len(x)
     b = np.asarray(camera.pixels_to_vectors(x, y), dtype=np.float64).reshape(-1, 3)
-    m = np.empty((len(x), 2, 3))
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = eps
-        b2 = b + np.cross(b, e)
-        x2, y2 = camera.vectors_to_pixels(b2)
-        m[:, 0, j] = (np.asarray(x2) - x) / eps
-        m[:, 1, j] = (np.asarray(y2) - y) / eps
+    # b x (eps e_j) for the three axes, stacked: one camera call.
+    zero = np.zeros(n)
+    bx, by, bz = b[:, 0], b[:, 1], b[:, 2]
+    d = eps * np.concatenate([np.column_stack([zero, bz, -by]), np.column_stack([-bz, zero, bx]),
+                              np.column_stack([by, -bx, zero])])
+    x2, y2 = camera.vectors_to_pixels(np.tile(b, (3, 1)) + d)
+    m = np.empty((n, 2, 3))
+    m[:, 0, :] = ((np.asarray(x2) - np.tile(x, 3)) / eps).reshape(3, n).T
+    m[:, 1, :] = ((np.asarray(y2) - np.tile(y, 3)) / eps).reshape(3, n).T
     return m
 
 

@@ -66,7 +66,8 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["TrackerConfig", "Tracker", "AttitudeRateFilter", "single_star_attitude", "empirical_stars", "MODES"]
+__all__ = ["MODES", "AttitudeRateFilter", "Tracker", "TrackerConfig", "empirical_stars", "single_star_attitude",
+           "track_state"]
 
 #: The modes a frame can be in, in the order summaries list them.
 MODES = ("tracking", "single-star", "lost-in-space", "lost")
@@ -228,6 +229,20 @@ class AttitudeRateFilter:
         return self._update(z, h, r)
 
 
+_STATE_FIELDS = ("mode", "t_s", "dt_s", "window_px", "predicted", "found", "used", "stars", "rate_deg_s",
+                 "fallback_reason", "empirical_stars", "time_ms")
+
+
+def track_state(track: dict):
+    """The :class:`startrack.records.TrackState` of one frame (fields beyond its schema go to ``details``)."""
+    from startrack.records import TrackState
+
+    known = {k: track[k] for k in _STATE_FIELDS if k in track}
+    if known.get("rate_deg_s") is not None:
+        known["rate_deg_s"] = np.asarray(known["rate_deg_s"], dtype=np.float64)
+    return TrackState(**known, details={k: v for k, v in track.items() if k not in _STATE_FIELDS})
+
+
 class Tracker:
     """Stateful tracker; :meth:`step` processes one frame (image in memory) at time ``t`` (seconds)."""
 
@@ -248,6 +263,8 @@ class Tracker:
         self.mode = None
         self.rate_prior = None if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
         self.r_max = math.hypot(camera.width, camera.height) / 2.0
+        self._cos_limit = math.cos(math.radians(min(89.0, camera.max_off_axis_deg + 1.0)))
+        self.psf_sigma_px = 1.0       # updated from the streak fits of each acquisition
         if initial_dcm is not None:
             rate = np.zeros(3) if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
             s_rate = 1e-4 if initial_rate is not None else math.radians(self.config.rate_sigma0_deg_s)
@@ -260,12 +277,18 @@ class Tracker:
 
     # ------------------------------------------------------------------ helpers
     def predict_stars(self, dcm):
-        """Predicted pixel positions and catalog rows of the stars in the field (brightest first)."""
-        from startrack.render import project_stars
+        """Predicted pixel positions and catalog rows of the stars in the field (brightest first).
 
-        rows, x, y = project_stars(self.vectors, dcm, self.camera, margin_px=-2.0)
-        n = self.config.max_predicted
-        return rows[:n], x[:n], y[:n]
+        As :func:`startrack.render.project_stars` with a 2 px inner margin, its
+        field-of-view cone computed once.
+        """
+        cam_vec = self.vectors @ np.asarray(dcm).T
+        front = np.flatnonzero(cam_vec[:, 2] > self._cos_limit)
+        x, y = self.camera.vectors_to_pixels(cam_vec[front])
+        inside = self.camera.in_image(x, y, margin=2.0) & np.isfinite(x)
+        rows = front[inside][: self.config.max_predicted]
+        n = len(rows)
+        return rows, x[inside][:n], y[inside][:n]
 
     def _sigma_px(self, p_theta):
         """1-sigma predicted position (px) at the edge of the field from the attitude covariance."""
@@ -276,7 +299,7 @@ class Tracker:
         from startrack._kernels.centroid import window_centroids
 
         rows, px, py = self.predict_stars(dcm)
-        mx, my, flux, peak, snr, found = window_centroids(img, px.astype(np.float64), py.astype(np.float64),
+        mx, my, flux, _peak, snr, found = window_centroids(img, px.astype(np.float64), py.astype(np.float64),
                                                           half, self.config.k_sigma, 3, box)
         return rows, px, py, mx, my, flux, snr, found
 
@@ -327,6 +350,10 @@ class Tracker:
             st = ft.as_star()
             s.update(x=st["x"], y=st["y"], sigma_px=st["sigma_px"], streak=st["streak"])
             info["streaks"] += 1
+        widths = [ft.psf_sigma_px for ft in fits if ft is not None]
+        if widths:
+            # The fitted width (PSF and pixel, sigma^2 + 1/12) sizes the tracking apertures.
+            self.psf_sigma_px = float(np.clip(np.median(widths), 0.5, 5.0))
         if len(stars) < 3:
             return None, {"status": "failed", "algorithm": cfg.algorithm, "matches": [],
                           "reason": res.reason or f"{len(stars)} star(s) found: at least 3 are needed"}, stars, None, info
@@ -372,9 +399,11 @@ class Tracker:
         best = None
         for c, dcm in enumerate(candidates):
             rows, px, py, mx, my, flux, snr, found = self._windows(img, dcm, half, box)
-            ok = np.flatnonzero(found)
-            off = np.hypot(mx[ok] - px[ok], my[ok] - py[ok]) if len(ok) else np.array([np.inf])
-            score = (len(ok), -float(np.median(off)))
+            score = None
+            if len(candidates) > 1:
+                ok = np.flatnonzero(found)
+                off = np.hypot(mx[ok] - px[ok], my[ok] - py[ok]) if len(ok) else np.array([np.inf])
+                score = (len(ok), -float(np.median(off)))
             if best is None or score > best[0]:
                 best = (score, c, dcm, rows, px, py, mx, my, flux, snr, found)
         _, choice, dcm_pred, rows, px, py, mx, my, flux, snr, found = best
@@ -388,23 +417,43 @@ class Tracker:
         ok = np.flatnonzero(found)
         sig = np.full(len(rows), max(cfg.sigma_px, cfg.sigma_floor_px))
         streaks = []
+        rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
+        fit_rate = rate_sigma > math.radians(cfg.streak_rate_until_deg_s)
         if smear >= cfg.streak_min_px and len(ok):
-            from startrack.streak import _streak, fit_streaks_array, predicted_streaks
+            from startrack.streak import (
+                _streak,
+                fit_streaks_array,
+                predicted_streaks,
+                segment_centroids,
+            )
 
-            # The brightest found stars, fitted as streaks started from the shape the rate predicts; a box
-            # centroid of a long streak is not its mid-exposure position, so unfitted stars are not used.
-            use = ok[np.argsort(-flux[ok], kind="stable")][: cfg.max_streaks]
-            length, angle = predicted_streaks(self.camera, mx[use], my[use], rate, exposure_s)
-            fits = fit_streaks_array(img, mx[use], my[use], max_half_px=int(math.ceil(smear + 12)),
-                                     lengths_px=length, angles_rad=angle)
-            fitted = []
-            for j, k in enumerate(use):
-                st = _streak(fits[j])
-                if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < smear / 2.0 + 3.0:
-                    mx[k], my[k] = st.x, st.y
-                    sig[k] = max(math.sqrt(0.5 * (st.sigma_x ** 2 + st.sigma_y ** 2)), cfg.sigma_floor_px)
-                    fitted.append(k)
-                    streaks.append(st)
+            # A box centroid of a long streak is not its mid-exposure position: the found stars are measured
+            # again knowing the streak's shape from the rate.  While the filter's rate is uncertain the
+            # brightest are fitted with the line-segment PSF (position, sigma, and a rate measurement);
+            # afterwards a capsule-aperture centroid along the predicted segment does (fast).
+            if fit_rate:
+                use = ok[np.argsort(-flux[ok], kind="stable")][: cfg.max_streaks]
+                length, angle = predicted_streaks(self.camera, mx[use], my[use], rate, exposure_s)
+                fits = fit_streaks_array(img, mx[use], my[use], max_half_px=math.ceil(smear + 12),
+                                         lengths_px=length, angles_rad=angle)
+                fitted = []
+                for j, k in enumerate(use):
+                    st = _streak(fits[j])
+                    if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < smear / 2.0 + 3.0:
+                        mx[k], my[k] = st.x, st.y
+                        sig[k] = max(math.sqrt(0.5 * (st.sigma_x ** 2 + st.sigma_y ** 2)), cfg.sigma_floor_px)
+                        fitted.append(k)
+                        streaks.append(st)
+            else:
+                length, angle = predicted_streaks(self.camera, mx[ok], my[ok], rate, exposure_s)
+                cen = segment_centroids(img, mx[ok], my[ok], length, angle, 3.0 * self.psf_sigma_px + 1.0)
+                fitted = []
+                for j, k in enumerate(ok):
+                    if cen[j, 4] > 0 and math.hypot(cen[j, 0] - mx[k], cen[j, 1] - my[k]) < smear / 2.0 + 3.0:
+                        mx[k], my[k] = cen[j, 0], cen[j, 1]
+                        sig[k] = max(float(cen[j, 3]), cfg.sigma_floor_px)
+                        fitted.append(k)
+                track["centroid"] = "segment"
             ok = np.array(sorted(fitted), dtype=np.int64)
         # Outliers: offsets far from the common offset (a false star or a neighbour in the window).
         if len(ok) >= 3:
@@ -423,8 +472,7 @@ class Tracker:
             stars = [{"x": x, "y": y, "flux": fx, "snr": sn, "sigma_px": sg} for x, y, fx, sn, sg in
                      zip(mx[ok].tolist(), my[ok].tolist(), flux[ok].tolist(), snr[ok].tolist(), sig[ok].tolist(),
                          strict=True)]
-        rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
-        if len(streaks) >= 2 and rate_sigma > math.radians(cfg.streak_rate_until_deg_s):
+        if len(streaks) >= 2 and fit_rate:
             from startrack.streak import rate_from_streaks
 
             track["streaks"] = len(streaks)
@@ -471,8 +519,9 @@ class Tracker:
         With ``details=False`` (a tracking loop in memory) it returns
         ``{"mode", "dcm", "rate_rad_s", "result", "track"}`` instead: the attitude
         (ICRS to camera, or ``None``), the filter's rate, the
-        :class:`~startrack.attitude.AttitudeResult`, and a ``track`` dict without
-        the per-star list; no document section is built.
+        :class:`~startrack.attitude.AttitudeResult`, and the
+        :class:`~startrack.records.TrackState` without the per-star list; no
+        document section is built.
 
         Parameters
         ----------
@@ -534,9 +583,10 @@ class Tracker:
         self.mode = track["mode"]
         if not details:
             track["time_ms"] = (time.perf_counter() - t0) * 1000
+            track["t_s"] = t
             return {"mode": track["mode"], "dcm": None if result is None else result.dcm,
                     "rate_rad_s": None if self.filter is None else self.filter.rate.copy(), "result": result,
-                    "track": track}
+                    "track": track_state(track)}
         if self.filter is not None:
             track["rate_deg_s"] = [float(v) for v in np.degrees(self.filter.rate)]
             track["rate_sigma_deg_s"] = [float(v) for v in np.degrees(np.sqrt(np.diag(self.filter.P)[3:]))]
@@ -555,7 +605,11 @@ class Tracker:
                 p = self.filter.P
                 att_section["sigma_cross_boresight_arcsec"] = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
                 att_section["sigma_roll_arcsec"] = float(math.sqrt(p[2, 2]) * arcsec)
-        return {"stars": stars_out, "identification": ident_section, "attitude": att_section, "track": track}
+        from startrack.formats.sections import to_section
+
+        track["t_s"] = t
+        return {"stars": stars_out, "identification": ident_section, "attitude": att_section,
+                "track": to_section(track_state(track))}
 
     def _update_filter(self, result, track, dt, rate_est):
         cfg = self.config

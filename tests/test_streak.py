@@ -8,7 +8,13 @@ from startrack.camera import Camera
 from startrack.catalog import Catalog
 from startrack.render import Scene, Sensor, render_image
 from startrack.rotations import radec_roll_to_dcm, radec_to_vector
-from startrack.streak import fit_streaks, rate_from_streaks, streak_jacobians
+from startrack.streak import (
+    fit_streaks,
+    predicted_streaks,
+    rate_from_streaks,
+    segment_centroids,
+    streak_jacobians,
+)
 
 
 def _one_star_catalog(cam, dcm, x, y, mag):
@@ -30,7 +36,7 @@ def test_streak_position_length_and_direction(rate, seed):
     x0, y0 = rng.uniform(100, 156, 2)
     cat = _one_star_catalog(cam, dcm, x0, y0, 3.0)
     sensor = Sensor()
-    errs, pulls = [], []
+    errs, pulls, seg = [], [], []
     for trial in range(12):
         img, truth = render_image(cat, cam, dcm, sensor, Scene(rate_deg_s=rate), np.random.default_rng([seed, trial]))
         s = truth["stars"][0]
@@ -38,6 +44,12 @@ def test_streak_position_length_and_direction(rate, seed):
         assert fit is not None
         errs.append((fit.x - s["x"], fit.y - s["y"]))
         pulls.append(((fit.x - s["x"]) / fit.sigma_x, (fit.y - s["y"]) / fit.sigma_y))
+        # Tracking's fast path: a capsule centroid along the streak the rate predicts.
+        length, angle = predicted_streaks(cam, [s["x"]], [s["y"]], np.radians(rate), sensor.exposure_s)
+        c = segment_centroids(img, [s["x"] + 0.7], [s["y"] - 0.6], length, angle)[0]
+        assert c[4] == 1
+        seg.append((c[0] - s["x"], c[1] - s["y"]))
+    assert np.sqrt(np.mean(np.square(seg))) < 0.15, seg
     errs = np.array(errs)
     # Mid-exposure position: unbiased and precise to a small fraction of a pixel.
     assert np.abs(errs.mean(axis=0)).max() < 0.05, errs.mean(axis=0)

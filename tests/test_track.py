@@ -8,7 +8,12 @@ from startrack.errors import BadInputError
 from startrack.kvector import build_kvector, max_separation_deg
 from startrack.render import RenderRun, Scene, Sensor
 from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
-from startrack.track import Tracker, TrackerConfig, empirical_stars, single_star_attitude
+from startrack.track import (
+    Tracker,
+    TrackerConfig,
+    empirical_stars,
+    single_star_attitude,
+)
 
 
 def test_paper_001_case_2():

@@ -285,8 +285,7 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
                 continue
             for a_ in range(N_PARAMS):
                 trial[a_] = p[a_] + step[a_]
-            if trial[2] < 0.05:
-                trial[2] = 0.05
+            trial[2] = max(trial[2], 0.05)
             trial[6] = min(max(trial[6], 0.3), 10.0)
             # One pass gives the trial's cost and, if it is accepted, its normal equations.
             c2 = _accumulate(pxs, pys, vals, npx, trial, grad, jtj2, jtr2)
@@ -361,3 +360,97 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
         out[k, 11] = s2 / (noise * noise)
         out[k, 12] = npx
         out[k, 13] = 1.0
+
+
+@njit(cache=True)
+def segment_centroids(image, xs, ys, hxs, hys, radius, iters, out):
+    """Intensity-weighted centroid of each streak inside a capsule aperture (the tracking-mode fast path).
+
+    The aperture is every pixel within ``radius`` of the segment
+    ``(x, y) +- (hx, hy)`` (the streak the known rate predicts), re-centred on
+    the centroid ``iters`` times; a uniform streak is symmetric about its
+    middle, so the fixed point is the mid-exposure position.  Background and
+    noise: median and 1.4826 MAD of the surrounding box's border.  ``out[k]`` =
+    ``x, y, flux, sigma_px, ok`` with ``sigma_px`` the background-noise
+    centroid uncertainty ``sqrt(sum (x_i - x)^2) * noise / flux`` (per axis,
+    averaged).
+    """
+    h, w = image.shape
+    n = xs.shape[0]
+    for k in range(n):
+        out[k, 0] = np.nan
+        out[k, 1] = np.nan
+        out[k, 2] = 0.0
+        out[k, 3] = np.nan
+        out[k, 4] = 0.0
+        cx = xs[k]
+        cy = ys[k]
+        hx = hxs[k]
+        hy = hys[k]
+        l = math.sqrt(hx * hx + hy * hy)
+        ux = hx / l if l > 1e-9 else 1.0
+        uy = hy / l if l > 1e-9 else 0.0
+        reach_x = abs(hx) + radius + 3.0
+        reach_y = abs(hy) + radius + 3.0
+        x0 = max(0, int(math.floor(cx - reach_x)))
+        x1 = min(w - 1, int(math.ceil(cx + reach_x)))
+        y0 = max(0, int(math.floor(cy - reach_y)))
+        y1 = min(h - 1, int(math.ceil(cy + reach_y)))
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            continue
+        nb = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1)
+        border = np.empty(nb)
+        t = 0
+        for x in range(x0, x1 + 1):
+            border[t] = image[y0, x]
+            border[t + 1] = image[y1, x]
+            t += 2
+        for y in range(y0 + 1, y1):
+            border[t] = image[y, x0]
+            border[t + 1] = image[y, x1]
+            t += 2
+        bg = np.median(border)
+        noise = 1.4826 * np.median(np.abs(border - bg))
+        r2 = radius * radius
+        good = True
+        sw = 0.0
+        for _ in range(iters):
+            sw = 0.0
+            sx = 0.0
+            sy = 0.0
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    rx = x - cx
+                    ry = y - cy
+                    a = rx * ux + ry * uy
+                    a = max(-l, min(l, a))
+                    dx = rx - a * ux
+                    dy = ry - a * uy
+                    if dx * dx + dy * dy <= r2:
+                        v = image[y, x] - bg
+                        sw += v
+                        sx += v * x
+                        sy += v * y
+            if sw <= 0.0:
+                good = False
+                break
+            cx = sx / sw
+            cy = sy / sw
+        if not good:
+            continue
+        s2 = 0.0
+        for y in range(y0, y1 + 1):
+            for x in range(x0, x1 + 1):
+                rx = x - cx
+                ry = y - cy
+                a = rx * ux + ry * uy
+                a = max(-l, min(l, a))
+                dx = rx - a * ux
+                dy = ry - a * uy
+                if dx * dx + dy * dy <= r2:
+                    s2 += 0.5 * (rx * rx + ry * ry)
+        out[k, 0] = cx
+        out[k, 1] = cy
+        out[k, 2] = sw
+        out[k, 3] = math.sqrt(s2) * noise / sw
+        out[k, 4] = 1.0

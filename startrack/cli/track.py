@@ -1,7 +1,13 @@
 """startrack track: tracking mode over image sequences."""
 import click
 
-from startrack.cli.options import load_camera_file, catalog_option, handle_errors, output_option, quiet_option
+from startrack.cli.options import (
+    catalog_option,
+    handle_errors,
+    load_camera_file,
+    output_option,
+    quiet_option,
+)
 
 
 @click.command("track", short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
@@ -141,7 +147,6 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         doc["identification"] = out["identification"]
         doc["attitude"] = out["attitude"]
         doc["track"] = out["track"]
-        doc["track"]["t_s"] = t
         return doc
 
     run_frames(source, output, "attitude", process, quiet, "track")
