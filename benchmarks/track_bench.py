@@ -166,12 +166,37 @@ def streak_fit_speed(cam, cat):
         res = find_stars(img, CentroidOptions(deblend=False, max_elongation=1e9))
         starts.append((np.array([s["x"] for s in res.stars[:8]]), np.array([s["y"] for s in res.stars[:8]])))
     fit_streaks_array(frames[0][1], *starts[0])
-    ms = []
-    for (_, img), (x, y) in zip(frames, starts, strict=True):
-        t0 = time.perf_counter()
-        fit_streaks_array(img, x, y)
-        ms.append((time.perf_counter() - t0) * 1000)
-    return statistics.median(ms), float(np.mean([len(x) for x, _ in starts]))
+    best = math.inf
+    for _ in range(3):
+        ms = []
+        for (_, img), (x, y) in zip(frames, starts, strict=True):
+            t0 = time.perf_counter()
+            fit_streaks_array(img, x, y)
+            ms.append((time.perf_counter() - t0) * 1000)
+        best = min(best, statistics.median(ms))
+    return best, float(np.mean([len(x) for x, _ in starts]))
+
+
+def speed_by_rate(cam, cat, db, n=40, repeats=3):
+    """Best of ``repeats`` passes of the median per-frame time, by rate and mode (a shared machine's
+    other processes only ever add time, so the best pass is the closest to this code's own cost)."""
+    rows = []
+    for rate, what in ((0.1, "point-like stars, windowed centroids"), (2.0, "17 px streaks, capsule centroids")):
+        frames = render(cat, cam, rate * AXIS, n, 77, random_start(77))
+        best = {}
+        for _ in range(repeats):
+            res = track(cat, cam, db, frames)
+            for m in ("tracking", "lost-in-space"):
+                sel = [r for r in res if r["mode"] == m]
+                if sel:
+                    wall = statistics.median(r["ms"] for r in sel)
+                    cpu = statistics.median(r["cpu_ms"] for r in sel)
+                    old = best.get(m)
+                    best[m] = (len(sel), min(wall, old[1]) if old else wall, min(cpu, old[2]) if old else cpu)
+        for m, (count, wall, cpu) in best.items():
+            rows.append([f"{rate:g} deg/s ({what})", m, str(count), f"{wall:.3f}", f"{1000 / wall:.0f}",
+                         f"{cpu:.3f}", f"{1000 / cpu:.0f}"])
+    return rows
 
 
 def speed_rows(timings):
@@ -195,6 +220,7 @@ def report(n_frames=40, starts=3):
     rates, timings = rates_table(cam, cat, db, n_frames, starts)
     stretch, modes, rows = few_stars_and_blackout(cam, cat, db)
     fit_ms, n_fit = streak_fit_speed(cam, cat)
+    by_rate = speed_by_rate(cam, cat, db)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     text = (
         f"Rates table: {starts} sequences of {n_frames} frames per rate from random attitudes, axis (1.5, -1, 0.5), "
@@ -210,8 +236,10 @@ def report(n_frames=40, starts=3):
           f"load average {load:.1f} on {os.cpu_count()} cores):\n\n"
         + table(["mode", "frames", "median wall ms", "p95 wall ms", "frames/s (wall)", "median CPU ms",
                  "frames/s (CPU)"], speed_rows(timings + rows))
+        + "\n\nSpeed by rate, best of 3 passes over the same 40 frames (median per frame):\n\n"
+        + table(["sequence", "mode", "frames", "wall ms", "frames/s (wall)", "CPU ms", "frames/s (CPU)"], by_rate)
         + f"\n\nStreak fit (line-segment PSF, 8 brightest detections, ~{n_fit:.0f} per frame, 17 px streaks): "
-          f"{fit_ms:.3f} ms per frame (median)."
+          f"{fit_ms:.3f} ms per frame (median of the best of 3 passes)."
     )
     return text
 
