@@ -58,8 +58,44 @@ def test_calibrate_then_solve_with_the_lens(solved, cache, tmp_path):
     assert c["rms_residual_after_px"] < c["rms_residual_before_px"]
     assert cal["fov_deg"][0] == pytest.approx(11.42, abs=0.02)
     assert all(v > 0 for v in c["sigma"].values())
+    # Only what the data constrain is fitted: every fitted optional parameter is significant, and
+    # each left out is reported with its significance (k2 is not constrained by 8 frames of 11 deg).
+    z = c["significance_sigma"]
+    assert all(z[k] >= 3.0 for k in ("k1", "k2") if k in z), z
+    if "cx" in z:       # the principal point is kept or left out as a pair
+        assert max(z["cx"], z["cy"]) >= 3.0, z
+    assert "k2" in c["not_fitted"] and "k2" not in c["sigma"]
+    assert "not fitted" in proc.stderr
     again = [json.loads(l) for l in run_cli("solve", *REAL[:3], "--camera", lens, env=cache, check=True).stdout.splitlines()]
     assert all(d["solve"]["status"] == "ok" for d in again)
+    # The image centre and the principal point are both reported; with a calibrated lens they differ.
+    for d in again:
+        s = d["solve"]
+        r = {row["file"]: row for row in csv.DictReader(open(os.path.join(DATA, "real", "solutions.csv")))}[
+            os.path.basename(d["image"]["path"])]
+        sep = math.hypot((s["center_ra"] - float(r["ra_deg"])) * math.cos(math.radians(s["center_dec"])),
+                         s["center_dec"] - float(r["dec_deg"]))
+        assert sep * 3600 < 30
+        assert "ra" in s["principal_point"] and "dec" in s["principal_point"]
+
+
+def test_exit_status_and_cache_command(cache, tmp_path):
+    """0 all solved, 1 one failed, 2 one unreadable; `cache list` and `cache clear` on a scratch cache."""
+    import cv2
+
+    black = tmp_path / "black.png"
+    cv2.imwrite(str(black), np.zeros((120, 160), np.uint8))
+    assert run_cli("solve", REAL[0], "-q", env=cache).returncode == 0
+    failed = run_cli("solve", REAL[0], black, "-q", env=cache)
+    assert failed.returncode == 1 and "black.png" in failed.stderr      # -q hides progress, never failures
+    missing = run_cli("solve", REAL[0], tmp_path / "missing.png", "-q", env=cache)
+    assert missing.returncode == 2 and "missing.png" in missing.stderr
+    scratch = {"STARTRACK_CACHE": str(tmp_path / "scratch")}
+    (tmp_path / "scratch").mkdir()
+    (tmp_path / "scratch" / "patterns-old.idx").write_bytes(b"x" * 1000)
+    assert "patterns-old.idx" in run_cli("cache", "list", env=scratch, check=True).stdout
+    run_cli("cache", "clear", env=scratch, check=True)
+    assert not list((tmp_path / "scratch").iterdir())
 
 
 def test_not_star_fields_fail_fast_and_cleanly(cache, tmp_path):
