@@ -45,6 +45,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     time per frame.  Stars of a turning camera are fitted as streaks (position
     at mid-exposure).  The first frame, and any frame after a gap or blackout
     longer than --max-gap-s, is solved lost in space with identify's search.
+    Catalog positions are moved to the first frame's image.time (proper motion).
     Out-of-order time stamps are refused.  Exit status 1 when any frame has no
     attitude.
 
@@ -66,7 +67,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     from startrack.imageio import read_image
     from startrack.kvector import check_database, load_kvector
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm
-    from startrack.timeutil import parse_time
+    from startrack.timeutil import julian_year, parse_time
     from startrack.track import MODES, Tracker, TrackerConfig
 
     db = load_kvector(database)
@@ -117,7 +118,12 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
             raise BadInputError(src, "camera", "is missing (give --camera)")
         if state["tracker"] is None:
             check_database(db, cam)
-            state["tracker"] = Tracker(cat, cam, db, config, init, rate)
+            stars = cat
+            t_first = (doc.get("image") or {}).get("time")
+            if t_first:
+                # Catalog positions at the sequence's epoch (proper motion), as render placed them.
+                stars = cat.propagate(julian_year(parse_time(t_first, f"{src}: image.time")))
+            state["tracker"] = Tracker(stars, cam, db, config, init, rate)
         path = (doc.get("image") or {}).get("path")
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")
