@@ -294,7 +294,7 @@ def _cells(ra_deg, dec_deg, cell_deg: float):
     return band * 100000 + ra_cell, int(band_cells.sum())
 
 
-def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 30.0,
+def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 20.0,
                    sky_fraction: float = 0.95, cell_deg: float | None = None) -> Catalog:
     """The database stars for a field: a magnitude limit and a uniform thinning.
 
