@@ -36,8 +36,15 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["centroid_crb", "centroid_crb_px", "projection_jacobian", "attitude_fisher", "attitude_crb",
-           "AttitudeBound", "stars_crb_from_frame"]
+__all__ = [
+    "AttitudeBound",
+    "attitude_crb",
+    "attitude_fisher",
+    "centroid_crb",
+    "centroid_crb_px",
+    "projection_jacobian",
+    "stars_crb_from_frame",
+]
 
 _SQRT2 = math.sqrt(2.0)
 _ARCSEC = math.degrees(1.0) * 3600.0
@@ -83,7 +90,7 @@ def centroid_crb(flux_e, sigma_psf_px, noise_var_e, x=0.0, y=0.0, flux_known=Fal
     if not (math.isfinite(f) and f > 0 and math.isfinite(s) and s > 0 and math.isfinite(v) and v >= 0):
         raise BadInputError("centroid_crb", None, f"needs flux > 0, PSF sigma > 0, noise variance >= 0; got "
                                                    f"{flux_e!r}, {sigma_psf_px!r}, {noise_var_e!r}")
-    half = int(math.ceil(6.0 * s)) + 2
+    half = math.ceil(6.0 * s) + 2
     n = 2 * half + 1
     xi = math.floor(x + 0.5)
     yi = math.floor(y + 0.5)

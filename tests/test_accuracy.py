@@ -4,7 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from startrack.accuracy import attitude_crb, centroid_crb, centroid_crb_px, stars_crb_from_frame
+from startrack.accuracy import (
+    attitude_crb,
+    centroid_crb,
+    centroid_crb_px,
+    stars_crb_from_frame,
+)
 from startrack.attitude import covariance, estimate_attitude
 from startrack.camera import Camera
 from startrack.rotations import quaternion_to_dcm, random_quaternions, rotation_vector
@@ -90,7 +95,7 @@ def test_duplicates_and_degenerate_geometry_fail():
 
 def test_wrong_identifications_fail():
     rng = np.random.default_rng(3)
-    a, b, r = _frame(8, rng)
+    _, b, r = _frame(8, rng)
     sig = np.full(8, 5e-6)
     b = b + rng.normal(size=b.shape) * 5e-6
     assert estimate_attitude(b, r, sig).status == "ok"
