@@ -225,8 +225,21 @@ def bench_blind():
     return "blind solving (issue 15)", blind_bench.report()
 
 
+def bench_accuracy():
+    import accuracy_bench as ab
+
+    n = int(os.environ.get("ACCURACY_FRAMES", "1000"))
+    results = [ab.run(name, n, 0, peers=True, progress=False) for name in ("p000", "15deg")]
+    sweep = ab.sweep(max(20, n // 10))
+    text = (ab.__doc__.split("\n\n")[1].replace("\n", " ") + "\n\n" + ab.table(results)
+            + f"\n\nSweep on the 15-degree sensor and papers 000/003 ({max(20, n // 10)} frames each, startrack):\n\n"
+            + ab.table(sweep))
+    return "accuracy against the Cramér-Rao bound", text
+
+
 SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
-            "identify": bench_identify, "attitude": bench_attitude, "track": bench_track}
+            "identify": bench_identify, "attitude": bench_attitude, "track": bench_track,
+            "accuracy": bench_accuracy}
 
 
 def main():

@@ -42,8 +42,13 @@ __all__ = [
     "attitude_fisher",
     "centroid_crb",
     "centroid_crb_px",
+    "error_vector",
+    "frame_bound",
     "projection_jacobian",
+    "star_snr",
     "stars_crb_from_frame",
+    "startrack_frame",
+    "summarise",
 ]
 
 _SQRT2 = math.sqrt(2.0)
@@ -228,4 +233,135 @@ def stars_crb_from_frame(stars, gain_e_per_dn=None, noise_dn=None):
         else:
             cov = centroid_crb(flux, sig, max(nd * nd, 1e-12), s["x"], s["y"])
         out.append(cov)
+    return out
+
+
+def star_snr(flux_e, sigma_psf_px, noise_var_e):
+    """``SNR = F / sqrt(F + 4 pi s^2 v)`` (the optimal-aperture SNR of :mod:`startrack.centroid_accuracy`)."""
+    f = np.asarray(flux_e, dtype=np.float64)
+    return f / np.sqrt(f + 4.0 * math.pi * sigma_psf_px**2 * noise_var_e)
+
+
+def frame_bound(camera, truth_stars, sensor, ids=None, max_stars=None, min_snr=5.0):
+    """The frame's own attitude bound: the Cramér-Rao bound of the stars a tracker could use.
+
+    Those are the rendered catalog stars (``truth_stars`` of :func:`startrack.render.render_image`)
+    whose id is in ``ids`` (the identification catalog; all when ``None``), not
+    saturated, inside the image, with SNR >= ``min_snr``; the ``max_stars``
+    brightest of them.  Each contributes its centroid bound (true electrons,
+    the sensor's background and read noise, its PSF, its pixel phase).
+    Returns ``(AttitudeBound or None, n_stars)``.
+    """
+    v = sensor.background_e + sensor.read_noise_e**2
+    s = sensor.psf_sigma_px
+    keep = [t for t in truth_stars if (ids is None or int(t["id"]) in ids) and not t.get("saturated")
+            and -0.5 <= t["x"] <= camera.width - 0.5 and -0.5 <= t["y"] <= camera.height - 0.5
+            and star_snr(t["electrons"], s, v) >= min_snr]
+    keep.sort(key=lambda t: -t["electrons"])
+    keep = keep[:max_stars] if max_stars else keep
+    if len(keep) < 2:
+        return None, len(keep)
+    covs = np.array([centroid_crb(t["electrons"], s, v, t["x"], t["y"]) for t in keep])
+    body = camera.pixels_to_vectors(np.array([t["x"] for t in keep]), np.array([t["y"] for t in keep]))
+    try:
+        return attitude_crb(camera, body, covs), len(keep)
+    except BadInputError:
+        return None, len(keep)
+
+
+def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_stars=None, gate=13.8,
+                    sigma_floor_px=0.0, max_match_px=1.0):
+    """startrack's estimate on one rendered frame: centroid (gain known), the truth's identification, attitude.
+
+    The identification is taken from the truth (each detection within
+    ``max_match_px`` of a rendered star of the identification catalog gets that
+    star's id), so that this measures accuracy, not identification.  Each star
+    is weighted by its own centroid bound from its measured flux, PSF and noise
+    (:func:`stars_crb_from_frame`).  Returns the :class:`startrack.attitude.AttitudeResult`
+    or ``None`` when fewer than 2 stars are matched.
+    """
+    from startrack.attitude import estimate_attitude
+    from startrack.centroid import CentroidOptions, find_stars
+
+    res = find_stars(image, CentroidOptions(gain_e_per_dn=sensor.gain), saturation=sensor.max_dn)
+    tx = np.array([t["x"] for t in truth["stars"]])
+    ty = np.array([t["y"] for t in truth["stars"]])
+    used_ids = set()
+    body, ref, sig, labels = [], [], [], []
+    for k, s in enumerate(res.stars):
+        if s.get("saturated") or not len(tx):
+            continue
+        d = np.hypot(tx - s["x"], ty - s["y"])
+        j = int(np.argmin(d))
+        tid = int(truth["stars"][j]["id"])
+        if d[j] > max_match_px or tid not in ref_rows or tid in used_ids:
+            continue
+        bound = stars_crb_from_frame([s], sensor.gain, res.background_sigma)[0]
+        if bound is None:
+            continue
+        used_ids.add(tid)
+        body.append(camera.pixels_to_vectors(s["x"], s["y"]))
+        ref.append(ref_vectors[ref_rows[tid]])
+        sig.append(max(math.sqrt(0.5 * (bound[0, 0] + bound[1, 1])), sigma_floor_px) / camera.focal_length_px)
+        labels.append((k, tid))
+        if max_stars and len(body) >= max_stars:
+            break
+    if len(body) < 2:
+        return None
+    return estimate_attitude(np.array(body), np.array(ref), np.array(sig), "quest", labels, gate)
+
+
+def error_vector(dcm_estimate, dcm_truth):
+    """Small-angle error rotation ``phi`` of ``A_est A_true^T`` (rad; camera frame: x, y cross-boresight, z roll)."""
+    from startrack.rotations import rotation_vector
+
+    return rotation_vector(np.asarray(dcm_estimate) @ np.asarray(dcm_truth).T)
+
+
+def summarise(errors, bounds, covariances=None):
+    """Per-axis efficiency of a set of frames.
+
+    Parameters
+    ----------
+    errors : array (n, 3)
+        Error rotations (rad).
+    bounds : array (n, 3)
+        Each frame's bound variances (rad^2), diagonal of :class:`AttitudeBound`.
+    covariances : array (n, 3, 3), optional
+        The covariance each estimate reported, for NEES.
+
+    Returns
+    -------
+    dict
+        ``ratio_cross``, ``ratio_roll``: RMS error over the RMS of the per-frame
+        bound (cross-boresight pools x and y); ``z_cross``, ``z_roll``: RMS of
+        the per-frame normalised errors ``phi / sqrt(bound)`` (1 for an
+        efficient estimator; less sensitive to the few frames with a huge
+        bound); ``nees_mean`` and its 95 % band ``nees_band`` (mean of n
+        chi-square(3) variables: ``3 +- 1.96 sqrt(6 / n)``); ``nees_in_95``,
+        the fraction of frames whose NEES is below the chi-square(3) 95 %
+        point 7.81.
+    """
+    e = np.asarray(errors, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(bounds, dtype=np.float64).reshape(-1, 3)
+    n = len(e)
+    out = {"frames": n}
+    if n == 0:
+        return out
+    out["rms_cross_arcsec"] = math.sqrt(float(np.mean(e[:, :2] ** 2))) * _ARCSEC
+    out["rms_roll_arcsec"] = math.sqrt(float(np.mean(e[:, 2] ** 2))) * _ARCSEC
+    out["crb_cross_arcsec"] = math.sqrt(float(np.mean(b[:, :2]))) * _ARCSEC
+    out["crb_roll_arcsec"] = math.sqrt(float(np.mean(b[:, 2]))) * _ARCSEC
+    out["ratio_cross"] = out["rms_cross_arcsec"] / out["crb_cross_arcsec"]
+    out["ratio_roll"] = out["rms_roll_arcsec"] / out["crb_roll_arcsec"]
+    z = e / np.sqrt(b)
+    out["z_cross"] = math.sqrt(float(np.mean(z[:, :2] ** 2)))
+    out["z_roll"] = math.sqrt(float(np.mean(z[:, 2] ** 2)))
+    if covariances is not None:
+        c = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+        nees = np.einsum("ni,ni->n", e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+        half = 1.96 * math.sqrt(6.0 / n)
+        out["nees_mean"] = float(np.mean(nees))
+        out["nees_band"] = (3.0 - half, 3.0 + half)
+        out["nees_in_95"] = float(np.mean(nees <= 7.815))
     return out

@@ -26,8 +26,22 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["METHODS", "profile_matrix", "wahba_loss", "solve_wahba", "q_method", "quest", "svd_solve", "foam",
-           "esoq2", "triad", "covariance", "AttitudeResult", "estimate_attitude", "wcs_header"]
+__all__ = [
+    "METHODS",
+    "AttitudeResult",
+    "covariance",
+    "esoq2",
+    "estimate_attitude",
+    "foam",
+    "profile_matrix",
+    "q_method",
+    "quest",
+    "solve_wahba",
+    "svd_solve",
+    "triad",
+    "wahba_loss",
+    "wcs_header",
+]
 
 METHODS = ("quest", "q-method", "svd", "foam", "esoq2", "triad")
 
@@ -72,7 +86,8 @@ def q_method(body, reference, weights=None):
 
 def quest(body, reference, weights=None):
     """QUEST (Shuster & Oh 1981): Newton on the characteristic equation, sequential rotations near 180 deg."""
-    from startrack._kernels.attitude import quat_to_dcm, quest as quest_kernel
+    from startrack._kernels.attitude import quat_to_dcm
+    from startrack._kernels.attitude import quest as quest_kernel
 
     b = np.ascontiguousarray(body, dtype=np.float64)
     r = np.ascontiguousarray(reference, dtype=np.float64)
@@ -239,7 +254,11 @@ class AttitudeResult:
     bound: dict | None = None
 
     def section(self) -> dict:
-        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
+        from startrack.rotations import (
+            dcm_to_euler123,
+            dcm_to_quaternion,
+            dcm_to_radec_roll,
+        )
 
         out = {"status": self.status, "method": self.method}
         if self.reason:

@@ -93,3 +93,36 @@ def test_repeated_matches_fail(frame, repeat):
     doc["identification"]["matches"] = m * repeat if repeat == 600 else [m[0]] * repeat
     proc, att = _attitude(doc)
     _failed(proc, att, "duplicate_match")
+
+
+def test_crb_beside_the_covariance(tmp_path):
+    """render | centroid | attitude (identified from the truth): the frame's own bound is reported, the error near it."""
+    from startrack.accuracy import error_vector
+    from startrack.rotations import quaternion_to_dcm
+
+    frames = run_cli("render", "--fov-deg", "15", "--size", "512x512", "--count", "3", "--seed", "4",
+                     "--mag-limit", "6.5", "-o", tmp_path / "f.png", "-q", check=True).stdout
+    cent = run_cli("centroid", "--gain-e-per-dn", "0.3052", "-q", input=frames, check=True).stdout
+    docs = []
+    for line in cent.splitlines():
+        d = json.loads(line)
+        matches, used = [], set()
+        for i, s in enumerate(d["stars"]):
+            t = min(d["truth"]["stars"], key=lambda t: math.hypot(t["x"] - s["x"], t["y"] - s["y"]))
+            if math.hypot(t["x"] - s["x"], t["y"] - s["y"]) < 1.0 and t["id"] not in used and not s["saturated"]:
+                used.add(t["id"])
+                matches.append({"star": i, "id": t["id"]})
+        d["identification"] = {"status": "ok", "algorithm": "truth", "matches": matches}
+        docs.append(json.dumps(d))
+    out = run_cli("attitude", "--sigma-floor-px", "0", "-q", input="\n".join(docs) + "\n", check=True).stdout
+    for line in out.splitlines():
+        d = json.loads(line)
+        att = d["attitude"]
+        assert att["status"] == "ok"
+        assert 0 < att["crb_cross_boresight_arcsec"] < att["crb_roll_arcsec"]
+        # each star weighted by its own bound: the reported sigma is that bound's covariance (k = 1 here)
+        assert att["sigma_cross_boresight_arcsec"] >= 0.9 * att["crb_cross_boresight_arcsec"]
+        e = error_vector(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
+        arcsec = math.degrees(1) * 3600
+        assert abs(e[0]) * arcsec < 5 * att["crb_pitch_yaw_arcsec"][0]
+        assert abs(e[2]) * arcsec < 5 * att["crb_roll_arcsec"]
