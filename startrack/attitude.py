@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from startrack.errors import BadInputError
+from startrack.records import ReasonCode
 
 __all__ = [
     "METHODS",
@@ -264,7 +265,7 @@ class AttitudeResult:
         if self.reason:
             out["reason"] = self.reason
         if self.reason_code:
-            out["reason_code"] = self.reason_code
+            out["reason_code"] = str(self.reason_code)
         if self.dcm is None:
             if self.rejected:
                 out["rejected"] = self.rejected
@@ -353,11 +354,11 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     labels = list(labels) if labels is not None else [(i, None) for i in range(n)]
     sig = np.full(n, 1e-5) if sigmas_rad is None else np.asarray(sigmas_rad, dtype=np.float64).reshape(-1)
     if n < 2:
-        return _fail(method, "too_few_stars", f"{n} identified star(s): at least 2 are needed", t0)
+        return _fail(method, ReasonCode.TOO_FEW_STARS, f"{n} identified star(s): at least 2 are needed", t0)
     if len(r) != n or len(sig) != n or len(labels) != n:
-        return _fail(method, "bad_input", "star vectors, references, sigmas and labels differ in length", t0)
+        return _fail(method, ReasonCode.BAD_INPUT, "star vectors, references, sigmas and labels differ in length", t0)
     if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
-        return _fail(method, "bad_input", "non-finite star vectors or uncertainties", t0)
+        return _fail(method, ReasonCode.BAD_INPUT, "non-finite star vectors or uncertainties", t0)
     if not (math.isfinite(gate) and gate > 0 and math.isfinite(max_variance_factor) and max_variance_factor >= 1):
         raise BadInputError("--gate", None, f"must be a positive number, got {gate!r}")
     b = b / np.linalg.norm(b, axis=1, keepdims=True)
@@ -369,7 +370,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
         what = "; ".join(x for x in (f"star(s) {dup_s} matched more than once" if dup_s else "",
                                      f"catalog id(s) {dup_i} used more than once" if dup_i else "") if x)
-        return _fail(method, "duplicate_match", f"the identification repeats itself: {what}", t0)
+        return _fail(method, ReasonCode.DUPLICATE_MATCH, f"the identification repeats itself: {what}", t0)
     keep = np.arange(n)
     rejected = []
     factor2 = 1.0
@@ -380,7 +381,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         sep_r = np.arccos(np.clip(kr @ kr.T, -1.0, 1.0))
         scale = 20.0 * float(np.median(sig[keep]))
         if sep_b.max() < scale or sep_r.max() < scale:
-            return _fail(method, "degenerate_geometry",
+            return _fail(method, ReasonCode.DEGENERATE_GEOMETRY,
                          f"the {len(keep)} stars are within {math.degrees(sep_b.max()) * 3600:.3g} arcsec of one "
                          "another: their directions do not fix the roll", t0, [labels[k] for k in keep], rejected)
         w = 1.0 / sig[keep] ** 2 if weighted else np.ones(len(keep))
@@ -400,7 +401,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
                "reason": f"chi-square {chi2[worst]:.1f} above the gate {gate:g}"}
         # Dropping is allowed while at least 2 stars and at least half of those given remain.
         if len(keep) - 1 < max(2, math.ceil(n / 2)):
-            return _fail(method, "residuals_too_large",
+            return _fail(method, ReasonCode.RESIDUALS_TOO_LARGE,
                          f"star {s} (id {i}) is {rej['residual_arcsec']:.4g} arcsec from its catalog position "
                          f"(chi-square {chi2[worst]:.3g} above the gate {gate:g}) and {len(rejected)} of {n} stars "
                          "are already dropped: the identification does not hold up", t0,
@@ -408,7 +409,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         rejected.append(rej)
         keep = np.delete(keep, worst)
     if factor2 > max_variance_factor**2:
-        return _fail(method, "residuals_too_large",
+        return _fail(method, ReasonCode.RESIDUALS_TOO_LARGE,
                      f"the residuals are {math.sqrt(factor2):.3g} times the centroid sigmas (limit "
                      f"{max_variance_factor:g}; rms {math.degrees(float(np.sqrt(np.mean(resid**2)))) * 3600:.4g} "
                      "arcsec): a wrong identification, catalog or camera", t0, [labels[k] for k in keep], rejected)

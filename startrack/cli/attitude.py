@@ -88,7 +88,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             raise BadInputError(source, "camera", "is missing")
         cam = Camera.from_dict(doc["camera"], source)
         if ident.get("status") != "ok":
-            doc["attitude"] = {"status": "failed", "method": method,
+            doc["attitude"] = {"status": "failed", "method": method, "reason_code": "not_identified",
                                "reason": f"identification failed: {ident.get('reason', 'no reason given')}"}
             return doc
         stars = doc.get("stars") or []

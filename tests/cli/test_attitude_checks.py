@@ -100,7 +100,7 @@ def test_crb_beside_the_covariance(tmp_path):
     from startrack.accuracy import error_vector
     from startrack.rotations import quaternion_to_dcm
 
-    frames = run_cli("render", "--fov-deg", "15", "--size", "512x512", "--count", "3", "--seed", "4",
+    frames = run_cli("render", "--fov-deg", "15", "--size", "384x384", "--count", "2", "--seed", "4",
                      "--mag-limit", "6.5", "-o", tmp_path / "f.png", "-q", check=True).stdout
     cent = run_cli("centroid", "--gain-e-per-dn", "0.3052", "-q", input=frames, check=True).stdout
     docs = []
