@@ -270,36 +270,47 @@ def frame_bound(camera, truth_stars, sensor, ids=None, max_stars=None, min_snr=5
 
 
 def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_stars=None, gate=13.8,
-                    sigma_floor_px=0.0, max_match_px=1.0):
-    """startrack's estimate on one rendered frame: centroid (gain known), the truth's identification, attitude.
+                    sigma_floor_px=0.0, max_match_px=1.0, identify=None):
+    """startrack's estimate on one rendered frame: centroid (gain known), identification, attitude.
 
-    The identification is taken from the truth (each detection within
-    ``max_match_px`` of a rendered star of the identification catalog gets that
-    star's id), so that this measures accuracy, not identification.  Each star
-    is weighted by its own centroid bound from its measured flux, PSF and noise
-    (:func:`stars_crb_from_frame`).  Returns the :class:`startrack.attitude.AttitudeResult`
-    or ``None`` when fewer than 2 stars are matched.
+    With ``identify=None`` the identification is taken from the truth (each
+    detection within ``max_match_px`` of a rendered star of the identification
+    catalog gets that star's id), so that this measures accuracy, not
+    identification; otherwise ``identify(stars)`` returns a list of
+    ``(star index, catalog id)`` or ``None`` (failed).  Each star is weighted by
+    its own centroid bound from its measured flux, PSF and noise
+    (:func:`stars_crb_from_frame`).  Returns the
+    :class:`startrack.attitude.AttitudeResult`, or ``None`` when fewer than 2
+    stars are identified.
     """
     from startrack.attitude import estimate_attitude
     from startrack.centroid import CentroidOptions, find_stars
 
     res = find_stars(image, CentroidOptions(gain_e_per_dn=sensor.gain), saturation=sensor.max_dn)
-    tx = np.array([t["x"] for t in truth["stars"]])
-    ty = np.array([t["y"] for t in truth["stars"]])
-    used_ids = set()
+    if identify is not None:
+        pairs = identify(res.stars)
+        if pairs is None:
+            return None
+    else:
+        pairs = []
+        tx = np.array([t["x"] for t in truth["stars"]])
+        ty = np.array([t["y"] for t in truth["stars"]])
+        seen = set()
+        for k, s in enumerate(res.stars):
+            if s.get("saturated") or not len(tx):
+                continue
+            d = np.hypot(tx - s["x"], ty - s["y"])
+            j = int(np.argmin(d))
+            tid = int(truth["stars"][j]["id"])
+            if d[j] <= max_match_px and tid in ref_rows and tid not in seen:
+                seen.add(tid)
+                pairs.append((k, tid))
     body, ref, sig, labels = [], [], [], []
-    for k, s in enumerate(res.stars):
-        if s.get("saturated") or not len(tx):
-            continue
-        d = np.hypot(tx - s["x"], ty - s["y"])
-        j = int(np.argmin(d))
-        tid = int(truth["stars"][j]["id"])
-        if d[j] > max_match_px or tid not in ref_rows or tid in used_ids:
-            continue
+    for k, tid in pairs:
+        s = res.stars[k]
         bound = stars_crb_from_frame([s], sensor.gain, res.background_sigma)[0]
-        if bound is None:
+        if bound is None or s.get("saturated") or tid not in ref_rows:
             continue
-        used_ids.add(tid)
         body.append(camera.pixels_to_vectors(s["x"], s["y"]))
         ref.append(ref_vectors[ref_rows[tid]])
         sig.append(max(math.sqrt(0.5 * (bound[0, 0] + bound[1, 1])), sigma_floor_px) / camera.focal_length_px)
@@ -309,6 +320,72 @@ def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_sta
     if len(body) < 2:
         return None
     return estimate_attitude(np.array(body), np.array(ref), np.array(sig), "quest", labels, gate)
+
+
+def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None, identify=None, max_stars=None,
+                      progress=None):
+    """Attitude error against each frame's Cramér-Rao bound over ``n`` rendered frames.
+
+    Parameters
+    ----------
+    camera : Camera
+    catalog : Catalog
+        The identification catalog (its stars are the ones that can be used).
+    n, seed : int
+        Frames, and the seed of their attitudes and noise (frame ``k`` uses ``[seed, k]``).
+    sensor : startrack.render.Sensor, optional
+        Default ``Sensor()``.
+    render_catalog : Catalog, optional
+        Stars to render (default ``catalog``); fainter stars make a realistic sky.
+    identify : callable, optional
+        ``identify(stars) -> [(star index, id), ...] or None``; default: from the truth.
+    max_stars : int, optional
+        At most this many stars per frame (the brightest), in the estimate and in the bound.
+    progress : callable, optional
+        ``progress(done, total)``.
+
+    Returns
+    -------
+    dict
+        :func:`summarise` of the frames solved within 0.1 degree, with the
+        counts ``failed`` (no attitude), ``wrong`` (farther off) and
+        ``no_bound`` (fewer than 2 usable stars in view).
+    """
+    from startrack.render import Scene, Sensor, render_image
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    sensor = sensor or Sensor()
+    render_catalog = render_catalog or catalog
+    rvec = render_catalog.vectors()
+    ids = {int(i) for i in catalog.id}
+    rows = catalog.rows_by_id()
+    ivec = catalog.vectors()
+    dcms = quaternion_to_dcm(random_quaternions(n, np.random.default_rng(seed)))
+    errs, crbs, covs = [], [], []
+    counts = {"failed": 0, "wrong": 0, "no_bound": 0}
+    for k in range(n):
+        img, truth = render_image(render_catalog, camera, dcms[k], sensor, Scene(), np.random.default_rng([seed, k]),
+                                  vectors=rvec)
+        bound, _ = frame_bound(camera, truth["stars"], sensor, ids, max_stars)
+        if bound is None:
+            counts["no_bound"] += 1
+        else:
+            att = startrack_frame(img, truth, camera, sensor, rows, ivec, max_stars, identify=identify)
+            if att is None or att.status != "ok":
+                counts["failed"] += 1
+            else:
+                e = error_vector(att.dcm, dcms[k])
+                if np.linalg.norm(e) > math.radians(0.1):
+                    counts["wrong"] += 1
+                else:
+                    errs.append(e)
+                    crbs.append(np.diag(bound.cov_rad2))
+                    covs.append(att.cov_rad2)
+        if progress:
+            progress(k + 1, n)
+    out = summarise(errs, crbs, covs if covs else None)
+    out.update(counts)
+    return out
 
 
 def error_vector(dcm_estimate, dcm_truth):

@@ -126,3 +126,16 @@ def test_crb_beside_the_covariance(tmp_path):
         arcsec = math.degrees(1) * 3600
         assert abs(e[0]) * arcsec < 5 * att["crb_pitch_yaw_arcsec"][0]
         assert abs(e[2]) * arcsec < 5 * att["crb_roll_arcsec"]
+
+
+def test_evaluate_accuracy_reports_error_over_bound(tmp_path):
+    """evaluate --accuracy: rendered frames, identified by the database, error / bound per axis and NEES."""
+    db = tmp_path / "db.h5"
+    run_cli("build-kvector", "--fov-deg", "15", "--size", "384x384", "--mag-max", "5.5", "-o", db, check=True)
+    out = tmp_path / "acc.json"
+    proc = run_cli("evaluate", "-d", db, "--fov-deg", "15", "--size", "384x384", "--accuracy", "-n", "6", "--seed", "3",
+                   "--json", out, "-q", check=True)
+    assert "cross-boresight: RMS" in proc.stdout and "NEES mean" in proc.stdout
+    s = json.loads(out.read_text())["accuracy"]
+    assert s["frames"] + s["failed"] + s["wrong"] + s["no_bound"] == 6 and s["wrong"] == 0
+    assert 0.2 < s["ratio_cross"] < 5 and 0.2 < s["ratio_roll"] < 5
