@@ -1,13 +1,8 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
 import click
 
-from startrack.cli.options import (
-    catalog_option,
-    handle_errors,
-    input_argument,
-    output_option,
-    quiet_option,
-)
+from startrack.cli.options import (catalog_option, handle_errors, input_argument, jobs_option, output_option,
+                                   quiet_option, resume_option)
 
 
 @click.command("attitude", short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
@@ -28,9 +23,12 @@ from startrack.cli.options import (
 @click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
               help="Write a FITS WCS header (TAN, SIP with distortion); numbered when several frames.")
 @output_option()
+@jobs_option
+@resume_option
 @quiet_option
 @handle_errors
-def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, gate, wcs_path, output, quiet):
+def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, gate, wcs_path, output, jobs, resume,
+            quiet):
     """Solve each frame's attitude from its identified stars: adds an `attitude` section.
 
     Camera-frame vectors come from the star positions and the camera (paper 000
@@ -61,24 +59,27 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
     from startrack.attitude import estimate_attitude, wcs_header
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
-    from startrack.cli.batch import run_frames
+    from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
     from startrack.timeutil import julian_year, parse_time
 
     if wcs_path:
-        from startrack.formats.atomic import check_writable
+        from startrack.imageio import check_fits_output
 
-        check_writable(wcs_path)
+        check_fits_output(wcs_path)
     base = load_catalog(catalog)
     propagated = {}
+    wcs_names = StreamNames(wcs_path)
 
     def catalog_at(ep):
         key = round(ep, 6)
-        if key not in propagated:
+        found = propagated.get(key)
+        if found is None:
             cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
+            found = (cat, cat.rows_by_id(), cat.vectors())
             propagated.clear()
-            propagated[key] = (cat, cat.rows_by_id(), cat.vectors())
-        return propagated[key]
+            propagated[key] = found
+        return found
 
     def process(doc, source, index, total):
         ident = doc.get("identification")
@@ -148,10 +149,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         doc["attitude"] = section
         if result.status == "ok" and wcs_path:
             from startrack.formats.atomic import atomic_path
-            from startrack.render import numbered_path
-
             hdr = wcs_header(result.dcm, cam)
-            path = numbered_path(wcs_path, index, total)
+            path = wcs_names(index)
             from astropy.io import fits
 
             with atomic_path(path, suffix=".fits") as tmp:
@@ -161,7 +160,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             section["wcs"] = {k: v for k, v in wcs_header(result.dcm, cam).items() if k not in ("COMMENT", "HISTORY")}
         return doc
 
-    run_frames(input, output, "attitude", process, quiet, "attitude", need=("stars",))
+    run_frames(input, output, "attitude", process, quiet, "attitude", need=("stars",), jobs=jobs, resume=resume)
 
 
 def _frame_gain(doc):

@@ -1,7 +1,8 @@
 """startrack identify: lost-in-space star identification of frame documents."""
 import click
 
-from startrack.cli.options import load_camera_file, handle_errors, input_argument, output_option, quiet_option
+from startrack.cli.options import (handle_errors, input_argument, jobs_option, load_camera_file, output_option,
+                                   quiet_option, resume_option)
 
 
 @click.command("identify", short_help="Identify the stars of frame documents (lost in space).")
@@ -21,10 +22,12 @@ from startrack.cli.options import load_camera_file, handle_errors, input_argumen
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
 @output_option()
+@jobs_option
+@resume_option
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            plot, output, quiet):
+            plot, output, jobs, resume, quiet):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
@@ -45,7 +48,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     import os
 
     from startrack.camera import Camera
-    from startrack.cli.batch import run_frames
+    from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
     from startrack.identify import ALGORITHMS, DATABASE_KIND, IdentifyParams, identify_stars
 
@@ -60,6 +63,10 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
                             max_false_probability=max_false_probability)
     checked = {}
+    from startrack.imageio import check_plot_output
+
+    check_plot_output(plot)
+    plot_names = StreamNames(plot)
 
     def process(doc, source, index, total):
         if override is not None:
@@ -78,10 +85,10 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
         result = identify_stars(doc["stars"], cam, db, algorithm, params)
         doc["identification"] = result.section()
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
-            _plot(plot, index, total, doc, db, cam, result)
+            _plot(plot_names(index), doc, db, cam, result)
         return doc
 
-    run_frames(input, output, "identification", process, quiet, "identify")
+    run_frames(input, output, "identification", process, quiet, "identify", jobs=jobs, resume=resume)
 
 
 def _load_database(path, kind):
@@ -106,13 +113,10 @@ def _check(db, camera, kind):
     return True
 
 
-def _plot(pattern, index, total, doc, db, camera, result):
-    pass
-
+def _plot(path, doc, db, camera, result):
     from startrack.imageio import read_image
     from startrack.names import star_label
     from startrack.plot import annotate_stars
-    from startrack.render import numbered_path
 
     image, _ = read_image(doc["image"]["path"])
     labels = {m["star"]: star_label(m["id"]) for m in result.matches}
@@ -124,5 +128,5 @@ def _plot(pattern, index, total, doc, db, camera, result):
         inside = camera.in_image(x, y)
         predicted = list(zip(x[inside], y[inside]))
     title = f"{result.algorithm}: {result.status}, {len(result.matches)} stars identified"
-    annotate_stars(numbered_path(pattern, index, total), image, doc["stars"], None, labels,
+    annotate_stars(path, image, doc["stars"], None, labels,
                    predicted, title)
