@@ -118,7 +118,12 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         noise = [v / cam.pixel_scale_arcsec for v in _floats(sigma_arcsec, "--sigma-arcsec")]
     if any(not v >= 0 for v in noise):
         raise BadInputError("--sigma-px", None, "must be >= 0")
-    conds = conditions_grid(sigma_px=noise, false_stars=[int(v) for v in _floats(false_stars, "--false-stars")],
+    from startrack.render import MAX_FALSE_STARS
+
+    n_false = [int(v) for v in _floats(false_stars, "--false-stars")]
+    if any(not 0 <= v <= MAX_FALSE_STARS for v in n_false):
+        raise BadInputError("--false-stars", None, f"each count must be in [0, {MAX_FALSE_STARS}], got {false_stars}")
+    conds = conditions_grid(sigma_px=noise, false_stars=n_false,
                             mag_noise=_floats(mag_noise, "--mag-noise"),
                             focal_error_pct=_floats(focal_error_pct, "--focal-error-pct"),
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
