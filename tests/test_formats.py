@@ -122,7 +122,7 @@ def test_atomic_output_never_replaces_special_files_and_writes_through_links(tmp
     import threading
 
     got = []
-    reader = threading.Thread(target=lambda: got.append(open(fifo).read()))
+    reader = threading.Thread(target=lambda: got.append(open(fifo).read()))  # noqa: SIM115
     reader.start()
     with atomic_open(str(fifo)) as fh:
         fh.write("through the pipe")

@@ -1,8 +1,14 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import (handle_errors, jobs_option, load_camera_file, output_option, quiet_option,
-                                   resume_option)
+from startrack.cli.options import (
+    handle_errors,
+    jobs_option,
+    load_camera_file,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 @click.command("centroid", short_help="Detect and centroid stars in images -> frame documents.")

@@ -25,8 +25,17 @@ import stat
 
 from startrack.errors import BadInputError
 
-__all__ = ["atomic_path", "atomic_open", "check_writable", "is_special", "output_target",
-           "clean_stale_temporaries", "deferred_signals", "install_signal_cleanup", "write_error"]
+__all__ = [
+    "atomic_open",
+    "atomic_path",
+    "check_writable",
+    "clean_stale_temporaries",
+    "deferred_signals",
+    "install_signal_cleanup",
+    "is_special",
+    "output_target",
+    "write_error",
+]
 
 _TEMP_RE = re.compile(r"^\.(?P<name>.+)\.st(?P<pid>\d+)-[0-9a-f]{8}\.part")
 _LIVE_TEMPS: set[str] = set()
@@ -132,22 +141,40 @@ def install_signal_cleanup() -> None:
 
 @contextlib.contextmanager
 def deferred_signals():
-    """Hold SIGINT/SIGTERM while a C library (HDF5, OpenCV) writes; deliver them afterwards.
+    """Hold SIGINT/SIGTERM while a C library (HDF5, OpenCV) writes; raise them afterwards.
 
-    A signal arriving inside h5py's C code would otherwise be swallowed and printed
-    as a traceback; held, it is raised as soon as the write returns, where the
-    temporary file is removed and the destination left untouched.
+    A signal arriving inside h5py's C code or one of its clean-up callbacks would
+    otherwise be swallowed and printed as a traceback ("Exception ignored ...");
+    held, it is raised (``KeyboardInterrupt`` or :class:`Terminated`) as soon as
+    the block ends, where the temporary file is removed and the destination is
+    left untouched.  Outside the main thread signals cannot be handled and this
+    does nothing.
     """
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    try:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    except (AttributeError, ValueError, OSError):
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
+    got: list[int] = []
+
+    def record(signum, frame):
+        got.append(signum)
+
+    old = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, record)
+    except ValueError:
+        pass
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+    if got:
+        if got[0] == signal.SIGTERM:
+            raise Terminated()
+        raise KeyboardInterrupt()
 
 
 def _fsync_dir(directory: str) -> None:

@@ -19,7 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from startrack.errors import BadInputError
-from startrack.formats.atomic import check_writable, is_special, output_target, write_error
+from startrack.formats.atomic import (
+    check_writable,
+    is_special,
+    output_target,
+    write_error,
+)
 
 __all__ = [
     "FRAME_FORMAT",
@@ -29,9 +34,9 @@ __all__ = [
     "dumps_frame",
     "frame_key",
     "read_finished",
-    "resolve_path",
     "read_frames",
     "read_json_file",
+    "resolve_path",
     "validate_frame",
     "validate_stars",
 ]
@@ -284,7 +289,7 @@ def read_frames(path: str):
             try:
                 value = _loads(whole)
             except ValueError as exc:
-                yield FrameRecord(name, None, BadInputError(name, None, f"is not valid JSON or JSON Lines ({exc})"))
+                yield from _lines_after_bad_first(whole, first_no, name, base, exc)
                 return
             items = value if isinstance(value, list) else [value]
             for i, item in enumerate(items):
@@ -307,6 +312,32 @@ def read_frames(path: str):
     finally:
         if handle is not sys.stdin:
             handle.close()
+
+
+def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
+    """A text whose first line and whole are not JSON: JSON Lines with a bad first line, or one broken document.
+
+    If any later line is a JSON object on its own, the text is JSON Lines: the
+    first line (and any other bad line) becomes a bad-input record and the good
+    frames go on.  Otherwise it is one broken (pretty-printed) document: one record.
+    """
+    rows = text.split("\n")
+    parsed = []
+    any_good = False
+    for k, line in enumerate(rows):
+        if not line.strip():
+            continue
+        src = f"{name}:{first_no + k}"
+        try:
+            value = _loads(line)
+            any_good = any_good or (k > 0 and isinstance(value, dict))
+            parsed.append(FrameRecord(src, value, None, base))
+        except ValueError as line_exc:
+            parsed.append(FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({line_exc})"), base))
+    if any_good:
+        yield from parsed
+    else:
+        yield FrameRecord(name, None, BadInputError(name, None, f"is not valid JSON or JSON Lines ({exc})"), base)
 
 
 def _to_json(value):

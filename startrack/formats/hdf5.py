@@ -135,7 +135,7 @@ def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
         except (OSError, ValueError, RuntimeError):
             raise BadInputError(path, None, "is corrupt (its attributes cannot be read)") from None
         check_format_tag(attrs, expected_format, path)
-        wanted = list(names) if names is not None else [k for k in h5.keys() if isinstance(h5[k], h5py.Dataset)]
+        wanted = list(names) if names is not None else [k for k in h5 if isinstance(h5[k], h5py.Dataset)]
         datasets = {}
         for name in wanted:
             if name not in h5:
