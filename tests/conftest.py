@@ -32,6 +32,12 @@ def assert_refused(proc, *needles, stdout_empty=True):
         assert proc.stdout == ""
 
 
+@pytest.fixture(scope="session")
+def solve_cache(tmp_path_factory):
+    """One STARTRACK_CACHE for every test that runs `solve` (its databases are built once per session)."""
+    return {"STARTRACK_CACHE": str(tmp_path_factory.mktemp("solve-cache"))}
+
+
 @pytest.fixture
 def cli():
     return run_cli
