@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import collections
+import os
 import queue
 import threading
 from dataclasses import dataclass, field
@@ -85,6 +86,10 @@ class BatchTally:
             click.echo(self.summary(), err=True)
         if self.exit_code:
             raise SystemExit(self.exit_code)
+
+
+class InternalFrameError(Exception):
+    """A frame that hit a bug (not the input's fault): written as failed, the batch goes on, exit status 1."""
 
 
 def _failed_doc(rec, section, exc):
@@ -228,6 +233,13 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
             return rec, out, None
         except BadInputError as exc:
             return rec, _failed_doc(rec, section, exc), exc
+        except Exception as exc:  # noqa: BLE001 - one frame's bug must not sink the batch
+            if os.environ.get("STARTRACK_DEBUG"):
+                raise
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            out = _failed_doc(rec, section, f"{type(exc).__name__}: {msg}")
+            out[section] = {"status": "failed", "reason": f"internal error: {type(exc).__name__}: {msg}"}
+            return rec, out, InternalFrameError(f"{rec.source}: internal error: {type(exc).__name__}: {msg}")
 
     def numbered():
         index = 0
@@ -248,6 +260,11 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
             if held is not None:
                 _write_bad(writer, tally, *held)
                 held = None
+            if isinstance(exc, InternalFrameError):
+                tally.error(str(exc))
+                writer.write(out)
+                tally.add("failed")
+                continue
             if exc is not None and n_seen == 1:
                 held = (rec, out, exc)
                 continue

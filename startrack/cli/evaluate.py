@@ -78,6 +78,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
       startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-limit 5 --focal-error-pct 0,0.5,1,2 \\
           --count 1000 --plot focal.png
     """
+    from startrack.cli.options import require_stdout
+
+    require_stdout()
     import json
 
     from startrack.catalog import load_catalog

@@ -173,6 +173,12 @@ def handle_errors(func):
     return wrapper
 
 
+def require_stdout() -> None:
+    """Refuse (exit 2, one line) a command whose result goes to standard output when it is closed (``>&-``)."""
+    if sys.stdout is None or sys.stdout.closed:
+        raise BadInputError("<stdout>", None, "is closed: the result has nowhere to go")
+
+
 def _echo_err(message: str) -> None:
     """One line on stderr; silently nothing if stderr itself is closed."""
     with contextlib.suppress(OSError, ValueError, AttributeError):
