@@ -258,8 +258,11 @@ class captured_stderr:
 
     @property
     def first_line(self) -> str:
+        """The first line of chatter without OpenCV's log prefix (``[ WARN:0@0.1] global file.cpp:123``)."""
+        import re
+
         for line in self.text.splitlines():
-            line = line.strip()
+            line = re.sub(r"^\[\s*\w+:\d+@[\d.]+\]\s*(global\s+\S+\s+)?", "", line.strip())
             if line:
                 return line[:160]
         return ""
