@@ -143,8 +143,7 @@ def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
             try:
                 datasets[name] = h5[name][()]
             except (OSError, ValueError, RuntimeError) as exc:
-                raise BadInputError(path, name, f"is corrupt (HDF5: {str(exc).splitlines()[0][:80]}): "
-                                    "delete or rebuild the file") from None
+                raise BadInputError(path, name, f"is corrupt (HDF5: {str(exc).splitlines()[0][:80]})") from None
     return HDF5File(path, attrs, datasets)
 
 
@@ -203,7 +202,8 @@ def cached_database(path: str, load, save, build, valid=lambda db: True):
                 if not valid(db):
                     db = None
             except BadInputError as exc:
-                log.warning("startrack: cached database %s is unusable (%s): rebuilding it", path, exc.problem)
+                log.warning("startrack: cached database %s: %s%s: rebuilding it", path,
+                            f"{exc.field}: " if exc.field else "", exc.problem)
                 db = None
         if db is None:
             db = build()
