@@ -1,10 +1,10 @@
 """Streaming and memory of the frame pipes (issue 13).
 
 hold
-    Writes frame 1 into ``startrack identify -d DB | startrack attitude``, holds
-    the pipe open for ``--hold-s`` seconds before frame 2, and prints the time
-    from writing frame 1 to reading its attitude (it must come out while frame 2
-    is still held back).
+    Writes frame 0 into ``startrack identify -d DB | startrack attitude`` and
+    reads its result (start-up), then frame 1, holds the pipe open for
+    ``--hold-s`` seconds before frame 2, and prints the time from writing frame 1
+    to reading its attitude (it must come out while frame 2 is still held back).
 memory
     Peak resident memory (``/usr/bin/time -v``-equivalent: ``ru_maxrss`` of each
     stage) of ``render --count N --stars-only | identify | attitude`` for several N.
@@ -52,24 +52,36 @@ def read_line(stream, timeout_s: float) -> bytes | None:
 def hold_pipeline(database: str, frames: list[str], hold_s: float, timeout_s: float = 300.0):
     """Run the held-open pipe.
 
-    Returns (seconds from writing frame 1 to its result, seconds from writing frame 2 to its result
-    while stdin stays open, frame 1's doc, frame 2's doc, exit codes).
+    ``frames[:-2]`` (if any) are written first and their results read (start-up:
+    imports, database, compiled kernels).  Then ``frames[-2]`` is written and
+    its result read while ``frames[-1]`` is held back until ``hold_s`` seconds
+    after ``frames[-2]`` was written; then ``frames[-1]`` is written.
+
+    Returns (seconds from writing frames[-2] to its result, seconds from writing
+    frames[-1] to its result while stdin stays open, frames[-2]'s doc,
+    frames[-1]'s doc, exit codes, seconds of start-up).
     """
     ident = subprocess.Popen(_startrack("identify", "-d", database, "-q"), stdin=subprocess.PIPE,
                              stdout=subprocess.PIPE)
     att = subprocess.Popen(_startrack("attitude", "-q"), stdin=ident.stdout, stdout=subprocess.PIPE)
     ident.stdout.close()
     try:
+        t_start = time.monotonic()
+        for warm in frames[:-2]:
+            ident.stdin.write(warm.encode() + b"\n")
+            ident.stdin.flush()
+            read_line(att.stdout, timeout_s)
+        startup = time.monotonic() - t_start
         t0 = time.monotonic()
-        ident.stdin.write(frames[0].encode() + b"\n")
+        ident.stdin.write(frames[-2].encode() + b"\n")
         ident.stdin.flush()
         first = read_line(att.stdout, timeout_s)
         t_first = time.monotonic() - t0
         held = hold_s - t_first
         if held > 0:
-            time.sleep(held)  # frame 2 still held back: the pipe stays open
+            time.sleep(held)  # the last frame still held back: the pipe stays open
         t1 = time.monotonic()
-        ident.stdin.write(frames[1].encode() + b"\n")
+        ident.stdin.write(frames[-1].encode() + b"\n")
         ident.stdin.flush()
         second = read_line(att.stdout, timeout_s)
         t_second = time.monotonic() - t1
@@ -79,7 +91,8 @@ def hold_pipeline(database: str, frames: list[str], hold_s: float, timeout_s: fl
         for p in (ident, att):
             if p.poll() is None:
                 p.kill()
-    return (t_first, t_second, json.loads(first) if first else None, json.loads(second) if second else None, codes)
+    return (t_first, t_second, json.loads(first) if first else None, json.loads(second) if second else None, codes,
+            startup)
 
 
 def peak_rss_mb(count: int, database: str) -> dict:
@@ -108,13 +121,13 @@ def main(argv=None):
     ap.add_argument("--counts", default="1000,10000")
     args = ap.parse_args(argv)
     if args.what == "hold":
-        frames = subprocess.run(_startrack(*RENDER, "--count", 2, "--seed", 3), capture_output=True, text=True,
+        frames = subprocess.run(_startrack(*RENDER, "--count", 3, "--seed", 3), capture_output=True, text=True,
                                 check=True).stdout.splitlines()
-        t_first, t_second, doc1, doc2, codes = hold_pipeline(args.database, frames, args.hold_s)
-        print(f"frame 1 result after {t_first:.2f} s (start-up included) while frame 2 was held back "
-              f"{args.hold_s:g} s; frame 2 result {1000 * t_second:.0f} ms after it was written; "
-              f"attitude status {doc1['attitude']['status'] if doc1 else None}, "
-              f"frame 2 {doc2['attitude']['status'] if doc2 else None}; exit codes {codes}")
+        t_first, t_second, doc1, doc2, codes, startup = hold_pipeline(args.database, frames, args.hold_s)
+        print(f"start-up (frame 0 in, its result out) {startup:.2f} s; frame 1 result {1000 * t_first:.0f} ms "
+              f"after it was written, while frame 2 was held back {args.hold_s:g} s "
+              f"(status {doc1['attitude']['status'] if doc1 else None}); frame 2 result {1000 * t_second:.0f} ms "
+              f"after it was written (status {doc2['attitude']['status'] if doc2 else None}); exit codes {codes}")
     else:
         for n in (int(v) for v in args.counts.split(",")):
             t = time.monotonic()
