@@ -198,7 +198,7 @@ def resolve_image_path(rec) -> None:
 
 def run_frames(input_path: str, output: str, section: str, process, quiet: bool, label: str,
                need: tuple = (), jobs: int = 1, resume: bool = False, records=None, status=None,
-               unit: str = "frame", note=None) -> None:
+               unit: str = "frame", note=None, finish: bool = True):
     """Apply ``process(doc, source, index, total) -> doc`` to every frame of ``input_path``; write to ``output``.
 
     ``process`` raises :class:`BadInputError` for input it cannot use; a frame it
@@ -207,7 +207,9 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
     :meth:`BatchTally.finish` (exit status 0, 1 or 2).  ``records`` replaces
     reading ``input_path`` (an iterable of :class:`~startrack.formats.frame.FrameRecord`);
     ``status(doc) -> "ok" | "failed"`` replaces reading ``doc[section]["status"]``;
-    ``note() -> str`` adds to the summary line.
+    ``note() -> str`` adds to the summary line.  With ``finish=False`` the
+    :class:`BatchTally` is returned instead (the caller prints its own summary
+    and exits with :attr:`BatchTally.exit_code`).
     """
     from startrack.formats.frame import FrameWriter, read_frames, validate_frame
     from startrack.progress import ProgressBar
@@ -283,7 +285,10 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
     bar(tally.total, tally.total)
     if note is not None:
         tally.notes.append(note())
+    if not finish:
+        return tally
     tally.finish()
+    return tally
 
 
 def _write_bad(writer, tally, rec, out, exc):

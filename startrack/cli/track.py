@@ -155,7 +155,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         doc["track"] = out["track"]
         return doc
 
-    run_frames(source, output, "attitude", process, quiet, "track")
+    tally = run_frames(source, output, "attitude", process, quiet, "track", finish=False)
     modes = state["modes"]
     n = sum(modes.values())
     with_att = n - modes["lost"]
@@ -163,5 +163,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         click.echo(f"track: {with_att} of {n} frame(s) with an attitude ("
                     + ", ".join(f"{modes[m]} {m}" for m in MODES if m != "lost") + f"), {modes['lost']} lost",
                     err=True)
-    if modes["lost"]:
-        raise SystemExit(1)
+    if tally.bad:
+        click.echo(f"track: {tally.bad} frame(s) with bad input", err=True)
+    if tally.exit_code or modes["lost"]:
+        raise SystemExit(tally.exit_code or 1)
