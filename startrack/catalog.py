@@ -574,7 +574,7 @@ class FieldStatistics:
         }
 
 
-FIELD_STATISTICS_CHUNK = 1_000_000
+FIELD_STATISTICS_CHUNK = 250_000
 """Attitudes drawn and counted at a time by :func:`field_statistics` (about 100 MB of work arrays)."""
 
 
@@ -585,7 +585,7 @@ def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random
     Attitudes are uniform over SO(3) (random boresight and roll), the Monte Carlo
     of paper 000 Fig. 2 and paper 003 Fig. 3.  Radial distortion is included.
     The attitudes are drawn and counted ``chunk`` at a time into histograms, so
-    memory stays bounded (about 100 MB) for any ``n_boresights``; a run of at
+    memory stays bounded (a few hundred MB) for any ``n_boresights``; a run of at
     most one chunk draws the same attitudes as one of any larger chunk size.
     """
     from startrack._kernels.sphere import count_in_fov
