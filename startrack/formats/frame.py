@@ -317,7 +317,7 @@ def read_frames(path: str):
 def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
     """A text whose first line and whole are not JSON: JSON Lines with a bad first line, or one broken document.
 
-    If any later line is a JSON object on its own, the text is JSON Lines: the
+    If any later line is a JSON value on its own, the text is JSON Lines: the
     first line (and any other bad line) becomes a bad-input record and the good
     frames go on.  Otherwise it is one broken (pretty-printed) document: one record.
     """
@@ -330,7 +330,7 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
         src = f"{name}:{first_no + k}"
         try:
             value = _loads(line)
-            any_good = any_good or (k > 0 and isinstance(value, dict))
+            any_good = any_good or k > 0
             parsed.append(FrameRecord(src, value, None, base))
         except ValueError as line_exc:
             parsed.append(FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({line_exc})"), base))
