@@ -328,9 +328,14 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
         if not line.strip():
             continue
         src = f"{name}:{first_no + k}"
+        if k > 0 and not any_good:
+            try:
+                json.loads(line, parse_constant=_reject_constant)
+                any_good = True
+            except (ValueError, RecursionError):
+                pass
         try:
             value = _loads(line)
-            any_good = any_good or k > 0
             parsed.append(FrameRecord(src, value, None, base))
         except ValueError as line_exc:
             parsed.append(FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({line_exc})"), base))
