@@ -64,7 +64,7 @@ def sensor_spec(name, psf_sigma=None, faint_snr=None):
         v = sensor.background_e + sensor.read_noise_e**2
         f = flux_for_snr(faint_snr, sensor.psf_sigma_px, v)
         sensor.zero_point_e_per_s = f / sensor.exposure_s * 10 ** (0.4 * mags[1])
-        sensor.full_well_e = 1e9          # nothing saturates: the sweep is about SNR
+        # (full well and gain unchanged: stars that saturate leave the bound and the estimate alike)
     return cam, sensor, mags, render_mag
 
 
