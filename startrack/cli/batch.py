@@ -75,7 +75,7 @@ class BatchTally:
 
     def summary(self) -> str:
         parts = [f"{self.ok} ok", f"{self.failed} failed", f"{self.bad} bad input"]
-        text = f"{self.label}: {self.total} {self.unit}(s): " + ", ".join(parts)
+        text = f"{self.label}: {self.total} {self.unit}(s), " + ", ".join(parts)
         if self.skipped:
             text += f"; {self.skipped} already in the output (--resume)"
         return text + "".join(f"; {n}" for n in self.notes)

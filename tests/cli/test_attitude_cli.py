@@ -97,7 +97,7 @@ def test_bad_frames(tmp_path):
     stream += json.dumps(nan) + "\n"
     proc = run_cli("attitude", input=stream)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert "5 frame(s): 1 ok, 2 failed, 2 bad input" in proc.stderr
+    assert "5 frame(s), 1 ok, 2 failed, 2 bad input" in proc.stderr
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
     assert len(docs) == 5
     assert docs[0]["attitude"]["status"] == "failed" and "at least 2" in docs[0]["attitude"]["reason"]
