@@ -54,6 +54,22 @@ def _write_matches(path, doc):
                         f"{res:.3f}" if res is not None else "", int(res is not None)])
 
 
+def _cluster_progress(quiet):
+    """A progress line on stderr for cluster batches (done, failed, in flight, images per second), once a second."""
+    import time
+
+    last = [0.0]
+
+    def show(state):
+        now = time.perf_counter()
+        if quiet or (now - last[0] < 1.0 and state.done < state.total):
+            return
+        last[0] = now
+        click.echo(f"solve: {state.line('images')}", err=True)
+
+    return show
+
+
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
     import time
@@ -124,6 +140,10 @@ def _solve_one(args):
               help="Give up on an image after this many seconds of search (building a cached database and "
                    "compiling kernels on first use do not count).")
 @click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Images solved in parallel.")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Solve on a Dask cluster: 'local' starts a LocalCluster of -j workers here; an address "
+                   "(tcp://host:8786) uses a running `dask scheduler` and its workers, which must be able to read "
+                   "the images (a shared filesystem).  Needs the [cluster] extra.")
 @click.option("--wcs", "wcs_path", type=click.Path(), default=None,
               help="FITS WCS header per image (named after the image when several; {name} = image name).")
 @click.option("--plot", type=click.Path(), default=None,
@@ -138,7 +158,7 @@ def _solve_one(args):
 @resume_option
 @quiet_option
 @handle_errors
-def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, wcs_path, plot, fits_out,
+def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, scheduler, wcs_path, plot, fits_out,
             matches_out, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
@@ -158,6 +178,10 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     \b
     Example (a directory of photos, two processes; outputs named after each photo):
       startrack solve photos/*.jpg -j 2 --plot solved/ --fits-out solved/ --matches-out solved/ > solved.jsonl
+    \b
+    Example (on a Dask cluster: 'local' here, or tcp://HOST:8786 for a running `dask scheduler`;
+    rerun with --resume after an interruption):
+      startrack solve a.tiff b.tiff --scheduler local -j 2 -o solved.jsonl --resume
     \b
     Example (one photo with a field-of-view hint):
       startrack solve sky.tiff --fov-deg 11.4 | jq .solve.center_ra,.solve.center_dec
@@ -215,9 +239,22 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     writer = FrameWriter(output, resume=resume)
     todo = [t for t in tasks if not writer.skip({"image": {"path": t[0]}})]
     tally.skipped = n - len(todo)
+    run, progress = todo, None
+    if scheduler is not None and todo:
+        from startrack.cluster import check_readable_on_workers
+
+        # Workers open the files themselves, from their own working directory: absolute paths,
+        # checked up front on every worker (the first unreadable one is named).
+        check_readable_on_workers([t[0] for t in todo], scheduler, jobs)
+        run = [(os.path.abspath(p), o, c, tuple(os.path.abspath(x) if x else x for x in outs))
+               for p, o, c, outs in todo]
+        progress = _cluster_progress(quiet)
     with writer:
         # In input order; with -j N, spawned workers share the pattern index through the page cache.
-        for i, doc in ordered_map(_solve_one, todo, jobs=max(1, min(jobs, len(todo)))):
+        for i, doc in ordered_map(_solve_one, run, jobs=max(1, min(jobs, len(todo))), scheduler=scheduler,
+                                  progress=progress):
+            if isinstance(doc, dict) and run is not todo:
+                doc.setdefault("image", {})["path"] = todo[i][0]
             if isinstance(doc, TaskFailure):
                 doc = {"format": FRAME_FORMAT, "image": {"path": todo[i][0]},
                        "solve": {"status": "failed", "reason": f"internal error: {doc.error}"}}
