@@ -60,9 +60,13 @@ def conditions_grid(**lists) -> list:
     return [Condition(**dict(zip(keys, combo))) for combo in itertools.product(*values)]
 
 
-def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor=None, mag_limit=None, vectors=None):
+def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor=None, mag_limit=None, vectors=None,
+                start: int = 0):
     """``n`` star-list frames for ``condition``; frame k uses attitude seed (seed, k), retried (seed, k, t)
-    until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star")."""
+    until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star").
+
+    ``start`` gives the frames ``start .. start + n - 1`` of the same sequence (chunks of a large set).
+    """
     from startrack.render import Scene, Sensor, star_list
     from startrack.rotations import quaternion_to_dcm, random_quaternions
 
@@ -71,7 +75,7 @@ def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor
                   focal_error_pct=condition.focal_error_pct)
     vectors = catalog.vectors() if vectors is None else vectors
     frames = []
-    for k in range(n):
+    for k in range(start, start + n):
         for t in range(1000):
             frame_seed = [int(seed), int(k), int(t)]
             rng = np.random.default_rng(frame_seed)
@@ -126,13 +130,19 @@ def _identify_chunk(args):
 
 
 def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: int = 0, jobs: int = 1,
-             params=None, mag_limit=None, progress=None):
+             params=None, mag_limit=None, progress=None, scheduler: str | None = None, catalog_path=None):
     """Run every algorithm on every condition.
 
     Parameters
     ----------
     databases : dict
         Database kind (``"kvector"``, ``"labels"``, ...) -> loaded database.
+    scheduler : str or None
+        A Dask scheduler (``"local"`` or an address): the frames are made and
+        identified by the workers in chunks, each worker loading the databases
+        (from their files) and the catalog (``catalog_path``, None for the
+        shipped one) once, and the results are reduced as the chunks arrive, so
+        the client holds no frame.
 
     Returns
     -------
@@ -148,6 +158,9 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
         if DATABASE_KIND[a] not in databases:
             raise BadInputError("--database", None, f"{a} needs a {DATABASE_KIND[a]} database")
     params = params or IdentifyParams()
+    if scheduler is not None:
+        return _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params,
+                                    mag_limit, progress, scheduler)
     vectors = catalog.vectors()
     rows = []
     total = len(conditions) * len(algorithms)
@@ -170,23 +183,7 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
                     results = [r for part in pool.map(_identify_chunk, chunks) for r in part]
                 else:
                     results = _identify_chunk((algorithm, frames))
-                outcome = [r[0] for r in results]
-                times = np.array([r[1] for r in results])
-                bad = [{"frame_seed": r[3], "wrong": r[4]} for r in results if r[0] == "bad"]
-                rows.append({
-                    "algorithm": algorithm, "condition": cond.label(), **asdict(cond), "frames": n,
-                    "success": outcome.count("success"), "failure": outcome.count("failure"),
-                    "bad": outcome.count("bad"),
-                    "success_rate": outcome.count("success") / n,
-                    "mean_ms": float(times.mean()), "median_ms": float(np.median(times)),
-                    "p95_ms": float(np.percentile(times, 95)),
-                    "mean_stars": float(np.mean([r[2] for r in results])),
-                    # Frames with an unresolved double among their stars (render's blends).
-                    "double_frames": sum(1 for r in results if r[5]),
-                    "double_success": sum(1 for r in results if r[5] and r[0] == "success"),
-                    "double_bad": sum(1 for r in results if r[5] and r[0] == "bad"),
-                    "bad_seeds": bad[:20],
-                })
+                rows.append(_row(algorithm, cond, n, results))
                 done += 1
                 if progress:
                     progress(done, total)
@@ -194,6 +191,100 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
         if pool is not None:
             pool.close()
             pool.join()
+    return rows
+
+
+def _row(algorithm, cond, n, results) -> dict:
+    """One table row from ``(outcome, ms, stars, frame_seed, wrong, double)`` per frame."""
+    outcome = [r[0] for r in results]
+    times = np.array([r[1] for r in results])
+    bad = [{"frame_seed": r[3], "wrong": r[4]} for r in results if r[0] == "bad"]
+    return {
+        "algorithm": algorithm, "condition": cond.label(), **asdict(cond), "frames": n,
+        "success": outcome.count("success"), "failure": outcome.count("failure"),
+        "bad": outcome.count("bad"),
+        "success_rate": outcome.count("success") / n,
+        "mean_ms": float(times.mean()), "median_ms": float(np.median(times)),
+        "p95_ms": float(np.percentile(times, 95)),
+        "mean_stars": float(np.mean([r[2] for r in results])),
+        # Frames with an unresolved double among their stars (render's blends).
+        "double_frames": sum(1 for r in results if r[5]),
+        "double_success": sum(1 for r in results if r[5] and r[0] == "success"),
+        "double_bad": sum(1 for r in results if r[5] and r[0] == "bad"),
+        "bad_seeds": bad[:20],
+    }
+
+
+def _load_database(path):
+    """A database of any kind from its file (the kind is its format tag)."""
+    from startrack.formats.hdf5 import read_format_tag
+
+    kind = read_format_tag(path).split(".")[1].split("/")[0]
+    if kind == "labels":
+        from startrack.labels import load_labels
+
+        return kind, load_labels(path)
+    if kind == "triangles":
+        from startrack.triangles import load_triangles
+
+        return kind, load_triangles(path)
+    from startrack.kvector import load_kvector
+
+    return kind, load_kvector(path)
+
+
+def _cluster_chunk(spec):
+    """Dask task: frames ``start .. stop`` of one condition, made here and identified by every algorithm.
+
+    The worker loads the databases and the catalog once (:func:`startrack.cluster.worker_cache`) and
+    returns only the per-frame outcomes, so a task's result is small whatever the chunk.
+    """
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.cluster import worker_cache
+
+    paths, catalog_path, mag_limit, camera_doc, params, cond, algorithms, seed, start, stop = spec
+    cache = worker_cache()
+    key = ("evaluate", tuple(sorted(paths.items())), catalog_path, mag_limit)
+    if key not in cache:
+        dbs = dict(_load_database(p) for p in paths.values())
+        cat = load_catalog(catalog_path, mag_max=mag_limit).filter_magnitude(None, mag_limit)
+        cache[key] = (dbs, cat, cat.vectors())
+    dbs, cat, vectors = cache[key]
+    camera = Camera.from_dict(camera_doc)
+    frames = make_frames(cat, camera, cond, stop - start, seed, mag_limit=mag_limit, vectors=vectors, start=start)
+    _worker_init(dbs, camera, params)
+    return {algorithm: _identify_chunk((algorithm, frames)) for algorithm in algorithms}
+
+
+def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params, mag_limit,
+                         progress, scheduler):
+    from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map
+
+    paths = {}
+    for kind, db in databases.items():
+        if not getattr(db, "path", ""):
+            raise BadInputError("databases", None, f"the {kind} database has no file: a cluster loads it by path")
+        paths[kind] = os.path.abspath(db.path)
+    if catalog_path is not None:
+        catalog_path = os.path.abspath(catalog_path)
+    size = default_chunk(n, jobs)
+    specs = [(paths, catalog_path, mag_limit, camera.to_dict(), params, cond, list(algorithms), seed, a, b)
+             for cond in conditions for a, b in chunks(n, size)]
+    per_cond = len(chunks(n, size))
+    rows, results, done = [], {}, 0
+    for i, part in ordered_map(_cluster_chunk, specs, jobs=jobs, scheduler=scheduler):
+        if isinstance(part, TaskFailure):
+            raise BadInputError("scheduler", None, f"a chunk of frames failed on the cluster: {part.error}")
+        cond = specs[i][5]
+        for algorithm, res in part.items():
+            results.setdefault(algorithm, []).extend(res)
+        if (i + 1) % per_cond == 0:
+            for algorithm in algorithms:
+                rows.append(_row(algorithm, cond, n, results.pop(algorithm)))
+                done += 1
+                if progress:
+                    progress(done, len(conditions) * len(algorithms))
     return rows
 
 

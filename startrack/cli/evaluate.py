@@ -42,6 +42,9 @@ def _floats(text, name):
               help="Centroid noise the algorithms assume (default: the simulated one).")
 @seed_option
 @click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Worker processes.")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on a Dask cluster ('local': a LocalCluster of -j workers; or tcp://HOST:8786): frames are "
+                   "made and identified by the workers in chunks and reduced as they arrive.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as CSV.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as JSON.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
@@ -53,8 +56,8 @@ def _floats(text, name):
 @handle_errors
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
             mag_limit, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
-            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, csv_path, json_path, plot, accuracy,
-            quiet):
+            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, json_path, plot,
+            accuracy, quiet):
     """Compare identification algorithms over random attitudes, as the papers do.
 
     Every combination of the comma-separated condition values is one row per
@@ -149,7 +152,8 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     for cond in conds:
         hint = sigma_hint_px if sigma_hint_px is not None else max(cond.sigma_px, 0.01)
         params = IdentifyParams(sigma_px=hint, tolerance_arcsec=tolerance_arcsec)
-        rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim)
+        rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim, scheduler=scheduler,
+                         catalog_path=catalog)
         bar(len(rows), len(conds) * len(algos))
     click.echo(summarise(rows))
     for r in rows:

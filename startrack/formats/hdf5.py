@@ -26,7 +26,7 @@ from startrack.errors import BadInputError
 from startrack.formats.atomic import atomic_path, deferred_signals
 from startrack.formats.frame import check_format_tag
 
-__all__ = ["HDF5File", "build_lock", "cached_database", "read_hdf5", "write_hdf5"]
+__all__ = ["HDF5File", "build_lock", "cached_database", "read_format_tag", "read_hdf5", "write_hdf5"]
 
 log = logging.getLogger("startrack")
 
@@ -210,3 +210,19 @@ def cached_database(path: str, load, save, build, valid=lambda db: True):
             save(db, path)
             db.path = path
     return db
+
+
+def read_format_tag(path: str) -> str:
+    """The ``format`` attribute of a startrack HDF5 file (``BadInputError`` when missing or not HDF5)."""
+    import h5py
+
+    if not os.path.exists(path):
+        raise BadInputError(path, None, "no such file")
+    try:
+        with h5py.File(path, "r") as h5:
+            tag = _attr(h5.attrs.get("format"))
+    except OSError:
+        raise BadInputError(path, None, "is not an HDF5 file") from None
+    if not isinstance(tag, str) or not tag.startswith("startrack."):
+        raise BadInputError(path, "format", f"{tag!r} is not a startrack file")
+    return tag

@@ -104,3 +104,18 @@ def test_local_cluster_solves_in_order(tmp_path):
     docs = [json.loads(line) for line in out.read_text().splitlines()]
     assert [d["image"]["path"] for d in docs] == REAL[:3]
     assert all(d["solve"]["status"] == "ok" for d in docs)
+
+
+def test_evaluate_on_a_local_cluster_equals_one_process(tmp_path):
+    """The same frames (same seed) give the same table in one process and on a LocalCluster of 2 workers."""
+    db = tmp_path / "db.h5"
+    run_cli("build-kvector", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "5.0", "-o", db, "-q", check=True)
+    common = ["-d", db, "-a", "pyramid", "--fov-deg", "20", "--size", "1024x1024", "--sigma-px", "0.3",
+              "--count", "60", "--seed", "5", "-q"]
+    one = run_cli("evaluate", *common, "--json", tmp_path / "one.json")
+    many = run_cli("evaluate", *common, "--scheduler", "local", "-j", "2", "--json", tmp_path / "many.json")
+    assert one.returncode == 0 and many.returncode == 0, many.stderr
+    rows_one = json.loads((tmp_path / "one.json").read_text())["rows"]
+    rows_many = json.loads((tmp_path / "many.json").read_text())["rows"]
+    keys = ("algorithm", "condition", "frames", "success", "failure", "bad", "mean_stars")
+    assert [{k: r[k] for k in keys} for r in rows_one] == [{k: r[k] for k in keys} for r in rows_many]
