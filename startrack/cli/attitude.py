@@ -1,24 +1,23 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
 import click
 
-from startrack.cli.options import (catalog_option, handle_errors, input_argument, jobs_option, output_option,
-                                   quiet_option, resume_option)
+from startrack.cli.options import (Command, FiniteFloat, RegistryChoice, attitude_methods, catalog_option, handle_errors, input_argument, jobs_option, output_option, quiet_option, resume_option)
 
 
-@click.command("attitude", short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
+@click.command("attitude", cls=Command, short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
 @input_argument
-@click.option("--method", "-m", type=click.Choice(["quest", "q-method", "svd", "foam", "esoq2", "triad"]),
+@click.option("--method", "-m", type=RegistryChoice(attitude_methods),
               default="quest", show_default=True, help="Wahba solver.")
 @catalog_option
-@click.option("--epoch", type=float, default=None,
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None,
               help="Epoch (decimal year) of the catalog positions; default: image.time, else the render's epoch.")
-@click.option("--sigma-px", type=float, default=None,
+@click.option("--sigma-px", type=FiniteFloat(0, 100, min_open=True), default=None,
               help="Centroid noise (1 sigma, px) of every star, instead of each star's own bound (default: from "
                    "flux, PSF and noise, else sigma_px, else 0.5).")
-@click.option("--sigma-floor-px", type=float, default=0.05, show_default=True,
+@click.option("--sigma-floor-px", type=FiniteFloat(0, 100), default=0.05, show_default=True,
               help="Smallest per-star centroid sigma (px): calibration and optics limit real images.")
 @click.option("--unweighted", is_flag=True, help="Equal weights instead of 1 / sigma^2.")
-@click.option("--gate", type=float, default=13.8, show_default=True,
+@click.option("--gate", type=FiniteFloat(0, min_open=True), default=13.8, show_default=True,
               help="Chi-square gate (2 dof) on a star's residual; the worst star beyond it is dropped.")
 @click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
               help="Write a FITS WCS header (TAN, SIP with distortion); numbered when several frames.")

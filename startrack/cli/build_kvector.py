@@ -1,27 +1,27 @@
 """startrack build-kvector: the star-pair database with Mortari's k-vector."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option)
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, camera_from_options, camera_options,
+                                   catalog_option, handle_errors, info, mag_options, quiet_option)
 
 
-@click.command("build-kvector", short_help="Build the star-pair k-vector database for a sensor.")
+@click.command("build-kvector", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],
+               short_help="Build the star-pair k-vector database for a sensor.")
 @catalog_option
 @camera_options
-@click.option("--mag-max", type=float, default=None,
-              help="Faintest catalog star used.  Without --mag-max/--mag-min the depth is chosen for the sensor.")
-@click.option("--mag-min", type=float, default=None, help="Brightest catalog star used.")
-@click.option("--stars-per-field", type=float, default=None,
+@mag_options(max_help="Faintest catalog star used.  Without --mag-max/--mag-min the depth is chosen for the sensor.")
+@click.option("--stars-per-field", type=FiniteFloat(3, 1000), default=None,
               help="Chosen depth: database stars wanted per field (default 20, lowered to fit --max-pairs).")
-@click.option("--max-pairs", type=int, default=None,
+@click.option("--max-pairs", type=Int(1000, 10**9), default=None,
               help="Chosen depth: pair budget (default 4,000,000: about 50 MB).")
-@click.option("--merge-px", type=float, default=None,
+@click.option("--merge-px", type=FiniteFloat(0, 100), default=None,
               help="Stars closer than this many pixels are one entry (unresolved double; default 2, 0 = off; "
                    "needs the sensor's pixels: --size or --camera).")
-@click.option("--merge-arcsec", type=float, default=None, help="As --merge-px, in arcsec (overrides it).")
-@click.option("--margin-deg", type=float, default=0.5, show_default=True,
+@click.option("--merge-arcsec", type=FiniteFloat(0, 3600), default=None,
+              help="As --merge-px, in arcsec (overrides it).")
+@click.option("--margin-deg", type=FiniteFloat(0, 45), default=0.5, show_default=True,
               help="Added to the diagonal field to give the largest pair separation kept.")
-@click.option("--epoch", type=float, default=None, help="Propagate proper motion to this epoch first.")
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Propagate proper motion to this epoch first.")
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Database file (.h5).")
 @quiet_option
 @handle_errors

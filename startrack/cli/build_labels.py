@@ -1,19 +1,19 @@
 """startrack build-labels: paper 004's label database."""
 import click
 
-from startrack.cli.options import catalog_option, handle_errors, info, quiet_option
+from startrack.cli.options import Command, FiniteFloat, Int, catalog_option, handle_errors, info, mag_options, quiet_option
 
 
-@click.command("build-labels", short_help="Build the labelling database (paper 004) for a field of view.")
+@click.command("build-labels", cls=Command, ordered=[("group_size", "stars_per_field")], short_help="Build the labelling database (paper 004) for a field of view.")
 @catalog_option
-@click.option("--fov-deg", type=float, required=True, help="Field of view (degrees).")
-@click.option("--mag-max", type=float, default=None, help="Faintest catalog star (paper 004: 5.2).")
-@click.option("--merge-arcsec", type=float, default=None, help="Merge closer stars first (they image as one).")
-@click.option("--stars-per-field", type=int, default=8, show_default=True)
-@click.option("--group-size", type=int, default=4, show_default=True)
-@click.option("--scale-digits", "scale_digits", type=int, default=2, show_default=True, help="r: sub-label digits.")
-@click.option("--step-deg", type=float, default=1.0, show_default=True, help="Boresight sweep step.")
-@click.option("--epoch", type=float, default=None, help="Propagate proper motion to this epoch first.")
+@click.option("--fov-deg", type=FiniteFloat(0, 90, min_open=True), required=True, help="Field of view (degrees).")
+@mag_options(max_help="Faintest catalog star (paper 004: 5.2).", with_min=False)
+@click.option("--merge-arcsec", type=FiniteFloat(0, 3600, min_open=True), default=None, help="Merge closer stars first (they image as one).")
+@click.option("--stars-per-field", type=Int(3, 30), default=8, show_default=True, help="Brightest stars per field.")
+@click.option("--group-size", type=Int(3, 8), default=4, show_default=True, help="Stars per labelled group.")
+@click.option("--scale-digits", "scale_digits", type=Int(1, 6), default=2, show_default=True, help="r: sub-label digits.")
+@click.option("--step-deg", type=FiniteFloat(0.1, 90), default=1.0, show_default=True, help="Boresight sweep step.")
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Propagate proper motion to this epoch first.")
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Database file (.h5).")
 @quiet_option
 @handle_errors

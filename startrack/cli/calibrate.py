@@ -1,13 +1,14 @@
 """startrack calibrate: focal length, principal point and distortion from identified frames."""
 import click
 
-from startrack.cli.options import catalog_option, handle_errors, info, input_argument, quiet_option
+from startrack.cli.options import Command, NameList, catalog_option, handle_errors, info, input_argument, quiet_option
 
 
-@click.command("calibrate", short_help="Fit focal length, principal point and k1, k2 from solved frames.")
+@click.command("calibrate", cls=Command, short_help="Fit focal length, principal point and k1, k2 from solved frames.")
 @input_argument
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
-@click.option("--fit", default="auto", show_default=True,
+@click.option("--fit", type=NameList(lambda: ["auto", "focal_length_px", "cx", "cy", "k1", "k2"], as_text=True),
+              default="auto", show_default=True,
               help="Parameters to fit (focal_length_px,cx,cy,k1,k2), or auto: all of them, then those the data do "
                    "not constrain (under 3 sigma from no distortion / the image centre) left out.")
 @catalog_option

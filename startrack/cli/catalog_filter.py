@@ -1,20 +1,20 @@
 """startrack catalog-filter: select, propagate, merge and thin catalog stars."""
 import click
 
-from startrack.cli.options import catalog_option, handle_errors, info, quiet_option
+from startrack.cli.options import (Command, FiniteFloat, Int, catalog_option, handle_errors, info, mag_options,
+                                   quiet_option)
 
 
-@click.command("catalog-filter", short_help="Select catalog stars by magnitude; propagate, merge, thin.")
+@click.command("catalog-filter", cls=Command, ordered=[("mag_min", "mag_max")], short_help="Select catalog stars by magnitude; propagate, merge, thin.")
 @catalog_option
-@click.option("--mag-min", type=float, default=None, help="Keep stars at least this faint (e.g. 2.5).")
-@click.option("--mag-max", type=float, default=None, help="Keep stars at most this faint (e.g. 6.59).")
-@click.option("--epoch", type=float, default=None,
+@mag_options(max_help="Keep stars at most this faint (e.g. 6.59).", min_help="Keep stars at least this faint (e.g. 2.5).")
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None,
               help="Propagate proper motion to this epoch (decimal year, e.g. 2026.9).")
-@click.option("--merge-arcsec", type=float, default=None,
+@click.option("--merge-arcsec", type=FiniteFloat(0, 3600, min_open=True), default=None,
               help="Merge stars closer than this (arcsec) into one of combined brightness.")
-@click.option("--uniform", type=int, default=None,
+@click.option("--uniform", type=Int(1), default=None,
               help="Thin to a near-uniform density: keep the N brightest per sky cell.")
-@click.option("--cell-deg", type=float, default=4.0, show_default=True, help="Sky cell size for --uniform.")
+@click.option("--cell-deg", type=FiniteFloat(0, 90, min_open=True), default=4.0, show_default=True, help="Sky cell size for --uniform.")
 @click.option("--output", "-o", default="-", show_default=True, type=click.Path(dir_okay=False, allow_dash=True),
               help="Output: .h5/.hdf5 (startrack.catalog/1) or .csv; - writes CSV to stdout.")
 @quiet_option

@@ -1,24 +1,18 @@
 """startrack catalog-stats: how many stars will a sensor see?"""
 import click
 
-from startrack.cli.options import (
-    camera_from_options,
-    camera_options,
-    catalog_option,
-    handle_errors,
-    quiet_option,
-    seed_option,
-)
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, Int, camera_from_options, camera_options, catalog_option,
+                                   handle_errors, mag_options, quiet_option, seed_option)
 
 
-@click.command("catalog-stats", short_help="Monte Carlo count of catalog stars in a sensor's field.")
+@click.command("catalog-stats", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],
+               short_help="Monte Carlo count of catalog stars in a sensor's field.")
 @catalog_option
 @camera_options
-@click.option("--mag-max", type=float, default=None, help="Count only stars at most this faint.")
-@click.option("--mag-min", type=float, default=None, help="Count only stars at least this faint.")
-@click.option("--samples", type=int, default=100000, show_default=True, help="Number of random attitudes.")
+@mag_options(max_help="Count only stars at most this faint.", min_help="Count only stars at least this faint.")
+@click.option("--samples", type=Int(1, 10_000_000), default=100000, show_default=True, help="Number of random attitudes.")
 @seed_option
-@click.option("--json", "as_json", is_flag=True, help="Write JSON instead of a text table.")
+@click.option("--json", "as_json", is_flag=True, help="Write JSON instead of the text table (a flag, as in every command).")
 @quiet_option
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,

@@ -1,42 +1,41 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import (
-    handle_errors,
-    jobs_option,
-    load_camera_file,
-    output_option,
-    quiet_option,
-    resume_option,
-)
+from startrack.cli.options import (Command, FiniteFloat, Int, RegistryChoice, centroid_methods, handle_errors, jobs_option, load_camera_file, output_option, quiet_option, resume_option)
 
 
-@click.command("centroid", short_help="Detect and centroid stars in images -> frame documents.")
+@click.command("centroid", cls=Command, exclusive=[("threshold_sigma", "threshold_dn")],
+               ordered=[("min_pixels", "max_pixels")], short_help="Detect and centroid stars in images -> frame documents.")
 @click.argument("inputs", nargs=-1, metavar="IMAGE...")
-@click.option("--method", type=click.Choice(["com", "iwc", "quine", "gauss"]), default="gauss", show_default=True,
+@click.option("--method", "-m", type=RegistryChoice(centroid_methods), default="gauss", show_default=True,
               help="com: centre of mass (paper 000 Eq. 1); iwc: iterative weighted; quine: Gaussian "
                    "interpolation (paper 003 Eqs. 4-6); gauss: 2-D Gaussian least squares.")
-@click.option("--threshold-sigma", type=float, default=5.0, show_default=True,
+@click.option("--threshold-sigma", type=FiniteFloat(0, 1000, min_open=True), default=5.0, show_default=True,
               help="Detection threshold in units of the local background noise.")
-@click.option("--threshold-dn", type=float, default=None, help="Fixed threshold in DN above the background instead.")
-@click.option("--background", type=click.Choice(["mesh", "global"]), default="mesh", show_default=True)
-@click.option("--mesh-px", type=int, default=64, show_default=True, help="Background mesh tile size.")
+@click.option("--threshold-dn", type=FiniteFloat(0, min_open=True), default=None,
+              help="Fixed threshold in DN above the background instead.")
+@click.option("--background", type=click.Choice(["mesh", "global"]), default="mesh", show_default=True,
+              help="mesh: a background per tile, interpolated; global: one level for the image.")
+@click.option("--mesh-px", type=Int(4, 100_000), default=64, show_default=True, help="Background mesh tile size.")
 @click.option("--matched-filter", is_flag=True, help="Detect on a Gaussian-filtered image (fainter stars).")
-@click.option("--filter-sigma-px", type=float, default=1.0, show_default=True)
-@click.option("--min-pixels", type=int, default=3, show_default=True)
-@click.option("--max-pixels", type=int, default=5000, show_default=True)
-@click.option("--max-elongation", type=float, default=2.5, show_default=True,
+@click.option("--filter-sigma-px", type=FiniteFloat(0.1, 50), default=1.0, show_default=True,
+              help="Sigma of the --matched-filter Gaussian.")
+@click.option("--min-pixels", type=Int(1, 10_000_000), default=3, show_default=True,
+              help="Smallest blob (pixels above the threshold) kept as a star.")
+@click.option("--max-pixels", type=Int(1, 100_000_000), default=5000, show_default=True,
+              help="Largest blob kept as a star.")
+@click.option("--max-elongation", type=FiniteFloat(1, 1000), default=2.5, show_default=True,
               help="Blobs more elongated than this are flagged as trails, not stars.")
 @click.option("--no-deblend", is_flag=True, help="Do not split touching stars.")
-@click.option("--max-stars", type=int, default=None, help="Keep the N brightest (paper 000's adaptive selection).")
-@click.option("--psf-sigma-px", type=float, default=None, help="PSF sigma (default: measured per star).")
-@click.option("--gain-e-per-dn", type=float, default=None, help="Gain, for photon noise in SNR and uncertainties.")
-@click.option("--saturation-dn", type=float, default=None, help="Saturation level (default: the file type's maximum).")
+@click.option("--max-stars", type=Int(1, 100_000), default=None, help="Keep the N brightest (paper 000's adaptive selection).")
+@click.option("--psf-sigma-px", type=FiniteFloat(0, 50, min_open=True), default=None, help="PSF sigma (default: measured per star).")
+@click.option("--gain-e-per-dn", type=FiniteFloat(0, min_open=True), default=None, help="Gain, for photon noise in SNR and uncertainties.")
+@click.option("--saturation-dn", type=FiniteFloat(0, min_open=True), default=None, help="Saturation level (default: the file type's maximum).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON to attach to every frame.")
 @click.option("--windows-from", type=click.Choice(["stars", "truth"]), default=None,
               help="Windowed mode: centroid only around the input document's stars or truth positions.")
-@click.option("--window-px", type=int, default=8, show_default=True, help="Window half-size for --windows-from.")
+@click.option("--window-px", type=Int(1, 1000), default=8, show_default=True, help="Window half-size for --windows-from.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of the detections (numbered per image when several).")
 @output_option("Frame documents (JSON Lines).")

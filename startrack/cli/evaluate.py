@@ -1,52 +1,67 @@
 """startrack evaluate: Monte Carlo comparison of identification algorithms."""
 import click
 
-from startrack.cli.options import (
-    camera_from_options,
-    camera_options,
-    catalog_option,
-    handle_errors,
-    info,
-    quiet_option,
-    seed_option,
-)
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, NameList, NumberList, camera_from_options,
+                                   camera_options, catalog_option, handle_errors, identify_algorithms, info, jobs_option,
+                                   mag_options, output_option, quiet_option, seed_option)
 
 
 def _floats(text, name):
     from startrack.errors import BadInputError
 
+    if isinstance(text, (tuple, list)):
+        return [float(v) for v in text]
     try:
         return [float(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
         raise BadInputError(name, None, f"expected comma-separated numbers, got {text!r}") from None
 
 
-@click.command("evaluate", short_help="Monte Carlo comparison of identification algorithms (papers' tables).")
+def _legacy_json_path(ctx, args):
+    """``--json PATH`` (an output file before the vocabulary of issue 13) -> ``--json -o PATH``."""
+    out = []
+    i = 0
+    while i < len(args):
+        out.append(args[i])
+        if args[i] == "--json" and i + 1 < len(args) and not args[i + 1].startswith("-"):
+            click.echo(f"{ctx.command_path}: warning: --json PATH is deprecated, use --json -o PATH", err=True)
+            out += ["-o", args[i + 1]]
+            i += 1
+        i += 1
+    return out
+
+
+@click.command("evaluate", cls=Command, rewrite=_legacy_json_path,
+               exclusive=CAMERA_EXCLUSIVE + (("sigma_px", "sigma_arcsec"),), ordered=[("min_stars", "max_stars")],
+               short_help="Monte Carlo comparison of identification algorithms (papers' tables).")
 @click.option("--database", "-d", "databases", multiple=True, required=True, type=click.Path(dir_okay=False),
               help="Databases (kvector, labels, ...), repeat as needed; each algorithm takes its kind.")
-@click.option("--algorithms", "-a", default="pyramid,voting", show_default=True, help="Comma-separated names.")
+@click.option("--algorithm", "-a", "algorithms", type=NameList(identify_algorithms), default="pyramid,voting",
+              show_default=True, help="Algorithms compared, comma-separated.")
 @catalog_option
 @camera_options
-@click.option("--mag-limit", type=float, default=None, help="Faintest star in the simulated star lists.")
-@click.option("--count", "-n", type=int, default=1000, show_default=True, help="Random attitudes per condition.")
-@click.option("--sigma-px", default="0.1", show_default=True, help="Centroid noise values (px, 1 sigma), comma-separated.")
-@click.option("--sigma-arcsec", default=None, help="Centroid noise values in arcsec instead.")
-@click.option("--false-stars", default="0", show_default=True, help="False-star counts, comma-separated.")
-@click.option("--mag-noise", default="0", show_default=True, help="Magnitude noise values.")
-@click.option("--focal-error-pct", default="0", show_default=True, help="Focal-length errors in percent.")
-@click.option("--drop-fraction", default="0", show_default=True, help="Fractions of stars dropped.")
-@click.option("--min-stars", type=int, default=0, show_default=True, help="Only frames with at least this many stars.")
-@click.option("--max-stars", type=int, default=None, help="At most the N brightest stars per frame (paper 003: 10).")
-@click.option("--tolerance-arcsec", type=float, default=None, help="Angle tolerance override for all algorithms.")
-@click.option("--sigma-hint-px", type=float, default=None,
+@mag_options(max_help="Faintest star in the simulated star lists (default: the databases').", with_min=False)
+@click.option("--count", "-n", type=Int(1, 100_000_000), default=1000, show_default=True, help="Random attitudes per condition.")
+@click.option("--sigma-px", type=NumberList(0, 100), default="0.1", show_default=True, help="Centroid noise values (px, 1 sigma), comma-separated.")
+@click.option("--sigma-arcsec", type=NumberList(0, 3600), default=None, help="Centroid noise values in arcsec instead.")
+@click.option("--false-stars", type=NumberList(0, 100_000, integer=True), default="0", show_default=True, help="False-star counts, comma-separated.")
+@click.option("--mag-noise", type=NumberList(0, 10), default="0", show_default=True, help="Magnitude noise values.")
+@click.option("--focal-error-pct", type=NumberList(-50, 50), default="0", show_default=True, help="Focal-length errors in percent.")
+@click.option("--drop-fraction", type=NumberList(0, 1, max_open=True), default="0", show_default=True, help="Fractions of stars dropped.")
+@click.option("--min-stars", type=Int(0, 100_000), default=0, show_default=True, help="Only frames with at least this many stars.")
+@click.option("--max-stars", type=Int(1, 100_000), default=None, help="At most the N brightest stars per frame (paper 003: 10).")
+@click.option("--tolerance-arcsec", type=FiniteFloat(0, 600, min_open=True), default=None, help="Angle tolerance override for all algorithms.")
+@click.option("--sigma-hint-px", type=FiniteFloat(0, 100, min_open=True), default=None,
               help="Centroid noise the algorithms assume (default: the simulated one).")
 @seed_option
-@click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Worker processes.")
+@jobs_option
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Run on a Dask cluster ('local': a LocalCluster of -j workers; or tcp://HOST:8786): frames are "
                    "made and identified by the workers in chunks and reduced as they arrive.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as CSV.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as JSON.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Write the rows as JSON (what `plot --kind evaluate` reads) instead of the text table.")
+@output_option("The table, or with --json the rows as JSON; with a FILE the table is still printed on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
 @click.option("--accuracy", is_flag=True,
               help="Instead: render --count images (stars to --mag-limit + 1) and report the attitude error against "
@@ -55,8 +70,8 @@ def _floats(text, name):
 @quiet_option
 @handle_errors
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
-            mag_limit, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
-            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, json_path, plot,
+            mag_max, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
+            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, as_json, output, plot,
             accuracy, quiet):
     """Compare identification algorithms over random attitudes, as the papers do.
 
@@ -69,7 +84,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     \b
     Example (paper 003 Table 3: 20 deg, mag 5.0, 5" (3 sigma), 0.2 mag, 10 brightest, one false star):
       startrack build-kvector --fov-deg 20 --mag-max 5.0 -o p003.h5
-      startrack evaluate -d p003.h5 -a pyramid,voting --fov-deg 20 --size 1024x1024 --mag-limit 5 \\
+      startrack evaluate -d p003.h5 -a pyramid,voting --fov-deg 20 --size 1024x1024 --mag-max 5 \\
           --sigma-arcsec 1.667 --mag-noise 0.2 --max-stars 10 --false-stars 0,1 --count 10000 --seed 1 -j 2
     \b
     Example (accuracy: error / Cramér-Rao bound per axis on paper 000's sensor, 1000 rendered frames):
@@ -78,7 +93,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
       startrack evaluate -d p000.h5 --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --accuracy -n 1000
     \b
     Example (robustness to focal-length error, with a chart):
-      startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-limit 5 --focal-error-pct 0,0.5,1,2 \\
+      startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-max 5 --focal-error-pct 0,0.5,1,2 \\
           --count 1000 --plot focal.png
     """
     from startrack.cli.options import require_stdout
@@ -99,7 +114,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         raise BadInputError("--count", None, f"must be at least 1, got {count}")
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
-    for path in (csv_path, json_path, plot):
+    for path in (csv_path, None if output == "-" else output, plot):
         if path:
             check_writable(path)
     loaded = {}
@@ -134,8 +149,8 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                             focal_error_pct=_floats(focal_error_pct, "--focal-error-pct"),
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
                             max_stars=[max_stars])
-    algos = [a.strip() for a in algorithms.split(",") if a.strip()]
-    lim = mag_limit
+    algos = list(algorithms)
+    lim = mag_max
     if lim is None:
         lim = min(float(db.star_mag.max()) for db in loaded.values())
     cat = load_catalog(catalog, mag_max=lim).filter_magnitude(None, lim)
@@ -144,7 +159,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % (2**31))
     if accuracy:
-        _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, json_path,
+        _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, None if output == "-" else output,
                   quiet)
         return
     rows = []
@@ -155,7 +170,6 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim, scheduler=scheduler,
                          catalog_path=catalog)
         bar(len(rows), len(conds) * len(algos))
-    click.echo(summarise(rows))
     for r in rows:
         if r.get("double_frames"):
             info(quiet, f"unresolved doubles: {r['algorithm']} [{r['condition']}] {r['double_frames']} frames with one "
@@ -168,9 +182,12 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
             "databases": list(databases)}
     from startrack._version import __version__
 
-    if json_path:
-        with atomic_open(json_path, "w") as fh:
-            json.dump({"startrack_version": __version__, "params": meta, "rows": rows}, fh, indent=1)
+    text = (json.dumps({"startrack_version": __version__, "params": meta, "rows": rows}, indent=1) if as_json
+            else summarise(rows))
+    if output != "-":
+        with atomic_open(output, "w") as fh:
+            fh.write(text + "\n")
+    click.echo(text if output == "-" else summarise(rows))
     if csv_path:
         import csv
 

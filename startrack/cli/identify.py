@@ -1,23 +1,22 @@
 """startrack identify: lost-in-space star identification of frame documents."""
 import click
 
-from startrack.cli.options import (handle_errors, input_argument, jobs_option, load_camera_file, output_option,
-                                   quiet_option, resume_option)
+from startrack.cli.options import (Command, FiniteFloat, Int, RegistryChoice, handle_errors, identify_algorithms, input_argument, jobs_option, load_camera_file, output_option, quiet_option, resume_option, sigma_px_option)
 
 
-@click.command("identify", short_help="Identify the stars of frame documents (lost in space).")
+@click.command("identify", cls=Command, short_help="Identify the stars of frame documents (lost in space).")
 @input_argument
 @click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
               help="Database from build-kvector (or build-labels for --algorithm labelling).")
-@click.option("--algorithm", "-a", default="pyramid", show_default=True,
-              help="pyramid, pyramid-quadratic, voting (and the algorithms of later versions).")
+@click.option("--algorithm", "-a", type=RegistryChoice(identify_algorithms), default="pyramid", show_default=True,
+              help="Identification algorithm (labelling takes a build-labels database, the others build-kvector's).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON, for frames without a camera section (or to override it).")
-@click.option("--sigma-px", type=float, default=None,
-              help="Centroid noise (1 sigma, px) for the tolerances; default: from the stars' sigma_px, else 0.5.")
-@click.option("--tolerance-arcsec", type=float, default=None, help="Inter-star angle tolerance, overriding the default.")
-@click.option("--max-stars", type=int, default=12, show_default=True, help="Brightest stars used to search.")
-@click.option("--max-false-probability", type=float, default=1e-6, show_default=True,
+@sigma_px_option()
+@click.option("--tolerance-arcsec", type=FiniteFloat(0, 600, min_open=True), default=None,
+              help="Inter-star angle tolerance (arcsec), overriding the one derived from --sigma-px.")
+@click.option("--max-stars", type=Int(3, 1000), default=12, show_default=True, help="Brightest stars used to search.")
+@click.option("--max-false-probability", type=FiniteFloat(0, 1, min_open=True), default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
@@ -39,7 +38,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     \b
     Example (build a database once, then identify a stream):
       startrack build-kvector --fov-deg 20 --mag-max 5.0 -o db.h5
-      startrack render --stars-only --count 100 --fov-deg 20 --mag-limit 5 --sigma-px 0.3 --seed 1 \\
+      startrack render --stars-only --count 100 --fov-deg 20 --mag-max 5 --sigma-px 0.3 --seed 1 \\
           | startrack identify --database db.h5 --algorithm pyramid | jq -c .identification.status
     \b
     Example (a real photo):

@@ -1,12 +1,14 @@
 """The ``startrack`` group.  Commands are loaded lazily, by name."""
 from __future__ import annotations
 
+import difflib
 import importlib
 import sys
 
 import click
 
 from startrack._version import __version__
+from startrack.cli.options import verbose_option
 
 # name -> module under startrack.cli; each module defines ``command``.
 COMMANDS = {
@@ -40,6 +42,14 @@ class LazyGroup(click.Group):
             return None
         return importlib.import_module(f"startrack.cli.{module}").command
 
+    def resolve_command(self, ctx, args):
+        name = args[0] if args else ""
+        if args and name not in COMMANDS and not name.startswith("-"):
+            close = difflib.get_close_matches(name, list(COMMANDS), n=3, cutoff=0.6)
+            hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+            raise click.UsageError(f"No such command {name!r}.{hint}", ctx)
+        return super().resolve_command(ctx, args)
+
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="startrack")
@@ -51,11 +61,20 @@ def cli():
     stages compose in pipes:
 
     \b
-      startrack centroid sky.tiff | startrack identify --database db.h5 | startrack attitude
+      startrack render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --seed 1 -o orion.png \\
+          | startrack centroid | startrack identify -d db20.h5 | startrack attitude
 
     Catalogs and databases are HDF5.  Run `startrack COMMAND --help` for a
-    command's options and an example.
+    command's options and an example.  `-v` (or `-vv`) before or after the
+    command shows log messages on stderr; `-q` hides progress, never errors.
+
+    \b
+    Shell completion (bash; zsh and fish alike with zsh_source, fish_source):
+      eval "$(_STARTRACK_COMPLETE=bash_source startrack)"
     """
+
+
+cli.params.append(verbose_option)
 
 
 def main(argv=None):
@@ -64,7 +83,8 @@ def main(argv=None):
         rv = cli.main(args=argv, prog_name="startrack", standalone_mode=False)
     except click.exceptions.UsageError as exc:
         path = exc.ctx.command_path if exc.ctx is not None else "startrack"
-        click.echo(f"{path}: error: {exc.format_message()} (see '{path} --help')", err=True)
+        msg = " ".join(exc.format_message().split())
+        click.echo(f"{path}: error: {msg} (see '{path} --help')", err=True)
         sys.exit(exc.exit_code)
     except click.ClickException as exc:
         click.echo(f"startrack: error: {exc.format_message()}", err=True)

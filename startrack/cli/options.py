@@ -1,15 +1,302 @@
-"""Options shared by several commands, defined once, and the error handling."""
+"""The command-line vocabulary: shared options, validated types, and the error handling.
+
+Every command is a :class:`Command` (``@click.command(..., cls=Command)``), which adds
+``-v/--verbose``, accepts the deprecated spellings of :data:`DEPRECATED` (with one
+warning on stderr), and checks the option pairs a command declares (``exclusive``:
+at most one of them; ``ordered``: the first not above the second).  Numbers are
+parsed by :class:`FiniteFloat`, :func:`Int` and :class:`NumberList`, which refuse
+NaN, infinities, out-of-range values and empty list items with a usage error that
+names the option (exit status 2, one line).  ``click.Choice`` lists come from the
+library's registries through :class:`RegistryChoice`, never copied by hand.
+"""
 from __future__ import annotations
 
 import contextlib
 import functools
+import logging
+import math
 import os
+import re
 import sys
 
 import click
+from click.core import ParameterSource
 
 from startrack.errors import BadInputError, StartrackError
 
+#: Centroid noise (1 sigma, px) assumed for stars that report no ``sigma_px`` of their own.
+DEFAULT_SIGMA_PX = 0.5
+
+#: Old spellings, accepted (with a warning on stderr) for one version: old -> new.
+DEPRECATED = {
+    "--mag-limit": "--mag-max",
+    "--algorithms": "--algorithm",
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Types
+# ---------------------------------------------------------------------------------------------
+
+class FiniteFloat(click.FloatRange):
+    """A finite float, optionally within ``[min, max]`` (``min_open``/``max_open`` exclude the ends).
+
+    NaN and infinities are refused: a NaN limit compares false with everything and
+    would silently switch a check off.
+    """
+
+    name = "float"
+
+    def __init__(self, min=None, max=None, min_open=False, max_open=False):
+        super().__init__(min=min, max=max, min_open=min_open, max_open=max_open, clamp=False)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("an empty value is not a number", param, ctx)
+        rv = click.FloatRange.convert(self, value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value} is not a finite number", param, ctx)
+        return rv
+
+
+def Int(min=None, max=None):
+    """An integer within ``[min, max]``."""
+    return click.IntRange(min=min, max=max)
+
+
+class NumberList(click.ParamType):
+    """Comma-separated numbers (``0.1,0.2``), each a :class:`FiniteFloat` (or :func:`Int`).
+
+    ``length`` fixes the count (a vector); ``unit`` asks for a unit-norm vector (a quaternion).
+    The value is a tuple, or with ``as_text`` the same numbers as canonical text
+    ``"0.1,0.2"`` (for bodies that parse the text themselves).
+    """
+
+    name = "list"
+
+    def __init__(self, min=None, max=None, min_open=False, max_open=False, integer=False,  # noqa: A002
+                 length=None, unit=False, as_text=False):
+        self.item = Int(min, max) if integer else FiniteFloat(min, max, min_open, max_open)
+        self.integer, self.length, self.unit, self.as_text = integer, length, unit, as_text
+
+    def get_metavar(self, param, ctx=None):
+        word = "INT" if self.integer else "X"
+        if self.length:
+            return ",".join([word] * self.length)
+        return f"{word}[,{word}...]"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (tuple, list)):
+            values = tuple(value)
+        else:
+            text = str(value)
+            parts = [p.strip() for p in text.split(",")]
+            if any(p == "" for p in parts):
+                self.fail(f"empty item in {text!r}: expected comma-separated numbers", param, ctx)
+            values = []
+            for p in parts:
+                try:
+                    values.append(self.item.convert(p, param, ctx))
+                except click.BadParameter as exc:
+                    self.fail(f"item {p!r} of {text!r}: {exc.message}", param, ctx)
+            values = tuple(values)
+        if self.length is not None and len(values) != self.length:
+            self.fail(f"expected {self.length} comma-separated numbers, got {len(values)}", param, ctx)
+        if self.unit and abs(math.sqrt(sum(v * v for v in values)) - 1.0) > 1e-6:
+            what = "a unit quaternion" if self.length == 4 else "a unit vector"
+            self.fail(f"must be {what}, its norm is {math.sqrt(sum(v * v for v in values)):.6g}", param, ctx)
+        if self.as_text:
+            return ",".join(repr(v) for v in values)
+        return values
+
+
+class RegistryChoice(click.Choice):
+    """A ``click.Choice`` whose names come from a registry, read when first needed.
+
+    ``loader`` returns the names (e.g. ``lambda: list(startrack.identify.ALGORITHMS)``);
+    it runs only when the option is parsed or its help is shown, so ``startrack --help``
+    imports no numerical library.
+    """
+
+    def __init__(self, loader, case_sensitive=True):
+        self._loader = loader
+        self._names = None
+        self.case_sensitive = case_sensitive
+
+    @property
+    def choices(self):
+        if self._names is None:
+            self._names = tuple(self._loader())
+        return self._names
+
+    @choices.setter
+    def choices(self, value):
+        self._names = tuple(value)
+
+
+class NameList(click.ParamType):
+    """Comma-separated names, each one of a registry's (e.g. ``pyramid,voting``); a tuple, or with ``as_text`` text."""
+
+    name = "names"
+
+    def __init__(self, loader, as_text=False):
+        self.registry = RegistryChoice(loader)
+        self.as_text = as_text
+
+    def get_metavar(self, param, ctx=None):
+        return "NAME[,NAME...]"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (tuple, list)):
+            return tuple(value)
+        parts = [p.strip() for p in str(value).split(",")]
+        if any(p == "" for p in parts):
+            self.fail(f"empty item in {value!r}: expected comma-separated names", param, ctx)
+        for p in parts:
+            if p not in self.registry.choices:
+                self.fail(f"unknown name {p!r}; choose from {', '.join(self.registry.choices)}", param, ctx)
+        return ",".join(parts) if self.as_text else tuple(parts)
+
+
+def identify_algorithms(kind=None):
+    """The identification algorithms of the registry (of one database kind if given)."""
+    from startrack.identify import ALGORITHMS, DATABASE_KIND
+
+    return [name for name in ALGORITHMS if kind is None or DATABASE_KIND[name] == kind]
+
+
+def attitude_methods():
+    from startrack.attitude import METHODS
+
+    return list(METHODS)
+
+
+def centroid_methods():
+    from startrack.centroid import METHODS
+
+    return list(METHODS)
+
+
+# ---------------------------------------------------------------------------------------------
+# The command class: deprecated spellings, option constraints, -v/--verbose
+# ---------------------------------------------------------------------------------------------
+
+def _configure_logging(ctx, param, value):
+    """``-v``: INFO, ``-vv``: DEBUG, on stderr through the logging module (the library logs, never prints)."""
+    level = logging.WARNING if not value else (logging.INFO if value == 1 else logging.DEBUG)
+    root = logging.getLogger("startrack")
+    if not any(getattr(h, "_startrack", False) for h in root.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("startrack: %(levelname)s: %(name)s: %(message)s"))
+        handler._startrack = True
+        root.addHandler(handler)
+    if value or root.level == logging.NOTSET:
+        root.setLevel(level)
+    return value
+
+
+verbose_option = click.Option(["--verbose", "-v"], count=True, expose_value=False, callback=_configure_logging,
+                              help="More messages on stderr (-v: info, -vv: debug).")
+
+
+def _given(ctx, name):
+    src = ctx.get_parameter_source(name)
+    return src is not None and src not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
+
+
+def flag_of(command, name):
+    """The long flag of the parameter ``name`` of ``command`` (``fov_deg`` -> ``--fov-deg``), or None."""
+    return param_flags(command).get(name)
+
+
+def param_flags(command):
+    """Parameter name -> its flag, for every option of ``command`` (by click name and by spelling)."""
+    flags = {}
+    for p in getattr(command, "params", []):
+        if not isinstance(p, click.Option) or not p.opts:
+            continue
+        longs = [o for o in p.opts if o.startswith("--")] or p.opts
+        flag = longs[0]
+        if p.name:
+            flags.setdefault(p.name, flag)
+        for o in p.opts:
+            if o.startswith("--"):
+                flags.setdefault(o[2:].replace("-", "_"), flag)
+    return flags
+
+
+class Command(click.Command):
+    """A startrack command: ``-v/--verbose``, deprecated spellings, declared option constraints.
+
+    Parameters (beyond click's)
+    ---------------------------
+    exclusive : sequence of tuples of parameter names
+        At most one of each group may be given.
+    ordered : sequence of (low, high) parameter names
+        When both are given, low must not exceed high (e.g. ``("mag_min", "mag_max")``).
+    rewrite : callable (ctx, args) -> args, optional
+        A command's own translation of a deprecated usage.
+    """
+
+    def __init__(self, *args, exclusive=(), ordered=(), rewrite=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.rewrite = rewrite
+        self.exclusive = tuple(tuple(g) for g in exclusive)
+        self.ordered = tuple(tuple(p) for p in ordered)
+        if not any(p.name == "verbose" for p in self.params):
+            self.params.append(verbose_option)
+
+    def invoke(self, ctx):
+        log = logging.getLogger("startrack.cli")
+        log.info("%s %s", ctx.command_path, " ".join(f"{k}={v!r}" for k, v in ctx.params.items()))
+        return super().invoke(ctx)
+
+    def parse_args(self, ctx, args):
+        args = _rewrite_deprecated(self, ctx, list(args))
+        if self.rewrite is not None:
+            args = self.rewrite(ctx, args)
+        rest = super().parse_args(ctx, args)
+        self.check_constraints(ctx)
+        return rest
+
+    def check_constraints(self, ctx):
+        flags = param_flags(self)
+        for group in self.exclusive:
+            given = [n for n in group if _given(ctx, n)]
+            if len(given) > 1:
+                raise click.UsageError(f"{flags[given[0]]} and {flags[given[1]]} exclude each other: give one",
+                                       ctx)
+        for lo, hi in self.ordered:
+            a, b = ctx.params.get(lo), ctx.params.get(hi)
+            if a is not None and b is not None and a > b:
+                raise click.UsageError(f"{flags[lo]} {a:g} is larger than {flags[hi]} {b:g}", ctx)
+
+
+_warned = set()
+
+
+def _rewrite_deprecated(command, ctx, args):
+    """Old spellings -> new ones (warning once per spelling); stops at ``--``."""
+    known = {o for p in command.params for o in getattr(p, "opts", ())}
+    out = []
+    for i, a in enumerate(args):
+        if a == "--":
+            out += args[i:]
+            break
+        name, eq, value = a.partition("=")
+        new = DEPRECATED.get(name)
+        if new is not None and name not in known and new in known:
+            if name not in _warned:
+                _warned.add(name)
+                click.echo(f"{ctx.command_path}: warning: {name} is deprecated, use {new}", err=True)
+            a = new + eq + value
+        out.append(a)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Shared options
+# ---------------------------------------------------------------------------------------------
 
 def input_argument(f):
     return click.argument("input", default="-", metavar="INPUT")(f)
@@ -20,9 +307,9 @@ def output_option(help_text="Output file, or - for standard output.", default="-
                         type=click.Path(dir_okay=False, allow_dash=True), help=help_text)
 
 
-seed_option = click.option("--seed", type=int, default=None,
+seed_option = click.option("--seed", type=Int(0, 2**63 - 1), default=None,
                            help="Seed of the random generator; the same seed gives the same output.")
-jobs_option = click.option("--jobs", "-j", type=int, default=1, show_default=True,
+jobs_option = click.option("--jobs", "-j", type=Int(1, 1024), default=1, show_default=True,
                            help="Frames processed at once; the output keeps the input order.")
 resume_option = click.option("--resume", is_flag=True,
                              help="Keep the frames already in the -o file (a run cut short) and do only the rest.")
@@ -32,19 +319,42 @@ catalog_option = click.option("--catalog", type=click.Path(dir_okay=False), defa
                               help="Star catalog (startrack.catalog/1 HDF5); default: the shipped Hipparcos catalog.")
 
 
+def mag_options(max_help="Faintest catalog star used.", min_help="Brightest catalog star used.", max_default=None,
+                with_min=True):
+    """``--mag-max`` (faintest) and ``--mag-min`` (brightest): the one spelling of magnitude limits."""
+    def deco(f):
+        if with_min:
+            f = click.option("--mag-min", type=FiniteFloat(-30, 30), default=None, help=min_help)(f)
+        return click.option("--mag-max", type=FiniteFloat(-30, 30), default=max_default,
+                            show_default=max_default is not None, help=max_help)(f)
+    return deco
+
+
+def sigma_px_option(help_text=None):
+    """``--sigma-px``: the centroid noise an algorithm assumes (one rule everywhere)."""
+    return click.option("--sigma-px", type=FiniteFloat(0, 100, min_open=True), default=None,
+                        help=help_text or ("Centroid noise (1 sigma, px) assumed for stars that report no sigma_px "
+                                           f"of their own (default {DEFAULT_SIGMA_PX})."))
+
+
+#: The camera options exclude each other as sources of the camera.
+CAMERA_EXCLUSIVE = (("camera_file", "fov_deg"), ("camera_file", "focal_length_mm"), ("fov_deg", "focal_length_mm"))
+
+
 def camera_options(f):
     """``--camera FILE`` or ``--fov-deg``/``--focal-length-mm``+``--pixel-pitch-um`` with ``--size``."""
     opts = [
         click.option("--camera", "camera_file", type=click.Path(dir_okay=False, allow_dash=False),
                      default=None, help="Camera JSON (startrack.camera/1, or a frame document's camera)."),
-        click.option("--fov-deg", type=float, default=None,
+        click.option("--fov-deg", type=FiniteFloat(0, 180, min_open=True, max_open=True), default=None,
                      help="Horizontal field of view in degrees (with --size)."),
-        click.option("--focal-length-mm", type=float, default=None,
+        click.option("--focal-length-mm", type=FiniteFloat(0, min_open=True), default=None,
                      help="Lens focal length in mm (with --pixel-pitch-um and --size)."),
-        click.option("--pixel-pitch-um", type=float, default=None, help="Pixel pitch in micrometres."),
+        click.option("--pixel-pitch-um", type=FiniteFloat(0, min_open=True), default=None,
+                     help="Pixel pitch in micrometres."),
         click.option("--size", type=str, default=None, help="Image size WIDTHxHEIGHT in pixels, e.g. 1024x768."),
-        click.option("--k1", type=float, default=None, help="Radial distortion coefficient k1."),
-        click.option("--k2", type=float, default=None, help="Radial distortion coefficient k2."),
+        click.option("--k1", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k1."),
+        click.option("--k2", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k2."),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -139,7 +449,7 @@ def handle_errors(func):
         except click.ClickException:
             raise
         except StartrackError as exc:
-            _echo_err(f"{command_path()}: error: {exc}")
+            _echo_err(f"{command_path()}: error: {error_message(exc)}")
             sys.exit(exc.exit_code)
         except BrokenPipeError:
             # The reader went away (e.g. `| head`): not our failure, like SIGPIPE for a C tool.
@@ -183,6 +493,29 @@ def _echo_err(message: str) -> None:
     """One line on stderr; silently nothing if stderr itself is closed."""
     with contextlib.suppress(OSError, ValueError, AttributeError):
         click.echo(message, err=True)
+
+
+def error_message(exc, command=None):
+    """The one-line message of a library error, its parameter names turned into this command's flags.
+
+    The library names parameters (``BadInputError(source, "fov_deg", ...)``); the
+    command line knows which flag sets each one, from the click command's own
+    parameters (``param.name`` -> its long option).  A ``field`` or ``source`` that
+    is a parameter name becomes the flag; parameter names with an underscore
+    in the problem text of such an error become flags too.
+    """
+    if command is None:
+        ctx = click.get_current_context(silent=True)
+        command = ctx.command if ctx is not None else None
+    if not isinstance(exc, BadInputError) or command is None:
+        return str(exc)
+    flags = param_flags(command)
+    key = exc.field if exc.field is not None else exc.source
+    if key not in flags or (exc.field is not None and os.path.exists(exc.source)):
+        return str(exc)
+    problem = re.sub(r"\b[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b", lambda m: flags.get(m.group(0), m.group(0)),
+                     exc.problem)
+    return f"{flags[key]}: {problem}"
 
 
 def info(quiet: bool, message: str) -> None:

@@ -1,21 +1,20 @@
 """startrack plot: pictures of frames, tracks, residuals and evaluations."""
 import click
 
-from startrack.cli.options import handle_errors, info, input_argument, quiet_option
+from startrack.cli.options import Command, handle_errors, info, input_argument, mag_options, quiet_option
 
 
-@click.command("plot", short_help="Pictures: annotated frames, tracking errors, residuals, evaluations.")
+@click.command("plot", cls=Command, short_help="Pictures: annotated frames, tracking errors, residuals, evaluations.")
 @input_argument
 @click.option("--kind", type=click.Choice(["image", "residuals", "track", "evaluate"]), default="image",
               show_default=True, help="What to draw.")
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
               help="PNG (numbered per frame for image/residuals when several).")
-@click.option("--mag-limit", type=float, default=7.0, show_default=True,
-              help="image: faintest catalog star drawn as predicted.")
+@mag_options(max_help="image: faintest catalog star drawn as predicted.", max_default=7.0, with_min=False)
 @click.option("--title", default="", help="Chart title.")
 @quiet_option
 @handle_errors
-def command(input, kind, output, mag_limit, title, quiet):
+def command(input, kind, output, mag_max, title, quiet):
     """Draw what people would rather look at than read.
 
     \b
@@ -92,7 +91,7 @@ def command(input, kind, output, mag_limit, title, quiet):
             if not p:
                 raise BadInputError(input, "image.path", "is missing: --kind image needs the image")
             image, _ = read_image(p)
-            annotate_solution(path, image, doc, cat, mag_limit)
+            annotate_solution(path, image, doc, cat, mag_max)
         made.append(path)
     if not made:
         click.echo(f"startrack plot: {input}: no frame has an attitude with status ok: no picture written", err=True)

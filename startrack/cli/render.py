@@ -1,8 +1,9 @@
 """startrack render: synthetic star images, star lists, Monte Carlo sets and sequences."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option, seed_option)
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, NumberList, camera_from_options,
+                                   camera_options, catalog_option, handle_errors, info, mag_options, quiet_option,
+                                   seed_option)
 
 
 def _floats(text, name, n):
@@ -17,58 +18,60 @@ def _floats(text, name, n):
     return values
 
 
-@click.command("render", short_help="Render star images or star lists with known truth.")
+@click.command("render", cls=Command,
+               exclusive=CAMERA_EXCLUSIVE + (("sigma_px", "sigma_arcsec"), ("quaternion", "ra"), ("quaternion", "dec")), short_help="Render star images or star lists with known truth.")
 @catalog_option
 @camera_options
-@click.option("--quaternion", type=str, default=None, help="Attitude q1,q2,q3,q4 (scalar last, ICRS to camera).")
-@click.option("--ra", type=float, default=None, help="Boresight right ascension, degrees.")
-@click.option("--dec", type=float, default=None, help="Boresight declination, degrees.")
-@click.option("--roll", type=float, default=0.0, show_default=True, help="Roll (image up, degrees east of north).")
+@click.option("--quaternion", type=NumberList(-1, 1, length=4, unit=True, as_text=True), default=None, help="Attitude q1,q2,q3,q4 (scalar last, ICRS to camera).")
+@click.option("--ra", type=FiniteFloat(-360, 360), default=None, help="Boresight right ascension, degrees.")
+@click.option("--dec", type=FiniteFloat(-90, 90), default=None, help="Boresight declination, degrees.")
+@click.option("--roll", type=FiniteFloat(-360, 360), default=0.0, show_default=True, help="Roll (image up, degrees east of north).")
 @click.option("--output", "-o", type=click.Path(dir_okay=False), default=None,
               help="Image file (.png, .tif/.tiff, .fits); numbered (sky-0000.png) for several frames.")
 @click.option("--documents", type=click.Path(dir_okay=False, allow_dash=True), default="-", show_default=True,
               help="Where the frame documents (JSON Lines) go.")
-@click.option("--mag-limit", type=float, default=None,
-              help="Faintest magnitude rendered (default: the sensor's 5-sigma detection limit).")
-@click.option("--zero-point", "zero_point", type=float, default=2.0e6, show_default=True,
+@mag_options(max_help="Faintest magnitude rendered (default: the sensor's 5-sigma detection limit).", with_min=False)
+@click.option("--zero-point", "zero_point", type=FiniteFloat(0, min_open=True), default=2.0e6, show_default=True,
               help="Photo-electrons per second from a magnitude-0 star (aperture, optics, QE folded in).")
-@click.option("--exposure-ms", type=float, default=100.0, show_default=True, help="Exposure time.")
-@click.option("--psf-sigma-px", type=float, default=1.0, show_default=True, help="Gaussian PSF sigma (defocus).")
-@click.option("--full-well-e", type=float, default=20000.0, show_default=True, help="Full-well capacity.")
+@click.option("--exposure-ms", type=FiniteFloat(0, 3.6e6, min_open=True), default=100.0, show_default=True, help="Exposure time.")
+@click.option("--psf-sigma-px", type=FiniteFloat(0.1, 50), default=1.0, show_default=True, help="Gaussian PSF sigma (defocus).")
+@click.option("--full-well-e", type=FiniteFloat(0, min_open=True), default=20000.0, show_default=True, help="Full-well capacity.")
 @click.option("--bit-depth", type=click.Choice(["8", "12", "16"]), default="16", show_default=True)
-@click.option("--gain-e-per-dn", type=float, default=None, help="Gain (default: full well / ADC range).")
-@click.option("--bias-dn", type=float, default=None, help="Bias level (default: 2% of the ADC range).")
-@click.option("--read-noise-e", type=float, default=5.0, show_default=True)
-@click.option("--dark-current-e-per-s", type=float, default=20.0, show_default=True)
-@click.option("--background-e-per-s", type=float, default=50.0, show_default=True, help="Sky background per pixel.")
-@click.option("--prnu", type=float, default=0.0, show_default=True, help="Pixel response non-uniformity (1 sigma, fraction).")
-@click.option("--hot-pixels", type=int, default=0, show_default=True, help="Number of hot pixels.")
+@click.option("--gain-e-per-dn", type=FiniteFloat(0, min_open=True), default=None, help="Gain (default: full well / ADC range).")
+@click.option("--bias-dn", type=FiniteFloat(0), default=None, help="Bias level (default: 2% of the ADC range).")
+@click.option("--read-noise-e", type=FiniteFloat(0), default=5.0, show_default=True)
+@click.option("--dark-current-e-per-s", type=FiniteFloat(0), default=20.0, show_default=True)
+@click.option("--background-e-per-s", type=FiniteFloat(0), default=50.0, show_default=True, help="Sky background per pixel.")
+@click.option("--prnu", type=FiniteFloat(0, 1), default=0.0, show_default=True, help="Pixel response non-uniformity (1 sigma, fraction).")
+@click.option("--hot-pixels", type=Int(0, 10_000_000), default=0, show_default=True, help="Number of hot pixels.")
 @click.option("--no-noise", is_flag=True, help="Expected values only: no shot, dark or read noise.")
-@click.option("--mag-noise", type=float, default=0.0, show_default=True, help="Magnitude noise, 1 sigma (paper 003: 0.2).")
-@click.option("--false-stars", type=int, default=0, show_default=True, help="False stars of random position and brightness.")
-@click.option("--focal-error-pct", type=float, default=0.0, show_default=True,
+@click.option("--mag-noise", type=FiniteFloat(0, 10), default=0.0, show_default=True, help="Magnitude noise, 1 sigma (paper 003: 0.2).")
+@click.option("--false-stars", type=Int(0, 100_000), default=0, show_default=True, help="False stars of random position and brightness.")
+@click.option("--focal-error-pct", type=FiniteFloat(-50, 50), default=0.0, show_default=True,
               help="Render with f*(1+e/100) while the camera section keeps the nominal f.")
-@click.option("--rate-deg-s", type=str, default="0,0,0", show_default=True,
+@click.option("--rate-deg-s", type=NumberList(-360, 360, length=3, as_text=True), default="0,0,0", show_default=True,
               help="Angular rate wx,wy,wz in the camera frame (smear, and the turn between frames).")
-@click.option("--frames", type=int, default=1, show_default=True, help="Frames in a sequence.")
-@click.option("--frame-interval-s", type=float, default=0.1, show_default=True, help="Time between frames.")
+@click.option("--frames", type=Int(1, 10_000_000), default=1, show_default=True, help="Frames in a sequence.")
+@click.option("--frame-interval-s", type=FiniteFloat(0, 86400, min_open=True), default=0.1, show_default=True, help="Time between frames.")
 @click.option("--time", "start_time", type=str, default=None,
               help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch. "
                    "Default: the catalog's epoch. Every frame's image.time is written.")
 @click.option("--blackout", type=str, default=None,
               help="START:COUNT: frames of a sequence rendered without stars (covered or blinded), e.g. 50:10.")
 @click.option("--stars-only", is_flag=True, help="No image: stars straight from the truth, with noise.")
-@click.option("--sigma-px", type=float, default=None, help="Star-list centroid noise, pixels (1 sigma per axis).")
-@click.option("--sigma-arcsec", type=float, default=None, help="Star-list centroid noise, arcsec (1 sigma per axis).")
-@click.option("--max-stars", type=int, default=None, help="Star list: keep the N brightest.")
-@click.option("--drop-fraction", type=float, default=0.0, show_default=True, help="Star list: fraction of stars dropped.")
-@click.option("--count", type=int, default=1, show_default=True, help="Number of random-attitude frames (or sequences).")
+@click.option("--sigma-px", type=FiniteFloat(0, 100), default=None,
+              help="Star-list centroid noise added, pixels (1 sigma per axis; default 0).")
+@click.option("--sigma-arcsec", type=FiniteFloat(0, 3600), default=None, help="Star-list centroid noise, arcsec (1 sigma per axis).")
+@click.option("--max-stars", type=Int(1, 100_000), default=None, help="Star list: keep the N brightest.")
+@click.option("--drop-fraction", type=FiniteFloat(0, 1, max_open=True), default=0.0, show_default=True, help="Star list: fraction of stars dropped.")
+@click.option("--count", "-n", type=Int(1, 100_000_000), default=1, show_default=True,
+              help="Number of random-attitude frames (or sequences).")
 @seed_option
-@click.option("--frame-seed", type=int, default=None, help="Re-render exactly one frame from its recorded frame_seed.")
+@click.option("--frame-seed", type=Int(0, 2**63 - 1), default=None, help="Re-render exactly one frame from its recorded frame_seed.")
 @quiet_option
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
-            output, documents, mag_limit, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
+            output, documents, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, frame_seed, quiet):
@@ -86,7 +89,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
       startrack render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 -o orion.png > orion.json
     \b
     Example (a Monte Carlo set of 1000 star lists, paper 003's conditions):
-      startrack render --stars-only --count 1000 --fov-deg 20 --size 1024x1024 --mag-limit 5 \\
+      startrack render --stars-only --count 1000 --fov-deg 20 --size 1024x1024 --mag-max 5 \\
           --sigma-arcsec 1.67 --mag-noise 0.2 --max-stars 10 --seed 1 > set.jsonl
     \b
     Example (a tracking sequence: 200 frames at 0.5 deg/s with smear):
@@ -170,23 +173,23 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
 
     sensor = Sensor(zero_point, exposure_ms, psf_sigma_px, full_well_e, int(bit_depth), gain_e_per_dn, bias_dn,
                     read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, not no_noise)
-    if mag_limit is None:
+    if mag_max is None:
         # The deep catalog goes to Hp 14.6: render what this sensor can detect (about Hp 8.1 by default).
-        mag_limit = round(sensor.detection_limit_mag(), 2)
-    scene = Scene(mag_limit, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)))
+        mag_max = round(sensor.detection_limit_mag(), 2)
+    scene = Scene(mag_max, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)))
     t0 = parse_time(start_time) if start_time else None
-    cat = load_catalog(catalog, mag_max=mag_limit)
-    if mag_limit is not None:
-        cat = cat.filter_magnitude(None, mag_limit)
+    cat = load_catalog(catalog, mag_max=mag_max)
+    if mag_max is not None:
+        cat = cat.filter_magnitude(None, mag_max)
         if len(cat) == 0:
-            raise BadInputError("--mag-limit", None, f"no catalog star is at or brighter than {mag_limit}")
+            raise BadInputError("--mag-max", None, f"no catalog star is at or brighter than {mag_max}")
     if t0 is not None:
         cat = cat.propagate(julian_year(t0))
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % (2**31))
     params = {k: v for k, v in dict(
         catalog=catalog or "shipped", catalog_sha256=cat.checksum(), sensor=sensor.to_dict(),
-        scene={"mag_limit": mag_limit, "mag_noise": mag_noise, "false_stars": false_stars,
+        scene={"mag_limit": mag_max, "mag_noise": mag_noise, "false_stars": false_stars,
                "focal_error_pct": focal_error_pct, "rate_deg_s": list(scene.rate_deg_s)},
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,

@@ -1,7 +1,7 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
 import click
 
-from startrack.cli.options import handle_errors, load_camera_file, output_option, quiet_option, resume_option
+from startrack.cli.options import (Command, FiniteFloat, Int, handle_errors, load_camera_file, output_option, quiet_option, resume_option)
 
 
 def output_for(template: str | None, image_path: str, total: int, suffix: str) -> str | None:
@@ -129,17 +129,17 @@ def _solve_one(args):
     return doc
 
 
-@click.command("solve", short_help="Solve photographs: centroid, identify and attitude in one go.")
+@click.command("solve", cls=Command, exclusive=[("camera_file", "fov_deg")], short_help="Solve photographs: centroid, identify and attitude in one go.")
 @click.argument("images", nargs=-1, required=True, metavar="IMAGE...")
-@click.option("--fov-deg", type=float, default=None, help="Horizontal field of view hint (default: unknown).")
-@click.option("--fov-tolerance", type=float, default=0.1, show_default=True, help="Relative tolerance of the hint.")
+@click.option("--fov-deg", type=FiniteFloat(0, 90, min_open=True, max_open=True), default=None, help="Horizontal field of view hint (default: unknown).")
+@click.option("--fov-tolerance", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True, help="Relative tolerance of the hint.")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="A calibrated camera JSON (then no field-of-view search).")
-@click.option("--epoch", type=float, default=None, help="Epoch of observation (decimal year) for proper motion.")
-@click.option("--timeout-s", type=float, default=5.0, show_default=True,
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Epoch of observation (decimal year) for proper motion.")
+@click.option("--timeout-s", type=FiniteFloat(0, 86400, min_open=True), default=5.0, show_default=True,
               help="Give up on an image after this many seconds of search (building a cached database and "
                    "compiling kernels on first use do not count).")
-@click.option("--jobs", "-j", type=int, default=1, show_default=True, help="Images solved in parallel.")
+@click.option("--jobs", "-j", type=Int(1, 1024), default=1, show_default=True, help="Images solved in parallel.")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Solve on a Dask cluster: 'local' starts a LocalCluster of -j workers here; an address "
                    "(tcp://host:8786) uses a running `dask scheduler` and its workers, which must be able to read "

@@ -1,38 +1,39 @@
 """startrack track: tracking mode over image sequences."""
 import click
 
-from startrack.cli.options import (
-    catalog_option,
-    handle_errors,
-    load_camera_file,
-    output_option,
-    quiet_option,
-)
+from startrack.cli.options import (Command, FiniteFloat, Int, NumberList, RegistryChoice, catalog_option, handle_errors,
+                                   identify_algorithms, load_camera_file, mag_options, output_option, quiet_option)
 
 
-@click.command("track", short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
+@click.command("track", cls=Command, short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
 @click.argument("inputs", nargs=-1, metavar="[FRAMES.jsonl | IMAGE...]")
 @click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
               help="k-vector database for the lost-in-space start and fall-backs.")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON (needed for bare image files).")
 @catalog_option
-@click.option("--mag-limit", type=float, default=None, help="Faintest catalog star predicted (default: the database's).")
-@click.option("--frame-interval-s", type=float, default=None,
+@mag_options(max_help="Faintest catalog star predicted (default: the database's).", with_min=False)
+@click.option("--frame-interval-s", type=FiniteFloat(0, 86400, min_open=True), default=None,
               help="Time between frames, used only for frames without image.time (e.g. bare images).")
-@click.option("--initial-quaternion", type=str, default=None, help="Start from this attitude (q1,q2,q3,q4).")
-@click.option("--rate-prior", type=str, default=None, help="Initial body rate wx,wy,wz (deg/s).")
-@click.option("--window-px", type=int, default=8, show_default=True, help="Base half-size of the prediction windows.")
-@click.option("--sigma-px", type=float, default=0.3, show_default=True, help="Centroid noise (1 sigma) for weights.")
-@click.option("--exposure-ms", type=float, default=None,
+@click.option("--initial-quaternion", type=NumberList(-1, 1, length=4, unit=True, as_text=True), default=None,
+              help="Start from this attitude (q1,q2,q3,q4).")
+@click.option("--rate-prior", type=NumberList(-360, 360, length=3, as_text=True), default=None,
+              help="Initial body rate wx,wy,wz (deg/s).")
+@click.option("--window-px", type=Int(1, 1000), default=8, show_default=True,
+              help="Base half-size of the prediction windows.")
+@click.option("--sigma-px", type=FiniteFloat(0, 100, min_open=True), default=0.3, show_default=True,
+              help="Centroid noise (1 sigma, px) of the windowed centroids in tracking mode (lost-in-space "
+                   "acquisition uses each star's own sigma_px, else 0.5, as identify does).")
+@click.option("--exposure-ms", type=FiniteFloat(0, 3.6e6, min_open=True), default=None,
               help="Exposure for frames without image.exposure_ms (default 100).")
-@click.option("--max-gap-s", type=float, default=0.5, show_default=True,
+@click.option("--max-gap-s", type=FiniteFloat(0, min_open=True), default=0.5, show_default=True,
               help="Longer without an attitude (a gap or a blackout) restarts from lost in space.")
-@click.option("--algorithm", default="pyramid", show_default=True, help="Lost-in-space algorithm.")
+@click.option("--algorithm", "-a", type=RegistryChoice(lambda: identify_algorithms("kvector")), default="pyramid",
+              show_default=True, help="Lost-in-space algorithm.")
 @output_option()
 @quiet_option
 @handle_errors
-def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s, initial_quaternion, rate_prior,
+def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, initial_quaternion, rate_prior,
             window_px, sigma_px, exposure_ms, max_gap_s, algorithm, output, quiet):
     """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
 
@@ -86,7 +87,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         if len(rate) != 3:
             raise BadInputError("--rate-prior", None, "expected wx,wy,wz in deg/s")
     cat = load_catalog(catalog)
-    config = TrackerConfig(mag_limit=mag_limit if mag_limit is not None else float(db.star_mag.max()),
+    config = TrackerConfig(mag_limit=mag_max if mag_max is not None else float(db.star_mag.max()),
                            window_px=window_px, sigma_px=sigma_px, max_gap_s=max_gap_s,
                            exposure_s=(exposure_ms if exposure_ms is not None else 100.0) / 1000, algorithm=algorithm)
     state = {"tracker": None, "t0": None, "t_prev": None, "modes": {m: 0 for m in MODES}}

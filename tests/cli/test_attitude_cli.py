@@ -60,7 +60,7 @@ def test_methods_and_rendered_truth(tmp_path):
     db = tmp_path / "db.h5"
     run_cli("build-kvector", "--fov-deg", "20", "--mag-max", "5.5", "-o", db, check=True)
     frames = run_cli("render", "--stars-only", "--count", "5", "--fov-deg", "20", "--size", "1024x1024",
-                     "--mag-limit", "5.5", "--sigma-px", "0.1", "--seed", "9", check=True).stdout
+                     "--mag-max", "5.5", "--sigma-px", "0.1", "--seed", "9", check=True).stdout
     ident = run_cli("identify", "-d", db, "--sigma-px", "0.1", input=frames, check=True).stdout
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
@@ -79,7 +79,7 @@ def test_bad_frames(tmp_path):
     db = tmp_path / "db.h5"
     run_cli("build-kvector", "--fov-deg", "20", "--mag-max", "5.0", "-o", db, check=True)
     frames = run_cli("render", "--stars-only", "--count", "6", "--fov-deg", "20", "--size", "1024x1024",
-                     "--mag-limit", "5", "--sigma-px", "0.1", "--seed", "2", check=True).stdout
+                     "--mag-max", "5", "--sigma-px", "0.1", "--seed", "2", check=True).stdout
     proc = run_cli("identify", "-d", db, input=frames)
     ident = [json.loads(l) for l in proc.stdout.splitlines()]
     n_failed = sum(d["identification"]["status"] == "failed" for d in ident)

@@ -30,7 +30,7 @@ def esa_db(tmp_path_factory):
 
 def test_pipe_render_identify(db20):
     frames = run_cli("render", "--stars-only", "--count", "30", "--fov-deg", "20", "--size", "1024x1024",
-                     "--mag-limit", "5", "--sigma-px", "0.2", "--max-stars", "10", "--seed", "5", check=True).stdout
+                     "--mag-max", "5", "--sigma-px", "0.2", "--max-stars", "10", "--seed", "5", check=True).stdout
     proc = run_cli("identify", "--database", db20, input=frames)
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
     assert len(docs) == 30
@@ -80,7 +80,7 @@ def test_database_for_another_fov_isassert_refused(db20):
 
 def test_bad_frames_in_a_batch(db20):
     good = run_cli("render", "--stars-only", "--count", "3", "--fov-deg", "20", "--size", "1024x1024",
-                   "--mag-limit", "5", "--sigma-px", "0.2", "--seed", "2", check=True).stdout.splitlines()
+                   "--mag-max", "5", "--sigma-px", "0.2", "--seed", "2", check=True).stdout.splitlines()
     bad_x = json.loads(good[1])
     del bad_x["stars"][0]["x"]
     empty = json.loads(good[2])
@@ -107,8 +107,8 @@ def test_wrong_database_file(tmp_path):
 
 def test_evaluate_table_csv_json_plot(db20, tmp_path):
     proc = run_cli("evaluate", "-d", db20, "-a", "pyramid,voting", "--fov-deg", "20", "--size", "1024x1024",
-                   "--mag-limit", "5", "--sigma-px", "0.2", "--false-stars", "0,2", "--count", "60", "--seed", "3",
-                   "--csv", tmp_path / "e.csv", "--json", tmp_path / "e.json", "--plot", tmp_path / "e.png",
+                   "--mag-max", "5", "--sigma-px", "0.2", "--false-stars", "0,2", "--count", "60", "--seed", "3",
+                   "--csv", tmp_path / "e.csv", "--json", "-o", tmp_path / "e.json", "--plot", tmp_path / "e.png",
                    "-j", "2", check=True)
     assert "pyramid" in proc.stdout and "bad match" in proc.stdout
     rows = json.load(open(tmp_path / "e.json"))["rows"]

@@ -28,10 +28,10 @@ def test_same_seed_same_bytes(tmp_path):
 
 
 def test_frame_seed_reproduces_one_frame_of_a_set():
-    a = run_cli("render", "--stars-only", "--count", "5", "--fov-deg", "20", "--mag-limit", "5", "--sigma-px", "0.3",
+    a = run_cli("render", "--stars-only", "--count", "5", "--fov-deg", "20", "--mag-max", "5", "--sigma-px", "0.3",
                 "--seed", "3", check=True).stdout.splitlines()
     third = json.loads(a[2])
-    again = json.loads(run_cli("render", "--stars-only", "--fov-deg", "20", "--mag-limit", "5", "--sigma-px", "0.3",
+    again = json.loads(run_cli("render", "--stars-only", "--fov-deg", "20", "--mag-max", "5", "--sigma-px", "0.3",
                                "--frame-seed", third["render"]["frame_seed"], check=True).stdout)
     assert again["stars"] == third["stars"] and again["truth"]["quaternion"] == third["truth"]["quaternion"]
 
