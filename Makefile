@@ -22,7 +22,7 @@ demo: install
 	$(ST) catalog-filter --mag-min 2.5 --mag-max 6.59 --epoch 2026.9 -o $(OUT)/catalog-p000.h5
 	@echo
 	@echo "== 2. How many stars does paper 003's sensor see? (20 x 20 deg, Hp <= 5.0)"
-	$(ST) catalog-stats --fov-deg 20 --size 1024x1024 --mag-max 5.0 --samples 100000 --seed 1
+	$(ST) catalog-stats --fov-deg 20 --size 1024x1024 --mag-max 5.0 --count 100000 --seed 1
 	@echo
 	@echo "== 3. A real night-sky photo (ESA/Gustav Pettersson, CC BY-SA 3.0 IGO), solved with no other input"
 	$(ST) solve examples/data/sky.tiff --plot $(OUT)/sky-solved.png --wcs $(OUT)/sky.wcs.fits > $(OUT)/sky.json

@@ -47,7 +47,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
 
     \b
     Example (the whole pipeline on a real photo, with a WCS for DS9 or astropy):
-      startrack centroid sky.tiff --camera cam.json | startrack identify -d db.h5 \\
+      startrack build-kvector --camera cam.json --mag-max 6.5 -o esa.h5
+      startrack centroid sky.tiff --camera cam.json | startrack identify -d esa.h5 \\
           | startrack attitude --wcs sky.wcs.fits | jq .attitude.ra,.attitude.dec,.attitude.roll
     """
     import math

@@ -10,7 +10,8 @@ from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, Int, camera_from_o
 @catalog_option
 @camera_options
 @mag_options(max_help="Count only stars at most this faint.", min_help="Count only stars at least this faint.")
-@click.option("--samples", type=Int(1, 10_000_000), default=100000, show_default=True, help="Number of random attitudes.")
+@click.option("--count", "-n", "samples", type=Int(1, 10_000_000), default=100000, show_default=True,
+              help="Number of random attitudes.")
 @seed_option
 @click.option("--json", "as_json", is_flag=True, help="Write JSON instead of the text table (a flag, as in every command).")
 @quiet_option

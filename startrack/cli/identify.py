@@ -41,8 +41,9 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
       startrack render --stars-only --count 100 --fov-deg 20 --mag-max 5 --sigma-px 0.3 --seed 1 \\
           | startrack identify --database db.h5 --algorithm pyramid | jq -c .identification.status
     \b
-    Example (a real photo):
-      startrack centroid sky.tiff --camera cam.json | startrack identify -d db.h5 --plot sky-id.png
+    Example (a real photo: the database is built for its camera, 11.4 x 8.6 deg):
+      startrack build-kvector --camera cam.json --mag-max 6.5 -o esa.h5
+      startrack centroid sky.tiff --camera cam.json | startrack identify -d esa.h5 --plot sky-id.png > sky-id.json
     """
     import os
 

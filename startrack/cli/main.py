@@ -58,11 +58,13 @@ def cli():
 
     Every per-image command reads frame documents (JSON, or JSON Lines for many
     frames) from a file or standard input and writes them to standard output, so
-    stages compose in pipes:
+    stages compose in pipes.
 
     \b
+    Example (a database once, then Orion rendered, centroided, identified and solved):
+      startrack build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.5 -o db20.h5
       startrack render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --seed 1 -o orion.png \\
-          | startrack centroid | startrack identify -d db20.h5 | startrack attitude
+          | startrack centroid | startrack identify -d db20.h5 | startrack attitude > orion.json
 
     Catalogs and databases are HDF5.  Run `startrack COMMAND --help` for a
     command's options and an example.  `-v` (or `-vv`) before or after the

@@ -31,6 +31,7 @@ DEFAULT_SIGMA_PX = 0.5
 DEPRECATED = {
     "--mag-limit": "--mag-max",
     "--algorithms": "--algorithm",
+    "--samples": "--count",
 }
 
 

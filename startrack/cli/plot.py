@@ -26,8 +26,9 @@ def command(input, kind, output, mag_max, title, quiet):
     --kind evaluate   success and time against the condition, from `evaluate --json`
 
     \b
-    Example:
-      startrack centroid sky.tiff --camera cam.json | startrack identify -d db.h5 | startrack attitude \\
+    Example (a real photo with a known camera, solved and drawn):
+      startrack build-kvector --camera cam.json --mag-max 6.5 -o esa.h5
+      startrack centroid sky.tiff --camera cam.json | startrack identify -d esa.h5 | startrack attitude \\
           | startrack plot --kind image -o sky-solved.png
     """
     import json

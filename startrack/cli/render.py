@@ -92,8 +92,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
       startrack render --stars-only --count 1000 --fov-deg 20 --size 1024x1024 --mag-max 5 \\
           --sigma-arcsec 1.67 --mag-noise 0.2 --max-stars 10 --seed 1 > set.jsonl
     \b
-    Example (a tracking sequence: 200 frames at 0.5 deg/s with smear):
-      startrack render --fov-deg 12 --size 1024x768 --frames 200 --rate-deg-s 0.3,0.4,0 \\
+    Example (a tracking sequence: 20 frames at 0.5 deg/s with smear):
+      startrack render --fov-deg 12 --size 1024x768 --frames 20 --rate-deg-s 0.3,0.4,0 \\
           --frame-interval-s 0.1 --seed 2 -o seq/frame.png > seq.jsonl
     """
     import math

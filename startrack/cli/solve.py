@@ -177,7 +177,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
 
     \b
     Example (a directory of photos, two processes; outputs named after each photo):
-      startrack solve photos/*.jpg -j 2 --plot solved/ --fits-out solved/ --matches-out solved/ > solved.jsonl
+      startrack solve photos/*.tiff -j 2 --plot solved/ --fits-out solved/ --matches-out solved/ > solved.jsonl
     \b
     Example (on a Dask cluster: 'local' here, or tcp://HOST:8786 for a running `dask scheduler`;
     rerun with --resume after an interruption):

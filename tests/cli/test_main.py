@@ -52,13 +52,13 @@ def test_catalog_filter_hdf5_and_csv(tmp_path):
 
 def test_catalog_stats_json():
     proc = run_cli("catalog-stats", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "5.0",
-                   "--samples", "20000", "--seed", "4", "--json", check=True)
+                   "-n", "20000", "--seed", "4", "--json", check=True)
     doc = json.loads(proc.stdout)
     assert doc["boresights"] == 20000 and doc["catalog_stars"] == 1471
     assert 10 < doc["mean"] < 20
     assert doc["fraction_at_least"]["3"] > 0.95
     again = json.loads(run_cli("catalog-stats", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "5.0",
-                               "--samples", "20000", "--seed", "4", "--json", check=True).stdout)
+                               "-n", "20000", "--seed", "4", "--json", check=True).stdout)
     assert again == doc
 
 

@@ -117,7 +117,7 @@ BAD = [
     (("catalog-filter",), ["--cell-deg", "0"], ["--cell-deg"]),
     (("catalog-filter",), ["--epoch", "nan"], ["--epoch"]),
     (("catalog-filter",), ["--mag-min", "6", "--mag-max", "3"], ["--mag-min", "--mag-max"]),
-    (("catalog-stats",), ["--samples", "0"], ["--samples"]),
+    (("catalog-stats",), ["-n", "0"], ["--count"]),
     (("catalog-stats",), ["--fov-deg", "-1"], ["--fov-deg"]),
     (("catalog-stats",), ["--k1", "nan"], ["--k1"]),
     (("catalog-stats",), ["--focal-length-mm", "0"], ["--focal-length-mm"]),
@@ -206,6 +206,7 @@ def test_vocabulary_is_one():
 
     expect = {"mag_max": ("--mag-max",), "mag_min": ("--mag-min",), "algorithms": ("-a", "--algorithm"),
               "algorithm": ("-a", "--algorithm"), "method": ("-m", "--method"), "count": ("-n", "--count"),
+              "samples": ("-n", "--count"),
               "database": ("-d", "--database"), "databases": ("-d", "--database"), "seed": ("--seed",),
               "jobs": ("-j", "--jobs"), "quiet": ("-q", "--quiet"), "output": ("-o", "--output"),
               "verbose": ("-v", "--verbose")}

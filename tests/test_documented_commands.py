@@ -1,0 +1,226 @@
+"""Every command line in README.md and in every `--help` runs, as written (issue 20).
+
+The commands are extracted from the texts themselves, so an example that breaks
+fails CI:
+
+* `--help`: the indented lines under each "Example" heading of every command (and
+  of `startrack --help`); the examples of one command run in order, in one fresh
+  directory, so a later example may use what an earlier one made.
+* README.md: every fenced ``sh`` block, in order, in one fresh directory (the
+  ``python`` blocks run with this interpreter).  A block right after the comment
+  ``<!-- not run by the tests: REASON -->`` is skipped, and counted.
+
+Each block runs through ``bash`` with ``set -eo pipefail`` (a failing stage of a
+pipe fails the block), with ``startrack`` on PATH resolving to this checkout.  A
+comment line ``# -> TEXT`` claims output: every number in TEXT must be printed by
+the commands before it (to the claim's decimals).  The directories hold the files
+the texts name, prepared here: ``sky.tiff``/``cam.json`` (the ESA image and its
+camera), ``photos/`` and ``tests/data/real/`` (three ESA images, to keep the run
+short), ``examples/data/``.  `jq` is needed by the examples that use it; without
+it those blocks are skipped (and the reason says how many).
+"""
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+
+SKIP_MARK = re.compile(r"<!--\s*not run by the tests:(.*?)-->", re.DOTALL)
+CLAIM = re.compile(r"^\s*#\s*->\s*(.*)$")
+NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
+
+
+# ---------------------------------------------------------------------------------------------
+# Extraction
+# ---------------------------------------------------------------------------------------------
+
+def help_text(*args):
+    env = dict(os.environ, PYTHONPATH=ROOT, COLUMNS="100")
+    return subprocess.run([sys.executable, "-m", "startrack", *args, "--help"], capture_output=True, text=True, check=False,
+                          env=env, check=True).stdout
+
+
+def help_examples(text):
+    """The example blocks of one --help text: the indented lines under each 'Example' line."""
+    blocks, current, indent = [], None, None
+    for line in text.splitlines():
+        stripped = line.strip()
+        if re.match(r"^Examples?\b", stripped):
+            if current:
+                blocks.append("\n".join(current))
+            current, indent = [], len(line) - len(line.lstrip()) + 1
+            continue
+        if current is None:
+            continue
+        if not stripped or len(line) - len(line.lstrip()) < indent:
+            if current:
+                blocks.append("\n".join(current))
+            current = None
+            continue
+        current.append(line)
+    if current:
+        blocks.append("\n".join(current))
+    return blocks
+
+
+def readme_blocks(text):
+    """(language, code, skip reason or None) of every fenced block of README.md."""
+    out = []
+    for m in re.finditer(r"```(\w*)\n(.*?)```", text, re.DOTALL):
+        before = text[:m.start()].rstrip()
+        skip = SKIP_MARK.search(before[-300:]) if before.endswith("-->") else None
+        out.append((m.group(1), m.group(2), skip.group(1).strip() if skip else None))
+    return out
+
+
+def commands_in(block):
+    """The startrack command lines of a shell block (continuations joined), for counting."""
+    joined = re.sub(r"\\\n\s*", " ", block)
+    n = 0
+    for line in joined.splitlines():
+        if line.strip().startswith("#"):
+            continue
+        n += len(re.findall(r"(?:^|[|;&(]\s*)startrack\s", line.strip()))
+    return n
+
+
+# ---------------------------------------------------------------------------------------------
+# Running
+# ---------------------------------------------------------------------------------------------
+
+def _workdir(tmp_path):
+    """A directory with the files the texts name, and a PATH whose `startrack` is this checkout."""
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    wrapper = bindir / "startrack"
+    wrapper.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m startrack "$@"\n')
+    wrapper.chmod(0o755)
+    work = tmp_path / "work"
+    (work / "photos").mkdir(parents=True)
+    (work / "tests" / "data" / "real").mkdir(parents=True)
+    (work / "examples").mkdir()
+    os.symlink(os.path.join(ROOT, "examples", "data"), work / "examples" / "data")
+    shutil.copy(os.path.join(ROOT, "examples", "data", "sky.tiff"), work / "sky.tiff")
+    shutil.copy(os.path.join(ROOT, "examples", "data", "camera.json"), work / "cam.json")
+    real = os.path.join(ROOT, "tests", "data", "real")
+    photos = sorted(f for f in os.listdir(real) if f.endswith(".tiff"))[:3]
+    for f in photos:
+        os.symlink(os.path.join(real, f), work / "photos" / f)
+        os.symlink(os.path.join(real, f), work / "tests" / "data" / "real" / f)
+    shutil.copy(os.path.join(real, "camera.json"), work / "tests" / "data" / "real" / "camera.json")
+    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}", PYTHONPATH=ROOT)
+    env.pop("STARTRACK_DEBUG", None)
+    return work, env
+
+
+def check_claims(block, printed):
+    """Every number of every `# -> ...` line must have been printed (to the claim's decimals)."""
+    got = [float(v) for v in NUMBER.findall(printed)]
+    for line in block.splitlines():
+        m = CLAIM.match(line)
+        if not m:
+            continue
+        for text in NUMBER.findall(m.group(1)):
+            want = float(text)
+            decimals = len(text.split(".")[1]) if "." in text else 0
+            tol = 0.5 * 10 ** -decimals + 1e-9
+            assert any(abs(v - want) <= tol for v in got), f"claimed {text} ({m.group(1)!r}) not in output:\n{printed}"
+
+
+def run_block(block, work, env, language="sh"):
+    if language == "python":
+        proc = subprocess.run([sys.executable, "-c", block], cwd=work, env=env, capture_output=True, text=True, check=False,
+                              timeout=900)
+    else:
+        script = "set -eo pipefail\n" + block
+        proc = subprocess.run(["bash", "-c", script], cwd=work, env=env, capture_output=True, text=True, check=False,
+                              timeout=900)
+    assert proc.returncode == 0, f"exit {proc.returncode} running:\n{block}\n--- stderr:\n{proc.stderr[-3000:]}"
+    if language != "python":
+        check_claims(block, proc.stdout)
+    return proc
+
+
+def _commands():
+    from startrack.cli.main import COMMANDS
+
+    return [""] + list(COMMANDS)
+
+
+HAVE_JQ = shutil.which("jq") is not None
+
+
+def _runnable(block):
+    return HAVE_JQ or not re.search(r"\|\s*jq\b|^\s*jq\b", block, re.MULTILINE)
+
+
+@pytest.mark.parametrize("name", _commands())
+def test_help_examples_run(name, tmp_path):
+    """`startrack NAME --help`: each example runs as written (exit status 0, printed claims hold)."""
+    text = help_text(*([name] if name else []))
+    blocks = help_examples(text)
+    assert blocks, f"startrack {name} --help has no example"
+    assert all(commands_in(b) for b in blocks), blocks
+    work, env = _workdir(tmp_path)
+    skipped = 0
+    for block in blocks:
+        if not _runnable(block):
+            skipped += 1
+            continue
+        run_block(block, work, env)
+    if skipped:
+        pytest.skip(f"{skipped} example(s) of `startrack {name} --help` need jq, which is not installed")
+
+
+def test_readme_commands_run(tmp_path):
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as fh:
+        blocks = readme_blocks(fh.read())
+    runnable = [(lang, code) for lang, code, skip in blocks if skip is None and lang in ("sh", "bash", "python")]
+    skipped = [(lang, skip) for lang, code, skip in blocks if skip is not None]
+    assert len(runnable) >= 4 and all(reason for _, reason in skipped)
+    work, env = _workdir(tmp_path)
+    no_jq = 0
+    for lang, code in runnable:
+        if not _runnable(code):
+            no_jq += 1
+            continue
+        run_block(code, work, env, "python" if lang == "python" else "sh")
+    if no_jq:
+        pytest.skip(f"{no_jq} README block(s) need jq, which is not installed")
+
+
+# ---------------------------------------------------------------------------------------------
+# The test can fail: the extraction finds the commands, and a broken example or claim is caught
+# ---------------------------------------------------------------------------------------------
+
+def test_extraction_and_failure_detection(tmp_path):
+    text = ("Usage: x\n\n  Example (one):\n    startrack a --b 1 \\\n        | startrack c\n  \n"
+            "  Example (two):\n    startrack d\n\nOptions:\n  --x\n")
+    assert help_examples(text) == ["    startrack a --b 1 \\\n        | startrack c", "    startrack d"]
+    assert commands_in(help_examples(text)[0]) == 2
+    md = "a\n<!-- not run by the tests: it runs the suite -->\n```sh\nmake test\n```\n```sh\nstartrack x\n```\n"
+    assert readme_blocks(md) == [("sh", "make test\n", "it runs the suite"), ("sh", "startrack x\n", None)]
+    work, env = _workdir(tmp_path)
+    with pytest.raises(AssertionError, match="exit 2"):
+        run_block("startrack solve sky.tiff --fov-deg nan", work, env)
+    with pytest.raises(AssertionError, match="exit 1"):
+        run_block("startrack catalog-filter --mag-max 1 | false\n", work, env)
+    with pytest.raises(AssertionError, match="claimed 3.15"):
+        run_block("echo 3.14159\n# -> pi is 3.15\n", work, env)
+    run_block("echo 3.14159\n# -> pi is 3.14\n", work, env)
+
+
+def test_count_of_documented_commands():
+    """The suite runs every startrack command line of README.md and of every --help (printed for the record)."""
+    n_help = sum(commands_in(b) for name in _commands() for b in help_examples(help_text(*([name] if name else []))))
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as fh:
+        blocks = readme_blocks(fh.read())
+    n_readme = sum(commands_in(code) for lang, code, skip in blocks if skip is None and lang != "python")
+    n_python = sum(1 for lang, code, skip in blocks if skip is None and lang == "python")
+    print(f"documented commands run: {n_help} in --help texts, {n_readme} in README.md sh blocks, "
+          f"{n_python} README python block(s)")
+    assert n_help >= 25 and n_readme >= 10
