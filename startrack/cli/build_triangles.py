@@ -1,18 +1,18 @@
 """startrack build-triangles: paper 000's triangle database."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option)
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, camera_from_options, camera_options,
+                                   catalog_option, handle_errors, info, mag_options, quiet_option)
 
 
-@click.command("build-triangles", short_help="Build paper 000's triangle database (modified pyramid).")
+@click.command("build-triangles", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],
+               short_help="Build paper 000's triangle database (modified pyramid).")
 @catalog_option
 @camera_options
-@click.option("--mag-max", type=float, default=None, help="Faintest catalog star used (default: all of the catalog).")
-@click.option("--mag-min", type=float, default=None, help="Brightest catalog star used.")
-@click.option("--max-separation-deg", type=float, default=None,
+@mag_options(max_help="Faintest catalog star used (default: all of the catalog).")
+@click.option("--max-separation-deg", type=FiniteFloat(0, 90, min_open=True), default=None,
               help="Longest triangle side kept (default: the field's shorter side, paper 000's reading).")
-@click.option("--epoch", type=float, default=None, help="Propagate proper motion to this epoch first.")
+@click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Propagate proper motion to this epoch first.")
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Database file (.h5).")
 @quiet_option
 @handle_errors

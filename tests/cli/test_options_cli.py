@@ -126,6 +126,8 @@ BAD = [
     (("build-kvector", "-o", "db.h5"), ["--fov-deg", "inf"], ["--fov-deg"]),
     (("build-kvector", "-o", "db.h5"), ["--mag-max", "nan"], ["--mag-max"]),
     (("build-kvector", "-o", "db.h5"), ["--mag-min", "6", "--mag-max", "5"], ["--mag-min", "--mag-max"]),
+    (("build-triangles", "-o", "db.h5"), ["--max-separation-deg", "nan"], ["--max-separation-deg"]),
+    (("build-triangles", "-o", "db.h5"), ["--mag-min", "7", "--mag-max", "6"], ["--mag-min", "--mag-max"]),
     (("build-labels", "-o", "db.h5"), ["--fov-deg", "0"], ["--fov-deg"]),
     (("build-labels", "-o", "db.h5", "--fov-deg", "20"), ["--step-deg", "0"], ["--step-deg"]),
     (("build-labels", "-o", "db.h5", "--fov-deg", "20"), ["--group-size", "6", "--stars-per-field", "5"],
