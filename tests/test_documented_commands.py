@@ -40,7 +40,7 @@ NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 def help_text(*args):
     env = dict(os.environ, PYTHONPATH=ROOT, COLUMNS="100")
-    return subprocess.run([sys.executable, "-m", "startrack", *args, "--help"], capture_output=True, text=True, check=False,
+    return subprocess.run([sys.executable, "-m", "startrack", *args, "--help"], capture_output=True, text=True,
                           env=env, check=True).stdout
 
 
@@ -133,7 +133,7 @@ def check_claims(block, printed):
 
 def run_block(block, work, env, language="sh"):
     if language == "python":
-        proc = subprocess.run([sys.executable, "-c", block], cwd=work, env=env, capture_output=True, text=True, check=False,
+        proc = subprocess.run([sys.executable, "-c", block], cwd=work, env=env, capture_output=True, text=True,
                               timeout=900)
     else:
         script = "set -eo pipefail\n" + block

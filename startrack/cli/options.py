@@ -111,6 +111,24 @@ class NumberList(click.ParamType):
         return values
 
 
+class Size(click.ParamType):
+    """An image size ``WIDTHxHEIGHT`` in pixels, each side in [1, 100000]; the canonical text ``"1024x768"``."""
+
+    name = "size"
+
+    def get_metavar(self, param, ctx=None):
+        return "WxH"
+
+    def convert(self, value, param, ctx):
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(value))
+        if not m:
+            self.fail(f"expected WIDTHxHEIGHT such as 1024x768, got {value!r}", param, ctx)
+        w, h = int(m.group(1)), int(m.group(2))
+        if not (1 <= w <= 100_000 and 1 <= h <= 100_000):
+            self.fail(f"width and height must be in 1..100000 pixels, got {value!r}", param, ctx)
+        return f"{w}x{h}"
+
+
 class RegistryChoice(click.Choice):
     """A ``click.Choice`` whose names come from a registry, read when first needed.
 
@@ -353,7 +371,7 @@ def camera_options(f):
                      help="Lens focal length in mm (with --pixel-pitch-um and --size)."),
         click.option("--pixel-pitch-um", type=FiniteFloat(0, min_open=True), default=None,
                      help="Pixel pitch in micrometres."),
-        click.option("--size", type=str, default=None, help="Image size WIDTHxHEIGHT in pixels, e.g. 1024x768."),
+        click.option("--size", type=Size(), default=None, help="Image size WIDTHxHEIGHT in pixels, e.g. 1024x768."),
         click.option("--k1", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k1."),
         click.option("--k2", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k2."),
     ]
