@@ -38,7 +38,7 @@ def test_frames_centred_on_doubles_name_the_brighter_star(db15, catalog):
             # The pair near the centre, then off-centre, under different rolls and noise.
             ra = catalog.ra[k] + 2.0 * j / max(np.cos(np.radians(catalog.dec[k])), 0.2)
             frames.append(run_cli("render", "--stars-only", *SENSOR, "--ra", ra, "--dec", catalog.dec[k],
-                                  "--roll", roll, "--mag-limit", "6", "--sigma-px", "0.3",
+                                  "--roll", roll, "--mag-max", "6", "--sigma-px", "0.3",
                                   "--seed", 10 * n + j, check=True).stdout)
     proc = run_cli("identify", "-d", db15, input="".join(frames))
     docs = [json.loads(line) for line in proc.stdout.splitlines()]
