@@ -1,7 +1,7 @@
 """startrack build-kvector: the star-pair database with Mortari's k-vector."""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, camera_from_options, camera_options,
+from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, camera_from_options, camera_options,
                                    catalog_option, handle_errors, info, mag_options, quiet_option)
 
 
