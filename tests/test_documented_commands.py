@@ -15,7 +15,7 @@ pipe fails the block), with ``startrack`` on PATH resolving to this checkout.  A
 comment line ``# -> TEXT`` claims output: every number in TEXT must be printed by
 the commands before it (to the claim's decimals).  The directories hold the files
 the texts name, prepared here: ``sky.tiff``/``cam.json`` (the ESA image and its
-camera), ``photos/`` and ``tests/data/real/`` (two ESA images, to keep the run
+camera), ``a.tiff``/``b.tiff``, ``photos/`` and ``tests/data/real/`` (two ESA images, to keep the run
 short), ``examples/data/``.  `jq` is needed by the examples that use it; without
 it those blocks are skipped (and the reason says how many).
 """
@@ -108,7 +108,8 @@ def _workdir(tmp_path):
     shutil.copy(os.path.join(ROOT, "examples", "data", "camera.json"), work / "cam.json")
     real = os.path.join(ROOT, "tests", "data", "real")
     photos = sorted(f for f in os.listdir(real) if f.endswith(".tiff"))[:2]
-    for f in photos:
+    for f, alias in zip(photos, ("a.tiff", "b.tiff"), strict=True):
+        os.symlink(os.path.join(real, f), work / alias)
         os.symlink(os.path.join(real, f), work / "photos" / f)
         os.symlink(os.path.join(real, f), work / "tests" / "data" / "real" / f)
     shutil.copy(os.path.join(real, "camera.json"), work / "tests" / "data" / "real" / "camera.json")
