@@ -64,7 +64,7 @@ def _legacy_json_path(ctx, args):
 @output_option("The table, or with --json the rows as JSON; with a FILE the table is still printed on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
 @click.option("--accuracy", is_flag=True,
-              help="Instead: render --count images (stars to --mag-limit + 1) and report the attitude error against "
+              help="Instead: render --count images (stars to --mag-max + 1) and report the attitude error against "
                    "each frame's Cramér-Rao bound, per axis, and NEES (identification by the first database and "
                    "algorithm).")
 @quiet_option

@@ -15,7 +15,7 @@ from conftest import run_cli
 @pytest.fixture(scope="module")
 def frame():
     """One rendered star list (12 deg, 0.1 px noise) identified from its truth: the correct identification."""
-    doc = json.loads(run_cli("render", "--stars-only", "--fov-deg", "12", "--size", "1024x1024", "--mag-limit", "6",
+    doc = json.loads(run_cli("render", "--stars-only", "--fov-deg", "12", "--size", "1024x1024", "--mag-max", "6",
                              "--sigma-px", "0.1", "--seed", "21", "--ra", "286", "--dec", "20", "--roll", "10",
                              check=True).stdout)
     matches = []
@@ -101,7 +101,7 @@ def test_crb_beside_the_covariance(tmp_path):
     from startrack.rotations import quaternion_to_dcm
 
     frames = run_cli("render", "--fov-deg", "15", "--size", "384x384", "--count", "2", "--seed", "4",
-                     "--mag-limit", "6.5", "-o", tmp_path / "f.png", "-q", check=True).stdout
+                     "--mag-max", "6.5", "-o", tmp_path / "f.png", "-q", check=True).stdout
     cent = run_cli("centroid", "--gain-e-per-dn", "0.3052", "-q", input=frames, check=True).stdout
     docs = []
     for line in cent.splitlines():

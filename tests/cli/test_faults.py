@@ -39,7 +39,7 @@ def bomb_png(path, width=60000, height=60000):
 
 def test_kill_9_a_solve_batch_after_4_frames_then_resume(solve_cache, tmp_path):
     """16 rendered images; kill -9 once 4 documents are on disk; --resume: 16 documents, each image once."""
-    run_cli("render", "--fov-deg", "20", "--size", "640x480", "--count", "16", "--mag-limit", "6", "--seed", "11",
+    run_cli("render", "--fov-deg", "20", "--size", "640x480", "--count", "16", "--mag-max", "6", "--seed", "11",
             "-o", tmp_path / "img" / "sky.png", "-q", check=True)
     images = sorted(str(p) for p in (tmp_path / "img").iterdir())
     assert len(images) == 16
@@ -98,7 +98,7 @@ def test_ctrl_c_while_writing_hdf5_leaves_the_old_file(tmp_path):
 @pytest.fixture(scope="module")
 def sky(tmp_path_factory):
     d = tmp_path_factory.mktemp("sky")
-    run_cli("render", "--fov-deg", "20", "--size", "320x240", "--count", "3", "--mag-limit", "6", "--seed", "5",
+    run_cli("render", "--fov-deg", "20", "--size", "320x240", "--count", "3", "--mag-max", "6", "--seed", "5",
             "-o", d / "sky.png", "-q", check=True)
     return sorted(str(p) for p in d.iterdir())
 

@@ -12,7 +12,7 @@ from conftest import ROOT, run_cli
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 from streaming import hold_pipeline
 
-RENDER = ("render", "--stars-only", "--fov-deg", "20", "--size", "1024x1024", "--mag-limit", "5",
+RENDER = ("render", "--stars-only", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "5",
           "--sigma-px", "0.2", "--max-stars", "12", "-q")
 
 
@@ -50,7 +50,7 @@ def _peak_rss_mb(args, stdin_path):
 
 def test_memory_is_flat_in_the_number_of_frames(tmp_path):
     """attitude over 100 and over 1500 fat frames (~60 stars each): the same peak memory."""
-    frames = run_cli("render", "--stars-only", "--fov-deg", "20", "--size", "1024x1024", "--mag-limit", "6",
+    frames = run_cli("render", "--stars-only", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "6",
                      "--sigma-px", "0.2", "--count", "20", "--seed", "4", "-q", check=True).stdout.splitlines()
     docs = []
     for line in frames:
