@@ -134,7 +134,7 @@ def test_evaluate_accuracy_reports_error_over_bound(tmp_path):
     run_cli("build-kvector", "--fov-deg", "15", "--size", "384x384", "--mag-max", "5.5", "-o", db, check=True)
     out = tmp_path / "acc.json"
     proc = run_cli("evaluate", "-d", db, "--fov-deg", "15", "--size", "384x384", "--accuracy", "-n", "6", "--seed", "3",
-                   "--json", out, "-q", check=True)
+                   "--json", "-o", out, "-q", check=True)
     assert "cross-boresight: RMS" in proc.stdout and "NEES mean" in proc.stdout
     s = json.loads(out.read_text())["accuracy"]
     assert s["frames"] + s["failed"] + s["wrong"] + s["no_bound"] == 6 and s["wrong"] == 0
