@@ -112,8 +112,8 @@ def test_evaluate_on_a_local_cluster_equals_one_process(tmp_path):
     run_cli("build-kvector", "--fov-deg", "20", "--size", "1024x1024", "--mag-max", "5.0", "-o", db, "-q", check=True)
     common = ["-d", db, "-a", "pyramid", "--fov-deg", "20", "--size", "1024x1024", "--sigma-px", "0.3",
               "--count", "60", "--seed", "5", "-q"]
-    one = run_cli("evaluate", *common, "--json", tmp_path / "one.json")
-    many = run_cli("evaluate", *common, "--scheduler", "local", "-j", "2", "--json", tmp_path / "many.json")
+    one = run_cli("evaluate", *common, "--json", "-o", tmp_path / "one.json")
+    many = run_cli("evaluate", *common, "--scheduler", "local", "-j", "2", "--json", "-o", tmp_path / "many.json")
     assert one.returncode == 0 and many.returncode == 0, many.stderr
     rows_one = json.loads((tmp_path / "one.json").read_text())["rows"]
     rows_many = json.loads((tmp_path / "many.json").read_text())["rows"]
