@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 from startrack.records import ReasonCode
 
 __all__ = [
@@ -224,7 +224,7 @@ _SOLVERS = {"quest": quest, "q-method": q_method, "svd": svd_solve, "foam": foam
 def solve_wahba(method: str, body, reference, weights=None):
     """Attitude matrix by ``method`` (one of :data:`METHODS`)."""
     if method not in _SOLVERS:
-        raise BadInputError("--method", None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        raise ParameterError("method", f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     return _SOLVERS[method](body, reference, weights)
 
 
@@ -422,7 +422,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     return out
 
 
-def wcs_header(dcm, camera, image_shape=None, sip_order: int = 5):
+def wcs_header(dcm, camera, sip_order: int = 5):
     """A FITS WCS (TAN, with SIP terms when the camera has distortion) for an attitude.
 
     Pixel ``(x, y)`` (0-based, ours) is FITS ``(x + 1, y + 1)``.  ``CRPIX`` is

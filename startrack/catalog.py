@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from startrack._version import __version__
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = [
     "CATALOG_FORMAT",
@@ -51,7 +51,7 @@ def default_catalog_path() -> str:
                       os.path.join(os.path.dirname(here), "catalogs", "hip2.h5")):
         if os.path.exists(candidate):
             return candidate
-    raise BadInputError("catalog", None, "the shipped catalog hip2.h5 was not found; give --catalog")
+    raise BadInputError("catalog", None, "the shipped catalog hip2.h5 was not found; give a catalog file")
 
 
 @dataclass
@@ -120,7 +120,7 @@ class Catalog:
     def filter_magnitude(self, mag_min: float | None = None, mag_max: float | None = None) -> "Catalog":
         """Stars with ``mag_min <= mag <= mag_max`` (paper 000 keeps 2.5 to 6.59)."""
         if mag_min is not None and mag_max is not None and mag_min > mag_max:
-            raise BadInputError("--mag-min", None, f"{mag_min:g} is larger than --mag-max {mag_max:g}")
+            raise ParameterError("mag_min", f"{mag_min:g} is larger than mag_max {mag_max:g}")
         keep = np.ones(len(self), dtype=bool)
         if mag_min is not None:
             keep &= self.mag >= mag_min
@@ -143,7 +143,7 @@ class Catalog:
         from startrack.rotations import radec_to_vector, vector_to_radec
 
         if not math.isfinite(epoch):
-            raise BadInputError("--epoch", None, f"must be a finite decimal year, got {epoch}")
+            raise ParameterError("epoch", f"must be a finite decimal year, got {epoch}")
         dt = float(epoch) - float(self.epoch)
 
         def east_north(ra, dec):
@@ -194,7 +194,7 @@ class Catalog:
         from startrack.rotations import vector_to_radec
 
         if not radius_arcsec > 0:
-            raise BadInputError("--merge-arcsec", None, f"must be positive, got {radius_arcsec:g}")
+            raise ParameterError("radius_arcsec", f"must be positive, got {radius_arcsec:g}")
         first, second, _ = star_pairs(self, math.radians(radius_arcsec / 3600.0))
         out = self.subset(np.arange(len(self)))
         out.params["merge_arcsec"] = float(radius_arcsec)
@@ -253,9 +253,9 @@ class Catalog:
         ``round(360 cos(dec) / cell_deg)`` cells.
         """
         if per_cell < 1:
-            raise BadInputError("--uniform", None, f"must be at least 1, got {per_cell}")
+            raise ParameterError("per_cell", f"must be at least 1, got {per_cell}")
         if not 0 < cell_deg <= 90:
-            raise BadInputError("--cell-deg", None, f"must be in (0, 90], got {cell_deg:g}")
+            raise ParameterError("cell_deg", f"must be in (0, 90], got {cell_deg:g}")
         cell, _ = _cells(self.ra, self.dec, cell_deg)
         order = np.lexsort((self.id, self.mag, cell))
         sorted_cell = cell[order]
@@ -592,9 +592,9 @@ def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random
     from startrack.rotations import quaternion_to_dcm, random_quaternions
 
     if n_boresights < 1:
-        raise BadInputError("n_boresights", None, f"must be at least 1, got {n_boresights}")
+        raise ParameterError("n_boresights", f"must be at least 1, got {n_boresights}")
     if chunk < 1:
-        raise BadInputError("chunk", None, f"must be at least 1, got {chunk}")
+        raise ParameterError("chunk", f"must be at least 1, got {chunk}")
     vec = catalog.vectors()
     dec = np.arcsin(np.clip(vec[:, 2], -1, 1))
     order = np.argsort(dec, kind="stable")

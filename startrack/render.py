@@ -29,9 +29,15 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from startrack.camera import Camera
-from startrack.errors import BadInputError
-from startrack.rotations import (dcm_to_quaternion, dcm_to_radec_roll, quaternion_multiply,
-                                 quaternion_to_dcm, radec_to_vector, rotation_vector)
+from startrack.errors import ParameterError
+from startrack.rotations import (
+    dcm_to_quaternion,
+    dcm_to_radec_roll,
+    quaternion_multiply,
+    quaternion_to_dcm,
+    radec_to_vector,
+    rotation_vector,
+)
 
 __all__ = [
     "Sensor",
@@ -82,11 +88,11 @@ class Sensor:
         for name, ok in checks.items():
             value = getattr(self, name)
             if not ok or not math.isfinite(float(value)):
-                raise BadInputError("--" + name.replace("_", "-"), None, f"invalid value {value!r}")
+                raise ParameterError(name, f"invalid value {value!r}")
         if self.bit_depth not in (8, 12, 16):
-            raise BadInputError("--bit-depth", None, f"must be 8, 12 or 16, got {self.bit_depth}")
+            raise ParameterError("bit_depth", f"must be 8, 12 or 16, got {self.bit_depth}")
         if self.gain_e_per_dn is not None and not self.gain_e_per_dn > 0:
-            raise BadInputError("--gain-e-per-dn", None, f"must be positive, got {self.gain_e_per_dn}")
+            raise ParameterError("gain_e_per_dn", f"must be positive, got {self.gain_e_per_dn}")
 
     @property
     def max_dn(self) -> int:
@@ -142,13 +148,13 @@ class Scene:
 
     def __post_init__(self):
         if not self.mag_noise >= 0:
-            raise BadInputError("--mag-noise", None, f"must be >= 0, got {self.mag_noise}")
+            raise ParameterError("mag_noise", f"must be >= 0, got {self.mag_noise}")
         if self.false_stars < 0:
-            raise BadInputError("--false-stars", None, f"must be >= 0, got {self.false_stars}")
+            raise ParameterError("false_stars", f"must be >= 0, got {self.false_stars}")
         if not -50 < self.focal_error_pct < 50:
-            raise BadInputError("--focal-error-pct", None, f"must be within +-50, got {self.focal_error_pct}")
+            raise ParameterError("focal_error_pct", f"must be within +-50, got {self.focal_error_pct}")
         if len(self.rate_deg_s) != 3 or not all(math.isfinite(v) for v in self.rate_deg_s):
-            raise BadInputError("--rate-deg-s", None, "must be three finite numbers wx,wy,wz")
+            raise ParameterError("rate_deg_s", "must be three finite numbers wx,wy,wz")
 
 
 def electrons_from_magnitude(mag, sensor: Sensor):
@@ -539,7 +545,7 @@ class RenderRun:
         rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
         start = self.start_time if self.start_time is not None else epoch_time(self.catalog.epoch)
         index = 0
-        for c in range(self.count):
+        for _ in range(self.count):
             base = None
             for k in range(self.frames):
                 seed_k = self.first_seed if (self.first_seed is not None and self.total == 1) else frame_seed(self.seed, index)

@@ -8,7 +8,7 @@ import sys
 
 import click
 
-from startrack.errors import BadInputError, StartrackError
+from startrack.errors import BadInputError, ParameterError, StartrackError
 
 
 def input_argument(f):
@@ -108,6 +108,17 @@ def load_camera_file(path):
     return Camera.from_dict(doc, path)
 
 
+# Library parameters whose flag is not ``--`` + the name with ``-`` for ``_`` (library errors name
+# parameters, :class:`startrack.errors.ParameterError`; the command line names its flags).
+PARAMETER_FLAGS = {"width": "--size", "height": "--size", "radius_arcsec": "--merge-arcsec", "per_cell": "--uniform",
+                   "n_boresights": "--samples", "max_angle_deg": "--fov-deg"}
+
+
+def flag_for(parameter: str) -> str:
+    """The command-line flag of a library parameter (``fov_deg`` -> ``--fov-deg``)."""
+    return PARAMETER_FLAGS.get(parameter, "--" + parameter.replace("_", "-"))
+
+
 def command_path() -> str:
     ctx = click.get_current_context(silent=True)
     return ctx.command_path if ctx is not None else "startrack"
@@ -138,6 +149,9 @@ def handle_errors(func):
             raise
         except click.ClickException:
             raise
+        except ParameterError as exc:
+            click.echo(f"{command_path()}: error: {flag_for(exc.parameter)}: {exc.problem}", err=True)
+            sys.exit(exc.exit_code)
         except StartrackError as exc:
             _echo_err(f"{command_path()}: error: {exc}")
             sys.exit(exc.exit_code)
