@@ -244,9 +244,9 @@ def _figure(**kwargs):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError:
-        from startrack.errors import BadInputError
+        from startrack.errors import ParameterError
 
-        raise BadInputError("plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
+        raise ParameterError("plot", "needs matplotlib: pip install 'startrack[plot]'") from None
     fig = Figure(**kwargs)
     FigureCanvasAgg(fig)
     return fig
@@ -457,3 +457,6 @@ def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
         x1, y1 = cam.vectors_to_pixels(a @ (inertial + 1e-3 * d))
         out.append(np.array([float(x1 - x0), float(y1 - y0)]))
     return out[0], out[1]
+
+
+

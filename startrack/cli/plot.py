@@ -41,8 +41,8 @@ def command(input, kind, output, mag_limit, title, quiet):
 
     check_plot_output(output)
     if kind == "evaluate":
-        from startrack.evaluate import plot_results
         from startrack.formats.frame import read_json_file
+        from startrack.plot import plot_results
 
         doc = read_json_file(input)
         if "rows" not in doc:
