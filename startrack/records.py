@@ -363,6 +363,10 @@ class TrackState:
     empirical_stars: int | None = schema_field(kind="int", doc="empirical stars used (single-star mode, paper 001 Case 2)")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
     details: dict = schema_field(kind="object", factory=dict, doc="other fields")
+    # Not part of the ``track`` section: the frame's other sections (:meth:`startrack.Solver.track`).
+    star_table: StarTable | None = field(default=None, metadata={"section": "stars"})
+    identification: Identification | None = field(default=None, metadata={"section": "identification"})
+    attitude: Attitude | None = field(default=None, metadata={"section": "attitude"})
 
 
 @dataclass
