@@ -5,8 +5,15 @@ import pytest
 
 from startrack.camera import Camera
 from startrack.catalog import Catalog
-from startrack.render import (Scene, Sensor, electrons_from_magnitude, frame_seed, propagate_attitude,
-                              render_image, star_list)
+from startrack.render import (
+    Scene,
+    Sensor,
+    electrons_from_magnitude,
+    frame_seed,
+    propagate_attitude,
+    render_image,
+    star_list,
+)
 from startrack.rotations import quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
 
 

@@ -164,7 +164,7 @@ def test_star_leaving_the_field_is_dropped(world):
     tr = Tracker(catalog, cam, db, TrackerConfig(mag_limit=6.0, exposure_s=0.02),
                  initial_rate=np.radians([0.0, 2.0, 0.0]))
     seen = []
-    for k, (doc, img, _) in enumerate(frames):
+    for k, (_doc, img, _) in enumerate(frames):
         out = tr.step(img, 0.1 * k, 65535)
         if out["track"]["mode"] == "tracking":
             seen.append({s["id"] for s in out["track"]["stars"]})

@@ -1,8 +1,7 @@
 """startrack build-kvector: the star-pair database with Mortari's k-vector."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option)
+from startrack.cli.options import camera_from_options, camera_options, catalog_option, handle_errors, info, quiet_option
 
 
 @click.command("build-kvector", short_help="Build the star-pair k-vector database for a sensor.")

@@ -22,7 +22,7 @@ from startrack.cli.options import (
 @quiet_option
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
-            mag_max, mag_min, samples, seed, as_json, quiet):
+            mag_max, mag_min, samples, seed, as_json, quiet):  # noqa: ARG001 - nothing to hide
     """Count the stars inside a camera's field over random attitudes.
 
     The Monte Carlo of paper 000 Fig. 2 and paper 003 Fig. 3: uniformly random

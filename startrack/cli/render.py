@@ -1,8 +1,15 @@
 """startrack render: synthetic star images, star lists, Monte Carlo sets and sequences."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option, seed_option)
+from startrack.cli.options import (
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    info,
+    quiet_option,
+    seed_option,
+)
 
 
 def _floats(text, name, n):

@@ -4,8 +4,7 @@ import json
 import os
 
 import numpy as np
-
-from conftest import assert_refused, DATA, run_cli
+from conftest import DATA, assert_refused, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
 

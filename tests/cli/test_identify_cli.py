@@ -7,8 +7,7 @@ import os
 
 import numpy as np
 import pytest
-
-from conftest import assert_refused, DATA, run_cli
+from conftest import DATA, assert_refused, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
 ESA_CAMERA = os.path.join(DATA, "real", "camera.json")

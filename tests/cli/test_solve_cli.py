@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-
 from conftest import DATA, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
