@@ -436,12 +436,11 @@ def wcs_header(dcm, camera, sip_order: int = 5):
     """
     from astropy.io import fits
 
-    from startrack.rotations import dcm_to_radec_roll
+    from startrack.rotations import dcm_to_radec_roll, east_north
 
     a = np.asarray(dcm, dtype=np.float64)
     ra, dec, _ = dcm_to_radec_roll(a)
-    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
-    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
+    east, north = east_north(ra, dec)
     k = math.degrees(1.0) / camera.focal_length_px
     cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
     hdr = fits.Header()

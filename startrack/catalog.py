@@ -140,16 +140,11 @@ class Catalog:
         back returns the same catalog.  Parallax and radial velocity are neglected
         (well under 1 mas per century for all but a handful of nearby stars).
         """
-        from startrack.rotations import radec_to_vector, vector_to_radec
+        from startrack.rotations import east_north, radec_to_vector, vector_to_radec
 
         if not math.isfinite(epoch):
             raise ParameterError("epoch", f"must be a finite decimal year, got {epoch}")
         dt = float(epoch) - float(self.epoch)
-
-        def east_north(ra, dec):
-            east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
-            north = np.stack([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)], axis=-1)
-            return east, north
 
         ra = np.radians(self.ra)
         dec = np.radians(self.dec)

@@ -115,8 +115,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     """Background level and noise on a coarse mesh, and their global values (DN).
 
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
-    arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``),
-    and :func:`expand_mesh` interpolates them to full size.
+    arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``).
     """
     from startrack._kernels.centroid import _clipped_stats, background_mesh
 
@@ -159,17 +158,6 @@ def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, kernel)
     return np.ascontiguousarray(img - opened, dtype=np.float32)
-
-
-def expand_mesh(mesh, shape, cell):
-    """Bilinear interpolation of a tile mesh to a full-size float32 map."""
-    import cv2
-
-    h, w = shape
-    if mesh.shape == (1, 1):
-        return np.full(shape, float(mesh[0, 0]), dtype=np.float32)
-    ny, nx = mesh.shape
-    return cv2.resize(mesh.astype(np.float32), (nx * cell, ny * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
 
 
 def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_ratio=0.7):

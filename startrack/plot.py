@@ -387,6 +387,7 @@ def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: floa
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.names import star_label
+    from startrack.rotations import east_north
 
     cam = Camera.from_dict(doc["camera"])
     stars = doc.get("stars") or []
@@ -445,12 +446,13 @@ def _catalog_at_epoch(catalog, att: dict):
 
 def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     """Image-plane unit directions of celestial north and east at the image centre."""
+    from startrack.rotations import east_north
+
     centre = cam.pixels_to_vectors(np.array([(cam.width - 1) / 2.0]), np.array([(cam.height - 1) / 2.0]))[0]
     inertial = a.T @ centre
     ra = math.atan2(inertial[1], inertial[0])
     dec = math.asin(max(-1.0, min(1.0, inertial[2])))
-    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
-    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
+    east, north = east_north(ra, dec)
     x0, y0 = cam.vectors_to_pixels(centre)
     out = []
     for d in (north, east):

@@ -23,7 +23,6 @@ The renderer is the project's test oracle, so it is physically honest:
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -33,9 +32,8 @@ from startrack.errors import ParameterError
 from startrack.rotations import (
     dcm_to_quaternion,
     dcm_to_radec_roll,
-    quaternion_multiply,
+    propagate_attitude,
     quaternion_to_dcm,
-    radec_to_vector,
     rotation_vector,
 )
 
@@ -46,7 +44,6 @@ __all__ = [
     "project_stars",
     "render_image",
     "star_list",
-    "propagate_attitude",
     "background_dn_cdf",
 ]
 
@@ -164,22 +161,6 @@ def electrons_from_magnitude(mag, sensor: Sensor):
     star; 2.512 is ``100^(1/5)`` exactly here.
     """
     return sensor.zero_point_e_per_s * sensor.exposure_s * 10.0 ** (-0.4 * np.asarray(mag, dtype=np.float64))
-
-
-def propagate_attitude(dcm, rate_rad_s, dt):
-    """Attitude after ``dt`` seconds at constant body rate ``rate_rad_s`` (camera frame).
-
-    ``A(t) = exp(-[w x] t) A(0)``: the camera turns by ``w t`` about the
-    body-frame axis ``w``, so fixed stars appear to turn the other way.
-    """
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * dt
-    if angle == 0.0:
-        return np.array(dcm, dtype=np.float64)
-    axis = w / np.linalg.norm(w)
-    # Quaternion of a passive rotation by `angle` about `axis` (A = I - [phi x] + ...).
-    dq = np.concatenate([axis * math.sin(angle / 2.0), [math.cos(angle / 2.0)]])
-    return quaternion_to_dcm(quaternion_multiply(dq, dcm_to_quaternion(dcm)))
 
 
 def project_stars(vectors, dcm, camera: Camera, margin_px: float = 0.0):
@@ -477,10 +458,6 @@ def attitude_rate_check(dcm_a, dcm_b, dt):
     return rotation_vector(delta) / dt
 
 
-def boresight_vector(ra_deg, dec_deg):
-    return radec_to_vector(math.radians(ra_deg), math.radians(dec_deg))
-
-
 def frame_seed(seed: int, index: int) -> int:
     """The seed of frame ``index`` of a run seeded ``seed`` (recorded in each document)."""
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
@@ -524,7 +501,7 @@ class RenderRun:
     sigma_px: float = 0.0
     max_stars: int | None = None
     drop_fraction: float = 0.0
-    image_path: str | None = None
+    image_path: object = None      # image_path(frame index) -> file name, or None (no image files)
     first_seed: int | None = None
     params: dict = field(default_factory=dict)
     blackout: tuple = ()
@@ -575,7 +552,7 @@ class RenderRun:
                                                 vectors=None if k in self.blackout else vectors)
                     if k in self.blackout:
                         truth["blackout"] = True
-                    path = numbered_path(self.image_path, index, self.total) if self.image_path else None
+                    path = self.image_path(index) if self.image_path else None
                     if path:
                         image_doc["path"] = path
                     image_doc["bit_depth"] = self.sensor.bit_depth

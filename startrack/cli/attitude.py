@@ -148,6 +148,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             section["not_in_catalog"] = missing[:20]
         doc["attitude"] = section
         if result.status == "ok" and wcs_path:
+            from startrack.cli.paths import numbered_path
             from startrack.formats.atomic import atomic_path
             hdr = wcs_header(result.dcm, cam)
             path = wcs_names(index)

@@ -33,9 +33,9 @@ def command(input, kind, output, mag_limit, title, quiet):
     """
     import json
 
+    from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import read_frames
-    from startrack.render import numbered_path
 
     from startrack.imageio import check_plot_output
 

@@ -106,6 +106,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     import numpy as np
 
     from startrack.catalog import load_catalog
+    from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import FrameWriter
     from startrack.imageio import check_image_output, write_image
@@ -209,7 +210,9 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
         black = tuple(range(start, start + n_black))
         params["blackout"] = blackout
     run = RenderRun(cat, cam, sensor, scene, seed, attitude, count, frames, frame_interval_s, t0, stars_only,
-                    noise_px, max_stars, drop_fraction, output, frame_seed, params, black)
+                    noise_px, max_stars, drop_fraction,
+                    (lambda index: numbered_path(output, index, count * frames)) if output else None,
+                    frame_seed, params, black)
     if frame_seed is not None and run.total != 1:
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
     bar = ProgressBar("render", quiet)
