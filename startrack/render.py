@@ -22,6 +22,7 @@ The renderer is the project's test oracle, so it is physically honest:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -221,27 +222,29 @@ def _erf(z):
     return flat.reshape(z.shape)
 
 
-_CDF_CACHE: dict = {}
-_PRNU_CACHE: dict = {}
-
-
+@functools.lru_cache(maxsize=1)
 def _prnu_map(height, width, prnu):
-    """The sensor's fixed-pattern gain map: the same sensor every frame (seeded by its size)."""
-    key = (height, width, prnu)
-    if key not in _PRNU_CACHE:
-        rng = np.random.default_rng([height, width, 0x5052_4E55])
-        _PRNU_CACHE.clear()
-        _PRNU_CACHE[key] = np.ascontiguousarray(1.0 + prnu * rng.standard_normal((height, width)))
-    return _PRNU_CACHE[key]
+    """The sensor's fixed-pattern gain map: the same sensor every frame (seeded by its size).
+
+    Memoised by value (a pure function of its arguments): a run renders every frame with one sensor.
+    """
+    rng = np.random.default_rng([height, width, 0x5052_4E55])
+    out = np.ascontiguousarray(1.0 + prnu * rng.standard_normal((height, width)))
+    return out
 
 
 def _background_table(sensor: Sensor):
-    key = (sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
-    if key not in _CDF_CACHE:
-        cdf, lo = background_dn_cdf(sensor)
-        _CDF_CACHE.clear()
-        _CDF_CACHE[key] = (cdf, _guide_table(cdf), lo)
-    return _CDF_CACHE[key]
+    return _background_table_of(sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
+
+
+@functools.lru_cache(maxsize=1)
+def _background_table_of(background_e, gain, bias, read_noise_e):
+    """Memoised by value: the background table of the sensor's four noise parameters."""
+    from types import SimpleNamespace
+
+    cdf, lo = background_dn_cdf(SimpleNamespace(background_e=background_e, gain=gain, bias=bias,
+                                                read_noise_e=read_noise_e))
+    return cdf, _guide_table(cdf), lo
 
 
 def _trail_positions(vectors, dcm, camera, rate_rad_s, exposure_s, sigma):
