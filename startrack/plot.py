@@ -270,9 +270,9 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     """
     import math
 
-    from startrack.rotations import attitude_error, quaternion_to_dcm
-
     from matplotlib.ticker import MaxNLocator
+
+    from startrack.rotations import attitude_error, quaternion_to_dcm
 
     rows = []
     for k, d in enumerate(docs):
@@ -387,7 +387,6 @@ def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: floa
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.names import star_label
-    from startrack.rotations import east_north
 
     cam = Camera.from_dict(doc["camera"])
     stars = doc.get("stars") or []

@@ -84,14 +84,19 @@ def ring(pixels, x, y, radius, n=72):
 
 
 def assert_identified_star_marked(png, doc):
-    """The picture of a solved frame circles its first identified star in green (``plot.annotate_solution``)."""
+    """The picture of a solved frame circles its first identified star in the "identified" colour
+    (``plot.annotate_solution``), and does not paint that colour just anywhere."""
+    from startrack.plot import MARKERS, _radius
+
     px = png_pixels(png)
-    scale = max(1.0, max(px.shape[:2]) / 1024.0)
+    colour = MARKERS["identified"][0]
+    scale = max(0.8, min(2.5, max(doc["image"]["width"], doc["image"]["height"]) / 1024.0))
     star = doc["stars"][doc["identification"]["matches"][0]["star"]]
-    radius = int(8 * scale)
-    assert colour_fraction(ring(px, star["x"], star["y"], radius), (0, 220, 0), tol=60) > 0.5
+    radius = int(round(_radius(star.get("flux")) * scale))
+    on = max(colour_fraction(ring(px, star["x"], star["y"], r), colour, tol=60) for r in (radius - 1, radius, radius + 1))
+    assert on > 0.5, on
     # ... and only there: twice as far out the ring is not the marker.
-    assert colour_fraction(ring(px, star["x"], star["y"], 2 * radius + 3), (0, 220, 0), tol=60) < 0.5
+    assert colour_fraction(ring(px, star["x"], star["y"], 2 * radius + 4), colour, tol=60) < 0.5
 
 
 # matplotlib's first colours (tab:blue, tab:orange, tab:green) in BGR
