@@ -117,6 +117,35 @@ def _band_of(fov):
 
 @dataclass
 class SolveOptions:
+    """Settings of :func:`solve_image` (and :meth:`startrack.Solver.solve`).
+
+    Attributes
+    ----------
+    fov_deg : float or None
+        Horizontal field of view hint, degrees; ``None``: unknown (4 to 32 degrees searched).
+    fov_tolerance : float
+        Relative tolerance of the hint (0.1 = +-10 %).
+    algorithm : str
+        Identification algorithm of the full match (:data:`startrack.identify.ALGORITHMS`).
+    max_stars : int
+        Detections kept, brightest first.
+    search_stars : int
+        Brightest detections used to search patterns.
+    max_triads : int
+        Star patterns tried per database before giving up.
+    sigma_px : float or None
+        1-sigma centroid noise, pixels (default: from the detections).
+    max_false_probability : float
+        Largest accepted probability that an identification is a coincidence, shared
+        among all hypotheses tried.
+    timeout_s : float
+        Search time limit per image, seconds (database builds and first-use compilation excluded).
+    epoch : float or None
+        Epoch of observation, decimal year (proper motion).
+    method : str
+        Wahba solver of the attitude.
+    """
+
     fov_deg: float | None = None
     fov_tolerance: float = 0.1
     algorithm: str = "pyramid"
