@@ -31,6 +31,7 @@ _PUBLIC = {
     "Attitude": "startrack.records",
     "TrackState": "startrack.records",
     "SolveResult": "startrack.records",
+    "to_frame": "startrack.formats.sections",
     "StartrackError": "startrack.errors",
     "BadInputError": "startrack.errors",
     "ParameterError": "startrack.errors",

@@ -121,21 +121,6 @@ class Camera:
                    pixel_pitch_um=pitch, **kw)
 
     @classmethod
-    def from_file(cls, path: str) -> "Camera":
-        """A camera from a ``startrack.camera/1`` file or a frame document's ``camera`` section."""
-        from startrack.formats.frame import check_format_tag, read_json_file
-
-        doc = read_json_file(path)
-        if str(doc.get("format", CAMERA_FORMAT)).startswith("startrack.frame/"):
-            check_format_tag(doc, "startrack.frame/1", path)
-            if "camera" not in doc:
-                raise BadInputError(path, "camera", "is missing")
-            doc = doc["camera"]
-        elif "format" in doc:
-            check_format_tag(doc, CAMERA_FORMAT, path)
-        return cls.from_dict(doc, path)
-
-    @classmethod
     def from_dict(cls, doc: dict, source: str = "camera") -> "Camera":
         """Build and validate a camera from a frame's ``camera`` section or a camera file."""
         if not isinstance(doc, dict):

@@ -374,7 +374,7 @@ class SolveResult:
     """Everything :meth:`startrack.Solver.solve` learnt about one image.
 
     Written as the frame sections ``camera``, ``stars``, ``centroid``,
-    ``identification``, ``attitude`` and ``solve`` (:meth:`to_frame`).
+    ``identification``, ``attitude`` and ``solve`` (:func:`startrack.to_frame`).
     ``status`` is ``ok`` only when the attitude is; otherwise ``reason`` and
     ``reason_code`` say why.  ``ra``/``dec`` of ``attitude`` are the boresight's
     (the principal point); ``center_ra``/``center_dec`` are the image centre's.
@@ -401,9 +401,3 @@ class SolveResult:
     @property
     def ok(self) -> bool:
         return self.status == Status.OK
-
-    def to_frame(self) -> dict:
-        """The frame sections this result fills (``camera``, ``stars``, ..., ``solve``)."""
-        from startrack.formats.sections import solve_result_to_frame
-
-        return solve_result_to_frame(self)

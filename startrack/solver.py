@@ -65,10 +65,8 @@ class Solver:
         self.method = method
         self.epoch = epoch
         self.options = options or SolveOptions(algorithm=algorithm, method=method, epoch=epoch)
-        # Databases by (band, magnitude or field size, catalog checksum), loaded or built once.
-        self._databases: dict = {}
-        # Kinds of work (kernels) whose first use -- numba compilation or cache load -- is already paid.
-        self.warmed: set = set()
+        self._bands = None          # the FOV bands' databases, loaded or built once (solve.BandDatabases)
+        self._positions_cache: dict = {}
 
     # ------------------------------------------------------------------ owned resources
     @property
@@ -89,16 +87,20 @@ class Solver:
             from startrack.camera import Camera
 
             arg = self._camera_arg
-            self._camera = arg if isinstance(arg, Camera) else Camera.from_file(os.fspath(arg))
+            if isinstance(arg, Camera):
+                self._camera = arg
+            else:
+                from startrack.formats.sections import camera_from_file
+
+                self._camera = camera_from_file(os.fspath(arg))
         return self._camera
 
     def _positions(self):
         """Catalog rows by id and ICRS unit vectors at the solver's epoch."""
-        key = ("positions", self.epoch)
-        if key not in self._databases:
+        if self.epoch not in self._positions_cache:
             cat = self.catalog if self.epoch is None else self.catalog.propagate(self.epoch)
-            self._databases[key] = (cat.rows_by_id(), cat.vectors())
-        return self._databases[key]
+            self._positions_cache[self.epoch] = (cat.rows_by_id(), cat.vectors())
+        return self._positions_cache[self.epoch]
 
     def database(self, camera=None):
         """The identification database: the one given, else the cached one of ``camera``'s field-of-view band."""
@@ -122,28 +124,26 @@ class Solver:
 
         return self.band_database(_band_of(camera.fov_deg[0]))
 
+    @property
+    def bands(self):
+        """The databases of the FOV bands (:class:`startrack.solve.BandDatabases`), kept in memory."""
+        if self._bands is None:
+            from startrack.solve import BandDatabases
+
+            given = self.database() if self._database_arg is not None else None
+            self._bands = BandDatabases(self.catalog, given)
+        return self._bands
+
     def band_database(self, band: int, which: int = 0):
         """The k-vector database of FOV band ``band`` (:data:`startrack.solve.FOV_BANDS`), kept in memory.
 
         When the solver was given a database, that one, whatever the band.
         """
-        from startrack.solve import band_database
-
-        if self._database_arg is not None:
-            return self.database()
-        return band_database(band, self.catalog, which=which, memo=self._databases)
-
-    def n_band_databases(self, band: int) -> int:
-        """How many k-vector databases :meth:`band_database` has for FOV band ``band``."""
-        from startrack.solve import FOV_BANDS
-
-        return 1 if self._database_arg is not None else len(FOV_BANDS[band][2])
+        return self.bands.band_database(band, which)
 
     def band_labels(self, band: int, which: int = 0):
         """The label database (paper 004) of FOV band ``band``, kept in memory."""
-        from startrack.solve import band_labels
-
-        return band_labels(band, self.catalog, which=which, memo=self._databases)
+        return self.bands.band_labels(band, which)
 
     # ------------------------------------------------------------------ stages
     def solve(self, image, fov_deg: float | None = None, *, camera=None, saturation: float | None = None):
@@ -184,7 +184,7 @@ class Solver:
                 raise ParameterError("fov_deg", f"must be in (0, 90) degrees, got {fov_deg}", "Solver.solve")
             opts = dataclasses.replace(opts, fov_deg=fov_deg)
         return solve_image(image, opts, camera=camera if camera is not None else self.camera, catalog=self.catalog,
-                           saturation=saturation, solver=self)
+                           saturation=saturation, databases=self.bands)
 
     def identify(self, stars, camera=None, *, algorithm: str | None = None, params=None):
         """Identify the stars of one frame.
@@ -206,29 +206,14 @@ class Solver:
             ``matches`` pair star indices with catalog ids; ``status``
             ``"failed"`` with ``reason`` when the frame cannot be identified.
         """
+        from startrack.formats.sections import identification_record
         from startrack.identify import identify_stars
 
         camera = self._need_camera(camera, "identify")
         algorithm = algorithm or self.algorithm
         db = self.database(camera)
         res = identify_stars(_star_list(stars), camera, db, algorithm, params)
-        return self.identification_record(res)
-
-    @staticmethod
-    def identification_record(res):
-        """An :class:`~startrack.records.Identification` from the identification result of the algorithms."""
-        from startrack.formats.sections import from_section
-        from startrack.records import Identification, ReasonCode
-
-        if isinstance(res, Identification):
-            return res
-        record = from_section(Identification, res.section(), "identification")
-        code = getattr(res, "reason_code", None)
-        if code is not None:
-            record.reason_code = code
-        elif record.status == "failed":
-            record.reason_code = ReasonCode.OTHER
-        return record
+        return identification_record(res)
 
     def attitude(self, stars, identification, camera=None, *, method: str | None = None,
                  epoch: float | None = None, sigma_px: float | None = None):
@@ -257,39 +242,20 @@ class Solver:
             ``dec`` and ``roll`` (degrees), covariance (arcsec^2, camera
             axes); or ``"failed"`` with a reason.
         """
-        from startrack.attitude import estimate_attitude
-        from startrack.formats.sections import from_section
-        from startrack.records import Attitude, ReasonCode, StarTable
+        from startrack.formats.sections import identification_record
+        from startrack.records import StarTable
+        from startrack.solve import identified_attitude
 
         camera = self._need_camera(camera, "attitude")
-        method = method or self.method
-        identification = self.identification_record(identification)
-        if identification.status != "ok":
-            return Attitude.failed(f"not identified: {identification.reason}", ReasonCode.NOT_IDENTIFIED, method)
         table = stars if isinstance(stars, StarTable) else StarTable.from_list(list(stars))
         if epoch is not None and epoch != self.epoch:
             cat = self.catalog.propagate(epoch)
             rows, vec = cat.rows_by_id(), cat.vectors()
         else:
             rows, vec = self._positions()
-        idx = [m for m in identification.matches if int(m[1]) in rows]
-        star = np.array([int(m[0]) for m in idx], dtype=np.int64)
-        body = camera.pixels_to_vectors(table.x[star], table.y[star]).reshape(-1, 3)
-        ref = vec[[rows[int(m[1])] for m in idx]].reshape(-1, 3)
-        if sigma_px is not None:
-            sig_px = np.full(len(star), float(sigma_px))
-        elif table.sigma_px is not None:
-            sig_px = table.sigma_px[star]
-        else:
-            sig_px = np.full(len(star), 0.1)
-        sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
-        res = estimate_attitude(body, ref, sig, method, [(int(m[0]), int(m[1])) for m in idx])
-        att = from_section(Attitude, res.section(), "attitude")
-        if att.status != "ok" and att.reason_code is None:
-            att.reason_code = getattr(res, "reason_code", None) or ReasonCode.TOO_FEW_STARS
-        if epoch is not None or self.epoch is not None:
-            att.epoch = epoch if epoch is not None else self.epoch
-        return att
+        return identified_attitude(table, identification_record(identification), camera, rows, vec,
+                                   method or self.method, sigma_px,
+                                   epoch if epoch is not None else self.epoch)
 
     def track(self, frames, camera=None, *, dt_s: float = 1.0, times=None, config=None, initial_attitude=None):
         """Track the attitude through a sequence of images.
@@ -314,7 +280,7 @@ class Solver:
             One per frame: ``mode``, rate, ... with the frame's ``stars``,
             ``identification`` and ``attitude`` attached.
         """
-        from startrack.formats.sections import from_section
+        from startrack.formats.sections import from_section, identification_record
         from startrack.records import Attitude, StarTable, TrackState
         from startrack.track import Tracker
 
@@ -329,8 +295,7 @@ class Solver:
             state = from_section(TrackState, out["track"], "track")
             state.stars = StarTable.from_list(out["stars"]) if out.get("stars") else StarTable.empty()
             if out.get("identification") is not None:
-                state.identification = self.identification_record(out["identification"]) if not isinstance(
-                    out["identification"], dict) else _ident_from_dict(out["identification"])
+                state.identification = identification_record(out["identification"])
             state.attitude = from_section(Attitude, out["attitude"], "attitude")
             yield state
 
@@ -339,13 +304,6 @@ class Solver:
         if camera is None:
             raise ParameterError("camera", "is needed (give it here or to Solver)", f"Solver.{what}")
         return camera
-
-
-def _ident_from_dict(section):
-    from startrack.formats.sections import from_section
-    from startrack.records import Identification
-
-    return from_section(Identification, section, "identification")
 
 
 def _star_list(stars) -> list:

@@ -81,7 +81,7 @@ def test_solve_identify_attitude_return_typed_records(world, tmp_path):
     assert isinstance(att, startrack.Attitude)
     assert _error_arcsec(att, doc["truth"]["quaternion"])[0] < 5
     # The frame sections are what the CLI writes: plain JSON.
-    frame = json.loads(json.dumps(result.to_frame()))
+    frame = json.loads(json.dumps(startrack.to_frame(result)))
     assert frame["solve"]["status"] == "ok" and frame["attitude"]["quaternion"] == pytest.approx(
         list(result.attitude.quaternion))
     assert len(frame["stars"]) == len(result.stars)
@@ -93,7 +93,7 @@ def test_failures_are_records_with_reason_codes(world):
     dark = np.full((768, 1024), 100, dtype=np.uint16)
     result = solver.solve(dark)
     assert result.status == "failed" and result.reason_code == startrack.ReasonCode.NO_STARS
-    assert result.to_frame()["solve"]["reason_code"] == "no_stars"
+    assert startrack.to_frame(result)["solve"]["reason_code"] == "no_stars"
     ident = solver.identify([{"x": 10.0, "y": 10.0}, {"x": 500.0, "y": 300.0}])
     assert ident.status == "failed" and ident.reason
     att = solver.attitude([], ident)
