@@ -120,7 +120,7 @@ class Catalog:
     def filter_magnitude(self, mag_min: float | None = None, mag_max: float | None = None) -> "Catalog":
         """Stars with ``mag_min <= mag <= mag_max`` (paper 000 keeps 2.5 to 6.59)."""
         if mag_min is not None and mag_max is not None and mag_min > mag_max:
-            raise ParameterError("mag_min", f"{mag_min:g} is larger than mag_max {mag_max:g}")
+            raise ParameterError("mag_min", f"{mag_min:g} is larger than the faintest magnitude kept ({mag_max:g})")
         keep = np.ones(len(self), dtype=bool)
         if mag_min is not None:
             keep &= self.mag >= mag_min

@@ -77,7 +77,7 @@ class CentroidOptions:
         if self.mesh_px < 8:
             raise ParameterError("mesh_px", f"must be at least 8, got {self.mesh_px}")
         if self.min_pixels < 1 or self.max_pixels < self.min_pixels:
-            raise ParameterError("min_pixels", "need 1 <= min_pixels <= max_pixels")
+            raise ParameterError("min_pixels", f"must be from 1 to the largest blob size ({self.max_pixels}), got {self.min_pixels}")
         if self.max_stars is not None and self.max_stars < 1:
             raise ParameterError("max_stars", f"must be at least 1, got {self.max_stars}")
 

@@ -126,7 +126,7 @@ def build_labels(catalog, fov_deg: float, stars_per_field: int = 8, group_size: 
         raise ParameterError("step_deg", f"must be in [{MIN_STEP_DEG:g}, 30], got {step_deg:g}"
                             + (f" (it would sweep {n:.3g} boresights)" if step_deg < MIN_STEP_DEG else ""))
     if len(catalog) < stars_per_field:
-        raise ParameterError("catalog", f"has {len(catalog)} stars, fewer than stars_per_field {stars_per_field}")
+        raise ParameterError("catalog", f"has {len(catalog)} stars, fewer than the {stars_per_field} stars per field")
     t0 = time.perf_counter()
     cat = catalog.sorted_by_magnitude()
     vec = np.ascontiguousarray(cat.vectors())
