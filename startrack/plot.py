@@ -460,4 +460,41 @@ def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
+def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -> str:
+    """Success rate and median time against the swept condition, one line per algorithm.
 
+    Parameters
+    ----------
+    rows : list of dict
+        :func:`startrack.evaluate.summarise` rows (``algorithm``, ``success_rate``, ``median_ms``, conditions).
+    path : str
+        The PNG to write (atomically).
+    x_field : str, optional
+        The swept condition (default: the first that varies).
+    """
+    fields = ["false_stars", "focal_error_pct", "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
+    if x_field is None:
+        x_field = next((f for f in fields if len({r[f] for r in rows}) > 1), "false_stars")
+    names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
+             "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
+             "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
+    fig = _figure(figsize=(11, 4.2), dpi=110)
+    ax1, ax2 = fig.subplots(1, 2)
+    for algorithm in dict.fromkeys(r["algorithm"] for r in rows):
+        sub = sorted((r for r in rows if r["algorithm"] == algorithm), key=lambda r: r[x_field])
+        xs = [r[x_field] for r in sub]
+        ax1.plot(xs, [100 * r["success_rate"] for r in sub], marker="o", label=algorithm)
+        ax2.plot(xs, [r["median_ms"] for r in sub], marker="o", label=algorithm)
+    ax1.set_xlabel(names.get(x_field, x_field))
+    ax1.set_ylabel("success rate (%)")
+    ax1.grid(alpha=0.3)
+    ax1.legend(fontsize=8)
+    ax2.set_xlabel(names.get(x_field, x_field))
+    ax2.set_ylabel("median identification time (ms)")
+    ax2.set_yscale("log")
+    ax2.grid(alpha=0.3, which="both")
+    n = rows[0]["frames"] if rows else 0
+    fig.suptitle(title or f"{n} random attitudes per point")
+    fig.tight_layout()
+    _save(fig, path)
+    return path

@@ -1,8 +1,7 @@
 """startrack build-triangles: paper 000's triangle database."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option)
+from startrack.cli.options import camera_from_options, camera_options, catalog_option, handle_errors, info, quiet_option
 
 
 @click.command("build-triangles", short_help="Build paper 000's triangle database (modified pyramid).")
