@@ -273,7 +273,7 @@ Two equal Gaussian images show no dip between them closer than 2 sigma, and
 def merge_radius_arcsec(camera, merge_px: float = DEFAULT_MERGE_PX) -> float:
     """The separation (arcsec) of ``merge_px`` pixels at the camera's centre pixel scale."""
     if not merge_px > 0:
-        raise BadInputError("--merge-px", None, f"must be positive, got {merge_px:g}")
+        raise ParameterError("merge_px", f"must be positive, got {merge_px:g}")
     return float(merge_px) * float(camera.pixel_scale_arcsec)
 
 
@@ -325,11 +325,11 @@ def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, sta
         ``uniform_cell_deg``, ``stars_per_field``, ``sky_fraction``.
     """
     if not stars_per_field >= 1:
-        raise BadInputError("--stars-per-field", None, f"must be at least 1, got {stars_per_field:g}")
+        raise ParameterError("stars_per_field", f"must be at least 1, got {stars_per_field:g}")
     if not 0 < sky_fraction <= 1:
-        raise BadInputError("--sky-fraction", None, f"must be in (0, 1], got {sky_fraction:g}")
+        raise ParameterError("sky_fraction", f"must be in (0, 1], got {sky_fraction:g}")
     if not (field_w_deg > 0 and field_h_deg > 0):
-        raise BadInputError("--fov-deg", None, "the field must have a positive size")
+        raise ParameterError("field_w_deg", "the field must have a positive size")
     cell = float(cell_deg) if cell_deg is not None else min(field_w_deg, field_h_deg) / 2.0
     cell = min(max(cell, 0.05), 90.0)
     per_cell = max(1, math.ceil(stars_per_field * cell * cell / (field_w_deg * field_h_deg)))

@@ -256,7 +256,7 @@ def choose_database_stars(catalog, field_w_deg: float, field_h_deg: float, max_a
     from startrack.catalog import thin_for_field
 
     if not max_pairs >= 1:
-        raise BadInputError("--max-pairs", None, f"must be at least 1, got {max_pairs}")
+        raise ParameterError("max_pairs", f"must be at least 1, got {max_pairs}")
     cap = (1.0 - math.cos(math.radians(max_angle_deg))) / 4.0
     want = float(stars_per_field)
     spf = want

@@ -64,8 +64,14 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
-    from startrack.kvector import (DEFAULT_MAX_PAIRS, DEFAULT_STARS_PER_FIELD, build_kvector,
-                                   choose_database_stars, max_separation_deg, save_kvector)
+    from startrack.kvector import (
+        DEFAULT_MAX_PAIRS,
+        DEFAULT_STARS_PER_FIELD,
+        build_kvector,
+        choose_database_stars,
+        max_separation_deg,
+        save_kvector,
+    )
     from startrack.progress import ProgressBar
 
     t0 = time.perf_counter()

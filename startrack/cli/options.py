@@ -111,7 +111,8 @@ def load_camera_file(path):
 # Library parameters whose flag is not ``--`` + the name with ``-`` for ``_`` (library errors name
 # parameters, :class:`startrack.errors.ParameterError`; the command line names its flags).
 PARAMETER_FLAGS = {"width": "--size", "height": "--size", "radius_arcsec": "--merge-arcsec", "per_cell": "--uniform",
-                   "n_boresights": "--samples", "max_angle_deg": "--fov-deg"}
+                   "n_boresights": "--samples", "max_angle_deg": "--fov-deg", "field_w_deg": "--fov-deg",
+                   "field_h_deg": "--fov-deg"}
 
 
 def flag_for(parameter: str) -> str:
