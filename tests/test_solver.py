@@ -106,7 +106,7 @@ def test_track_yields_track_states(world):
     solver = startrack.Solver(catalog, cam, db)
     states = list(solver.track([img for _, img, _ in frames], dt_s=0.1))
     assert [type(s).__name__ for s in states] == ["TrackState"] * 6
-    assert states[0].mode == "lis" and states[-1].mode == "track"
+    assert states[0].mode == "lost-in-space" and states[-1].mode == "tracking"
     for (doc, _, _), state in zip(frames, states):
         assert state.attitude.status == "ok"
         assert _error_arcsec(state.attitude, doc["truth"]["quaternion"])[0] < 10
