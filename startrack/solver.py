@@ -293,7 +293,7 @@ class Solver:
             t = next(times) if times is not None else k * dt_s
             out = tracker.step(image, float(t), saturation)
             state = from_section(TrackState, out["track"], "track")
-            state.stars = StarTable.from_list(out["stars"]) if out.get("stars") else StarTable.empty()
+            state.star_table = StarTable.from_list(out["stars"]) if out.get("stars") else StarTable.empty()
             if out.get("identification") is not None:
                 state.identification = identification_record(out["identification"])
             state.attitude = from_section(Attitude, out["attitude"], "attitude")

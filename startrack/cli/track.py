@@ -111,7 +111,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     else:
         raise BadInputError("INPUT", None, "give one frame-document stream, or image files")
 
-    def process(doc, src, index, total):
+    def process(doc, src, index, total):  # noqa: ARG001 - the batch callback's signature
         cam = cam_override if cam_override is not None else (
             Camera.from_dict(doc["camera"], src) if "camera" in doc else None)
         if cam is None:

@@ -276,8 +276,8 @@ def to_frame(record) -> dict:
         return solve_result_to_frame(record)
     if isinstance(record, TrackState):
         out = {"track": to_section(record)}
-        if record.stars is not None:
-            out["stars"] = stars_to_section(record.stars)
+        if record.star_table is not None:
+            out["stars"] = stars_to_section(record.star_table)
         if record.identification is not None:
             out["identification"] = to_section(record.identification)
         if record.attitude is not None:
