@@ -360,7 +360,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
         return _fail(method, ReasonCode.BAD_INPUT, "non-finite star vectors or uncertainties", t0)
     if not (math.isfinite(gate) and gate > 0 and math.isfinite(max_variance_factor) and max_variance_factor >= 1):
-        raise BadInputError("--gate", None, f"must be a positive number, got {gate!r}")
+        raise ParameterError("gate", f"must be a positive number, got {gate!r}")
     b = b / np.linalg.norm(b, axis=1, keepdims=True)
     r = r / np.linalg.norm(r, axis=1, keepdims=True)
     stars = [s for s, _ in labels if s is not None]
