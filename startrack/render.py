@@ -470,14 +470,6 @@ MAX_FALSE_STARS = 100_000
 """Most false stars per frame render and evaluate accept (memory grows with the count)."""
 
 
-def numbered_path(path: str, index: int, total: int) -> str:
-    """``sky.png`` -> ``sky-0007.png`` when a run writes several images."""
-    if total <= 1:
-        return path
-    root, ext = os.path.splitext(path)
-    return f"{root}-{index:04d}{ext}"
-
-
 @dataclass
 class RenderRun:
     """Everything one ``render`` invocation needs; :meth:`frames` yields the results.

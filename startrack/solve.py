@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from startrack.errors import ParameterError
 
 __all__ = ["FOV_BANDS", "cache_dir", "band_database", "fov_hypotheses", "SolveOptions", "solve_image"]
 
@@ -79,14 +80,15 @@ def band_database(band: int, catalog=None, progress=None, which: int = 0, memo: 
         params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"}))
 
 
-def _cached(key, path, load, save, build):
-    """A database from memory, else from the cache file (when its catalog checksum matches), else built and saved."""
+def _cached(memo, key, path, load, save, build):
+    """A database from ``memo``, else from the cache file (when its catalog checksum matches), else built and saved."""
     from startrack.formats.hdf5 import cached_database
 
-    if key in _DB_MEMO:
-        return _DB_MEMO[key]
+    if memo is not None and key in memo:
+        return memo[key]
     db = cached_database(path, load, save, build, valid=lambda d: d.catalog_sha256 == key[-1])
-    _DB_MEMO[key] = db
+    if memo is not None:
+        memo[key] = db
     return db
 
 

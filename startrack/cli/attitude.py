@@ -1,8 +1,15 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
 import click
 
-from startrack.cli.options import (catalog_option, handle_errors, input_argument, jobs_option, output_option,
-                                   quiet_option, resume_option)
+from startrack.cli.options import (
+    catalog_option,
+    handle_errors,
+    input_argument,
+    jobs_option,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 @click.command("attitude", short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
@@ -81,7 +88,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             propagated[key] = found
         return found
 
-    def process(doc, source, index, total):
+    def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         ident = doc.get("identification")
         if not isinstance(ident, dict):
             raise BadInputError(source, "identification", "is missing: run startrack identify first")
@@ -148,7 +155,6 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             section["not_in_catalog"] = missing[:20]
         doc["attitude"] = section
         if result.status == "ok" and wcs_path:
-            from startrack.cli.paths import numbered_path
             from startrack.formats.atomic import atomic_path
             hdr = wcs_header(result.dcm, cam)
             path = wcs_names(index)

@@ -92,7 +92,7 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
 
     n_stars = [0]
 
-    def process(doc, source, index, total):
+    def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         path = (doc.get("image") or {}).get("path") if isinstance(doc.get("image"), dict) else None
         if not path or not isinstance(path, str):
             raise BadInputError(source, "image.path", "is missing: no image to centroid")

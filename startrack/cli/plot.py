@@ -36,7 +36,6 @@ def command(input, kind, output, mag_limit, title, quiet):
     from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import read_frames
-
     from startrack.imageio import check_plot_output
 
     check_plot_output(output)
