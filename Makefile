@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ST     := $(VENV)/bin/startrack
 OUT    ?= demo-output
 
-.PHONY: install demo test bench bench-blind bench-peers reproduce clean
+.PHONY: install demo test lint bench bench-blind bench-peers reproduce clean
 
 install: $(VENV)/.installed
 
@@ -44,7 +44,10 @@ demo: install
 	@echo "Outputs are in $(OUT)/.  Next: startrack --help"
 
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
+
+lint: install
+	$(VENV)/bin/ruff check startrack tests benchmarks
 
 bench-peers: install
 	$(PY) -m pip install --quiet -e '.[bench]'

@@ -169,7 +169,7 @@ def in_process(esa, cache_env, repeats=5):
                 out = solve_image(im, options=SolveOptions(), saturation=meta["saturation"], index=index)
                 ts.append((time.perf_counter() - t0) * 1000)
                 cpu.append((time.process_time() - c0) * 1000)
-                assert out["solve"]["status"] == "ok", out["solve"]
+                assert out.status == "ok", out.reason
             per.append(float(np.median(ts)))
             per_cpu.append(float(np.median(cpu)))
             if cs is not None:
@@ -182,7 +182,7 @@ def in_process(esa, cache_env, repeats=5):
         solve_image(im, options=SolveOptions(blind="labels"), saturation=meta["saturation"])
         t0 = time.process_time()
         out = solve_image(im, options=SolveOptions(blind="labels"), saturation=meta["saturation"])
-        labels.append(((time.process_time() - t0) * 1000, out["solve"]["status"]))
+        labels.append(((time.process_time() - t0) * 1000, str(out.status)))
     return per, per_cpu, cedar, labels
 
 

@@ -113,7 +113,6 @@ def speed_and_completeness(n_frames=12, seed=3):
 
     try:
         import sep  # noqa: F401
-
         from peers.sep_peer import extract as sep_extract
     except Exception as exc:  # noqa: BLE001
         sep_extract = None

@@ -16,7 +16,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def main(radius_px=2.0, n_brightest=20):
-    from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.imageio import read_image
@@ -31,11 +30,11 @@ def main(radius_px=2.0, n_brightest=20):
         stars = find_stars(img, CentroidOptions(), saturation=meta["saturation"]).stars
         sol = solve_image(img)
         name = os.path.basename(path)
-        if sol["solve"]["status"] != "ok":
-            print(f"| {name} | {len(stars)} | not solved: {sol['solve'].get('reason')} |")
+        if sol.status != "ok":
+            print(f"| {name} | {len(stars)} | not solved: {sol.reason} |")
             continue
-        cam = Camera.from_dict(sol["camera"])
-        cam_vec = vec @ np.asarray(sol["attitude"]["dcm"]).T
+        cam = sol.camera
+        cam_vec = vec @ sol.attitude.dcm.T
         front = cam_vec[:, 2] > 0.9
         px, py = cam.vectors_to_pixels(cam_vec[front])
         top = stars[:n_brightest]

@@ -190,7 +190,6 @@ def bench_attitude():
 
 def bench_track():
     import pipeline_bench as pb
-
     import track_bench
 
     track_ms, lis_ms, n = pb.tracking_speed()

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 from startrack.records import ReasonCode
 
 __all__ = [
@@ -224,7 +224,7 @@ _SOLVERS = {"quest": quest, "q-method": q_method, "svd": svd_solve, "foam": foam
 def solve_wahba(method: str, body, reference, weights=None):
     """Attitude matrix by ``method`` (one of :data:`METHODS`)."""
     if method not in _SOLVERS:
-        raise BadInputError("--method", None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        raise ParameterError("method", f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     return _SOLVERS[method](body, reference, weights)
 
 
@@ -360,7 +360,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
         return _fail(method, ReasonCode.BAD_INPUT, "non-finite star vectors or uncertainties", t0)
     if not (math.isfinite(gate) and gate > 0 and math.isfinite(max_variance_factor) and max_variance_factor >= 1):
-        raise BadInputError("--gate", None, f"must be a positive number, got {gate!r}")
+        raise ParameterError("gate", f"must be a positive number, got {gate!r}")
     b = b / np.linalg.norm(b, axis=1, keepdims=True)
     r = r / np.linalg.norm(r, axis=1, keepdims=True)
     stars = [s for s, _ in labels if s is not None]
@@ -422,7 +422,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     return out
 
 
-def wcs_header(dcm, camera, image_shape=None, sip_order: int = 5):
+def wcs_header(dcm, camera, sip_order: int = 5):
     """A FITS WCS (TAN, with SIP terms when the camera has distortion) for an attitude.
 
     Pixel ``(x, y)`` (0-based, ours) is FITS ``(x + 1, y + 1)``.  ``CRPIX`` is
@@ -436,12 +436,11 @@ def wcs_header(dcm, camera, image_shape=None, sip_order: int = 5):
     """
     from astropy.io import fits
 
-    from startrack.rotations import dcm_to_radec_roll
+    from startrack.rotations import dcm_to_radec_roll, east_north
 
     a = np.asarray(dcm, dtype=np.float64)
     ra, dec, _ = dcm_to_radec_roll(a)
-    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
-    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
+    east, north = east_north(ra, dec)
     k = math.degrees(1.0) / camera.focal_length_px
     cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
     hdr = fits.Header()

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_significant"]
 
@@ -135,7 +135,7 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
 
     fit = [p for p in PARAMS if p in set(fit)]
     if not fit:
-        raise BadInputError("--fit", None, f"choose among {', '.join(PARAMS)}")
+        raise ParameterError("fit", f"choose among {', '.join(PARAMS)}")
     frames = [(np.asarray(a, float), np.asarray(xy, float), np.asarray(r, float)) for a, xy, r in frames if len(xy) >= 3]
     n_obs = sum(len(xy) for _, xy, _ in frames)
     n_par = len(fit) + 3 * len(frames)

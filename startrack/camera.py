@@ -22,14 +22,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = ["Camera", "parse_size"]
 
 CAMERA_FORMAT = "startrack.camera/1"
 
 
-def parse_size(text: str, source: str = "--size") -> tuple[int, int]:
+def parse_size(text: str, source: str = "size") -> tuple[int, int]:
     """Parse ``"WIDTHxHEIGHT"`` (e.g. ``"1024x768"``) into positive integers."""
     parts = str(text).lower().replace("×", "x").split("x")
     try:
@@ -37,9 +37,9 @@ def parse_size(text: str, source: str = "--size") -> tuple[int, int]:
             raise ValueError
         width, height = int(parts[0]), int(parts[1])
     except ValueError:
-        raise BadInputError(source, None, f"expected WIDTHxHEIGHT such as 1024x768, got {text!r}") from None
+        raise ParameterError(source, f"expected WIDTHxHEIGHT such as 1024x768, got {text!r}") from None
     if width <= 0 or height <= 0:
-        raise BadInputError(source, None, f"width and height must be positive, got {text!r}")
+        raise ParameterError(source, f"width and height must be positive, got {text!r}")
     return width, height
 
 
@@ -52,6 +52,14 @@ def _finite(value, source, name, positive=False):
     if positive and value <= 0:
         raise BadInputError(source, name, f"must be positive, got {value:g}")
     return value
+
+
+def _parameter(value, name, source, positive=False):
+    """``value`` as a finite float, else :class:`ParameterError` naming the parameter ``name``."""
+    try:
+        return _finite(value, source, name, positive)
+    except BadInputError as exc:
+        raise ParameterError(name, exc.problem, source) from None
 
 
 @dataclass(frozen=True)
@@ -91,11 +99,11 @@ class Camera:
         The field spans the full pixel extent, ``width`` pixels, so
         ``f = (width / 2) / tan(fov / 2)``.
         """
-        fov_deg = _finite(fov_deg, "--fov-deg", None, positive=True)
+        fov_deg = _parameter(fov_deg, "fov_deg", "Camera.from_fov", positive=True)
         if not fov_deg < 180.0:
-            raise BadInputError("--fov-deg", None, f"must be below 180 degrees, got {fov_deg:g}")
+            raise ParameterError("fov_deg", f"must be below 180 degrees, got {fov_deg:g}", "Camera.from_fov")
         if width <= 0 or height <= 0:
-            raise BadInputError("--size", None, f"width and height must be positive, got {width}x{height}")
+            raise ParameterError("width", f"width and height must be positive, got {width}x{height}")
         f = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
         return cls(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0, **kw)
 
@@ -104,10 +112,10 @@ class Camera:
         cls, focal_length_mm: float, pixel_pitch_um: float, width: int, height: int, **kw
     ) -> "Camera":
         """A camera from its lens focal length (mm) and pixel pitch (um)."""
-        f_mm = _finite(focal_length_mm, "--focal-length-mm", None, positive=True)
-        pitch = _finite(pixel_pitch_um, "--pixel-pitch-um", None, positive=True)
+        f_mm = _parameter(focal_length_mm, "focal_length_mm", "Camera.from_focal_length_mm", positive=True)
+        pitch = _parameter(pixel_pitch_um, "pixel_pitch_um", "Camera.from_focal_length_mm", positive=True)
         if width <= 0 or height <= 0:
-            raise BadInputError("--size", None, f"width and height must be positive, got {width}x{height}")
+            raise ParameterError("width", f"width and height must be positive, got {width}x{height}")
         f = f_mm * 1000.0 / pitch
         return cls(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0,
                    pixel_pitch_um=pitch, **kw)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from startrack._version import __version__
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = [
     "CATALOG_FORMAT",
@@ -51,7 +51,7 @@ def default_catalog_path() -> str:
                       os.path.join(os.path.dirname(here), "catalogs", "hip2.h5")):
         if os.path.exists(candidate):
             return candidate
-    raise BadInputError("catalog", None, "the shipped catalog hip2.h5 was not found; give --catalog")
+    raise BadInputError("catalog", None, "the shipped catalog hip2.h5 was not found; give a catalog file")
 
 
 @dataclass
@@ -120,7 +120,7 @@ class Catalog:
     def filter_magnitude(self, mag_min: float | None = None, mag_max: float | None = None) -> "Catalog":
         """Stars with ``mag_min <= mag <= mag_max`` (paper 000 keeps 2.5 to 6.59)."""
         if mag_min is not None and mag_max is not None and mag_min > mag_max:
-            raise BadInputError("--mag-min", None, f"{mag_min:g} is larger than --mag-max {mag_max:g}")
+            raise ParameterError("mag_min", f"{mag_min:g} is larger than the faintest magnitude kept ({mag_max:g})")
         keep = np.ones(len(self), dtype=bool)
         if mag_min is not None:
             keep &= self.mag >= mag_min
@@ -140,16 +140,11 @@ class Catalog:
         back returns the same catalog.  Parallax and radial velocity are neglected
         (well under 1 mas per century for all but a handful of nearby stars).
         """
-        from startrack.rotations import radec_to_vector, vector_to_radec
+        from startrack.rotations import east_north, radec_to_vector, vector_to_radec
 
         if not math.isfinite(epoch):
-            raise BadInputError("--epoch", None, f"must be a finite decimal year, got {epoch}")
+            raise ParameterError("epoch", f"must be a finite decimal year, got {epoch}")
         dt = float(epoch) - float(self.epoch)
-
-        def east_north(ra, dec):
-            east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
-            north = np.stack([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)], axis=-1)
-            return east, north
 
         ra = np.radians(self.ra)
         dec = np.radians(self.dec)
@@ -194,7 +189,7 @@ class Catalog:
         from startrack.rotations import vector_to_radec
 
         if not radius_arcsec > 0:
-            raise BadInputError("--merge-arcsec", None, f"must be positive, got {radius_arcsec:g}")
+            raise ParameterError("radius_arcsec", f"must be positive, got {radius_arcsec:g}")
         first, second, _ = star_pairs(self, math.radians(radius_arcsec / 3600.0))
         out = self.subset(np.arange(len(self)))
         out.params["merge_arcsec"] = float(radius_arcsec)
@@ -253,9 +248,9 @@ class Catalog:
         ``round(360 cos(dec) / cell_deg)`` cells.
         """
         if per_cell < 1:
-            raise BadInputError("--uniform", None, f"must be at least 1, got {per_cell}")
+            raise ParameterError("per_cell", f"must be at least 1, got {per_cell}")
         if not 0 < cell_deg <= 90:
-            raise BadInputError("--cell-deg", None, f"must be in (0, 90], got {cell_deg:g}")
+            raise ParameterError("cell_deg", f"must be in (0, 90], got {cell_deg:g}")
         cell, _ = _cells(self.ra, self.dec, cell_deg)
         order = np.lexsort((self.id, self.mag, cell))
         sorted_cell = cell[order]
@@ -278,7 +273,7 @@ Two equal Gaussian images show no dip between them closer than 2 sigma, and
 def merge_radius_arcsec(camera, merge_px: float = DEFAULT_MERGE_PX) -> float:
     """The separation (arcsec) of ``merge_px`` pixels at the camera's centre pixel scale."""
     if not merge_px > 0:
-        raise BadInputError("--merge-px", None, f"must be positive, got {merge_px:g}")
+        raise ParameterError("merge_px", f"must be positive, got {merge_px:g}")
     return float(merge_px) * float(camera.pixel_scale_arcsec)
 
 
@@ -330,11 +325,11 @@ def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, sta
         ``uniform_cell_deg``, ``stars_per_field``, ``sky_fraction``.
     """
     if not stars_per_field >= 1:
-        raise BadInputError("--stars-per-field", None, f"must be at least 1, got {stars_per_field:g}")
+        raise ParameterError("stars_per_field", f"must be at least 1, got {stars_per_field:g}")
     if not 0 < sky_fraction <= 1:
-        raise BadInputError("--sky-fraction", None, f"must be in (0, 1], got {sky_fraction:g}")
+        raise ParameterError("sky_fraction", f"must be in (0, 1], got {sky_fraction:g}")
     if not (field_w_deg > 0 and field_h_deg > 0):
-        raise BadInputError("--fov-deg", None, "the field must have a positive size")
+        raise ParameterError("field_w_deg", "the field must have a positive size")
     cell = float(cell_deg) if cell_deg is not None else min(field_w_deg, field_h_deg) / 2.0
     cell = min(max(cell, 0.05), 90.0)
     per_cell = max(1, math.ceil(stars_per_field * cell * cell / (field_w_deg * field_h_deg)))
@@ -592,9 +587,9 @@ def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random
     from startrack.rotations import quaternion_to_dcm, random_quaternions
 
     if n_boresights < 1:
-        raise BadInputError("n_boresights", None, f"must be at least 1, got {n_boresights}")
+        raise ParameterError("n_boresights", f"must be at least 1, got {n_boresights}")
     if chunk < 1:
-        raise BadInputError("chunk", None, f"must be at least 1, got {chunk}")
+        raise ParameterError("chunk", f"must be at least 1, got {chunk}")
     vec = catalog.vectors()
     dec = np.arcsin(np.clip(vec[:, 2], -1, 1))
     order = np.argsort(dec, kind="stable")

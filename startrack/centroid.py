@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = ["CentroidOptions", "CentroidResult", "estimate_background", "find_stars", "centroid_windows", "METHODS"]
 
@@ -65,21 +65,21 @@ class CentroidOptions:
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise BadInputError("--method", None, f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
+            raise ParameterError("method", f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
         if self.background not in ("mesh", "global", "tophat"):
-            raise BadInputError("--background", None, "must be 'mesh', 'global' or 'tophat'")
+            raise ParameterError("background", "must be 'mesh', 'global' or 'tophat'")
         if self.tophat_px is not None and not self.tophat_px >= 1:
-            raise BadInputError("--tophat-px", None, f"must be at least 1, got {self.tophat_px}")
+            raise ParameterError("tophat_px", f"must be at least 1, got {self.tophat_px}")
         if not self.threshold_sigma > 0:
-            raise BadInputError("--threshold-sigma", None, f"must be positive, got {self.threshold_sigma}")
+            raise ParameterError("threshold_sigma", f"must be positive, got {self.threshold_sigma}")
         if self.threshold_dn is not None and not self.threshold_dn > 0:
-            raise BadInputError("--threshold-dn", None, f"must be positive, got {self.threshold_dn}")
+            raise ParameterError("threshold_dn", f"must be positive, got {self.threshold_dn}")
         if self.mesh_px < 8:
-            raise BadInputError("--mesh-px", None, f"must be at least 8, got {self.mesh_px}")
+            raise ParameterError("mesh_px", f"must be at least 8, got {self.mesh_px}")
         if self.min_pixels < 1 or self.max_pixels < self.min_pixels:
-            raise BadInputError("--min-pixels", None, "need 1 <= --min-pixels <= --max-pixels")
+            raise ParameterError("min_pixels", f"must be from 1 to the largest blob size ({self.max_pixels}), got {self.min_pixels}")
         if self.max_stars is not None and self.max_stars < 1:
-            raise BadInputError("--max-stars", None, f"must be at least 1, got {self.max_stars}")
+            raise ParameterError("max_stars", f"must be at least 1, got {self.max_stars}")
 
 
 @dataclass
@@ -115,8 +115,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     """Background level and noise on a coarse mesh, and their global values (DN).
 
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
-    arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``),
-    and :func:`expand_mesh` interpolates them to full size.
+    arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``).
     """
     from startrack._kernels.centroid import _clipped_stats, background_mesh
 
@@ -159,17 +158,6 @@ def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, kernel)
     return np.ascontiguousarray(img - opened, dtype=np.float32)
-
-
-def expand_mesh(mesh, shape, cell):
-    """Bilinear interpolation of a tile mesh to a full-size float32 map."""
-    import cv2
-
-    h, w = shape
-    if mesh.shape == (1, 1):
-        return np.full(shape, float(mesh[0, 0]), dtype=np.float32)
-    ny, nx = mesh.shape
-    return cv2.resize(mesh.astype(np.float32), (nx * cell, ny * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
 
 
 def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_ratio=0.7):
@@ -506,7 +494,7 @@ def centroid_windows(image: np.ndarray, centres, half_size: int, options: Centro
     img = np.asarray(image, dtype=np.float32)
     h, w = img.shape
     out = []
-    for k, (px, py) in enumerate(np.asarray(centres, dtype=np.float64).reshape(-1, 2)):
+    for px, py in np.asarray(centres, dtype=np.float64).reshape(-1, 2):
         if not (np.isfinite(px) and np.isfinite(py)):
             out.append(None)
             continue

@@ -3,8 +3,14 @@
 Library code raises these and never exits or prints.  The command line turns
 :class:`BadInputError` into exit status 2 and every other
 :class:`StartrackError` into exit status 1, each as a single line.
+
+Library code names *parameters* (``fov_deg``), never command-line flags: a
+bad argument raises :class:`ParameterError`, whose ``field`` is the parameter's
+name, and the command line maps that name to its flag.
 """
 from __future__ import annotations
+
+__all__ = ["BadInputError", "DatabaseMismatchError", "ParameterError", "StartrackError"]
 
 
 class StartrackError(Exception):
@@ -19,9 +25,9 @@ class BadInputError(StartrackError, ValueError):
     Parameters
     ----------
     source : str
-        What was read: a file path, ``<stdin>`` or an option name.
+        What was read: a file path, ``<stdin>``, or the function given a bad argument.
     field : str or None
-        The field or option at fault, e.g. ``camera.focal_length_px``.
+        The field or parameter at fault, e.g. ``camera.focal_length_px`` or ``fov_deg``.
     problem : str
         What is wrong with it, in a few words.
     """
@@ -32,13 +38,30 @@ class BadInputError(StartrackError, ValueError):
         self.source = str(source)
         self.field = field
         self.problem = problem
-        where = self.source if field is None else f"{self.source}: {field}"
+        where = self.source if field is None else (f"{self.source}: {field}" if self.source else field)
         super().__init__(f"{where}: {problem}")
+
+
+class ParameterError(BadInputError):
+    """A bad argument of a library function: ``field`` is the parameter's name.
+
+    Parameters
+    ----------
+    parameter : str
+        The parameter's name as the function spells it (``fov_deg``).
+    problem : str
+        What is wrong with it, e.g. ``must be positive, got -1``.
+    source : str, optional
+        The function or object (``Camera.from_fov``); default none.
+    """
+
+    def __init__(self, parameter: str, problem: str, source: str = ""):
+        super().__init__(source, parameter, problem)
+
+    @property
+    def parameter(self) -> str:
+        return self.field
 
 
 class DatabaseMismatchError(BadInputError):
     """A database built for another catalog, field of view or camera."""
-
-
-class SolveError(StartrackError):
-    """A computation that could not produce a result (not a bad input)."""

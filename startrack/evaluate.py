@@ -21,9 +21,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
-__all__ = ["Condition", "conditions_grid", "make_frames", "score", "evaluate", "summarise", "plot_results"]
+__all__ = ["Condition", "conditions_grid", "make_frames", "score", "evaluate", "summarise"]
 
 
 @dataclass(frozen=True)
@@ -154,9 +154,9 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
 
     for a in algorithms:
         if a not in DATABASE_KIND:
-            raise BadInputError("--algorithms", None, f"unknown algorithm {a!r}")
+            raise ParameterError("algorithms", f"unknown algorithm {a!r}")
         if DATABASE_KIND[a] not in databases:
-            raise BadInputError("--database", None, f"{a} needs a {DATABASE_KIND[a]} database")
+            raise ParameterError("database", f"{a} needs a {DATABASE_KIND[a]} database")
     params = params or IdentifyParams()
     if scheduler is not None:
         return _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params,
@@ -297,43 +297,3 @@ def summarise(rows) -> str:
     lines = ["  ".join(h.ljust(w) for h, w in zip(headers, widths)), "  ".join("-" * w for w in widths)]
     lines += ["  ".join(c.ljust(w) for c, w in zip(b, widths)) for b in body]
     return "\n".join(lines)
-
-
-def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -> str:
-    """Success rate and median time against the swept condition, one line per algorithm (matplotlib)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise BadInputError("--plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
-    from startrack.formats.atomic import atomic_path
-
-    fields = ["false_stars", "focal_error_pct", "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
-    if x_field is None:
-        x_field = next((f for f in fields if len({r[f] for r in rows}) > 1), "false_stars")
-    names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
-             "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
-             "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
-    for algorithm in dict.fromkeys(r["algorithm"] for r in rows):
-        sub = sorted((r for r in rows if r["algorithm"] == algorithm), key=lambda r: r[x_field])
-        xs = [r[x_field] for r in sub]
-        ax1.plot(xs, [100 * r["success_rate"] for r in sub], marker="o", label=algorithm)
-        ax2.plot(xs, [r["median_ms"] for r in sub], marker="o", label=algorithm)
-    ax1.set_xlabel(names.get(x_field, x_field))
-    ax1.set_ylabel("success rate (%)")
-    ax1.grid(alpha=0.3)
-    ax1.legend(fontsize=8)
-    ax2.set_xlabel(names.get(x_field, x_field))
-    ax2.set_ylabel("median identification time (ms)")
-    ax2.set_yscale("log")
-    ax2.grid(alpha=0.3, which="both")
-    n = rows[0]["frames"] if rows else 0
-    fig.suptitle(title or f"{n} random attitudes per point")
-    fig.tight_layout()
-    with atomic_path(path, suffix=os.path.splitext(path)[1] or ".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError, DatabaseMismatchError
+from startrack.errors import BadInputError, DatabaseMismatchError, ParameterError
 
 __all__ = ["KVECTOR_FORMAT", "KVectorDatabase", "build_kvector", "load_kvector", "check_database",
            "max_separation_deg", "choose_database_stars", "DEFAULT_MAX_PAIRS", "DEFAULT_STARS_PER_FIELD"]
@@ -37,7 +37,7 @@ def max_separation_deg(fov_deg: float | None = None, camera=None, margin_deg: fl
         diag = camera.diagonal_fov_deg
     else:
         if fov_deg is None or not fov_deg > 0:
-            raise BadInputError("--fov-deg", None, f"must be positive, got {fov_deg}")
+            raise ParameterError("fov_deg", f"must be positive, got {fov_deg}")
         # A square field of side fov: diagonal 2 atan(sqrt(2) tan(fov/2)).
         diag = math.degrees(2 * math.atan(math.sqrt(2) * math.tan(math.radians(fov_deg) / 2)))
     return diag + margin_deg
@@ -171,9 +171,9 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
     from startrack.catalog import star_pairs
 
     if len(catalog) < 2:
-        raise BadInputError("--catalog", None, f"needs at least 2 stars after filtering, has {len(catalog)}")
+        raise ParameterError("catalog", f"needs at least 2 stars after filtering, has {len(catalog)}")
     if not 0 < max_angle_deg <= 180:
-        raise BadInputError("--fov-deg", None, f"largest separation must be in (0, 180] deg, got {max_angle_deg:g}")
+        raise ParameterError("max_angle_deg", f"largest separation must be in (0, 180] deg, got {max_angle_deg:g}")
     t0 = time.perf_counter()
     cat = catalog.sorted_by_magnitude()
     vec = np.ascontiguousarray(cat.vectors())
@@ -187,7 +187,7 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
     if progress:
         progress(1, 3)
     if len(pair_cos) == 0:
-        raise BadInputError("--fov-deg", None, "no star pair is that close: the database would be empty")
+        raise ParameterError("max_angle_deg", "no star pair is that close: the database would be empty")
     kvec, line = _kvector_line(pair_cos)
     quad = _quadratic_fit(pair_cos)
     kquad, coeffs = (quad if quad is not None else (kvec.copy(), (0.0, line[0], line[1])))
@@ -256,7 +256,7 @@ def choose_database_stars(catalog, field_w_deg: float, field_h_deg: float, max_a
     from startrack.catalog import thin_for_field
 
     if not max_pairs >= 1:
-        raise BadInputError("--max-pairs", None, f"must be at least 1, got {max_pairs}")
+        raise ParameterError("max_pairs", f"must be at least 1, got {max_pairs}")
     cap = (1.0 - math.cos(math.radians(max_angle_deg))) / 4.0
     want = float(stars_per_field)
     spf = want
@@ -327,7 +327,7 @@ def check_database(db, camera=None, catalog=None, tolerance: float = 0.5) -> Non
         if need > have + 1e-9:
             raise DatabaseMismatchError(name, "max_angle_deg",
                                         f"built for separations up to {have:.2f} deg, but the camera's diagonal "
-                                        f"field is {need:.2f} deg: rebuild with the camera's --fov-deg")
+                                        f"field is {need:.2f} deg: rebuild it for the camera's field of view")
         if need < tolerance * have:
             raise DatabaseMismatchError(name, "max_angle_deg",
                                         f"built for a field of {have:.2f} deg but the camera's diagonal is "

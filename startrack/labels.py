@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.errors import BadInputError, DatabaseMismatchError
+from startrack.errors import BadInputError, DatabaseMismatchError, ParameterError
 
 __all__ = ["LABELS_FORMAT", "LabelDatabase", "build_labels", "load_labels", "save_labels", "label_from_distances",
            "sweep_boresights"]
@@ -115,18 +115,18 @@ def build_labels(catalog, fov_deg: float, stars_per_field: int = 8, group_size: 
     from startrack._kernels.database import label_sweep
 
     if not 0 < fov_deg <= 90:
-        raise BadInputError("--fov-deg", None, f"must be in (0, 90], got {fov_deg:g}")
+        raise ParameterError("fov_deg", f"must be in (0, 90], got {fov_deg:g}")
     if not 2 <= group_size <= stars_per_field:
-        raise BadInputError("--group-size", None, f"need 2 <= group size <= stars per field, got {group_size}")
+        raise ParameterError("group_size", f"need 2 <= group size <= stars per field, got {group_size}")
     if group_size * (group_size - 1) // 2 - 1 > 9 or scale_digits < 1 or \
             (group_size * (group_size - 1) // 2 - 1) * scale_digits > 18:
-        raise BadInputError("--scale-digits", None, "the label would not fit in 64 bits: use fewer digits or a smaller group")
+        raise ParameterError("scale_digits", "the label would not fit in 64 bits: use fewer digits or a smaller group")
     if not MIN_STEP_DEG <= step_deg <= 30:
         n = 41253.0 / step_deg ** 2 if step_deg > 0 else float("inf")
-        raise BadInputError("--step-deg", None, f"must be in [{MIN_STEP_DEG:g}, 30], got {step_deg:g}"
+        raise ParameterError("step_deg", f"must be in [{MIN_STEP_DEG:g}, 30], got {step_deg:g}"
                             + (f" (it would sweep {n:.3g} boresights)" if step_deg < MIN_STEP_DEG else ""))
     if len(catalog) < stars_per_field:
-        raise BadInputError("--catalog", None, f"has {len(catalog)} stars, fewer than --stars-per-field {stars_per_field}")
+        raise ParameterError("catalog", f"has {len(catalog)} stars, fewer than the {stars_per_field} stars per field")
     t0 = time.perf_counter()
     cat = catalog.sorted_by_magnitude()
     vec = np.ascontiguousarray(cat.vectors())
@@ -147,7 +147,7 @@ def build_labels(catalog, fov_deg: float, stars_per_field: int = 8, group_size: 
     labels = np.concatenate(labels)
     members = np.concatenate(members)
     if len(labels) == 0:
-        raise BadInputError("--catalog", None, f"no field holds {stars_per_field} stars: use a fainter catalog or wider FOV")
+        raise ParameterError("catalog", f"no field holds {stars_per_field} stars: use a fainter catalog or wider FOV")
     raw = len(labels)
     # Remove duplicate groups: the same stars, whatever order they were found in.
     key_sorted = np.sort(members, axis=1).astype(np.int64)
@@ -222,6 +222,6 @@ def check_labels(db: LabelDatabase, camera=None, catalog=None, tolerance: float 
         fov = max(camera.fov_deg)
         if abs(fov - db.fov_deg) > tolerance * db.fov_deg:
             raise DatabaseMismatchError(name, "fov_deg", f"built for a {db.fov_deg:g} deg field, the camera's is "
-                                        f"{fov:.2f} deg: rebuild with --fov-deg {fov:.1f}")
+                                        f"{fov:.2f} deg: rebuild it for a {fov:.1f} deg field")
     if catalog is not None and catalog.checksum() != db.catalog_sha256:
         raise DatabaseMismatchError(name, "catalog_sha256", "was built from another catalog: rebuild the database")

@@ -244,9 +244,9 @@ def _figure(**kwargs):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError:
-        from startrack.errors import BadInputError
+        from startrack.errors import ParameterError
 
-        raise BadInputError("plot", None, "needs matplotlib: pip install 'startrack[plot]'") from None
+        raise ParameterError("plot", "needs matplotlib: pip install 'startrack[plot]'") from None
     fig = Figure(**kwargs)
     FigureCanvasAgg(fig)
     return fig
@@ -270,9 +270,9 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     """
     import math
 
-    from startrack.rotations import attitude_error, quaternion_to_dcm
-
     from matplotlib.ticker import MaxNLocator
+
+    from startrack.rotations import attitude_error, quaternion_to_dcm
 
     rows = []
     for k, d in enumerate(docs):
@@ -445,15 +445,56 @@ def _catalog_at_epoch(catalog, att: dict):
 
 def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     """Image-plane unit directions of celestial north and east at the image centre."""
+    from startrack.rotations import east_north
+
     centre = cam.pixels_to_vectors(np.array([(cam.width - 1) / 2.0]), np.array([(cam.height - 1) / 2.0]))[0]
     inertial = a.T @ centre
     ra = math.atan2(inertial[1], inertial[0])
     dec = math.asin(max(-1.0, min(1.0, inertial[2])))
-    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
-    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
+    east, north = east_north(ra, dec)
     x0, y0 = cam.vectors_to_pixels(centre)
     out = []
     for d in (north, east):
         x1, y1 = cam.vectors_to_pixels(a @ (inertial + 1e-3 * d))
         out.append(np.array([float(x1 - x0), float(y1 - y0)]))
     return out[0], out[1]
+
+
+def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -> str:
+    """Success rate and median time against the swept condition, one line per algorithm.
+
+    Parameters
+    ----------
+    rows : list of dict
+        :func:`startrack.evaluate.summarise` rows (``algorithm``, ``success_rate``, ``median_ms``, conditions).
+    path : str
+        The PNG to write (atomically).
+    x_field : str, optional
+        The swept condition (default: the first that varies).
+    """
+    fields = ["false_stars", "focal_error_pct", "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
+    if x_field is None:
+        x_field = next((f for f in fields if len({r[f] for r in rows}) > 1), "false_stars")
+    names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
+             "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
+             "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
+    fig = _figure(figsize=(11, 4.2), dpi=110)
+    ax1, ax2 = fig.subplots(1, 2)
+    for algorithm in dict.fromkeys(r["algorithm"] for r in rows):
+        sub = sorted((r for r in rows if r["algorithm"] == algorithm), key=lambda r: r[x_field])
+        xs = [r[x_field] for r in sub]
+        ax1.plot(xs, [100 * r["success_rate"] for r in sub], marker="o", label=algorithm)
+        ax2.plot(xs, [r["median_ms"] for r in sub], marker="o", label=algorithm)
+    ax1.set_xlabel(names.get(x_field, x_field))
+    ax1.set_ylabel("success rate (%)")
+    ax1.grid(alpha=0.3)
+    ax1.legend(fontsize=8)
+    ax2.set_xlabel(names.get(x_field, x_field))
+    ax2.set_ylabel("median identification time (ms)")
+    ax2.set_yscale("log")
+    ax2.grid(alpha=0.3, which="both")
+    n = rows[0]["frames"] if rows else 0
+    fig.suptitle(title or f"{n} random attitudes per point")
+    fig.tight_layout()
+    _save(fig, path)
+    return path

@@ -1,48 +1,51 @@
-"""A small progress bar on stderr, silent when stderr is not a terminal.
+"""Progress bars on stderr (tqdm), for long commands.
 
 Library functions take an optional ``progress`` callable ``progress(done, total)``;
-commands pass a :class:`ProgressBar`.  Nothing here imports click.
+commands pass a :class:`ProgressBar`.  A bar is drawn only when stderr is a
+terminal and the command is not ``--quiet``: a log file or a pipe gets no
+progress lines, and errors are never hidden.  Nothing here imports click.
 """
 from __future__ import annotations
 
 import sys
-import time
 
 __all__ = ["ProgressBar"]
 
 
 class ProgressBar:
-    """``ProgressBar(label, quiet)(done, total)`` redraws at most ten times a second."""
+    """``ProgressBar(label, quiet)(done, total)``: a tqdm bar driven by ``(done, total)`` calls.
+
+    Parameters
+    ----------
+    label : str
+        Shown before the bar (the command's name).
+    quiet : bool
+        No bar at all.
+    stream : file, optional
+        Where to draw (default stderr); a bar is drawn only when it is a terminal.
+    """
 
     def __init__(self, label: str, quiet: bool = False, stream=None):
         self.stream = stream or sys.stderr
         self.enabled = not quiet and hasattr(self.stream, "isatty") and self.stream.isatty()
         self.label = label
-        self.start = time.monotonic()
-        self._last = 0.0
-        self._drawn = False
+        self._bar = None
 
     def __call__(self, done: int, total: int) -> None:
         if not self.enabled:
             return
-        now = time.monotonic()
-        if done < total and now - self._last < 0.1:
-            return
-        self._last = now
-        frac = done / total if total else 1.0
-        width = 30
-        filled = int(round(width * frac))
-        elapsed = now - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else 0.0
-        self.stream.write(f"\r{self.label} [{'#' * filled}{'-' * (width - filled)}] "
-                          f"{done}/{total} {elapsed:5.1f}s eta {eta:5.1f}s")
-        self.stream.flush()
-        self._drawn = True
+        if self._bar is None:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=self.label, file=self.stream, unit="", leave=True,
+                             dynamic_ncols=True, mininterval=0.1)
+        if total != self._bar.total:
+            self._bar.total = total
+        self._bar.update(done - self._bar.n)
         if done >= total:
             self.close()
 
     def close(self) -> None:
-        if self.enabled and self._drawn:
-            self.stream.write("\n")
-            self.stream.flush()
-            self._drawn = False
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

@@ -363,6 +363,10 @@ class TrackState:
     empirical_stars: int | None = schema_field(kind="int", doc="empirical stars used (single-star mode, paper 001 Case 2)")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
     details: dict = schema_field(kind="object", factory=dict, doc="other fields")
+    # Not part of the ``track`` section: the frame's other sections (:meth:`startrack.Solver.track`).
+    star_table: StarTable | None = field(default=None, metadata={"section": "stars"})
+    identification: Identification | None = field(default=None, metadata={"section": "identification"})
+    attitude: Attitude | None = field(default=None, metadata={"section": "attitude"})
 
 
 @dataclass
@@ -370,7 +374,7 @@ class SolveResult:
     """Everything :meth:`startrack.Solver.solve` learnt about one image.
 
     Written as the frame sections ``camera``, ``stars``, ``centroid``,
-    ``identification``, ``attitude`` and ``solve`` (:meth:`to_frame`).
+    ``identification``, ``attitude`` and ``solve`` (:func:`startrack.to_frame`).
     ``status`` is ``ok`` only when the attitude is; otherwise ``reason`` and
     ``reason_code`` say why.  ``ra``/``dec`` of ``attitude`` are the boresight's
     (the principal point); ``center_ra``/``center_dec`` are the image centre's.
@@ -397,9 +401,3 @@ class SolveResult:
     @property
     def ok(self) -> bool:
         return self.status == Status.OK
-
-    def to_frame(self) -> dict:
-        """The frame sections this result fills (``camera``, ``stars``, ..., ``solve``)."""
-        from startrack.formats.sections import solve_result_to_frame
-
-        return solve_result_to_frame(self)

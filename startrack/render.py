@@ -22,16 +22,21 @@ The renderer is the project's test oracle, so it is physically honest:
 """
 from __future__ import annotations
 
+import functools
 import math
-import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from startrack.camera import Camera
-from startrack.errors import BadInputError
-from startrack.rotations import (dcm_to_quaternion, dcm_to_radec_roll, quaternion_multiply,
-                                 quaternion_to_dcm, radec_to_vector, rotation_vector)
+from startrack.errors import ParameterError
+from startrack.rotations import (
+    dcm_to_quaternion,
+    dcm_to_radec_roll,
+    propagate_attitude,
+    quaternion_to_dcm,
+    rotation_vector,
+)
 
 __all__ = [
     "Sensor",
@@ -40,7 +45,6 @@ __all__ = [
     "project_stars",
     "render_image",
     "star_list",
-    "propagate_attitude",
     "background_dn_cdf",
 ]
 
@@ -82,11 +86,11 @@ class Sensor:
         for name, ok in checks.items():
             value = getattr(self, name)
             if not ok or not math.isfinite(float(value)):
-                raise BadInputError("--" + name.replace("_", "-"), None, f"invalid value {value!r}")
+                raise ParameterError(name, f"invalid value {value!r}")
         if self.bit_depth not in (8, 12, 16):
-            raise BadInputError("--bit-depth", None, f"must be 8, 12 or 16, got {self.bit_depth}")
+            raise ParameterError("bit_depth", f"must be 8, 12 or 16, got {self.bit_depth}")
         if self.gain_e_per_dn is not None and not self.gain_e_per_dn > 0:
-            raise BadInputError("--gain-e-per-dn", None, f"must be positive, got {self.gain_e_per_dn}")
+            raise ParameterError("gain_e_per_dn", f"must be positive, got {self.gain_e_per_dn}")
 
     @property
     def max_dn(self) -> int:
@@ -142,13 +146,13 @@ class Scene:
 
     def __post_init__(self):
         if not self.mag_noise >= 0:
-            raise BadInputError("--mag-noise", None, f"must be >= 0, got {self.mag_noise}")
+            raise ParameterError("mag_noise", f"must be >= 0, got {self.mag_noise}")
         if self.false_stars < 0:
-            raise BadInputError("--false-stars", None, f"must be >= 0, got {self.false_stars}")
+            raise ParameterError("false_stars", f"must be >= 0, got {self.false_stars}")
         if not -50 < self.focal_error_pct < 50:
-            raise BadInputError("--focal-error-pct", None, f"must be within +-50, got {self.focal_error_pct}")
+            raise ParameterError("focal_error_pct", f"must be within +-50, got {self.focal_error_pct}")
         if len(self.rate_deg_s) != 3 or not all(math.isfinite(v) for v in self.rate_deg_s):
-            raise BadInputError("--rate-deg-s", None, "must be three finite numbers wx,wy,wz")
+            raise ParameterError("rate_deg_s", "must be three finite numbers wx,wy,wz")
 
 
 def electrons_from_magnitude(mag, sensor: Sensor):
@@ -158,22 +162,6 @@ def electrons_from_magnitude(mag, sensor: Sensor):
     star; 2.512 is ``100^(1/5)`` exactly here.
     """
     return sensor.zero_point_e_per_s * sensor.exposure_s * 10.0 ** (-0.4 * np.asarray(mag, dtype=np.float64))
-
-
-def propagate_attitude(dcm, rate_rad_s, dt):
-    """Attitude after ``dt`` seconds at constant body rate ``rate_rad_s`` (camera frame).
-
-    ``A(t) = exp(-[w x] t) A(0)``: the camera turns by ``w t`` about the
-    body-frame axis ``w``, so fixed stars appear to turn the other way.
-    """
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * dt
-    if angle == 0.0:
-        return np.array(dcm, dtype=np.float64)
-    axis = w / np.linalg.norm(w)
-    # Quaternion of a passive rotation by `angle` about `axis` (A = I - [phi x] + ...).
-    dq = np.concatenate([axis * math.sin(angle / 2.0), [math.cos(angle / 2.0)]])
-    return quaternion_to_dcm(quaternion_multiply(dq, dcm_to_quaternion(dcm)))
 
 
 def project_stars(vectors, dcm, camera: Camera, margin_px: float = 0.0):
@@ -234,27 +222,29 @@ def _erf(z):
     return flat.reshape(z.shape)
 
 
-_CDF_CACHE: dict = {}
-_PRNU_CACHE: dict = {}
-
-
+@functools.lru_cache(maxsize=1)
 def _prnu_map(height, width, prnu):
-    """The sensor's fixed-pattern gain map: the same sensor every frame (seeded by its size)."""
-    key = (height, width, prnu)
-    if key not in _PRNU_CACHE:
-        rng = np.random.default_rng([height, width, 0x5052_4E55])
-        _PRNU_CACHE.clear()
-        _PRNU_CACHE[key] = np.ascontiguousarray(1.0 + prnu * rng.standard_normal((height, width)))
-    return _PRNU_CACHE[key]
+    """The sensor's fixed-pattern gain map: the same sensor every frame (seeded by its size).
+
+    Memoised by value (a pure function of its arguments): a run renders every frame with one sensor.
+    """
+    rng = np.random.default_rng([height, width, 0x5052_4E55])
+    out = np.ascontiguousarray(1.0 + prnu * rng.standard_normal((height, width)))
+    return out
 
 
 def _background_table(sensor: Sensor):
-    key = (sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
-    if key not in _CDF_CACHE:
-        cdf, lo = background_dn_cdf(sensor)
-        _CDF_CACHE.clear()
-        _CDF_CACHE[key] = (cdf, _guide_table(cdf), lo)
-    return _CDF_CACHE[key]
+    return _background_table_of(sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
+
+
+@functools.lru_cache(maxsize=1)
+def _background_table_of(background_e, gain, bias, read_noise_e):
+    """Memoised by value: the background table of the sensor's four noise parameters."""
+    from types import SimpleNamespace
+
+    cdf, lo = background_dn_cdf(SimpleNamespace(background_e=background_e, gain=gain, bias=bias,
+                                                read_noise_e=read_noise_e))
+    return cdf, _guide_table(cdf), lo
 
 
 def _trail_positions(vectors, dcm, camera, rate_rad_s, exposure_s, sigma):
@@ -471,10 +461,6 @@ def attitude_rate_check(dcm_a, dcm_b, dt):
     return rotation_vector(delta) / dt
 
 
-def boresight_vector(ra_deg, dec_deg):
-    return radec_to_vector(math.radians(ra_deg), math.radians(dec_deg))
-
-
 def frame_seed(seed: int, index: int) -> int:
     """The seed of frame ``index`` of a run seeded ``seed`` (recorded in each document)."""
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
@@ -482,14 +468,6 @@ def frame_seed(seed: int, index: int) -> int:
 
 MAX_FALSE_STARS = 100_000
 """Most false stars per frame render and evaluate accept (memory grows with the count)."""
-
-
-def numbered_path(path: str, index: int, total: int) -> str:
-    """``sky.png`` -> ``sky-0007.png`` when a run writes several images."""
-    if total <= 1:
-        return path
-    root, ext = os.path.splitext(path)
-    return f"{root}-{index:04d}{ext}"
 
 
 @dataclass
@@ -518,7 +496,7 @@ class RenderRun:
     sigma_px: float = 0.0
     max_stars: int | None = None
     drop_fraction: float = 0.0
-    image_path: str | None = None
+    image_path: object = None      # image_path(frame index) -> file name, or None (no image files)
     first_seed: int | None = None
     params: dict = field(default_factory=dict)
     blackout: tuple = ()
@@ -539,7 +517,7 @@ class RenderRun:
         rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
         start = self.start_time if self.start_time is not None else epoch_time(self.catalog.epoch)
         index = 0
-        for c in range(self.count):
+        for _ in range(self.count):
             base = None
             for k in range(self.frames):
                 seed_k = self.first_seed if (self.first_seed is not None and self.total == 1) else frame_seed(self.seed, index)
@@ -569,7 +547,7 @@ class RenderRun:
                                                 vectors=None if k in self.blackout else vectors)
                     if k in self.blackout:
                         truth["blackout"] = True
-                    path = numbered_path(self.image_path, index, self.total) if self.image_path else None
+                    path = self.image_path(index) if self.image_path else None
                     if path:
                         image_doc["path"] = path
                     image_doc["bit_depth"] = self.sensor.bit_depth

@@ -25,6 +25,8 @@ array has shape ``(..., 4)`` and a DCM array ``(..., 3, 3)``.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -39,6 +41,8 @@ __all__ = [
     "dcm_to_euler123",
     "elementary_rotation",
     "random_quaternions",
+    "propagate_attitude",
+    "east_north",
     "radec_to_vector",
     "vector_to_radec",
     "rotation_vector",
@@ -194,7 +198,17 @@ def vector_to_radec(v):
     return ra, dec
 
 
-def _east_north(ra, dec):
+def east_north(ra, dec):
+    """Unit vectors of local east and north (ICRS) at right ascension ``ra`` and declination ``dec`` (radians).
+
+    ``east = (-sin a, cos a, 0)`` and ``north = (-sin d cos a, -sin d sin a, cos d)``,
+    the derivatives of the unit vector (paper 000 Eq. 14) along ``a`` (divided by
+    ``cos d``) and ``d``.
+
+    Returns
+    -------
+    east, north : ndarray, shape (..., 3)
+    """
     ra = np.asarray(ra, dtype=np.float64)
     dec = np.asarray(dec, dtype=np.float64)
     east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
@@ -211,7 +225,7 @@ def radec_roll_to_dcm(ra, dec, roll):
     ``+z`` (boresight) in ICRS.  With ``roll = 0`` image up is north and image
     left is east; ``roll`` turns image up from north toward east.
     """
-    east, north = _east_north(ra, dec)
+    east, north = east_north(ra, dec)
     bore = radec_to_vector(ra, dec)
     roll = np.asarray(roll, dtype=np.float64)[..., None]
     c, s = np.cos(roll), np.sin(roll)
@@ -230,7 +244,7 @@ def dcm_to_radec_roll(dcm):
     a = np.asarray(dcm, dtype=np.float64)
     bore = a[..., 2, :]
     ra, dec = vector_to_radec(bore)
-    east, north = _east_north(ra, dec)
+    east, north = east_north(ra, dec)
     up = -a[..., 1, :]
     roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
     return ra, dec, roll
@@ -260,6 +274,22 @@ def dcm_to_euler123(dcm):
     rest = a @ np.swapaxes(elementary_rotation(2, pitch) @ elementary_rotation(1, yaw), -1, -2)
     roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
     return yaw, pitch, roll
+
+
+def propagate_attitude(dcm, rate_rad_s, dt):
+    """Attitude after ``dt`` seconds at constant body rate ``rate_rad_s`` (camera frame).
+
+    ``A(t) = exp(-[w x] t) A(0)``: the camera turns by ``w t`` about the
+    body-frame axis ``w``, so fixed stars appear to turn the other way.
+    """
+    w = np.asarray(rate_rad_s, dtype=np.float64)
+    angle = float(np.linalg.norm(w)) * dt
+    if angle == 0.0:
+        return np.array(dcm, dtype=np.float64)
+    axis = w / np.linalg.norm(w)
+    # Quaternion of a passive rotation by `angle` about `axis` (A = I - [phi x] + ...).
+    dq = np.concatenate([axis * math.sin(angle / 2.0), [math.cos(angle / 2.0)]])
+    return quaternion_to_dcm(quaternion_multiply(dq, dcm_to_quaternion(dcm)))
 
 
 def random_quaternions(n: int, rng: np.random.Generator):

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from startrack.errors import ParameterError
 
 __all__ = ["FOV_BANDS", "cache_dir", "band_database", "fov_hypotheses", "SolveOptions", "solve_image"]
 
@@ -37,17 +38,33 @@ FOV_BANDS = ((4.0, 9.0, (6.5,), 6.5, (6.5,)), (9.0, 13.0, (6.5, 6.0), 6.0, (12.7
 
 
 def cache_dir() -> str:
-    path = os.environ.get("STARTRACK_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "startrack")
+    """The directory of cached databases: ``$STARTRACK_CACHE``, else the user cache directory (platformdirs)."""
+    path = os.environ.get("STARTRACK_CACHE")
+    if not path:
+        import platformdirs
+
+        path = platformdirs.user_cache_dir("startrack", appauthor=False)
     os.makedirs(path, exist_ok=True)
     return path
 
 
-_DB_MEMO: dict = {}
+def band_database(band: int, catalog=None, progress=None, which: int = 0, memo: dict | None = None):
+    """A k-vector database of a FOV band (``which`` of its magnitude limits), built on first use.
 
-
-def band_database(band: int, catalog=None, progress=None, which: int = 0):
-    """A cached k-vector database of a FOV band (``which`` of its magnitude limits; built on first use)."""
+    Parameters
+    ----------
+    band : int
+        Index into :data:`FOV_BANDS`.
+    catalog : Catalog, optional
+        The star catalog (default: the shipped one).
+    progress : callable, optional
+        ``progress(done, total)`` while building.
+    which : int
+        Which of the band's magnitude limits.
+    memo : dict, optional
+        The caller's in-memory cache (:class:`startrack.Solver` owns one); the
+        file cache in :func:`cache_dir` is used in any case.
+    """
     from startrack.catalog import load_catalog
     from startrack.kvector import build_kvector, load_kvector, save_kvector
 
@@ -58,24 +75,25 @@ def band_database(band: int, catalog=None, progress=None, which: int = 0):
     # A 4:3 sensor at the band's largest horizontal field.
     diag = 2 * math.degrees(math.atan(math.tan(math.radians(hi) / 2) * 1.25))
     path = os.path.join(cache_dir(), f"kvector-fov{lo:g}-{hi:g}-mag{mag:g}-{key[2][:12]}.h5")
-    return _cached(key, path, load_kvector, save_kvector, lambda: build_kvector(
+    return _cached(memo, key, path, load_kvector, save_kvector, lambda: build_kvector(
         cat, diag + 0.5, progress=progress,
         params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"}))
 
 
-def _cached(key, path, load, save, build):
-    """A database from memory, else from the cache file (when its catalog checksum matches), else built and saved."""
+def _cached(memo, key, path, load, save, build):
+    """A database from ``memo``, else from the cache file (when its catalog checksum matches), else built and saved."""
     from startrack.formats.hdf5 import cached_database
 
-    if key in _DB_MEMO:
-        return _DB_MEMO[key]
+    if memo is not None and key in memo:
+        return memo[key]
     db = cached_database(path, load, save, build, valid=lambda d: d.catalog_sha256 == key[-1])
-    _DB_MEMO[key] = db
+    if memo is not None:
+        memo[key] = db
     return db
 
 
-def band_labels(band: int, catalog=None, progress=None, which: int = 0):
-    """A cached label database (paper 004) of a FOV band (``which`` of its field sizes)."""
+def band_labels(band: int, catalog=None, progress=None, which: int = 0, memo: dict | None = None):
+    """A label database (paper 004) of a FOV band (``which`` of its field sizes); see :func:`band_database`."""
     from startrack.catalog import load_catalog
     from startrack.labels import build_labels, load_labels, save_labels
 
@@ -84,9 +102,53 @@ def band_labels(band: int, catalog=None, progress=None, which: int = 0):
     cat = (catalog or load_catalog()).filter_magnitude(None, mag)
     key = ("labels", band, which, cat.checksum())
     path = os.path.join(cache_dir(), f"labels-fov{fov:.1f}-mag{mag:g}-{key[3][:12]}.h5")
-    return _cached(key, path, load_labels, save_labels, lambda: build_labels(
+    return _cached(memo, key, path, load_labels, save_labels, lambda: build_labels(
         cat, fov, step_deg=min(1.0, fov / 12.0), progress=progress,
         params={"band_fov_deg": [lo, hi], "purpose": "startrack solve default"}))
+
+
+class BandDatabases:
+    """The identification databases of the FOV bands, loaded (or built) once and kept in memory.
+
+    A :class:`startrack.Solver` owns one; :func:`solve_image` asks it for databases.
+    ``warmed`` records the kinds of work whose first use (numba compilation or
+    cache load) is already paid, so the time limit does not count it twice.
+
+    Parameters
+    ----------
+    catalog : Catalog, optional
+        The catalog the databases are built from (default: the shipped one).
+    database : KVectorDatabase, optional
+        One database to use for every band instead (a database the user gave).
+    """
+
+    def __init__(self, catalog=None, database=None):
+        self._catalog = catalog
+        self.database = database
+        self.memo: dict = {}
+        self.warmed: set = set()
+
+    @property
+    def catalog(self):
+        if self._catalog is None:
+            from startrack.catalog import load_catalog
+
+            self._catalog = load_catalog()
+        return self._catalog
+
+    def band_database(self, band: int, which: int = 0):
+        """The k-vector database ``which`` of FOV band ``band`` (:data:`FOV_BANDS`), or the given database."""
+        if self.database is not None:
+            return self.database
+        return band_database(band, self.catalog, which=which, memo=self.memo)
+
+    def n_band_databases(self, band: int) -> int:
+        """How many k-vector databases :meth:`band_database` offers for FOV band ``band``."""
+        return 1 if self.database is not None else len(FOV_BANDS[band][2])
+
+    def band_labels(self, band: int, which: int = 0):
+        """The label database (paper 004) ``which`` of FOV band ``band``."""
+        return band_labels(band, self.catalog, which=which, memo=self.memo)
 
 
 def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: float = 1.04,
@@ -117,6 +179,35 @@ def _band_of(fov):
 
 @dataclass
 class SolveOptions:
+    """Settings of :func:`solve_image` (and :meth:`startrack.Solver.solve`).
+
+    Attributes
+    ----------
+    fov_deg : float or None
+        Horizontal field of view hint, degrees; ``None``: unknown (4 to 32 degrees searched).
+    fov_tolerance : float
+        Relative tolerance of the hint (0.1 = +-10 %).
+    algorithm : str
+        Identification algorithm of the full match (:data:`startrack.identify.ALGORITHMS`).
+    max_stars : int
+        Detections kept, brightest first.
+    search_stars : int
+        Brightest detections used to search patterns.
+    max_triads : int
+        Star patterns tried per database before giving up.
+    sigma_px : float or None
+        1-sigma centroid noise, pixels (default: from the detections).
+    max_false_probability : float
+        Largest accepted probability that an identification is a coincidence, shared
+        among all hypotheses tried.
+    timeout_s : float
+        Search time limit per image, seconds (database builds and first-use compilation excluded).
+    epoch : float or None
+        Epoch of observation, decimal year (proper motion).
+    method : str
+        Wahba solver of the attitude.
+    """
+
     fov_deg: float | None = None
     fov_tolerance: float = 0.1
     algorithm: str = "pyramid"
@@ -140,10 +231,11 @@ class _SearchClock:
     limit that counted them would fail every first image.
     """
 
-    _used: set = set()      # (kind) of first uses already paid in this process
-
-    def __init__(self, limit_s: float):
+    def __init__(self, limit_s: float, warmed: set | None = None):
         self.t0 = time.perf_counter()
+        # The kinds whose first use was already paid, owned by the caller (a Solver lives as long as its
+        # process's compiled kernels and loaded databases).
+        self.warmed = set() if warmed is None else warmed
         self.limit_s = limit_s
         self.setup_s = 0.0
 
@@ -156,30 +248,31 @@ class _SearchClock:
 
     def first_use(self, kind, fn, *args, **kwargs):
         """``fn(...)``, counted as set-up the first time ``kind`` runs in this process."""
-        if kind in _SearchClock._used:
+        if kind in self.warmed:
             return fn(*args, **kwargs)
         try:
             return self.setup(fn, *args, **kwargs)
         finally:
-            _SearchClock._used.add(kind)
+            self.warmed.add(kind)
 
     def expired(self) -> bool:
         return time.perf_counter() - self.t0 - self.setup_s > self.limit_s
 
 
-def _identify_in_band(stars, camera, band, catalog, algorithm, params, clock):
+def _identify_in_band(stars, camera, band, databases, algorithm, params, clock):
     """Identify ``stars`` with each k-vector database of FOV band ``band`` in turn.
 
     Returns ``((camera, database, result) or None, databases tried)``.
     """
     from startrack.identify import identify_stars
 
-    for which in range(len(FOV_BANDS[band][2])):
-        db = clock.setup(band_database, band, catalog, which=which)
+    n = databases.n_band_databases(band)
+    for which in range(n):
+        db = clock.setup(databases.band_database, band, which)
         res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params)
         if res.status == "ok":
             return (camera, db, res), which + 1
-    return None, len(FOV_BANDS[band][2])
+    return None, n
 
 
 def pointing(dcm, camera) -> dict:
@@ -259,38 +352,71 @@ def _notice(text: str) -> None:
     sys.stderr.flush()
 
 
-def solve_image(image, width_height=None, options: SolveOptions | None = None, camera=None, catalog=None,
-                saturation=None, centroid_options=None, index=None):
-    """Solve one image.
+def solve_image(image, options: SolveOptions | None = None, camera=None, catalog=None, saturation=None,
+                centroid_options=None, index=None, databases: BandDatabases | None = None):
+    """Solve one image: centroid, identify (with an unknown focal length) and attitude.
 
-    Returns a dict with the frame sections ``camera``, ``stars``,
-    ``centroid``, ``identification``, ``attitude`` and ``solve`` (status,
-    fitted FOV, hypotheses tried, time).  Never raises for an unsolvable
-    image: ``solve.status`` is ``"failed"`` with a reason.
+    Parameters
+    ----------
+    image : str, os.PathLike or ndarray (height, width)
+        An image file (read with :func:`startrack.imageio.read_image`) or the
+        pixels, row 0 at the top.
+    options : SolveOptions, optional
+        Field-of-view hint, algorithm, limits.
+    camera : Camera, optional
+        A calibrated camera: no field-of-view search.
+    catalog : Catalog, optional
+        The star catalog (default: the solver's, else the shipped one).
+    saturation : float, optional
+        Saturation level (DN); read from the file when ``image`` is a path.
+    centroid_options : CentroidOptions, optional
+    index : PatternIndex, optional
+        The scale-invariant pattern index of the blind search (default: the process's).
+    databases : BandDatabases, optional
+        The databases (loaded once, kept in memory) and the record of kernels
+        already compiled, owned by the caller (a :class:`startrack.Solver`);
+        a new one when not given.
+
+    Returns
+    -------
+    SolveResult
+        ``status`` ``ok`` with camera, stars, identification and attitude;
+        else ``failed`` with ``reason`` and ``reason_code``.  Never raises
+        for an unsolvable image (a path that cannot be read raises
+        :class:`~startrack.errors.BadInputError`).
     """
-    from startrack.attitude import estimate_attitude
     from startrack.camera import Camera
-    from startrack.catalog import load_catalog
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.identify import IdentifyParams, identify_stars
+    from startrack.records import ReasonCode, StarTable
 
+    if databases is None:
+        databases = BandDatabases(catalog)
+    if isinstance(image, (str, os.PathLike)):
+        from startrack.imageio import read_image
+
+        image, meta = read_image(os.fspath(image))
+        saturation = meta["saturation"] if saturation is None else saturation
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ParameterError("image", f"must be a 2-D array (height, width), got shape {image.shape}")
     opts = options or SolveOptions()
-    clock = _SearchClock(opts.timeout_s)
+    clock = _SearchClock(opts.timeout_s, databases.warmed)
     t0 = clock.t0
     h, w = image.shape
     cres = clock.first_use("centroid", find_stars, image, centroid_options or CentroidOptions(max_stars=opts.max_stars),
                            saturation=saturation)
-    out = {"stars": cres.stars, "centroid": cres.section()}
+    stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
+    centroid = cres.section()
     if len(cres.stars) < 4:
-        out["solve"] = {"status": "failed", "reason": cres.reason or f"only {len(cres.stars)} stars detected",
-                        "time_ms": (time.perf_counter() - t0) * 1000}
-        return out
+        return _failed(cres.reason or f"only {len(cres.stars)} stars detected",
+                       ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
     tried = 0
     result = None
     params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars, max_triads=opts.max_triads,
                             max_false_probability=opts.max_false_probability)
     if camera is not None:
-        result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), catalog, opts.algorithm,
+        result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), databases, opts.algorithm,
                                       params, clock)
         tried += n
     elif opts.algorithm == "patterns" or opts.blind == "patterns":
@@ -308,7 +434,7 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
             if clock.expired():
                 break
             lo, hi = FOV_BANDS[band][:2]
-            labels = clock.setup(band_labels, band, catalog, which=which)
+            labels = clock.setup(databases.band_labels, band, which)
             guess = opts.fov_deg if opts.fov_deg is not None else labels.fov_deg
             cam = Camera.from_fov(guess, w, h)
             for _ in range(3):
@@ -330,7 +456,7 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
                 continue
             b = _band_of(cam.fov_deg[0])
             params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
-            result, n = _identify_in_band(cres.stars, cam, b, catalog, opts.algorithm, params, clock)
+            result, n = _identify_in_band(cres.stars, cam, b, databases, opts.algorithm, params, clock)
             tried += n
             if result is not None:
                 break
@@ -339,17 +465,19 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
         # verification measures and corrects the focal length).
         cam = Camera.from_fov(opts.fov_deg, w, h)
-        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), catalog, opts.algorithm, params, clock)
+        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), databases, opts.algorithm, params, clock)
         tried += n
     if result is None:
-        reason = (f"no star pattern identified ({tried} attempts)"
-                  if not clock.expired() else f"no solution within {opts.timeout_s:g} s of search")
+        from startrack.records import Identification
+
+        if clock.expired():
+            reason, code = f"no solution within {opts.timeout_s:g} s of search", ReasonCode.TIMEOUT
+        else:
+            reason, code = f"no star pattern identified ({tried} attempts)", ReasonCode.NO_PATTERN
         if camera is None and opts.fov_deg is None:
-            reason += "; a field-of-view hint (--fov-deg) may help"
-        out["solve"] = {"status": "failed", "reason": reason, "hypotheses": tried,
-                        "time_ms": (time.perf_counter() - t0) * 1000}
-        out["identification"] = {"status": "failed", "algorithm": opts.algorithm, "matches": [], "reason": reason}
-        return out
+            reason += "; a field-of-view hint may help"
+        return _failed(reason, code, t0, stars, centroid, hypotheses=tried,
+                       identification=Identification.failed(opts.algorithm, reason, code))
     cam, db, res = result
     scale = res.extra.get("focal_scale")
     if scale:
@@ -358,28 +486,81 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         vec = db.star_vec
         rows = {int(m["id"]): int(m["index"]) for m in res.matches}
     else:
-        cat = catalog or load_catalog()
-        if opts.epoch is not None:
-            cat = cat.propagate(opts.epoch)
+        cat = databases.catalog if opts.epoch is None else databases.catalog.propagate(opts.epoch)
         rows = cat.rows_by_id()
         vec = cat.vectors()
-    body, ref, sig, labels = [], [], [], []
-    for m in res.matches:
-        s = cres.stars[m["star"]]
-        body.append(cam.pixels_to_vectors(s["x"], s["y"]))
-        ref.append(vec[rows[m["id"]]])
-        sig.append(max(s.get("sigma_px", 0.1), 0.05) / cam.focal_length_px)
-        labels.append((m["star"], m["id"]))
-    att = estimate_attitude(np.array(body), np.array(ref), np.array(sig), opts.method, labels)
-    out["camera"] = cam.to_dict()
-    out["identification"] = res.section()
-    out["attitude"] = att.section()
-    fx, fy = cam.fov_deg
-    out["solve"] = {"status": "ok" if att.status == "ok" else "failed", "fov_deg": [fx, fy],
-                    "hypotheses": tried, "database": os.path.basename(getattr(db, "path", "") or ""),
-                    "time_ms": (time.perf_counter() - t0) * 1000}
-    if att.dcm is not None:
-        out["solve"].update(pointing(att.dcm, cam))
-    if att.status != "ok":
-        out["solve"]["reason"] = att.reason
+    from startrack.formats.sections import identification_record
+    from startrack.records import SolveResult, Status
+
+    ident = identification_record(res)
+    att = identified_attitude(stars, ident, cam, rows, vec, opts.method, epoch=opts.epoch)
+    out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
+                      database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
+                      centroid=centroid, identification=ident, attitude=att)
+    if att.status == Status.OK:
+        where = pointing(att.dcm, cam)
+        out.center_ra, out.center_dec = where["center_ra"], where["center_dec"]
+        out.details["principal_point"] = where["principal_point"]
+    out.time_ms = (time.perf_counter() - t0) * 1000
     return out
+
+
+def _failed(reason, code, t0, stars=None, centroid=None, **kw):
+    from startrack.records import SolveResult, Status
+
+    return SolveResult(Status.FAILED, reason, code, time_ms=(time.perf_counter() - t0) * 1000, stars=stars,
+                       centroid=centroid, **kw)
+
+
+def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
+                        sigma_px: float | None = None, epoch: float | None = None):
+    """The attitude of identified stars (Wahba's problem, paper 000 Eq. 15, with outlier rejection).
+
+    Parameters
+    ----------
+    stars : StarTable
+        Centroids, pixels; their ``sigma_px`` (1-sigma per axis) weights them when present.
+    identification : Identification
+        Star index -> catalog id.
+    camera : Camera
+    rows : dict
+        Catalog id -> row of ``vectors``.
+    vectors : ndarray (n, 3)
+        ICRS unit vectors of the catalog at the epoch of observation.
+    method : str
+        Wahba solver.
+    sigma_px : float, optional
+        Centroid 1-sigma of every star, pixels (default: each star's ``sigma_px``,
+        else 0.1 px; never below 0.05 px).
+    epoch : float, optional
+        Recorded in the result (decimal year).
+
+    Returns
+    -------
+    Attitude
+        ``failed`` with ``reason_code`` ``not_identified`` when the identification failed.
+    """
+    from startrack.attitude import estimate_attitude
+    from startrack.formats.sections import from_section
+    from startrack.records import Attitude, ReasonCode
+
+    if identification.status != "ok":
+        return Attitude.failed(f"not identified: {identification.reason}", ReasonCode.NOT_IDENTIFIED, method)
+    idx = [m for m in identification.matches if int(m[1]) in rows]
+    star = np.array([int(m[0]) for m in idx], dtype=np.int64)
+    body = camera.pixels_to_vectors(stars.x[star], stars.y[star]).reshape(-1, 3)
+    ref = np.asarray(vectors)[[rows[int(m[1])] for m in idx]].reshape(-1, 3)
+    if sigma_px is not None:
+        sig_px = np.full(len(star), float(sigma_px))
+    elif stars.sigma_px is not None:
+        sig_px = stars.sigma_px[star]
+    else:
+        sig_px = np.full(len(star), 0.1)
+    sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
+    res = estimate_attitude(body, ref, sig, method, [(int(m[0]), int(m[1])) for m in idx])
+    att = from_section(Attitude, res.section(), "attitude")
+    if att.status != "ok" and att.reason_code is None:
+        att.reason_code = getattr(res, "reason_code", None) or ReasonCode.TOO_FEW_STARS
+    if epoch is not None:
+        att.epoch = epoch
+    return att

@@ -8,7 +8,7 @@ from startrack.errors import BadInputError
 _J2000 = _dt.datetime(2000, 1, 1, 12, 0, 0, tzinfo=_dt.timezone.utc)
 
 
-def parse_time(text: str, source: str = "--time") -> _dt.datetime:
+def parse_time(text: str, source: str = "time") -> _dt.datetime:
     """Parse an ISO-8601 time (``Z`` or an offset; naive times are UTC)."""
     try:
         t = _dt.datetime.fromisoformat(str(text).strip().replace("Z", "+00:00"))

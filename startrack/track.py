@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -105,7 +105,6 @@ class TrackerConfig:
     max_streaks: int = 8
     max_window_px: int = 160
     streak_rate_until_deg_s: float = 0.02
-    extra: dict = field(default_factory=dict)
 
 
 def empirical_stars(observed_xy, predicted_xy, others_predicted_xy):
@@ -151,7 +150,7 @@ def _log_minus(r):
 
 def _exp_minus(phi):
     """``exp(-[phi x])`` (Rodrigues): the passive rotation by ``|phi|`` about ``phi`` (as
-    :func:`startrack.render.propagate_attitude`)."""
+    :func:`startrack.rotations.propagate_attitude`)."""
     angle = math.sqrt(float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]))
     if angle < 1e-12:
         return _I3 - _cross(phi)

@@ -54,3 +54,57 @@ def catalog():
     from startrack.catalog import load_catalog
 
     return load_catalog()
+
+
+def png_pixels(path):
+    """The BGR pixels of a PNG (uint8, rows x columns x 3)."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert img is not None, f"{path} is not a readable PNG"
+    return img
+
+
+def colour_fraction(pixels, bgr, tol=40):
+    """Fraction of ``pixels`` (any shape ending in 3) within ``tol`` of colour ``bgr`` on every channel."""
+    import numpy as np
+
+    px = np.asarray(pixels, dtype=np.int32).reshape(-1, 3)
+    return float(np.mean(np.all(np.abs(px - np.asarray(bgr)) <= tol, axis=1)))
+
+
+def ring(pixels, x, y, radius, n=72):
+    """The pixels on a circle of ``radius`` px around image position ``(x, y)`` (x = column, y = row)."""
+    import numpy as np
+
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    cols = np.clip(np.round(x + radius * np.cos(t)).astype(int), 0, pixels.shape[1] - 1)
+    rows = np.clip(np.round(y + radius * np.sin(t)).astype(int), 0, pixels.shape[0] - 1)
+    return pixels[rows, cols]
+
+
+def assert_identified_star_marked(png, doc):
+    """The picture of a solved frame circles its first identified star in the "identified" colour
+    (``plot.annotate_solution``), and does not paint that colour just anywhere."""
+    from startrack.plot import MARKERS, _radius
+
+    px = png_pixels(png)
+    colour = MARKERS["identified"][0]
+    scale = max(0.8, min(2.5, max(doc["image"]["width"], doc["image"]["height"]) / 1024.0))
+    star = doc["stars"][doc["identification"]["matches"][0]["star"]]
+    radius = int(round(_radius(star.get("flux")) * scale))
+    on = max(colour_fraction(ring(px, star["x"], star["y"], r), colour, tol=60) for r in (radius - 1, radius, radius + 1))
+    assert on > 0.5, on
+    # ... and only there: twice as far out the ring is not the marker.
+    assert colour_fraction(ring(px, star["x"], star["y"], 2 * radius + 4), colour, tol=60) < 0.5
+
+
+# matplotlib's first colours (tab:blue, tab:orange, tab:green) in BGR
+CHART_COLOURS = ((180, 119, 31), (14, 127, 255), (44, 160, 44))
+
+
+def assert_chart_draws(png, colours, min_fraction=2e-4):
+    """A matplotlib chart whose lines or points of each given colour cover some of the picture."""
+    px = png_pixels(png)
+    for bgr in colours:
+        assert colour_fraction(px, bgr, tol=30) > min_fraction, (png, bgr)

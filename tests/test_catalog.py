@@ -2,13 +2,12 @@ import math
 
 import numpy as np
 import pytest
+from naive import count_in_fov_naive, pairs_within_naive
 
 from startrack.camera import Camera
 from startrack.catalog import Catalog, field_statistics, load_catalog, star_pairs, write_catalog
 from startrack.errors import BadInputError
 from startrack.rotations import quaternion_to_dcm, random_quaternions
-
-from naive import count_in_fov_naive, pairs_within_naive
 
 
 def test_shipped_catalog(catalog):

@@ -2,14 +2,13 @@ import math
 
 import numpy as np
 import pytest
+from naive import centre_of_mass_naive, label_naive
 
 from startrack.camera import Camera
 from startrack.catalog import Catalog
 from startrack.centroid import CentroidOptions, centroid_windows, find_stars
 from startrack.centroid_accuracy import accuracy_trials, cramer_rao_bound
 from startrack.render import Scene, Sensor, render_image
-
-from naive import centre_of_mass_naive, label_naive
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -21,7 +21,7 @@ def _fails_on_three(x):
     return x
 
 
-def _counted(x):
+def _counted(_x):
     cache = worker_cache()
     cache["calls"] = cache.get("calls", 0) + 1
     return os.getpid(), cache["calls"]

@@ -4,13 +4,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from naive import pairs_within_naive
 
 from startrack.camera import Camera
 from startrack.errors import DatabaseMismatchError
 from startrack.kvector import build_kvector, check_database, load_kvector, max_separation_deg, save_kvector
 from startrack.labels import build_labels, label_from_distances, load_labels, save_labels
-
-from naive import pairs_within_naive
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import ROOT
 
 SKIP_MARK = re.compile(r"<!--\s*not run by the tests:(.*?)-->", re.DOTALL)

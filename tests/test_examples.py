@@ -4,7 +4,7 @@ import os
 import subprocess
 import sys
 
-from conftest import ROOT
+from conftest import CHART_COLOURS, ROOT, assert_chart_draws, assert_identified_star_marked
 
 
 def _env():
@@ -22,8 +22,9 @@ def test_makefile_workflow(tmp_path):
     assert len(docs) == 6 and sum(d["attitude"]["status"] == "ok" for d in docs) >= 5
     rows = json.load(open(out / "evaluate.json"))["rows"]
     assert len(rows) == 9
-    for name in ("evaluate.png", "errors.png", "first-frame.png"):
-        assert (out / name).stat().st_size > 10000
+    assert_chart_draws(out / "evaluate.png", CHART_COLOURS)        # pyramid, voting, brightness
+    assert_chart_draws(out / "errors.png", [(189, 103, 148)])        # solved frames (no track mode): tab:purple
+    assert_identified_star_marked(out / "first-frame.png", docs[0])
 
 
 def test_shell_pipeline(tmp_path):
@@ -33,4 +34,5 @@ def test_shell_pipeline(tmp_path):
     assert proc.stdout.startswith("RA 286.4")
     doc = json.load(open(tmp_path / "sky.json"))
     assert doc["attitude"]["status"] == "ok" and doc["identification"]["status"] == "ok"
-    assert (tmp_path / "sky-solved.png").exists() and (tmp_path / "sky.wcs.fits").exists()
+    assert_identified_star_marked(tmp_path / "sky-solved.png", doc)
+    assert (tmp_path / "sky.wcs.fits").exists()

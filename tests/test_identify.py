@@ -99,9 +99,8 @@ def test_evaluate_rows(setup20):
 
 @pytest.fixture(scope="module")
 def setup24(catalog):
-    from startrack.labels import build_labels
-
     from startrack.catalog import merge_radius_arcsec
+    from startrack.labels import build_labels
 
     cam = Camera.from_fov(24, 1200, 1200)
     cat = catalog.filter_magnitude(None, 5.2).merge_close(merge_radius_arcsec(cam))

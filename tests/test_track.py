@@ -40,7 +40,7 @@ def test_single_star_attitude_recovers_a_pure_shift():
     cam_dirs = cam.pixels_to_vectors(rng.uniform(100, 900, 4), rng.uniform(100, 700, 4))
     ref = cam_dirs @ a
     # The camera turned slightly about its x and y axes: all stars shift about alike.
-    from startrack.render import propagate_attitude
+    from startrack.rotations import propagate_attitude
 
     a2 = propagate_attitude(a, np.radians([0.01, -0.02, 0.0]), 1.0)
     x2, y2 = cam.vectors_to_pixels(ref @ a2.T)
@@ -117,7 +117,7 @@ def test_few_stars_keep_lock(world, keep, mode):
 
 def test_rate_filter_converges_on_noisy_attitudes():
     """The Kalman filter's rate from 20 noisy attitudes (10 arcsec, 0.1 s apart) beats the per-frame difference."""
-    from startrack.render import propagate_attitude
+    from startrack.rotations import propagate_attitude
     from startrack.track import AttitudeRateFilter
 
     rng = np.random.default_rng(4)
@@ -164,7 +164,7 @@ def test_star_leaving_the_field_is_dropped(world):
     tr = Tracker(catalog, cam, db, TrackerConfig(mag_limit=6.0, exposure_s=0.02),
                  initial_rate=np.radians([0.0, 2.0, 0.0]))
     seen = []
-    for k, (doc, img, _) in enumerate(frames):
+    for k, (_doc, img, _) in enumerate(frames):
         out = tr.step(img, 0.1 * k, 65535)
         if out["track"]["mode"] == "tracking":
             seen.append({s["id"] for s in out["track"]["stars"]})

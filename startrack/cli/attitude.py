@@ -1,7 +1,19 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, RegistryChoice, attitude_methods, catalog_option, handle_errors, input_argument, jobs_option, output_option, quiet_option, resume_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    RegistryChoice,
+    attitude_methods,
+    catalog_option,
+    handle_errors,
+    input_argument,
+    jobs_option,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 @click.command("attitude", cls=Command, short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
@@ -81,7 +93,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             propagated[key] = found
         return found
 
-    def process(doc, source, index, total):
+    def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         ident = doc.get("identification")
         if not isinstance(ident, dict):
             raise BadInputError(source, "identification", "is missing: run startrack identify first")

@@ -291,7 +291,7 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
     return tally
 
 
-def _write_bad(writer, tally, rec, out, exc):
+def _write_bad(writer, tally, rec, out, exc):  # noqa: ARG001 - the caller's signature
     tally.error(str(exc))
     writer.write(out)
     tally.add(None, bad=True)

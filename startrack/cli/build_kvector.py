@@ -1,8 +1,19 @@
 """startrack build-kvector: the star-pair database with Mortari's k-vector."""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, camera_from_options, camera_options,
-                                   catalog_option, handle_errors, info, mag_options, quiet_option)
+from startrack.cli.options import (
+    CAMERA_EXCLUSIVE,
+    Command,
+    FiniteFloat,
+    Int,
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    info,
+    mag_options,
+    quiet_option,
+)
 
 
 @click.command("build-kvector", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],
@@ -65,8 +76,14 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
-    from startrack.kvector import (DEFAULT_MAX_PAIRS, DEFAULT_STARS_PER_FIELD, build_kvector,
-                                   choose_database_stars, max_separation_deg, save_kvector)
+    from startrack.kvector import (
+        DEFAULT_MAX_PAIRS,
+        DEFAULT_STARS_PER_FIELD,
+        build_kvector,
+        choose_database_stars,
+        max_separation_deg,
+        save_kvector,
+    )
     from startrack.progress import ProgressBar
 
     t0 = time.perf_counter()

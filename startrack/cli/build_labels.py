@@ -1,7 +1,16 @@
 """startrack build-labels: paper 004's label database."""
 import click
 
-from startrack.cli.options import Command, FiniteFloat, Int, catalog_option, handle_errors, info, mag_options, quiet_option
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    catalog_option,
+    handle_errors,
+    info,
+    mag_options,
+    quiet_option,
+)
 
 
 @click.command("build-labels", cls=Command, ordered=[("group_size", "stars_per_field")], short_help="Build the labelling database (paper 004) for a field of view.")

@@ -1,8 +1,18 @@
 """startrack build-triangles: paper 000's triangle database."""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, camera_from_options, camera_options,
-                                   catalog_option, handle_errors, info, mag_options, quiet_option)
+from startrack.cli.options import (
+    CAMERA_EXCLUSIVE,
+    Command,
+    FiniteFloat,
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    info,
+    mag_options,
+    quiet_option,
+)
 
 
 @click.command("build-triangles", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],

@@ -1,8 +1,16 @@
 """startrack catalog-filter: select, propagate, merge and thin catalog stars."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, Int, catalog_option, handle_errors, info, mag_options,
-                                   quiet_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    catalog_option,
+    handle_errors,
+    info,
+    mag_options,
+    quiet_option,
+)
 
 
 @click.command("catalog-filter", cls=Command, ordered=[("mag_min", "mag_max")], short_help="Select catalog stars by magnitude; propagate, merge, thin.")

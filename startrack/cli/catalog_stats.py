@@ -1,8 +1,18 @@
 """startrack catalog-stats: how many stars will a sensor see?"""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, Int, camera_from_options, camera_options, catalog_option,
-                                   handle_errors, mag_options, quiet_option, seed_option)
+from startrack.cli.options import (
+    CAMERA_EXCLUSIVE,
+    Command,
+    Int,
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    mag_options,
+    quiet_option,
+    seed_option,
+)
 
 
 @click.command("catalog-stats", cls=Command, exclusive=CAMERA_EXCLUSIVE, ordered=[("mag_min", "mag_max")],
@@ -17,7 +27,7 @@ from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, Int, camera_from_o
 @quiet_option
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
-            mag_max, mag_min, samples, seed, as_json, quiet):
+            mag_max, mag_min, samples, seed, as_json, quiet):  # noqa: ARG001 - nothing to hide
     """Count the stars inside a camera's field over random attitudes.
 
     The Monte Carlo of paper 000 Fig. 2 and paper 003 Fig. 3: uniformly random

@@ -1,7 +1,19 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, Int, RegistryChoice, centroid_methods, handle_errors, jobs_option, load_camera_file, output_option, quiet_option, resume_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    RegistryChoice,
+    centroid_methods,
+    handle_errors,
+    jobs_option,
+    load_camera_file,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 @click.command("centroid", cls=Command, exclusive=[("threshold_sigma", "threshold_dn")],
@@ -91,7 +103,7 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
 
     n_stars = [0]
 
-    def process(doc, source, index, total):
+    def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         path = (doc.get("image") or {}).get("path") if isinstance(doc.get("image"), dict) else None
         if not path or not isinstance(path, str):
             raise BadInputError(source, "image.path", "is missing: no image to centroid")

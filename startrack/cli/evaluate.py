@@ -1,9 +1,25 @@
 """startrack evaluate: Monte Carlo comparison of identification algorithms."""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, NameList, NumberList, camera_from_options,
-                                   camera_options, catalog_option, handle_errors, identify_algorithms, info, jobs_option,
-                                   mag_options, output_option, quiet_option, seed_option)
+from startrack.cli.options import (
+    CAMERA_EXCLUSIVE,
+    Command,
+    FiniteFloat,
+    Int,
+    NameList,
+    NumberList,
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    identify_algorithms,
+    info,
+    jobs_option,
+    mag_options,
+    output_option,
+    quiet_option,
+    seed_option,
+)
 
 
 def _floats(text, name):
@@ -103,9 +119,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError
-    from startrack.evaluate import conditions_grid, evaluate, plot_results, summarise
+    from startrack.evaluate import conditions_grid, evaluate, summarise
     from startrack.formats.atomic import atomic_open, check_writable
     from startrack.identify import IdentifyParams
+    from startrack.plot import plot_results
     from startrack.progress import ProgressBar
 
     cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,

@@ -1,7 +1,21 @@
 """startrack identify: lost-in-space star identification of frame documents."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, Int, RegistryChoice, handle_errors, identify_algorithms, input_argument, jobs_option, load_camera_file, output_option, quiet_option, resume_option, sigma_px_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    RegistryChoice,
+    handle_errors,
+    identify_algorithms,
+    input_argument,
+    jobs_option,
+    load_camera_file,
+    output_option,
+    quiet_option,
+    resume_option,
+    sigma_px_option,
+)
 
 
 @click.command("identify", cls=Command, short_help="Identify the stars of frame documents (lost in space).")
@@ -68,7 +82,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     check_plot_output(plot)
     plot_names = StreamNames(plot)
 
-    def process(doc, source, index, total):
+    def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         if override is not None:
             cam = override
             doc["camera"] = cam.to_dict()

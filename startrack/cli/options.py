@@ -22,7 +22,7 @@ import sys
 import click
 from click.core import ParameterSource
 
-from startrack.errors import BadInputError, StartrackError
+from startrack.errors import BadInputError, ParameterError, StartrackError
 
 #: Centroid noise (1 sigma, px) assumed for stars that report no ``sigma_px`` of their own.
 DEFAULT_SIGMA_PX = 0.5
@@ -437,6 +437,18 @@ def load_camera_file(path):
     return Camera.from_dict(doc, path)
 
 
+# Library parameters whose flag is not ``--`` + the name with ``-`` for ``_`` (library errors name
+# parameters, :class:`startrack.errors.ParameterError`; the command line names its flags).
+PARAMETER_FLAGS = {"width": "--size", "height": "--size", "radius_arcsec": "--merge-arcsec", "per_cell": "--uniform",
+                   "n_boresights": "--samples", "max_angle_deg": "--fov-deg", "field_w_deg": "--fov-deg",
+                   "field_h_deg": "--fov-deg"}
+
+
+def flag_for(parameter: str) -> str:
+    """The command-line flag of a library parameter (``fov_deg`` -> ``--fov-deg``)."""
+    return PARAMETER_FLAGS.get(parameter, "--" + parameter.replace("_", "-"))
+
+
 def command_path() -> str:
     ctx = click.get_current_context(silent=True)
     return ctx.command_path if ctx is not None else "startrack"
@@ -467,6 +479,9 @@ def handle_errors(func):
             raise
         except click.ClickException:
             raise
+        except ParameterError as exc:
+            click.echo(f"{command_path()}: error: {flag_for(exc.parameter)}: {exc.problem}", err=True)
+            sys.exit(exc.exit_code)
         except StartrackError as exc:
             _echo_err(f"{command_path()}: error: {error_message(exc)}")
             sys.exit(exc.exit_code)

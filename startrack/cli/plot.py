@@ -33,16 +33,15 @@ def command(input, kind, output, mag_max, title, quiet):
     """
     import json
 
+    from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import read_frames
-    from startrack.render import numbered_path
-
     from startrack.imageio import check_plot_output
 
     check_plot_output(output)
     if kind == "evaluate":
-        from startrack.evaluate import plot_results
         from startrack.formats.frame import read_json_file
+        from startrack.plot import plot_results
 
         doc = read_json_file(input)
         if "rows" not in doc:

@@ -1,9 +1,21 @@
 """startrack render: synthetic star images, star lists, Monte Carlo sets and sequences."""
 import click
 
-from startrack.cli.options import (CAMERA_EXCLUSIVE, Command, FiniteFloat, Int, NumberList, camera_from_options,
-                                   camera_options, catalog_option, handle_errors, info, mag_options, quiet_option,
-                                   seed_option)
+from startrack.cli.options import (
+    CAMERA_EXCLUSIVE,
+    Command,
+    FiniteFloat,
+    Int,
+    NumberList,
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    info,
+    mag_options,
+    quiet_option,
+    seed_option,
+)
 
 
 def _floats(text, name, n):
@@ -102,6 +114,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     import numpy as np
 
     from startrack.catalog import load_catalog
+    from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import FrameWriter
     from startrack.imageio import check_image_output, write_image
@@ -205,7 +218,9 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
         black = tuple(range(start, start + n_black))
         params["blackout"] = blackout
     run = RenderRun(cat, cam, sensor, scene, seed, attitude, count, frames, frame_interval_s, t0, stars_only,
-                    noise_px, max_stars, drop_fraction, output, frame_seed, params, black)
+                    noise_px, max_stars, drop_fraction,
+                    (lambda index: numbered_path(output, index, count * frames)) if output else None,
+                    frame_seed, params, black)
     if frame_seed is not None and run.total != 1:
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
     bar = ProgressBar("render", quiet)

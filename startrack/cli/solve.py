@@ -1,7 +1,16 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, Int, handle_errors, load_camera_file, output_option, quiet_option, resume_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    handle_errors,
+    load_camera_file,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 def output_for(template: str | None, image_path: str, total: int, suffix: str) -> str | None:
@@ -70,12 +79,24 @@ def _cluster_progress(quiet):
     return show
 
 
+def _databases():
+    """The databases of this process (the CLI's, or a -j worker's): loaded once, kept for the next image."""
+    from startrack.cluster import worker_cache
+    from startrack.solve import BandDatabases
+
+    cache = worker_cache()
+    if "band_databases" not in cache:
+        cache["band_databases"] = BandDatabases()
+    return cache["band_databases"]
+
+
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
     import time
 
     from startrack.errors import BadInputError
     from startrack.formats.frame import FRAME_FORMAT
+    from startrack.formats.sections import to_frame
     from startrack.imageio import read_image
     from startrack.solve import solve_image
 
@@ -93,8 +114,8 @@ def _solve_one(args):
         from startrack.camera import Camera
 
         cam = Camera.from_dict(camera_doc)
-    out = solve_image(image, options=options, camera=cam, saturation=meta["saturation"])
-    doc.update(out)
+    result = solve_image(image, options=options, camera=cam, saturation=meta["saturation"], databases=_databases())
+    doc.update(to_frame(result))
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if doc["solve"]["status"] == "ok":
         wcs_path, plot_path, fits_path, matches_path = outputs
@@ -197,7 +218,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     from startrack.formats.atomic import check_writable
     from startrack.formats.frame import FRAME_FORMAT, FrameWriter
     from startrack.progress import ProgressBar
-    from startrack.solve import SolveOptions, band_database
+    from startrack.solve import SolveOptions
 
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
@@ -233,7 +254,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
 
         b = _band_of(Camera.from_dict(camera_doc).fov_deg[0])
         for which in range(len(FOV_BANDS[b][2])):
-            band_database(b, which=which)
+            _databases().band_database(b, which=which)
     bar = ProgressBar("solve", quiet)
     tally = BatchTally("solve", quiet, "image")
     writer = FrameWriter(output, resume=resume)

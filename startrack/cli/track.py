@@ -1,8 +1,20 @@
 """startrack track: tracking mode over image sequences."""
 import click
 
-from startrack.cli.options import (Command, FiniteFloat, Int, NumberList, RegistryChoice, catalog_option, handle_errors,
-                                   identify_algorithms, load_camera_file, mag_options, output_option, quiet_option)
+from startrack.cli.options import (
+    Command,
+    FiniteFloat,
+    Int,
+    NumberList,
+    RegistryChoice,
+    catalog_option,
+    handle_errors,
+    identify_algorithms,
+    load_camera_file,
+    mag_options,
+    output_option,
+    quiet_option,
+)
 
 
 @click.command("track", cls=Command, short_help="Track the attitude over an image sequence (predictive windows, fall-back).")
@@ -112,7 +124,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     else:
         raise BadInputError("INPUT", None, "give one frame-document stream, or image files")
 
-    def process(doc, src, index, total):
+    def process(doc, src, index, total):  # noqa: ARG001 - the batch callback's signature
         cam = cam_override if cam_override is not None else (
             Camera.from_dict(doc["camera"], src) if "camera" in doc else None)
         if cam is None:

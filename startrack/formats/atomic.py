@@ -125,7 +125,7 @@ class Terminated(KeyboardInterrupt):
     exit_code = 143
 
 
-def _on_sigterm(signum, frame):
+def _on_sigterm(signum, frame):  # noqa: ARG001 - the caller's signature
     raise Terminated()
 
 
@@ -157,7 +157,7 @@ def deferred_signals():
         return
     got: list[int] = []
 
-    def record(signum, frame):
+    def record(signum, frame):  # noqa: ARG001 - the caller's signature
         got.append(signum)
 
     old = {}

@@ -119,7 +119,7 @@ def validate_frame(doc, source: str, need: tuple[str, ...] = ()) -> dict:
         from startrack.camera import Camera
 
         if "camera" not in doc:
-            raise BadInputError(source, "camera", "is missing (give --camera camera.json or a frame with a camera section)")
+            raise BadInputError(source, "camera", "is missing (give a camera file or a frame with a camera section)")
         Camera.from_dict(doc["camera"], source)
     if "image" in need:
         image = doc.get("image")
@@ -273,7 +273,7 @@ def read_frames(path: str):
     try:
         first = ""
         first_no = 0
-        for first_no, line in enumerate(handle, start=1):
+        for first_no, line in enumerate(handle, start=1):  # noqa: B007 - used after the loop
             if line.strip():
                 first = line
                 break

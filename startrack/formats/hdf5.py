@@ -176,7 +176,7 @@ def build_lock(path: str):
             fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
 
 
-def cached_database(path: str, load, save, build, valid=lambda db: True):
+def cached_database(path: str, load, save, build, valid=lambda db: True):  # noqa: ARG005 - the caller's signature
     """A database from its cache file, else built and saved; a corrupt or stale file is rebuilt.
 
     Parameters

@@ -37,6 +37,9 @@ __all__ = [
     "stars_to_section",
     "solve_result_to_frame",
     "solve_result_from_frame",
+    "to_frame",
+    "identification_record",
+    "camera_from_file",
 ]
 
 # frame-document section -> record class
@@ -258,6 +261,65 @@ def solve_result_to_frame(result: SolveResult) -> dict:
         out["attitude"] = to_section(result.attitude)
     out["solve"] = to_section(result)
     return out
+
+
+def to_frame(record) -> dict:
+    """The frame-document sections of a typed record, ready for JSON.
+
+    A :class:`SolveResult` gives ``camera``, ``stars``, ``centroid``,
+    ``identification``, ``attitude`` and ``solve``; a :class:`TrackState` its
+    ``track`` section and the frame sections attached to it; an
+    :class:`Identification` or :class:`Attitude` its one section; a
+    :class:`StarTable` the ``stars`` section.
+    """
+    if isinstance(record, SolveResult):
+        return solve_result_to_frame(record)
+    if isinstance(record, TrackState):
+        out = {"track": to_section(record)}
+        if record.star_table is not None:
+            out["stars"] = stars_to_section(record.star_table)
+        if record.identification is not None:
+            out["identification"] = to_section(record.identification)
+        if record.attitude is not None:
+            out["attitude"] = to_section(record.attitude)
+        return out
+    if isinstance(record, Identification):
+        return {"identification": to_section(record)}
+    if isinstance(record, Attitude):
+        return {"attitude": to_section(record)}
+    if isinstance(record, StarTable):
+        return {"stars": stars_to_section(record)}
+    raise TypeError(f"not a startrack record: {type(record).__name__}")
+
+
+def identification_record(result) -> Identification:
+    """An :class:`Identification` from an identification algorithm's result (or its ``identification`` section)."""
+    if isinstance(result, Identification):
+        return result
+    section = result if isinstance(result, dict) else result.section()
+    record = from_section(Identification, section, "identification")
+    code = getattr(result, "reason_code", None)
+    if code is not None:
+        record.reason_code = code
+    elif record.status == "failed" and record.reason_code is None:
+        record.reason_code = ReasonCode.OTHER
+    return record
+
+
+def camera_from_file(path: str):
+    """A camera from a ``startrack.camera/1`` file or from a frame document's ``camera`` section."""
+    from startrack.camera import CAMERA_FORMAT, Camera
+    from startrack.formats.frame import check_format_tag, read_json_file
+
+    doc = read_json_file(path)
+    if str(doc.get("format", CAMERA_FORMAT)).startswith("startrack.frame/"):
+        check_format_tag(doc, "startrack.frame/1", path)
+        if "camera" not in doc:
+            raise BadInputError(path, "camera", "is missing")
+        doc = doc["camera"]
+    elif "format" in doc:
+        check_format_tag(doc, CAMERA_FORMAT, path)
+    return Camera.from_dict(doc, path)
 
 
 def solve_result_from_frame(doc: dict, source: str = "<frame>") -> SolveResult:

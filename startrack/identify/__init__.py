@@ -48,11 +48,11 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
     """
     import importlib
 
-    from startrack.errors import BadInputError
+    from startrack.errors import ParameterError
     from startrack.identify.base import run
 
     if algorithm not in ALGORITHMS:
-        raise BadInputError("--algorithm", None, f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+        raise ParameterError("algorithm", f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
     module, func, _ = ALGORITHMS[algorithm]
     propose = getattr(importlib.import_module(module), func)
     return run(algorithm, propose, stars, camera, db, params or IdentifyParams())

@@ -19,7 +19,6 @@ finds nothing and the four-star mode runs.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from startrack.identify.base import Proposal

@@ -34,8 +34,6 @@ import numpy as np
 
 from startrack.identify.base import Proposal
 
-_CACHE: dict = {}
-
 
 def _tangent_basis(v):
     a = np.array([0.0, 0.0, 1.0]) if abs(v[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
@@ -73,9 +71,11 @@ def _pattern(centre, neighbours, pr, br, g):
 
 def catalog_patterns(db, pr, br, g):
     """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> stars), orientation stars."""
-    key = (id(db), round(pr, 9), round(br, 9), g)
-    if key in _CACHE:
-        return _CACHE[key]
+    # Cached on the database itself (it lives as long as its patterns are valid).
+    key = (round(pr, 9), round(br, 9), g)
+    cache = db.__dict__.setdefault("_grid_patterns", {})
+    if key in cache:
+        return cache[key]
     n = db.n_stars
     ptr = np.zeros(n + 1, dtype=np.int64)
     cells_all = []
@@ -94,9 +94,9 @@ def catalog_patterns(db, pr, br, g):
     order = np.argsort(cells, kind="stable")
     inv_stars = owner[order]
     inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
-    _CACHE.clear()
-    _CACHE[key] = (ptr, cells, inv_ptr, inv_stars, orient)
-    return _CACHE[key]
+    cache.clear()
+    cache[key] = (ptr, cells, inv_ptr, inv_stars, orient)
+    return cache[key]
 
 
 def propose_grid(b, db, eps, params, stars, camera):

@@ -6,7 +6,6 @@ import math
 import os
 
 import pytest
-
 from conftest import DATA, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))

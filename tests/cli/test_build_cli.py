@@ -2,10 +2,7 @@ import os
 
 import numpy as np
 import pytest
-
 from conftest import assert_refused, run_cli
-
-
 
 
 def test_build_kvector_and_labels(tmp_path):

@@ -3,7 +3,6 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import assert_refused, run_cli
 
 # Pairs 20-35" apart that a 15 deg 1280 px sensor (42"/px) images as one star: (brighter, fainter).

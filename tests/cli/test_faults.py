@@ -73,7 +73,7 @@ def test_ctrl_c_while_writing_hdf5_leaves_the_old_file(tmp_path):
     db = tmp_path / "db.h5"
     db.write_bytes(b"the previous database")
     interrupted = 0
-    for attempt in range(3):
+    for _attempt in range(3):
         proc = subprocess.Popen(_startrack("build-kvector", "--fov-deg", "20", "--mag-max", "6.5", "-o", db, "-q"),
                                 stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 300

@@ -5,7 +5,6 @@ import subprocess
 import sys
 
 import numpy as np
-
 from conftest import assert_refused, run_cli
 
 
@@ -102,7 +101,7 @@ def test_refuses_inverted_magnitude_range(tmp_path):
     assert not out.exists()
 
 
-def test_refuses_unknown_option(tmp_path):
+def test_refuses_unknown_option():
     assert_refused(run_cli("catalog-filter", "--frobnicate", "3"), "--frobnicate")
 
 

@@ -14,7 +14,6 @@ from contextlib import redirect_stderr, redirect_stdout
 from types import SimpleNamespace
 
 import pytest
-
 from conftest import assert_refused, run_cli
 
 # (command, arguments, the option(s) the message must name).  Required options
@@ -307,7 +306,7 @@ def test_did_you_mean():
     assert_refused(run_main("frobnicate"), "No such command 'frobnicate'")
 
 
-def test_verbose_logs_to_stderr_and_quiet_never_hides_errors(tmp_path):
+def test_verbose_logs_to_stderr_and_quiet_never_hides_errors():
     proc = run_cli("-v", "catalog-filter", "--mag-max", "1", "-q", check=True)
     assert re.search(r"INFO: startrack.cli: startrack catalog-filter .*mag_max=1\.0", proc.stderr), proc.stderr
     proc = run_cli("catalog-filter", "--mag-max", "1", "-q", "-v", check=True)

@@ -6,7 +6,6 @@ import os
 
 import numpy as np
 import pytest
-
 from conftest import assert_refused, run_cli
 
 

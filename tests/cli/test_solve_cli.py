@@ -8,8 +8,7 @@ import time
 
 import numpy as np
 import pytest
-
-from conftest import DATA, run_cli
+from conftest import CHART_COLOURS, DATA, assert_chart_draws, assert_identified_star_marked, run_cli
 
 REAL = sorted(glob.glob(os.path.join(DATA, "real", "*.tiff")))
 
@@ -125,7 +124,8 @@ def test_plot_kinds(solved, tmp_path):
     one.write_text(json.dumps(docs[2]) + "\n")
     run_cli("plot", one, "--kind", "image", "-o", tmp_path / "img.png", check=True)
     run_cli("plot", one, "--kind", "residuals", "-o", tmp_path / "res.png", check=True)
-    assert (tmp_path / "img.png").stat().st_size > 50000 and (tmp_path / "res.png").stat().st_size > 10000
+    assert_identified_star_marked(tmp_path / "img.png", docs[2])
+    assert_chart_draws(tmp_path / "res.png", CHART_COLOURS[:1])       # the residual arrows
 
 
 @pytest.mark.parametrize("fov,size,k1", [(5.0, "800x600", 0.0), (40.0, "1024x768", -0.05)])

@@ -70,7 +70,7 @@ def test_memory_is_flat_in_the_number_of_frames(tmp_path):
     assert rss_big - rss_small < 15, (rss_small, rss_big, time.monotonic() - t)
 
 
-def test_jobs_keep_the_input_order(db20, tmp_path):
+def test_jobs_keep_the_input_order(db20, tmp_path):  # noqa: ARG001 - the caller's signature
     frames = run_cli(*RENDER, "--count", "12", "--seed", "8", check=True).stdout
     one = run_cli("identify", "-d", db20, "-q", input=frames)
     three = run_cli("identify", "-d", db20, "-q", "-j", "3", input=frames)
