@@ -177,7 +177,19 @@ class _SearchClock:
         return time.perf_counter() - self.t0 - self.setup_s > self.limit_s
 
 
-def _identify_in_band(stars, camera, band, catalog, algorithm, params, clock):
+def _label_scale(lab):
+    """The focal-length scale a label match measured (also when the frame was not confirmed)."""
+    return lab.focal_scale if lab.focal_scale is not None else lab.details.get("label_focal_scale")
+
+
+def _pyramid_config(algorithm, max_triads):
+    from startrack.identify import config_fields, make_config
+
+    has = any(f["name"] == "max_triads" and algorithm in f["algorithms"] for f in config_fields())
+    return make_config(algorithm, {"max_triads": max_triads} if has else {})
+
+
+def _identify_in_band(stars, camera, band, catalog, algorithm, params, clock, config=None):
     """Identify ``stars`` with each k-vector database of FOV band ``band`` in turn.
 
     Returns ``((camera, database, result) or None, databases tried)``.
@@ -186,7 +198,7 @@ def _identify_in_band(stars, camera, band, catalog, algorithm, params, clock):
 
     for which in range(len(FOV_BANDS[band][2])):
         db = clock.setup(band_database, band, catalog, which=which)
-        res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params)
+        res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params, config)
         if res.status == "ok":
             return (camera, db, res), which + 1
     return None, len(FOV_BANDS[band][2])
@@ -282,7 +294,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.centroid import CentroidOptions, find_stars
-    from startrack.identify import IdentifyParams, identify_stars
+    from startrack.identify import IdentifyParams, identify_stars, make_config
+    from startrack.identify.records import to_section
 
     opts = options or SolveOptions()
     clock = _SearchClock(opts.timeout_s)
@@ -297,11 +310,12 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         return out
     tried = 0
     result = None
-    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars, max_triads=opts.max_triads,
+    id_config = _pyramid_config(opts.algorithm, opts.max_triads)
+    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
                             max_false_probability=opts.max_false_probability)
     if camera is not None:
         result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), catalog, opts.algorithm,
-                                      params, clock)
+                                      params, clock, id_config)
         tried += n
     elif opts.algorithm == "patterns" or opts.blind == "patterns":
         result, n = _solve_with_patterns(cres.stars, w, h, opts, index, clock)
@@ -312,7 +326,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         # and measures it; the frame is then identified again with that focal length.
         bands = [_band_of(opts.fov_deg)] if opts.fov_deg is not None else [1, 2, 0, 3]
         lab_params = IdentifyParams(sigma_px=opts.sigma_px or 0.5, max_false_probability=opts.max_false_probability / 5,
-                                    max_focal_error=0.6, extra={"max_focal_error": 0.6, "label_boundary": 0.3})
+                                    max_focal_error=0.6)
+        lab_config = make_config("labelling", {"max_focal_error": 0.6, "label_boundary": 0.3})
         attempts = [(band, which) for band in bands for which in range(len(FOV_BANDS[band][4]))]
         for band, which in attempts:
             if clock.expired():
@@ -323,16 +338,17 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
             cam = Camera.from_fov(guess, w, h)
             for _ in range(3):
                 tried += 1
-                lab = clock.first_use("labelling", identify_stars, cres.stars, cam, labels, "labelling", lab_params)
+                lab = clock.first_use("labelling", identify_stars, cres.stars, cam, labels, "labelling", lab_params,
+                                      lab_config)
                 # The label match measures the focal length even when the label database's
                 # stars alone cannot confirm the frame: the pyramid below decides.
-                scale = lab.extra.get("focal_scale")
+                scale = _label_scale(lab)
                 if scale is None:
                     break
                 cam = cam.with_focal_length(cam.focal_length_px / scale)
                 if abs(scale - 1.0) < 1e-4:
                     break
-            if lab.extra.get("focal_scale") is None:
+            if _label_scale(lab) is None:
                 continue
             if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
                 continue
@@ -340,7 +356,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
                 continue
             b = _band_of(cam.fov_deg[0])
             params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
-            result, n = _identify_in_band(cres.stars, cam, b, catalog, opts.algorithm, params, clock)
+            result, n = _identify_in_band(cres.stars, cam, b, catalog, opts.algorithm, params, clock,
+                                      id_config)
             tried += n
             if result is not None:
                 break
@@ -349,7 +366,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
         # verification measures and corrects the focal length).
         cam = Camera.from_fov(opts.fov_deg, w, h)
-        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), catalog, opts.algorithm, params, clock)
+        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), catalog, opts.algorithm, params, clock,
+                                      id_config)
         tried += n
     if result is None:
         reason = (f"no star pattern identified ({tried} attempts)"
@@ -361,7 +379,7 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         out["identification"] = {"status": "failed", "algorithm": opts.algorithm, "matches": [], "reason": reason}
         return out
     cam, db, res = result
-    scale = res.extra.get("focal_scale")
+    scale = res.focal_scale
     if scale:
         cam = cam.with_focal_length(cam.focal_length_px / scale)
     if db is not None and hasattr(db, "star_vec") and opts.epoch is None and catalog is None:
@@ -375,14 +393,14 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
         vec = cat.vectors()
     body, ref, sig, labels = [], [], [], []
     for m in res.matches:
-        s = cres.stars[m["star"]]
+        s = cres.stars[m.star]
         body.append(cam.pixels_to_vectors(s["x"], s["y"]))
-        ref.append(vec[rows[m["id"]]])
+        ref.append(vec[rows[m.id]])
         sig.append(max(s.get("sigma_px", 0.1), 0.05) / cam.focal_length_px)
-        labels.append((m["star"], m["id"]))
+        labels.append((m.star, m.id))
     att = estimate_attitude(np.array(body), np.array(ref), np.array(sig), opts.method, labels)
     out["camera"] = cam.to_dict()
-    out["identification"] = res.section()
+    out["identification"] = to_section(res)
     out["attitude"] = att.section()
     fx, fy = cam.fov_deg
     out["solve"] = {"status": "ok" if att.status == "ok" else "failed", "fov_deg": [fx, fy],

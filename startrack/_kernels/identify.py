@@ -365,7 +365,7 @@ def _unique_triangle(cij, cik, star_vec, th_jk, eps, cat):
 
 @njit(cache=True)
 def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kvector, line, eps, gamma, ref_flux_ok,
-                      ref_mag, max_loops):
+                      ref_mag, max_loops, skip=0):
     """Paper 003's brightness-referenced identification (Sec. 4.3, Figs. 5-6).
 
     ``b`` image vectors sorted brightest first, ``mags`` their instrumental
@@ -384,6 +384,10 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
       pairs, checked against the three angles among ``j, k, l``.
     * ``n = 3``: the triangle, unique.
 
+    The loops up to ``skip`` are passed over, so that calling again with
+    ``skip`` = the returned ``loops`` continues the search after a match the
+    verification rejected (the Fig. 5 loop goes on to the next candidate).
+
     Returns ``(mode, idx[4], cat[4], loops)``: mode 1 reference, 2 four-star,
     3 triangle, 0 none.
     """
@@ -394,6 +398,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
     if n < 3:
         return 0, idx, cat, loops
     if n == 3:
+        if skip >= 1:
+            return 0, idx, cat, 1
         cij = _pair_candidates(b, mags, 0, 1, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
         cik = _pair_candidates(b, mags, 0, 2, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
         if _unique_triangle(cij, cik, star_vec, _angle(b[1], b[2]), eps, cat) == 1:
@@ -410,6 +416,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                 loops += 1
                 if loops > max_loops:
                     return 0, idx, cat, loops
+                if loops <= skip:
+                    continue
                 cij = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma,
                                        ref_mag)
                 if cij.shape[0] == 0:
@@ -433,6 +441,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                     loops += 1
                     if loops > max_loops:
                         return 0, idx, cat, loops
+                    if loops <= skip:
+                        continue
                     c0 = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line,
                                           gamma, 1e9)
                     if c0.shape[0] == 0:
@@ -487,3 +497,154 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                         cat[:] = res
                         return 2, idx, cat, loops
     return 0, idx, cat, loops
+
+
+@njit(cache=True)
+def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
+                       use_quadratic, max_triangles, max_out):
+    """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
+
+    The triad's catalog triangles come from k-vector (or paper 000 quadratic)
+    range look-ups on its angles ``theta_ij`` and ``theta_ik``, the third angle
+    and the specular (handedness) test.  Each triangle is confirmed by the
+    first other image star ``r`` (brightest first) whose three angles to it
+    match exactly one catalog star ``R``; with three image stars the triangle
+    itself is the candidate.  The tolerance of pair ``(u, v)`` is
+    ``sqrt(tol_u^2 + tol_v^2) + margin``.
+
+    Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
+    a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
+    triangles found (``max_triangles + 1`` when there were more: the triad is
+    then skipped as uninformative).
+    """
+    n = b.shape[0]
+    out = np.full((max_out, 5), -1, dtype=np.int64)
+    no = 0
+    th_ij = _angle(b[i], b[j])
+    th_ik = _angle(b[i], b[k])
+    th_jk = _angle(b[j], b[k])
+    e_ij = math.sqrt(tol[i] ** 2 + tol[j] ** 2) + margin
+    e_ik = math.sqrt(tol[i] ** 2 + tol[k] ** 2) + margin
+    e_jk = math.sqrt(tol[j] ** 2 + tol[k] ** 2) + margin
+    lo_ij = math.cos(th_ij + e_ij)
+    hi_ij = math.cos(max(th_ij - e_ij, 0.0))
+    lo_ik = math.cos(th_ik + e_ik)
+    hi_ik = math.cos(max(th_ik - e_ik, 0.0))
+    # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
+    s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
+    n_cat = star_vec.shape[0]
+    head = np.full(n_cat, -1, dtype=np.int64)
+    nxt = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
+    other = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
+    m = 0
+    for t in range(s2, e2):
+        c = pair_cos[t]
+        if c < lo_ik or c > hi_ik:
+            continue
+        a = pair_i[t]
+        z = pair_j[t]
+        other[m] = z
+        nxt[m] = head[a]
+        head[a] = m
+        m += 1
+        other[m] = a
+        nxt[m] = head[z]
+        head[z] = m
+        m += 1
+    if m == 0:
+        return out[:0], 0
+    cb = _triple(b[i], b[j], b[k])
+    tri = np.empty((max_triangles, 3), dtype=np.int64)
+    nt = 0
+    s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
+    for t in range(s, e):
+        c = pair_cos[t]
+        if c < lo_ij or c > hi_ij:
+            continue
+        for o in range(2):
+            I = pair_i[t] if o == 0 else pair_j[t]
+            J = pair_j[t] if o == 0 else pair_i[t]
+            p = head[I]
+            while p >= 0:
+                K = other[p]
+                p = nxt[p]
+                if K == J:
+                    continue
+                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) > e_jk:
+                    continue
+                if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
+                    continue
+                if nt >= max_triangles:
+                    return out[:0], nt + 1
+                tri[nt, 0] = I
+                tri[nt, 1] = J
+                tri[nt, 2] = K
+                nt += 1
+    if n == 3:
+        for t in range(min(nt, max_out)):
+            out[no, 1] = tri[t, 0]
+            out[no, 2] = tri[t, 1]
+            out[no, 3] = tri[t, 2]
+            no += 1
+        return out[:no], nt
+    # Per fourth star: its range of pairs by the angle to star i.
+    rs = np.empty(n, dtype=np.int64)
+    rstart = np.empty(n, dtype=np.int64)
+    rend = np.empty(n, dtype=np.int64)
+    nr = 0
+    for r in range(n):
+        if r == i or r == j or r == k:
+            continue
+        th_ir = _angle(b[i], b[r])
+        e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
+        s, e = _range(kvector, line, kquad, quad, use_quadratic, math.cos(th_ir + e_ir),
+                      math.cos(max(th_ir - e_ir, 0.0)))
+        rs[nr] = r
+        rstart[nr] = s
+        rend[nr] = e
+        nr += 1
+    for t in range(nt):
+        fI = tri[t, 0]
+        fJ = tri[t, 1]
+        fK = tri[t, 2]
+        for u in range(nr):
+            r = rs[u]
+            th_ir = _angle(b[i], b[r])
+            th_jr = _angle(b[j], b[r])
+            th_kr = _angle(b[k], b[r])
+            e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
+            e_jr = math.sqrt(tol[j] ** 2 + tol[r] ** 2) + margin
+            e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
+            lo = math.cos(th_ir + e_ir)
+            hi = math.cos(max(th_ir - e_ir, 0.0))
+            nR = 0
+            fR = -1
+            for q in range(rstart[u], rend[u]):
+                cq = pair_cos[q]
+                if cq < lo or cq > hi:
+                    continue
+                if pair_i[q] == fI:
+                    R = pair_j[q]
+                elif pair_j[q] == fI:
+                    R = pair_i[q]
+                else:
+                    continue
+                if R == fJ or R == fK:
+                    continue
+                if abs(_angle(star_vec[fJ], star_vec[R]) - th_jr) > e_jr:
+                    continue
+                if abs(_angle(star_vec[fK], star_vec[R]) - th_kr) > e_kr:
+                    continue
+                nR += 1
+                fR = R
+                if nR > 1:
+                    break
+            if nR == 1 and no < max_out:
+                out[no, 0] = r
+                out[no, 1] = fI
+                out[no, 2] = fJ
+                out[no, 3] = fK
+                out[no, 4] = fR
+                no += 1
+                break
+    return out[:no], nt

@@ -1,15 +1,55 @@
 """startrack identify: lost-in-space star identification of frame documents."""
 import click
 
-from startrack.cli.options import load_camera_file, handle_errors, input_argument, output_option, quiet_option
+from startrack.cli.options import handle_errors, input_argument, load_camera_file, output_option, quiet_option
+
+
+def _algorithm_options(func):
+    """One option per configuration field of the registered algorithms (``--max-triads``, ``--gamma-mag``, ...)."""
+    from startrack.identify import config_fields
+
+    for f in reversed(config_fields()):
+        kind = f["type"] if f["type"] in (int, float, bool, str) else float
+        flag = "--" + f["name"].replace("_", "-")
+        default = "" if f["default"] is None else f" (default {f['default']})"
+        text = f"{f['help']}{default} [{', '.join(f['algorithms'])}]"
+        if kind is bool:
+            func = click.option(flag + "/--no-" + f["name"].replace("_", "-"), f["name"], default=None,
+                                help=text)(func)
+        else:
+            func = click.option(flag, f["name"], type=kind, default=None, help=text)(func)
+    return func
+
+
+def algorithm_settings(kwargs, algorithm):
+    """The chosen algorithm's configuration from the generated options; another algorithm's option is an error."""
+    from startrack.errors import BadInputError
+    from startrack.identify import config_fields, make_config
+
+    values = {}
+    for f in config_fields():
+        v = kwargs.pop(f["name"], None)
+        if v is None:
+            continue
+        if algorithm not in f["algorithms"]:
+            flag = "--" + f["name"].replace("_", "-")
+            raise BadInputError(flag, None, f"is a setting of {', '.join(f['algorithms'])}, not of {algorithm}")
+        values[f["name"]] = v
+    return make_config(algorithm, values)
+
+
+def _algorithm_choice():
+    from startrack.identify import algorithm_names
+
+    return click.Choice(algorithm_names())
 
 
 @click.command("identify", short_help="Identify the stars of frame documents (lost in space).")
 @input_argument
 @click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
               help="Database from build-kvector (or build-labels for --algorithm labelling).")
-@click.option("--algorithm", "-a", default="pyramid", show_default=True,
-              help="pyramid, pyramid-quadratic, voting (and the algorithms of later versions).")
+@click.option("--algorithm", "-a", default="pyramid", show_default=True, type=_algorithm_choice(),
+              help="Identification algorithm (a registered name).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON, for frames without a camera section (or to override it).")
 @click.option("--sigma-px", type=float, default=None,
@@ -18,20 +58,31 @@ from startrack.cli.options import load_camera_file, handle_errors, input_argumen
 @click.option("--max-stars", type=int, default=12, show_default=True, help="Brightest stars used to search.")
 @click.option("--max-false-probability", type=float, default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
+@click.option("--max-proposals", type=int, default=200, show_default=True,
+              help="Search budget: proposals verified per frame before giving up.")
+@click.option("--max-time-ms", type=float, default=2000.0, show_default=True,
+              help="Search budget: milliseconds per frame before giving up.")
+@_algorithm_options
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
 @output_option()
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            plot, output, quiet):
+            max_proposals, max_time_ms, plot, output, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
     from a file or stdin; writes `identification` with status, algorithm,
-    matches (star index -> HIP id), time_ms and false_match_probability, the
-    probability that the match is a coincidence.  A frame that cannot be
-    identified gets status "failed" and a reason; the batch goes on.
+    matches (star index -> HIP id), time_ms, trials (proposals verified) and
+    false_match_probability, the probability that the match is a coincidence.
+    The algorithm proposes star patterns in its paper's order; each is verified
+    (attitude, every detection matched within its own sigma) until one passes
+    the false-match limit or the search budget runs out.  A frame that cannot
+    be identified gets status "failed" and a reason; the batch goes on.  The
+    database is loaded once (its time is reported on stderr, not in time_ms).
+    Each algorithm's own settings are options below, marked with the
+    algorithms that take them.
 
     \b
     Example (build a database once, then identify a stream):
@@ -39,26 +90,39 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
       startrack render --stars-only --count 100 --fov-deg 20 --mag-limit 5 --sigma-px 0.3 --seed 1 \\
           | startrack identify --database db.h5 --algorithm pyramid | jq -c .identification.status
     \b
+    Example (paper 003's brightness-referenced search with its own gamma):
+      startrack identify -d db.h5 -a brightness --gamma-mag 0.4 frames.jsonl
+    \b
     Example (a real photo):
       startrack centroid sky.tiff --camera cam.json | startrack identify -d db.h5 --plot sky-id.png
     """
     import os
+    import time
 
     from startrack.camera import Camera
     from startrack.cli.batch import run_frames
+    from startrack.cli.options import info
     from startrack.errors import BadInputError
-    from startrack.identify import ALGORITHMS, DATABASE_KIND, IdentifyParams, identify_stars
+    from startrack.identify import IdentifyParams, database_kind, identify_stars
+    from startrack.identify.records import to_section
 
-    if algorithm not in ALGORITHMS:
-        raise BadInputError("--algorithm", None, f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+    config = algorithm_settings(settings, algorithm)
     if max_stars < 3:
         raise BadInputError("--max-stars", None, f"must be at least 3, got {max_stars}")
-    db = _load_database(database, DATABASE_KIND[algorithm])
+    if max_proposals < 1:
+        raise BadInputError("--max-proposals", None, f"must be at least 1, got {max_proposals}")
+    if not max_time_ms > 0:
+        raise BadInputError("--max-time-ms", None, f"must be positive, got {max_time_ms}")
+    kind = database_kind(algorithm)
+    t_load = time.perf_counter()
+    db = _load_database(database, kind)
+    info(quiet, f"identify: database {database} loaded in {(time.perf_counter() - t_load) * 1000:.0f} ms")
     override = None
     if camera_file:
         override = load_camera_file(camera_file)
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
-                            max_false_probability=max_false_probability)
+                            max_false_probability=max_false_probability, max_proposals=max_proposals,
+                            max_time_ms=max_time_ms)
     checked = {}
 
     def process(doc, source, index, total):
@@ -71,12 +135,12 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
             cam = Camera.from_dict(doc["camera"], source)
         key = (cam.width, cam.height, cam.focal_length_px, cam.k1, cam.k2)
         if key not in checked:
-            checked[key] = _check(db, cam, DATABASE_KIND[algorithm])
+            checked[key] = _check(db, cam, kind)
         from startrack.formats.frame import validate_stars
 
         validate_stars(doc, source)
-        result = identify_stars(doc["stars"], cam, db, algorithm, params)
-        doc["identification"] = result.section()
+        result = identify_stars(doc["stars"], cam, db, algorithm, params, config)
+        doc["identification"] = to_section(result)
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
             _plot(plot, index, total, doc, db, cam, result)
         return doc
@@ -107,18 +171,18 @@ def _check(db, camera, kind):
 
 
 def _plot(pattern, index, total, doc, db, camera, result):
-    pass
-
     from startrack.imageio import read_image
     from startrack.names import star_label
     from startrack.plot import annotate_stars
     from startrack.render import numbered_path
 
     image, _ = read_image(doc["image"]["path"])
-    labels = {m["star"]: star_label(m["id"]) for m in result.matches}
+    from startrack.rotations import quaternion_to_dcm
+
+    labels = {m.star: star_label(m.id) for m in result.matches}
     predicted = []
-    if result.dcm is not None:
-        cam_vec = db.star_vector @ result.dcm.T
+    if result.quaternion_estimate is not None:
+        cam_vec = db.star_vector @ quaternion_to_dcm(result.quaternion_estimate).T
         front = cam_vec[:, 2] > 0
         x, y = camera.vectors_to_pixels(cam_vec[front])
         inside = camera.in_image(x, y)

@@ -1,36 +1,74 @@
-"""What every identification algorithm shares: tolerances, verification, confidence, the result.
+"""What every identification algorithm shares: the search driver, tolerances, verification, the result.
 
-An algorithm proposes a few star correspondences (a pyramid, a voting
-cluster, a label group).  Then, identically for all algorithms:
+An algorithm is a *generator of proposals*: a few star correspondences (a
+pyramid, a voting cluster, a label group, ...) in the order its paper searches
+them.  The driver :func:`run` takes them one by one and, identically for every
+algorithm,
 
-1. the attitude of the proposal is solved (SVD, determinant fixed);
-2. every catalog star is projected with it and each image star is matched
-   to the nearest catalog star within the match radius (uniquely);
-3. the attitude is refined on all matches and the matching repeated;
-4. the probability that the result is a coincidence is computed and the
-   identification refused when it is above ``max_false_probability``.
+1. solves the attitude of the proposal (QUEST) and measures the focal-length
+   scale it implies;
+2. projects every database star with it and matches every detection to the
+   nearest predicted star within the detection's own match radius
+   (``match_sigma`` of its centroid sigma; one-to-one, ambiguous neighbours
+   refused), refines the attitude on all matches and matches again;
+3. computes the probability that the result is a coincidence
+   (:func:`false_match_probability`) and accepts the first proposal whose
+   probability, *multiplied by the number of patterns and proposals tried*
+   (look-elsewhere), is below ``max_false_probability``.
 
-The false-match probability combines Mortari's argument for the pyramid (the
-expected number of catalog pyramids matching by chance, ``E = N^4 eps^5 ...``,
-the LOST estimate of Mortari et al. 2004) with tetra3's test of the other stars:
-the binomial probability that at least ``m`` of the ``n`` other image stars land
-by chance within the match radius of one of the ``k`` catalog stars predicted in
-the image.
+The search stops at the first accepted proposal or when a budget
+(``max_proposals``, ``max_time_ms``) runs out; the result reports the trials.
+Because every proposal passes the same gate, an algorithm that proposes more
+(continuing after a rejected candidate, as paper 003's Fig. 5 loop and paper
+004's search do) gains success but never wrong answers.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable, Iterator
 
 import numpy as np
 
-__all__ = ["IdentifyParams", "IdentifyResult", "Proposal", "tolerance_rad", "verify"]
+from startrack.identify.records import Identification, Match, ReasonCode, Status
+
+__all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability", "run",
+           "tolerance_rad"]
 
 
 @dataclass
 class IdentifyParams:
-    """Settings shared by all algorithms (angles in radians, pixels for the centroid noise)."""
+    """Settings shared by all algorithms.
+
+    Attributes
+    ----------
+    sigma_px : float or None
+        1-sigma centroid noise (px) of every star; ``None``: each star's own
+        ``sigma_px`` (times ``reported_sigma_factor``), else 0.5 px.
+    tolerance_sigma : float
+        Half-width of an inter-star angle window in sigmas of that angle.
+    match_sigma : float
+        Match radius of a detection in sigmas of its centroid.
+    tolerance_arcsec : float or None
+        Fixed angle half-width (arcsec), overriding the sigma-based one.
+    margin_arcsec : float
+        Added to every tolerance (calibration, aberration), arcsec.
+    match_radius_px : float or None
+        Fixed match radius (px), overriding the sigma-based one.
+    max_stars : int
+        Brightest detections the pattern search uses (all are matched at the end).
+    min_matches : int
+        Matched stars needed (three when the frame has only three).
+    max_false_probability : float
+        Refuse an identification more likely than this to be a coincidence.
+    max_focal_error : float
+        Largest relative focal-length error measured and corrected.
+    max_proposals : int
+        Proposals verified before giving up (the search budget).
+    max_time_ms : float
+        Search time before giving up, ms.
+    """
 
     sigma_px: float | None = None
     tolerance_sigma: float = 4.0
@@ -39,68 +77,132 @@ class IdentifyParams:
     margin_arcsec: float = 2.0
     match_radius_px: float | None = None
     max_stars: int = 12
-    max_triads: int = 200
     min_matches: int = 4
     max_false_probability: float = 1e-6
     max_focal_error: float = 0.05
-    extra: dict = field(default_factory=dict)
+    max_proposals: int = 200
+    max_time_ms: float = 2000.0
+    reported_sigma_factor: float = 1.5
+
+
+@dataclass(frozen=True)
+class NoConfig:
+    """An algorithm without settings of its own."""
 
 
 @dataclass
 class Proposal:
-    """An algorithm's hypothesis: image-star indices and catalog indices (into the database's star table)."""
+    """An algorithm's hypothesis.
+
+    Attributes
+    ----------
+    image : list of int
+        Indices of the search stars (into :attr:`SearchContext.b`).
+    catalog : list of int
+        Database star indices (into the database's star table), same order.
+    patterns : int
+        Image patterns the algorithm has compared with the database so far
+        (cumulative; the look-elsewhere factor of the confidence).
+    details : dict
+        Algorithm-specific facts reported with the result (``mode``, ``votes``, ...).
+    """
 
     image: list
     catalog: list
-    trials: int = 0
-    extra: dict = field(default_factory=dict)
+    patterns: int = 1
+    details: dict = field(default_factory=dict)
 
 
 @dataclass
-class IdentifyResult:
-    """The ``identification`` section of a frame document."""
+class SearchContext:
+    """What a proposal generator gets for one frame.
 
-    status: str
-    algorithm: str
-    matches: list
-    time_ms: float
-    reason: str | None = None
-    false_probability: float | None = None
-    dcm: np.ndarray | None = None
-    extra: dict = field(default_factory=dict)
+    Attributes
+    ----------
+    b : ndarray, shape (n, 3)
+        Unit vectors (camera frame) of the search stars, brightest first.
+    stars : list of dict
+        The search stars as given (``x``, ``y``, ``flux``, ``sigma_px``, ...).
+    camera : Camera
+    db : database of the algorithm's kind
+    eps : float
+        Angle tolerance (rad) valid for every pair of search stars (the largest pair tolerance).
+    tol : ndarray, shape (n,)
+        Per-star angle tolerance (rad): the pair (i, j) tolerance is
+        ``sqrt(tol_i^2 + tol_j^2) + margin``.
+    margin : float
+        Additive part of every pair tolerance (rad).
+    params : IdentifyParams
+    flux : ndarray or None
+        Fluxes of the search stars (``None`` when the frame has none).
+    """
 
-    def section(self) -> dict:
-        out = {"status": self.status, "algorithm": self.algorithm,
-               "matches": [{"star": m["star"], "id": m["id"]} for m in self.matches],
-               "time_ms": round(self.time_ms, 4)}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.false_probability is not None:
-            out["false_match_probability"] = float(self.false_probability)
-        if self.dcm is not None:
-            from startrack.rotations import dcm_to_quaternion
+    b: np.ndarray
+    stars: list
+    camera: object
+    db: object
+    eps: float
+    tol: np.ndarray
+    margin: float
+    params: IdentifyParams
+    flux: np.ndarray | None = None
 
-            out["quaternion_estimate"] = dcm_to_quaternion(self.dcm).tolist()
-        out.update(self.extra)
-        return out
+    def pair_eps(self, i: int, j: int) -> float:
+        """Tolerance (rad) of the angle between search stars ``i`` and ``j``."""
+        return math.hypot(self.tol[i], self.tol[j]) + self.margin
 
 
-def centroid_sigma_px(stars: list, params: IdentifyParams) -> float:
-    """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
+@dataclass(frozen=True)
+class Algorithm:
+    """A registered identification algorithm.
+
+    Attributes
+    ----------
+    name : str
+        The name on the command line (``-a NAME``).
+    search : callable
+        ``search(ctx: SearchContext, config) -> Iterator[Proposal]`` in the paper's order.
+    config : type
+        Dataclass of the algorithm's settings (every field has a default and
+        ``metadata["help"]``); the command line offers each field as an option.
+    database : str
+        The database kind it needs (``"kvector"``, ``"labels"``).
+    summary : str
+        One line for ``--help``.
+    uses_brightness : bool
+        True when the search itself selects candidates by brightness (the
+        confidence then does not count magnitude agreement again).
+    """
+
+    name: str
+    search: Callable[..., Iterator[Proposal]]
+    config: type = NoConfig
+    database: str = "kvector"
+    summary: str = ""
+    uses_brightness: bool = False
+
+
+def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
+    """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
+    n = len(stars)
     if params.sigma_px is not None:
-        return float(params.sigma_px)
-    reported = [s.get("sigma_px") for s in stars if isinstance(s.get("sigma_px"), (int, float))]
-    reported = [v for v in reported if v is not None and math.isfinite(v) and v > 0]
-    if reported:
-        return float(max(0.05, min(2.0, np.median(reported) * 1.5)))
-    return 0.5
+        return np.full(n, float(params.sigma_px))
+    out = np.full(n, 0.5)
+    reported = np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
+                         for s in stars], dtype=np.float64)
+    ok = np.isfinite(reported) & (reported > 0)
+    if ok.any():
+        scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
+        # A star without a reported sigma gets the frame's median.
+        out = np.where(ok, scaled, float(np.median(scaled[ok])))
+    return out
 
 
 def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
-    """Half-width of the inter-star angle window.
+    """Half-width of the angle window between two stars of centroid noise ``sigma_px`` each.
 
-    ``eps = k sqrt(2) sigma_px / f + margin``: an angle between two stars
-    errs by the two centroid errors along their separation (``sqrt 2`` of one),
+    ``eps = k sqrt(2) sigma_px / f + margin``: an angle between two stars errs
+    by the two centroid errors along their separation (``sqrt 2`` of one),
     ``k`` = ``tolerance_sigma`` (4 by default: a pyramid has six angles, and at
     3 sigma one in sixty true pyramids would be missed), plus a small margin
     for calibration.  ``tolerance_arcsec`` overrides it.
@@ -123,107 +225,210 @@ def _binomial_sf(m: int, n: int, p: float) -> float:
     return min(1.0, total)
 
 
-def _pyramid_chance(n_cat: int, eps: float, vecs) -> float:
-    """Expected number of catalog pyramids matching four measured directions by chance (Mortari 2004; LOST)."""
+def _inner_angle(p, q, r):
+    """Spherical angle at vertex ``p`` between the arcs to ``q`` and ``r``."""
+    u = np.cross(p, q)
+    v = np.cross(p, r)
+    nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+    if nu == 0 or nv == 0:
+        return 0.0
+    return math.acos(max(-1.0, min(1.0, float(u @ v) / (nu * nv))))
+
+
+def pattern_chance(n_cat: int, eps: float, vecs) -> float:
+    """Expected number of catalog patterns matching the measured directions by chance.
+
+    Mortari et al. (2004) / LOST: for a pair ``E = N (N-1)/2 eps sin(theta)``;
+    a triangle ``E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k))``; a pyramid
+    (four stars) ``E = N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``.
+    ``eps`` is the angle tolerance (rad), ``N`` the stars of the database.
+    """
     if len(vecs) < 3:
-        # A lone pair: E = N (N - 1) / 2 * eps * sin(theta) chance pairs at that angle.
         th = math.acos(max(-1.0, min(1.0, float(vecs[0] @ vecs[1])))) if len(vecs) == 2 else math.pi / 2
         return float(n_cat * (n_cat - 1) / 2 * eps * math.sin(th))
     a, b, c = vecs[0], vecs[1], vecs[2]
     th_ij = math.acos(max(-1.0, min(1.0, float(a @ b))))
-
-    def cross(p, q):
-        return (p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0])
-
-    def inner(p, q, r):
-        """Spherical angle at vertex p between the arcs to q and r."""
-        u = cross(p, q)
-        v = cross(p, r)
-        nu = math.sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2)
-        nv = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
-        if nu == 0 or nv == 0:
-            return 0.0
-        return math.acos(max(-1.0, min(1.0, (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]) / (nu * nv))))
-
-    phis = [inner(a, b, c), inner(b, a, c), inner(c, a, b)]
+    phis = [_inner_angle(a, b, c), _inner_angle(b, a, c), _inner_angle(c, a, b)]
     if len(vecs) < 4:
-        # A lone triangle: E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k)).
         return float(n_cat**3 * eps**3 * math.sin(th_ij) / (math.pi * max(math.sin(phis[2]), 1e-6)))
     denom = 2 * math.pi**2 * max(math.sin(phis[2]), 1e-6) * max(max(math.sin(p) for p in phis), 1e-6)
     return float(n_cat**4 * eps**5 * math.sin(th_ij) / denom)
 
 
-def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_vec, star_id, eps: float,
-           sigma_px: float, params: IdentifyParams):
-    """Attitude, remaining stars and confidence for a proposal; returns ``(matches, dcm, p_false, reason)``."""
-    from startrack._kernels.attitude import quat_to_dcm, refine
+def _others_hit_probability(b_vectors, others, pred, radius, n_pred, radius_px, camera):
+    """Mean chance that one of ``others`` lands within ``radius`` of a predicted star by accident.
 
-    img = np.array(proposal.image, dtype=np.int64)
-    cat = np.array(proposal.catalog, dtype=np.int64)
-    if len(img) < 2:
-        return None, None, None, "fewer than two stars identified"
-    radius_px = params.match_radius_px if params.match_radius_px is not None else \
-        max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
-    radius = radius_px / camera.focal_length_px
-    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
-    match, q, n_pred = refine(np.ascontiguousarray(b_vectors), star_vec, img, cat, cos_fov,
-                              float(camera.focal_length_px), float(camera.cx), float(camera.cy),
-                              float(camera.width), float(camera.height), float(camera.k1), float(camera.k2),
-                              radius, 2)
-    dcm = quat_to_dcm(q)
-    n_matched = int(np.sum(match >= 0))
-    # A proposal star agrees when the refined attitude puts its catalog star
-    # within the match radius of it (whether or not the star-by-star matching,
-    # which refuses ambiguous neighbours, kept it).
-    predicted = star_vec[cat] @ dcm.T
-    agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[img], predicted) >= math.cos(radius)))
-    if agree < min(len(img), params.min_matches):
-        return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
-    if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
-        return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})"
-    # Confidence: the chance that a pattern of the proposal's first four stars
-    # (three when that is all) matches by coincidence, times the chance that the
-    # other stars fall on predicted catalog stars by accident.
-    core = img[:4]
-    p_hit = _local_hit_probability(b_vectors, np.delete(np.arange(len(b_vectors)), core), star_vec, dcm, camera,
-                                   radius, cos_fov, n_pred, radius_px)
-    others = len(b_vectors) - len(core)
-    core_pred = star_vec[cat[:4]] @ dcm.T
-    core_agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[core], core_pred) >= math.cos(radius)))
-    e_pyr = _pyramid_chance(len(star_vec), eps, b_vectors[core])
-    p_false = min(1.0, e_pyr * max(proposal.trials, 1)) * _binomial_sf(n_matched - core_agree, others, p_hit)
-    if p_false > params.max_false_probability:
-        return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
-                                    f"{params.max_false_probability:g}")
-    out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in enumerate(match) if c >= 0]
-    return out, dcm, p_false, None
-
-
-def _local_hit_probability(b_vectors, others, star_vec, dcm, camera, radius, cos_fov, n_pred, radius_px):
-    """Mean chance that one of ``others`` lands within ``radius`` of a predicted catalog star by accident.
-
-    The density of catalog stars is taken around each image star (within ten
+    The density of predicted stars is taken around each detection (within ten
     match radii), not over the whole image: in a cluster (the Hyades, the
     Pleiades) chance coincidences are far more likely than the field average
     suggests.  The global average is the floor.
     """
-    floor = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
-    if len(others) == 0:
+    floor = min(1.0, n_pred * math.pi * float(np.mean(radius_px)) ** 2 / (camera.width * camera.height))
+    if len(others) == 0 or len(pred) == 0:
         return floor
-    front = star_vec @ dcm[2] > cos_fov
-    pred = star_vec[front] @ dcm.T
-    if len(pred) == 0:
-        return floor
-    local = 10.0 * radius
-    cos_local = math.cos(local)
-    counts = np.sum((b_vectors[others] @ pred.T) >= cos_local, axis=1)
-    p_each = np.minimum(1.0, counts * (radius / local) ** 2)
+    local = 10.0 * radius[others]
+    counts = np.sum((b_vectors[others] @ pred.T) >= np.cos(local)[:, None], axis=1)
+    p_each = np.minimum(1.0, counts * (radius[others] / local) ** 2)
     return float(max(floor, np.mean(p_each)))
 
 
-def _focal_scale(b_all, proposal, star_vec):
-    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the proposal's pairs (None if < 3 stars)."""
-    img, cat = list(proposal.image), list(proposal.catalog)
+def _missing_bright_probability(flux, matched_star, matched_mag, pred_mag, pred_matched, db_mags, area_frac):
+    """Chance that a random field holds no more unmatched bright catalog stars than this one does.
+
+    With the attitude, the catalog stars predicted in the image that are
+    clearly brighter than the faintest detection (by the frame's own
+    flux-magnitude zero point, less a margin of three times its scatter and at
+    least 0.5 mag) should all be detected.  A coincidental match puts the
+    pattern at a random place of the sky, where such stars appear at the
+    catalog's average density: Poisson with mean ``lambda`` = (database stars
+    brighter than the cut) x (image area / sphere), halved for the sparsest
+    skies.  The factor is ``P(K <= k_missing)``; 1 when fluxes are unknown.
+    """
+    ok = np.isfinite(flux[matched_star]) & (flux[matched_star] > 0)
+    if ok.sum() < 3:
+        return 1.0, None
+    inst = -2.5 * np.log10(flux[matched_star][ok])
+    zp_each = matched_mag[ok] - inst
+    zp = float(np.median(zp_each))
+    scatter = float(1.4826 * np.median(np.abs(zp_each - zp)))
+    fl = flux[np.isfinite(flux) & (flux > 0)]
+    faintest = float(-2.5 * np.log10(fl.min())) + zp
+    cut = faintest - max(0.5, 3.0 * scatter)
+    missing = int(np.sum((pred_mag <= cut) & ~pred_matched))
+    lam = 0.5 * float(np.sum(db_mags <= cut)) * area_frac
+    if lam <= 0:
+        return 1.0, cut
+    p = sum(math.exp(-lam) * lam**k / math.factorial(k) for k in range(missing + 1))
+    return min(1.0, p), cut
+
+
+@dataclass
+class _Verdict:
+    matches: list | None
+    star_index: np.ndarray | None
+    cat_index: np.ndarray | None
+    dcm: np.ndarray | None
+    p_false: float | None
+    reason: str | None
+    code: ReasonCode | None
+    residual_arcsec: np.ndarray | None = None
+
+
+def false_match_probability(e_core: float, trials: int, n_others_matched: int, n_others: int, p_hit: float,
+                            p_missing: float = 1.0) -> float:
+    """The chance that an accepted identification is a coincidence.
+
+    ``min(1, E_core * trials) * P(X >= n_others_matched) * p_missing`` with
+    ``E_core`` the expected chance matches of the proposal's pattern
+    (:func:`pattern_chance`), ``trials`` the patterns and proposals tried
+    (look-elsewhere: each is another chance to be fooled), ``X ~ Binomial(
+    n_others, p_hit)`` the other detections landing on predicted stars by
+    accident (tetra3's test), and ``p_missing`` the chance that a random field
+    lacks the bright stars this one lacks (:func:`_missing_bright_probability`).
+    """
+    return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_missing
+
+
+def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.ndarray, camera, db, eps: float,
+           params: IdentifyParams, trials: int, use_magnitudes: bool) -> _Verdict:
+    """Attitude, every other detection and the confidence of one proposal (see the module docstring)."""
+    from startrack._kernels.attitude import quat_to_dcm, refine
+
+    star_vec = db.star_vector
+    img = np.asarray(proposal.image, dtype=np.int64)
+    cat = np.asarray(proposal.catalog, dtype=np.int64)
+    if len(img) < 2:
+        return _Verdict(None, None, None, None, None, "fewer than two stars proposed", ReasonCode.NO_PATTERN)
+    f = camera.focal_length_px
+    margin_px = math.radians(params.margin_arcsec / 3600.0) * f
+    if params.match_radius_px is not None:
+        radius_px = np.full(len(b_all), float(params.match_radius_px))
+    else:
+        radius_px = np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+    radius = radius_px / f
+    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
+    match, q, n_pred = refine(np.ascontiguousarray(b_all), star_vec, img, cat, cos_fov, float(f), float(camera.cx),
+                              float(camera.cy), float(camera.width), float(camera.height), float(camera.k1),
+                              float(camera.k2), float(radius.max()), 2)
+    dcm = quat_to_dcm(q)
+    # Each detection within its own radius.
+    matched = np.flatnonzero(match >= 0)
+    if len(matched):
+        pred_m = star_vec[match[matched]] @ dcm.T
+        cosd = np.einsum("ij,ij->i", b_all[matched], pred_m)
+        far = cosd < np.cos(radius[matched])
+        match[matched[far]] = -1
+        matched = np.flatnonzero(match >= 0)
+    n_matched = len(matched)
+    predicted = star_vec[cat] @ dcm.T
+    agree = int(np.sum(np.einsum("ij,ij->i", b_all[img], predicted) >= np.cos(radius[img])))
+    if agree < min(len(img), params.min_matches):
+        return _Verdict(None, None, None, dcm, None, "the proposal's stars do not agree with the refined attitude",
+                        ReasonCode.VERIFICATION_FAILED)
+    if n_matched < params.min_matches and not (len(b_all) == 3 and n_matched == 3):
+        return _Verdict(None, None, None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})",
+                        ReasonCode.TOO_FEW_STARS)
+    # The proposal's first four stars are the core pattern; the rest of the frame tests it.
+    core = img[:4]
+    others = np.setdiff1d(np.arange(len(b_all)), core)
+    front = star_vec @ dcm[2] > cos_fov
+    pred_idx = np.flatnonzero(front)
+    pred = star_vec[pred_idx] @ dcm.T
+    x, y = camera.vectors_to_pixels(pred)
+    inside = camera.in_image(x, y)
+    pred_idx, pred = pred_idx[inside], pred[inside]
+    # An unresolved pair (two catalog stars within one detection's radius of it and of
+    # each other) is one blob: it is named after its brighter star, the one the sensor sees.
+    if len(matched) and len(pred_idx):
+        cos_r = np.cos(radius[matched])
+        near = (b_all[matched] @ pred.T) >= cos_r[:, None]
+        used = set(match[matched].tolist())
+        for row in np.flatnonzero(near.sum(axis=1) > 1):
+            s = matched[row]
+            cands = pred_idx[near[row]]
+            brightest = int(cands[np.argmin(db.star_mag[cands])])
+            if brightest != match[s] and brightest not in used and \
+                    float(star_vec[brightest] @ star_vec[match[s]]) >= cos_r[row]:
+                used.discard(int(match[s]))
+                used.add(brightest)
+                match[s] = brightest
+    p_hit = _others_hit_probability(b_all, others, pred, radius, len(pred_idx), radius_px, camera)
+    core_agree = int(np.sum(match[core] >= 0))
+    # The chance that a catalog pattern matches the core as well as this one does: the
+    # angle window is the core's largest actual angle residual (at least one sigma of
+    # an angle), not the search tolerance -- a p-value of the fit, at most E(eps).
+    e_core = pattern_chance(len(star_vec), _core_window(b_all[core], star_vec[cat[:4]], sig_px[core] / f, eps),
+                            b_all[core])
+    p_missing = 1.0
+    if use_magnitudes and flux is not None:
+        area = camera.width * camera.height / f**2 / (4 * math.pi)
+        is_matched = np.isin(pred_idx, match[matched])
+        p_missing, _ = _missing_bright_probability(flux, matched, db.star_mag[match[matched]], db.star_mag[pred_idx],
+                                                   is_matched, db.star_mag, area)
+    p_false = false_match_probability(e_core, trials, n_matched - core_agree, len(others), p_hit, p_missing)
+    if p_false > params.max_false_probability:
+        return _Verdict(None, None, None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
+                                                         f"{params.max_false_probability:g}"),
+                        ReasonCode.FALSE_MATCH_PROBABILITY)
+    resid = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b_all[matched], star_vec[match[matched]] @ dcm.T),
+                                         -1, 1))) * 3600
+    out = [Match(int(s), int(db.star_id[match[s]])) for s in matched]
+    return _Verdict(out, matched, match[matched], dcm, p_false, None, None, resid)
+
+
+def _core_window(b, r, sig_rad, eps):
+    """Largest ``|theta_measured - theta_catalog|`` over the core's pairs (rad), floored at one
+    sigma of an angle (``sqrt 2`` of the largest star sigma) and capped at ``eps``."""
+    iu = np.triu_indices(len(b), 1)
+    mea = np.arccos(np.clip((b @ b.T)[iu], -1.0, 1.0))
+    ref = np.arccos(np.clip((r @ r.T)[iu], -1.0, 1.0))
+    worst = float(np.max(np.abs(mea - ref))) if len(mea) else eps
+    return min(eps, max(worst, math.sqrt(2.0) * float(np.max(sig_rad))))
+
+
+def _focal_scale(b_all, img, cat, star_vec):
+    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the given pairs (None if < 3 stars)."""
+    img, cat = list(img), list(cat)
     if len(img) < 3:
         return None
     iu = np.triu_indices(len(img), 1)
@@ -235,56 +440,132 @@ def _focal_scale(b_all, proposal, star_vec):
     return float(ref @ mea / denom) if denom > 0 else None
 
 
-def run(algorithm_name: str, propose, frame_stars: list, camera, db, params: IdentifyParams) -> IdentifyResult:
-    """Common driver: vectors, tolerance, the algorithm's proposal, verification and timing."""
-    t0 = time.perf_counter()
-    n_all = len(frame_stars)
-    if n_all < 3:
-        return IdentifyResult("failed", algorithm_name, [], (time.perf_counter() - t0) * 1000,
-                              f"{n_all} star(s): at least 3 are needed")
-    xs = np.array([s["x"] for s in frame_stars], dtype=np.float64)
-    ys = np.array([s["y"] for s in frame_stars], dtype=np.float64)
-    b_all = camera.pixels_to_vectors(xs, ys)
-    sigma_px = centroid_sigma_px(frame_stars, params)
-    eps = tolerance_rad(camera, sigma_px, params)
-    use = min(n_all, params.max_stars)
-    proposal = propose(np.ascontiguousarray(b_all[:use]), db, eps, params, frame_stars[:use], camera)
-    if proposal is None or len(proposal.image) == 0:
-        reason = (proposal.extra.get("reason") if proposal is not None else None) or "no consistent star pattern found"
-        return IdentifyResult("failed", algorithm_name, [], (time.perf_counter() - t0) * 1000, reason,
-                              extra={"tolerance_arcsec": math.degrees(eps) * 3600})
-    # The focal-length scale the proposal implies (angles scale as 1 / f): a
-    # focal-length error is measured here, and the rest of the frame is matched
-    # with the corrected focal length; the scale is then re-estimated from every
-    # matched star and the matching repeated until it settles.
-    scale = _focal_scale(b_all, proposal, db.star_vector)
-    total_scale = 1.0
+def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags):
+    """:func:`verify`, measuring and correcting the focal-length scale the proposal implies.
+
+    Angles scale as ``1 / f``: the proposal's pairs measure the scale, the
+    frame is matched with the corrected focal length, then the scale is
+    re-estimated from every matched star and the matching repeated until it
+    settles.  Returns ``(verdict, focal scale or None)``.
+    """
+    scale = _focal_scale(b_all, proposal.image, proposal.catalog, db.star_vector)
     if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
         scale = None    # within noise (or beyond belief): keep the nominal focal length
+    cam = camera
     if scale is not None:
-        total_scale = scale
-        camera = camera.with_focal_length(camera.focal_length_px / scale)
-        b_all = camera.pixels_to_vectors(xs, ys)
-    matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id, eps,
-                                           sigma_px, params)
+        cam = camera.with_focal_length(camera.focal_length_px / scale)
+        b_all = cam.pixels_to_vectors(xs, ys)
+    v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags)
+    if scale is None:
+        return v, None
+    total = scale
     for _ in range(3):
-        if matches is None or scale is None or len(matches) < 3:
+        if v.matches is None or len(v.matches) < 3:
             break
-        everything = Proposal([m["star"] for m in matches], [m["index"] for m in matches])
-        step = _focal_scale(b_all, everything, db.star_vector)
-        if step is None or abs(step - 1.0) < 1e-5 or abs(total_scale * step - 1.0) > params.max_focal_error:
+        step = _focal_scale(b_all, v.star_index, v.cat_index, db.star_vector)
+        if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
             break
-        total_scale *= step
-        camera = camera.with_focal_length(camera.focal_length_px / step)
-        b_all = camera.pixels_to_vectors(xs, ys)
-        matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id,
-                                               eps, sigma_px, params)
-    scale = total_scale if scale is not None else None
+        total *= step
+        cam = cam.with_focal_length(cam.focal_length_px / step)
+        b_all = cam.pixels_to_vectors(xs, ys)
+        v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags)
+    return v, total
+
+
+def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams) -> Identification:
+    """The search driver: proposals from ``algorithm.search``, each verified, until one passes or the budget ends.
+
+    Parameters
+    ----------
+    algorithm : Algorithm
+    config : dataclass instance of ``algorithm.config``
+    frame_stars : list of dict
+        ``x``, ``y`` (px), optionally ``flux`` and ``sigma_px``, brightest first.
+    camera : Camera
+    db : database of ``algorithm.database`` kind
+    params : IdentifyParams
+
+    Returns
+    -------
+    Identification
+        ``ok`` with every matched detection, or ``failed`` with a reason and code;
+        ``trials`` is the number of proposals verified.
+    """
+    t0 = time.perf_counter()
+    name = algorithm.name
+    n_all = len(frame_stars)
+    if n_all < 3:
+        return Identification.failed(name, f"{n_all} star(s): at least 3 are needed", ReasonCode.TOO_FEW_STARS,
+                                     time_ms=(time.perf_counter() - t0) * 1000, trials=0)
+    xs = np.array([s["x"] for s in frame_stars], dtype=np.float64)
+    ys = np.array([s["y"] for s in frame_stars], dtype=np.float64)
+    flux = np.array([s.get("flux") if isinstance(s.get("flux"), (int, float)) else np.nan for s in frame_stars],
+                    dtype=np.float64)
+    has_flux = bool(np.isfinite(flux).sum() >= 3)
+    b_all = camera.pixels_to_vectors(xs, ys)
+    sig_px = star_sigmas_px(frame_stars, params)
+    f = camera.focal_length_px
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    use = min(n_all, params.max_stars)
+    if params.tolerance_arcsec is not None:
+        tol = np.zeros(use)
+        margin = math.radians(params.tolerance_arcsec / 3600.0)
+    else:
+        tol = params.tolerance_sigma * sig_px[:use] / f
+    eps = float(math.sqrt(2.0) * tol.max() + margin)
+    ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
+                        flux[:use] if has_flux else None)
+    use_mags = has_flux and not algorithm.uses_brightness
+    deadline = t0 + params.max_time_ms / 1000.0
+    tried = 0
+    best = None
+    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
+    accepted = None
+    scale = None
+    details = {}
+    best_details = {}
+    patterns = 0
+    seen = set()
+    for proposal in algorithm.search(ctx, config):
+        if proposal is None or len(proposal.image) == 0:
+            continue
+        # The same correspondences proposed again (another triad of the same stars) are no new trial.
+        key = frozenset(zip(proposal.image, proposal.catalog))
+        if key in seen:
+            continue
+        seen.add(key)
+        tried += 1
+        patterns = max(patterns, proposal.patterns)
+        v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
+                                      params, max(tried, proposal.patterns), use_mags)
+        if v.matches is not None:
+            accepted = v
+            details = dict(proposal.details)
+            break
+        if best is None or (v.p_false is not None and (best.p_false is None or v.p_false < best.p_false)):
+            best = v
+            best_details = dict(proposal.details)
+        if tried >= params.max_proposals:
+            reason, code = f"search budget of {params.max_proposals} proposals spent", ReasonCode.NO_PATTERN
+            break
+        if time.perf_counter() > deadline:
+            reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
+            break
     elapsed = (time.perf_counter() - t0) * 1000
-    extra = {"tolerance_arcsec": round(math.degrees(eps) * 3600, 3), "trials": int(proposal.trials)}
-    if scale is not None:
-        extra["focal_scale"] = round(float(scale), 7)
-    extra.update(proposal.extra)
-    if matches is None:
-        return IdentifyResult("failed", algorithm_name, [], elapsed, reason, p_false, extra=extra)
-    return IdentifyResult("ok", algorithm_name, matches, elapsed, None, p_false, dcm, extra)
+    tol_arcsec = round(math.degrees(eps) * 3600, 3)
+    if accepted is None:
+        if best is not None and reason.startswith("no consistent"):
+            reason, code = best.reason, best.code
+        elif best is not None:
+            reason = f"{reason}; best: {best.reason}"
+        return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
+                                     false_match_probability=best.p_false if best is not None else None,
+                                     details={**best_details, "patterns": int(patterns)})
+    from startrack.rotations import dcm_to_quaternion
+
+    details["patterns"] = int(patterns)
+    details["residual_arcsec_rms"] = round(float(np.sqrt(np.mean(accepted.residual_arcsec**2))), 3)
+    return Identification(Status.OK, name, accepted.matches, time_ms=elapsed,
+                          false_match_probability=float(accepted.p_false), trials=tried,
+                          tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
+                          quaternion_estimate=dcm_to_quaternion(accepted.dcm), details=details)
