@@ -5,6 +5,7 @@ import numpy as np
 from numba import njit
 
 from startrack._kernels.database import kvector_range, quadratic_range
+from startrack._kernels.sphere import project_to_pixel
 
 
 @njit(cache=True, inline="always")
@@ -648,3 +649,172 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 no += 1
                 break
     return out[:no], nt
+
+
+@njit(cache=True)
+def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height,
+                  k1, k2):
+    """The verification's bookkeeping after the attitude, in one pass.
+
+    * catalog stars predicted in the image with ``dcm``;
+    * each detection's match kept only within its own ``radius[i]`` (rad);
+    * an unresolved pair -- two predicted stars within a detection's radius of
+      it and of each other -- is named after its brighter star (the one the
+      sensor sees), when that star is not matched elsewhere;
+    * the chance-hit probability of the detections outside the core: the mean
+      over them of ``min(1, k_i / 100)``, ``k_i`` the predicted stars within ten
+      of its radii (the local density; a circle of one radius is 1/100 of it);
+    * the bright stars missing: with the frame's zero point (median of catalog
+      magnitude + 2.5 log10 flux over matched stars with a flux) and its robust
+      scatter, ``cut`` = (faintest detection's magnitude) - max(0.5, 3 scatter);
+      ``missing`` = unmatched predicted stars brighter than ``cut``; ``n_bright``
+      = database stars brighter than ``cut`` (``cut`` is NaN with fewer than
+      three matched fluxes).
+
+    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut)``.
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    pred_idx = np.empty(m, dtype=np.int64)
+    pred = np.empty((m, 3))
+    npred = 0
+    for s in range(m):
+        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
+        if z < cos_fov:
+            continue
+        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
+        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
+        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+        if px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5:
+            continue
+        pred_idx[npred] = s
+        pred[npred, 0] = x
+        pred[npred, 1] = y
+        pred[npred, 2] = z
+        npred += 1
+    out = match.copy()
+    for i in range(n):
+        c = out[i]
+        if c < 0:
+            continue
+        d = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
+        e = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
+        f = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
+        if b[i, 0] * d + b[i, 1] * e + b[i, 2] * f < math.cos(radius[i]):
+            out[i] = -1
+    hit_sum = 0.0
+    n_others = 0
+    for i in range(n):
+        cos_r = math.cos(radius[i])
+        cos_l = math.cos(10.0 * radius[i])
+        best = -1
+        k = 0
+        for u in range(npred):
+            d = b[i, 0] * pred[u, 0] + b[i, 1] * pred[u, 1] + b[i, 2] * pred[u, 2]
+            if d >= cos_l:
+                k += 1
+            if out[i] >= 0 and d >= cos_r:
+                s = pred_idx[u]
+                if best < 0 or star_mag[s] < star_mag[best]:
+                    best = s
+        if not is_core[i]:
+            hit_sum += min(1.0, k * 0.01)
+            n_others += 1
+        c = out[i]
+        if c < 0 or best < 0 or best == c:
+            continue
+        if _dot(star_vec[best], star_vec[c]) < cos_r:
+            continue
+        used = False
+        for j in range(n):
+            if out[j] == best:
+                used = True
+                break
+        if not used:
+            out[i] = best
+    p_local = hit_sum / n_others if n_others > 0 else 0.0
+    # Bright stars that should have been detected.
+    zp = np.empty(n)
+    nz = 0
+    faint = -np.inf
+    for i in range(n):
+        if flux[i] > 0 and np.isfinite(flux[i]):
+            inst = -2.5 * math.log10(flux[i])
+            faint = max(faint, inst)
+            if out[i] >= 0:
+                zp[nz] = star_mag[out[i]] - inst
+                nz += 1
+    if nz < 3:
+        return out, npred, p_local, 0, 0, np.nan
+    z0 = np.median(zp[:nz])
+    dev = np.empty(nz)
+    for t in range(nz):
+        dev[t] = abs(zp[t] - z0)
+    scatter = 1.4826 * np.median(dev)
+    cut = faint + z0 - max(0.5, 3.0 * scatter)
+    missing = 0
+    for u in range(npred):
+        s = pred_idx[u]
+        if star_mag[s] > cut:
+            continue
+        found = False
+        for i in range(n):
+            if out[i] == s:
+                found = True
+                break
+        if not found:
+            missing += 1
+    n_bright = 0
+    for s in range(m):
+        if star_mag[s] <= cut:
+            n_bright += 1
+    return out, npred, p_local, missing, n_bright, cut
+
+
+@njit(cache=True)
+def core_window(b, r, floor, cap):
+    """``max |theta_b - theta_r|`` over the pairs of the core (rad), clipped to ``[floor, cap]``."""
+    worst = 0.0
+    for u in range(b.shape[0]):
+        for v in range(u + 1, b.shape[0]):
+            worst = max(worst, abs(_angle(b[u], b[v]) - _angle(r[u], r[v])))
+    return min(cap, max(worst, floor))
+
+
+@njit(cache=True)
+def _inner(p, q, r):
+    """Spherical angle at vertex ``p`` between the arcs to ``q`` and ``r``."""
+    u0 = p[1] * q[2] - p[2] * q[1]
+    u1 = p[2] * q[0] - p[0] * q[2]
+    u2 = p[0] * q[1] - p[1] * q[0]
+    v0 = p[1] * r[2] - p[2] * r[1]
+    v1 = p[2] * r[0] - p[0] * r[2]
+    v2 = p[0] * r[1] - p[1] * r[0]
+    nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    nv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if nu == 0.0 or nv == 0.0:
+        return 0.0
+    return math.acos(min(1.0, max(-1.0, (u0 * v0 + u1 * v1 + u2 * v2) / (nu * nv))))
+
+
+@njit(cache=True)
+def pattern_chance(n_cat, eps, v):
+    """Expected catalog patterns matching directions ``v`` (2-4 rows) within ``eps`` by chance.
+
+    Mortari et al. (2004) / LOST: a pair ``N (N-1)/2 eps sin(theta)``; a triangle
+    ``N^3 eps^3 sin(theta_ij) / (pi sin(phi_k))``; a pyramid
+    ``N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``.
+    """
+    n = v.shape[0]
+    if n < 3:
+        th = _angle(v[0], v[1]) if n == 2 else math.pi / 2
+        return n_cat * (n_cat - 1) / 2.0 * eps * math.sin(th)
+    th_ij = _angle(v[0], v[1])
+    p0 = _inner(v[0], v[1], v[2])
+    p1 = _inner(v[1], v[0], v[2])
+    p2 = _inner(v[2], v[0], v[1])
+    s2 = max(math.sin(p2), 1e-6)
+    if n < 4:
+        return float(n_cat) ** 3 * eps ** 3 * math.sin(th_ij) / (math.pi * s2)
+    smax = max(max(math.sin(p0), math.sin(p1)), max(math.sin(p2), 1e-6))
+    return float(n_cat) ** 4 * eps ** 5 * math.sin(th_ij) / (2.0 * math.pi ** 2 * s2 * smax)

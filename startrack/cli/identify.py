@@ -55,7 +55,8 @@ def _algorithm_choice():
 @click.option("--sigma-px", type=float, default=None,
               help="Centroid noise (1 sigma, px) for the tolerances; default: from the stars' sigma_px, else 0.5.")
 @click.option("--tolerance-arcsec", type=float, default=None, help="Inter-star angle tolerance, overriding the default.")
-@click.option("--max-stars", type=int, default=12, show_default=True, help="Brightest stars used to search.")
+@click.option("--max-stars", type=int, default=20, show_default=True,
+              help="Brightest stars the pattern search uses (all are matched at the end).")
 @click.option("--max-false-probability", type=float, default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
 @click.option("--max-proposals", type=int, default=200, show_default=True,

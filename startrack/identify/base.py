@@ -76,7 +76,7 @@ class IdentifyParams:
     tolerance_arcsec: float | None = None
     margin_arcsec: float = 2.0
     match_radius_px: float | None = None
-    max_stars: int = 12
+    max_stars: int = 20
     min_matches: int = 4
     max_false_probability: float = 1e-6
     max_focal_error: float = 0.05
@@ -225,81 +225,42 @@ def _binomial_sf(m: int, n: int, p: float) -> float:
     return min(1.0, total)
 
 
-def _inner_angle(p, q, r):
-    """Spherical angle at vertex ``p`` between the arcs to ``q`` and ``r``."""
-    u = np.cross(p, q)
-    v = np.cross(p, r)
-    nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
-    if nu == 0 or nv == 0:
-        return 0.0
-    return math.acos(max(-1.0, min(1.0, float(u @ v) / (nu * nv))))
-
-
 def pattern_chance(n_cat: int, eps: float, vecs) -> float:
     """Expected number of catalog patterns matching the measured directions by chance.
 
     Mortari et al. (2004) / LOST: for a pair ``E = N (N-1)/2 eps sin(theta)``;
     a triangle ``E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k))``; a pyramid
-    (four stars) ``E = N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``.
-    ``eps`` is the angle tolerance (rad), ``N`` the stars of the database.
+    (four stars) ``E = N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``,
+    ``phi`` the triangle's inner angles.  ``eps`` is the angle window (rad),
+    ``N`` the stars of the database, ``vecs`` the first two to four unit vectors.
     """
-    if len(vecs) < 3:
-        th = math.acos(max(-1.0, min(1.0, float(vecs[0] @ vecs[1])))) if len(vecs) == 2 else math.pi / 2
-        return float(n_cat * (n_cat - 1) / 2 * eps * math.sin(th))
-    a, b, c = vecs[0], vecs[1], vecs[2]
-    th_ij = math.acos(max(-1.0, min(1.0, float(a @ b))))
-    phis = [_inner_angle(a, b, c), _inner_angle(b, a, c), _inner_angle(c, a, b)]
-    if len(vecs) < 4:
-        return float(n_cat**3 * eps**3 * math.sin(th_ij) / (math.pi * max(math.sin(phis[2]), 1e-6)))
-    denom = 2 * math.pi**2 * max(math.sin(phis[2]), 1e-6) * max(max(math.sin(p) for p in phis), 1e-6)
-    return float(n_cat**4 * eps**5 * math.sin(th_ij) / denom)
+    from startrack._kernels.identify import pattern_chance as kernel
+
+    return float(kernel(int(n_cat), float(eps), np.ascontiguousarray(vecs, dtype=np.float64)))
 
 
-def _others_hit_probability(b_vectors, others, pred, radius, n_pred, radius_px, camera):
-    """Mean chance that one of ``others`` lands within ``radius`` of a predicted star by accident.
-
-    The density of predicted stars is taken around each detection (within ten
-    match radii), not over the whole image: in a cluster (the Hyades, the
-    Pleiades) chance coincidences are far more likely than the field average
-    suggests.  The global average is the floor.
-    """
-    floor = min(1.0, n_pred * math.pi * float(np.mean(radius_px)) ** 2 / (camera.width * camera.height))
-    if len(others) == 0 or len(pred) == 0:
-        return floor
-    local = 10.0 * radius[others]
-    counts = np.sum((b_vectors[others] @ pred.T) >= np.cos(local)[:, None], axis=1)
-    p_each = np.minimum(1.0, counts * (radius[others] / local) ** 2)
-    return float(max(floor, np.mean(p_each)))
-
-
-def _missing_bright_probability(flux, matched_star, matched_mag, pred_mag, pred_matched, db_mags, area_frac):
-    """Chance that a random field holds no more unmatched bright catalog stars than this one does.
+def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float:
+    """Chance that a random field holds no more undetected bright catalog stars than this one.
 
     With the attitude, the catalog stars predicted in the image that are
     clearly brighter than the faintest detection (by the frame's own
-    flux-magnitude zero point, less a margin of three times its scatter and at
-    least 0.5 mag) should all be detected.  A coincidental match puts the
-    pattern at a random place of the sky, where such stars appear at the
-    catalog's average density: Poisson with mean ``lambda`` = (database stars
-    brighter than the cut) x (image area / sphere), halved for the sparsest
-    skies.  The factor is ``P(K <= k_missing)``; 1 when fluxes are unknown.
+    flux-magnitude zero point, less three times its scatter and at least
+    0.5 mag; :func:`startrack._kernels.identify.check_matches`) should all be
+    detected.  A coincidental match puts the pattern at a random place of the
+    sky, where such stars appear at the catalog's average density: Poisson with
+    mean ``lambda`` = ``n_bright`` (database stars brighter than the cut) x
+    ``area_frac`` (image solid angle / 4 pi), halved for the sparsest skies.
+    Returns ``P(K <= missing)``; 1 without magnitudes (``n_bright`` = 0).
     """
-    ok = np.isfinite(flux[matched_star]) & (flux[matched_star] > 0)
-    if ok.sum() < 3:
-        return 1.0, None
-    inst = -2.5 * np.log10(flux[matched_star][ok])
-    zp_each = matched_mag[ok] - inst
-    zp = float(np.median(zp_each))
-    scatter = float(1.4826 * np.median(np.abs(zp_each - zp)))
-    fl = flux[np.isfinite(flux) & (flux > 0)]
-    faintest = float(-2.5 * np.log10(fl.min())) + zp
-    cut = faintest - max(0.5, 3.0 * scatter)
-    missing = int(np.sum((pred_mag <= cut) & ~pred_matched))
-    lam = 0.5 * float(np.sum(db_mags <= cut)) * area_frac
+    lam = 0.5 * n_bright * area_frac
     if lam <= 0:
-        return 1.0, cut
-    p = sum(math.exp(-lam) * lam**k / math.factorial(k) for k in range(missing + 1))
-    return min(1.0, p), cut
+        return 1.0
+    term = math.exp(-lam)
+    total = term
+    for k in range(1, missing + 1):
+        term *= lam / k
+        total += term
+    return min(1.0, total)
 
 
 @dataclass
@@ -312,6 +273,7 @@ class _Verdict:
     reason: str | None
     code: ReasonCode | None
     residual_arcsec: np.ndarray | None = None
+    quaternion: np.ndarray | None = None
 
 
 def false_match_probability(e_core: float, trials: int, n_others_matched: int, n_others: int, p_hit: float,
@@ -329,10 +291,21 @@ def false_match_probability(e_core: float, trials: int, n_others_matched: int, n
     return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_missing
 
 
+def _geometry(camera):
+    """``cos`` of the largest off-axis angle (plus 0.5 deg) and the projection numbers of ``camera``."""
+    return (math.cos(math.radians(camera.max_off_axis_deg + 0.5)),
+            (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
+             float(camera.height), float(camera.k1), float(camera.k2)))
+
+
 def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.ndarray, camera, db, eps: float,
-           params: IdentifyParams, trials: int, use_magnitudes: bool) -> _Verdict:
-    """Attitude, every other detection and the confidence of one proposal (see the module docstring)."""
+           params: IdentifyParams, trials: int, use_magnitudes: bool, geom=None) -> _Verdict:
+    """Attitude, every other detection and the confidence of one proposal (see the module docstring).
+
+    ``geom`` is :func:`_geometry` of ``camera`` (computed when not given).
+    """
     from startrack._kernels.attitude import quat_to_dcm, refine
+    from startrack._kernels.identify import check_matches, core_window
 
     star_vec = db.star_vector
     img = np.asarray(proposal.image, dtype=np.int64)
@@ -346,101 +319,68 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     else:
         radius_px = np.maximum(1.0, params.match_sigma * sig_px + margin_px)
     radius = radius_px / f
-    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
-    match, q, n_pred = refine(np.ascontiguousarray(b_all), star_vec, img, cat, cos_fov, float(f), float(camera.cx),
-                              float(camera.cy), float(camera.width), float(camera.height), float(camera.k1),
-                              float(camera.k2), float(radius.max()), 2)
+    cos_fov, geometry = geom if geom is not None else _geometry(camera)
+    match, q, _ = refine(b_all, star_vec, img, cat, cos_fov, *geometry, float(radius.max()), 2)
     dcm = quat_to_dcm(q)
-    # Each detection within its own radius.
+    n_all = len(b_all)
+    core = img[:4]
+    is_core = np.zeros(n_all, dtype=np.bool_)
+    is_core[core] = True
+    fl = flux if (use_magnitudes and flux is not None) else np.full(n_all, np.nan)
+    match, n_pred, p_local, missing, n_bright, _ = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
+                                                                 is_core, fl, cos_fov, *geometry)
     matched = np.flatnonzero(match >= 0)
-    if len(matched):
-        pred_m = star_vec[match[matched]] @ dcm.T
-        cosd = np.einsum("ij,ij->i", b_all[matched], pred_m)
-        far = cosd < np.cos(radius[matched])
-        match[matched[far]] = -1
-        matched = np.flatnonzero(match >= 0)
     n_matched = len(matched)
-    predicted = star_vec[cat] @ dcm.T
-    agree = int(np.sum(np.einsum("ij,ij->i", b_all[img], predicted) >= np.cos(radius[img])))
+    # The proposal's stars must sit on their catalog stars with the refined attitude.
+    agree = int(np.count_nonzero(np.einsum("ij,ij->i", b_all[img], star_vec[cat] @ dcm.T) >= np.cos(radius[img])))
     if agree < min(len(img), params.min_matches):
         return _Verdict(None, None, None, dcm, None, "the proposal's stars do not agree with the refined attitude",
                         ReasonCode.VERIFICATION_FAILED)
-    if n_matched < params.min_matches and not (len(b_all) == 3 and n_matched == 3):
+    if n_matched < params.min_matches and not (n_all == 3 and n_matched == 3):
         return _Verdict(None, None, None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})",
                         ReasonCode.TOO_FEW_STARS)
-    # The proposal's first four stars are the core pattern; the rest of the frame tests it.
-    core = img[:4]
-    others = np.setdiff1d(np.arange(len(b_all)), core)
-    front = star_vec @ dcm[2] > cos_fov
-    pred_idx = np.flatnonzero(front)
-    pred = star_vec[pred_idx] @ dcm.T
-    x, y = camera.vectors_to_pixels(pred)
-    inside = camera.in_image(x, y)
-    pred_idx, pred = pred_idx[inside], pred[inside]
-    # An unresolved pair (two catalog stars within one detection's radius of it and of
-    # each other) is one blob: it is named after its brighter star, the one the sensor sees.
-    if len(matched) and len(pred_idx):
-        cos_r = np.cos(radius[matched])
-        near = (b_all[matched] @ pred.T) >= cos_r[:, None]
-        used = set(match[matched].tolist())
-        for row in np.flatnonzero(near.sum(axis=1) > 1):
-            s = matched[row]
-            cands = pred_idx[near[row]]
-            brightest = int(cands[np.argmin(db.star_mag[cands])])
-            if brightest != match[s] and brightest not in used and \
-                    float(star_vec[brightest] @ star_vec[match[s]]) >= cos_r[row]:
-                used.discard(int(match[s]))
-                used.add(brightest)
-                match[s] = brightest
-    p_hit = _others_hit_probability(b_all, others, pred, radius, len(pred_idx), radius_px, camera)
-    core_agree = int(np.sum(match[core] >= 0))
+    # The other detections test the core pattern (tetra3's binomial test): the chance of
+    # landing on a predicted star is the local density of predicted stars around each
+    # one (ten match radii) -- clusters make coincidences likelier -- with the image
+    # average as the floor.
+    n_others = n_all - int(np.count_nonzero(is_core))
+    mean_r = float(radius_px.mean())
+    p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (camera.width * camera.height)), p_local)
+    core_agree = int(np.count_nonzero(match[core] >= 0))
     # The chance that a catalog pattern matches the core as well as this one does: the
     # angle window is the core's largest actual angle residual (at least one sigma of
     # an angle), not the search tolerance -- a p-value of the fit, at most E(eps).
-    e_core = pattern_chance(len(star_vec), _core_window(b_all[core], star_vec[cat[:4]], sig_px[core] / f, eps),
-                            b_all[core])
-    p_missing = 1.0
-    if use_magnitudes and flux is not None:
-        area = camera.width * camera.height / f**2 / (4 * math.pi)
-        is_matched = np.isin(pred_idx, match[matched])
-        p_missing, _ = _missing_bright_probability(flux, matched, db.star_mag[match[matched]], db.star_mag[pred_idx],
-                                                   is_matched, db.star_mag, area)
-    p_false = false_match_probability(e_core, trials, n_matched - core_agree, len(others), p_hit, p_missing)
+    window = core_window(b_all[core], star_vec[cat[:4]], math.sqrt(2.0) * float(sig_px[core].max()) / f, eps)
+    e_core = pattern_chance(len(star_vec), window, b_all[core])
+    # Bright catalog stars predicted in the image but not detected (magnitudes).
+    p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
+    p_false = false_match_probability(e_core, trials, n_matched - core_agree, n_others, p_hit, p_missing)
     if p_false > params.max_false_probability:
         return _Verdict(None, None, None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
                                                          f"{params.max_false_probability:g}"),
                         ReasonCode.FALSE_MATCH_PROBABILITY)
     resid = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b_all[matched], star_vec[match[matched]] @ dcm.T),
                                          -1, 1))) * 3600
-    out = [Match(int(s), int(db.star_id[match[s]])) for s in matched]
-    return _Verdict(out, matched, match[matched], dcm, p_false, None, None, resid)
-
-
-def _core_window(b, r, sig_rad, eps):
-    """Largest ``|theta_measured - theta_catalog|`` over the core's pairs (rad), floored at one
-    sigma of an angle (``sqrt 2`` of the largest star sigma) and capped at ``eps``."""
-    iu = np.triu_indices(len(b), 1)
-    mea = np.arccos(np.clip((b @ b.T)[iu], -1.0, 1.0))
-    ref = np.arccos(np.clip((r @ r.T)[iu], -1.0, 1.0))
-    worst = float(np.max(np.abs(mea - ref))) if len(mea) else eps
-    return min(eps, max(worst, math.sqrt(2.0) * float(np.max(sig_rad))))
+    ids = db.star_id[match[matched]].tolist()
+    out = [Match(s, i) for s, i in zip(matched.tolist(), ids)]
+    q = q / math.sqrt(float(q @ q))
+    return _Verdict(out, matched, match[matched], dcm, p_false, None, None, resid, -q if q[3] < 0 else q)
 
 
 def _focal_scale(b_all, img, cat, star_vec):
     """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the given pairs (None if < 3 stars)."""
-    img, cat = list(img), list(cat)
     if len(img) < 3:
         return None
-    iu = np.triu_indices(len(img), 1)
-    b = b_all[img]
-    r = star_vec[cat]
-    mea = np.arccos(np.clip((b @ b.T)[iu], -1.0, 1.0))
-    ref = np.arccos(np.clip((r @ r.T)[iu], -1.0, 1.0))
+    b = b_all[np.asarray(img)]
+    r = star_vec[np.asarray(cat)]
+    iu = np.triu_indices(len(b), 1)
+    mea = np.arccos(np.minimum((b @ b.T)[iu], 1.0))
+    ref = np.arccos(np.minimum((r @ r.T)[iu], 1.0))
     denom = float(mea @ mea)
-    return float(ref @ mea / denom) if denom > 0 else None
+    return float(ref @ mea) / denom if denom > 0 else None
 
 
-def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags):
+def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
     """:func:`verify`, measuring and correcting the focal-length scale the proposal implies.
 
     Angles scale as ``1 / f``: the proposal's pairs measure the scale, the
@@ -455,7 +395,8 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     if scale is not None:
         cam = camera.with_focal_length(camera.focal_length_px / scale)
         b_all = cam.pixels_to_vectors(xs, ys)
-    v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags)
+    v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags,
+               geom if scale is None else None)
     if scale is None:
         return v, None
     total = scale
@@ -517,6 +458,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                         flux[:use] if has_flux else None)
     use_mags = has_flux and not algorithm.uses_brightness
     deadline = t0 + params.max_time_ms / 1000.0
+    geom = _geometry(camera)
     tried = 0
     best = None
     reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
@@ -537,7 +479,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         tried += 1
         patterns = max(patterns, proposal.patterns)
         v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
-                                      params, max(tried, proposal.patterns), use_mags)
+                                      params, max(tried, proposal.patterns), use_mags, geom)
         if v.matches is not None:
             accepted = v
             details = dict(proposal.details)
@@ -561,11 +503,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
                                      false_match_probability=best.p_false if best is not None else None,
                                      details={**best_details, "patterns": int(patterns)})
-    from startrack.rotations import dcm_to_quaternion
-
     details["patterns"] = int(patterns)
     details["residual_arcsec_rms"] = round(float(np.sqrt(np.mean(accepted.residual_arcsec**2))), 3)
     return Identification(Status.OK, name, accepted.matches, time_ms=elapsed,
                           false_match_probability=float(accepted.p_false), trials=tried,
                           tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
-                          quaternion_estimate=dcm_to_quaternion(accepted.dcm), details=details)
+                          quaternion_estimate=accepted.quaternion, details=details)
