@@ -671,7 +671,11 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
       = database stars brighter than ``cut`` (``cut`` is NaN with fewer than
       three matched fluxes).
 
-    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut)``.
+    * the magnitude agreement of the core (``is_core``): the chance that random
+      catalog stars agree with the core's fluxes as well (``p_mag``, 1 without
+      fluxes).
+
+    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag)``.
     """
     n = b.shape[0]
     m = star_vec.shape[0]
@@ -745,13 +749,35 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
                 zp[nz] = star_mag[out[i]] - inst
                 nz += 1
     if nz < 3:
-        return out, npred, p_local, 0, 0, np.nan
+        return out, npred, p_local, 0, 0, np.nan, 1.0
     z0 = np.median(zp[:nz])
     dev = np.empty(nz)
     for t in range(nz):
         dev[t] = abs(zp[t] - z0)
     scatter = 1.4826 * np.median(dev)
-    cut = faint + z0 - max(0.5, 3.0 * scatter)
+    delta = max(0.5, 3.0 * scatter)
+    cut = faint + z0 - delta
+    # Magnitude agreement of the core: a chance pattern has catalog magnitudes drawn from
+    # the database, so a core star whose catalog magnitude lies within delta of the one its
+    # flux predicts does so by chance with probability (database stars within delta) / N.
+    # The product over the core, less its largest factor (the zero point was fitted).
+    p_mag = 1.0
+    worst = 0.0
+    for i in range(n):
+        if not is_core[i] or out[i] < 0 or not (flux[i] > 0 and np.isfinite(flux[i])):
+            continue
+        want = -2.5 * math.log10(flux[i]) + z0
+        if abs(star_mag[out[i]] - want) > delta:
+            continue
+        k = 0
+        for s in range(m):
+            if abs(star_mag[s] - want) <= delta:
+                k += 1
+        frac = k / m
+        p_mag *= frac
+        worst = max(worst, frac)
+    if worst > 0.0:
+        p_mag /= worst
     missing = 0
     for u in range(npred):
         s = pred_idx[u]
@@ -768,7 +794,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     for s in range(m):
         if star_mag[s] <= cut:
             n_bright += 1
-    return out, npred, p_local, missing, n_bright, cut
+    return out, npred, p_local, missing, n_bright, cut, p_mag
 
 
 @njit(cache=True)
@@ -818,3 +844,79 @@ def pattern_chance(n_cat, eps, v):
         return float(n_cat) ** 3 * eps ** 3 * math.sin(th_ij) / (math.pi * s2)
     smax = max(max(math.sin(p0), math.sin(p1)), max(math.sin(p2), 1e-6))
     return float(n_cat) ** 4 * eps ** 5 * math.sin(th_ij) / (2.0 * math.pi ** 2 * s2 * smax)
+
+
+@njit(cache=True)
+def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps, star_vec, top):
+    """Kolomenkin et al. (2008) voting, keeping each image star's ``top`` most-voted identities.
+
+    First step as :func:`geometric_voting` (each image pair votes for both
+    stars of every catalog pair at its angle within ``eps``, once per image
+    pair).  Each image star keeps its ``top`` most-voted catalog stars (ties
+    by index).  Second (verification) step over these hypotheses: hypothesis
+    ``(i, a)`` gets a vote from every hypothesis ``(j, c)`` of another star
+    whose catalog angle agrees with the image angle within ``eps``.
+
+    Returns ``(identity[n, top], votes1[n, top], votes2[n, top])``, identity -1
+    where fewer candidates were voted for.
+    """
+    n = b.shape[0]
+    votes = np.zeros((n, n_cat), dtype=np.int32)
+    stamp = np.full((n, n_cat), -1, dtype=np.int64)
+    pair_id = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            th = _angle(b[i], b[j])
+            lo = math.cos(th + eps)
+            hi = math.cos(max(th - eps, 0.0))
+            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+            for t in range(s, e):
+                c = pair_cos[t]
+                if c < lo or c > hi:
+                    continue
+                k = pair_i[t]
+                l = pair_j[t]
+                if stamp[i, k] != pair_id:
+                    stamp[i, k] = pair_id
+                    votes[i, k] += 1
+                if stamp[i, l] != pair_id:
+                    stamp[i, l] = pair_id
+                    votes[i, l] += 1
+                if stamp[j, k] != pair_id:
+                    stamp[j, k] = pair_id
+                    votes[j, k] += 1
+                if stamp[j, l] != pair_id:
+                    stamp[j, l] = pair_id
+                    votes[j, l] += 1
+            pair_id += 1
+    identity = np.full((n, top), -1, dtype=np.int64)
+    votes1 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for c in range(n_cat):
+            v = votes[i, c]
+            if v == 0 or v <= votes1[i, top - 1]:
+                continue
+            # insert into the sorted top list
+            p = top - 1
+            while p > 0 and votes1[i, p - 1] < v:
+                votes1[i, p] = votes1[i, p - 1]
+                identity[i, p] = identity[i, p - 1]
+                p -= 1
+            votes1[i, p] = v
+            identity[i, p] = c
+    votes2 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for a in range(top):
+            ci = identity[i, a]
+            if ci < 0:
+                continue
+            for j in range(i + 1, n):
+                th = _angle(b[i], b[j])
+                for c in range(top):
+                    cj = identity[j, c]
+                    if cj < 0 or cj == ci:
+                        continue
+                    if abs(_angle(star_vec[ci], star_vec[cj]) - th) <= eps:
+                        votes2[i, a] += 1
+                        votes2[j, c] += 1
+    return identity, votes1, votes2

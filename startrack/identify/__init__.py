@@ -87,6 +87,15 @@ def database_kind(name: str) -> str:
     return get_algorithm(name).database
 
 
+def _field_type(f) -> type:
+    """``int``, ``float``, ``bool`` or ``str`` from a field's annotation (``int | None`` -> ``int``)."""
+    text = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    for name, kind in (("bool", bool), ("int", int), ("float", float), ("str", str)):
+        if name in text.replace("None", "").split("|")[0] or text.strip() == name:
+            return kind
+    return type(f.default) if f.default is not None else float
+
+
 def config_fields() -> list:
     """Every configuration field of every registered algorithm.
 
@@ -101,7 +110,7 @@ def config_fields() -> list:
     out: dict = {}
     for alg in _registry().values():
         for f in dataclasses.fields(alg.config):
-            entry = out.setdefault(f.name, {"name": f.name, "type": type(f.default), "default": f.default,
+            entry = out.setdefault(f.name, {"name": f.name, "type": _field_type(f), "default": f.default,
                                             "help": f.metadata.get("help", ""), "algorithms": []})
             entry["algorithms"].append(alg.name)
     return list(out.values())

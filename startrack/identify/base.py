@@ -277,18 +277,22 @@ class _Verdict:
 
 
 def false_match_probability(e_core: float, trials: int, n_others_matched: int, n_others: int, p_hit: float,
-                            p_missing: float = 1.0) -> float:
+                            p_mags: float = 1.0) -> float:
     """The chance that an accepted identification is a coincidence.
 
-    ``min(1, E_core * trials) * P(X >= n_others_matched) * p_missing`` with
+    ``min(1, E_core * trials) * P(X >= n_others_matched) * p_mags`` with
     ``E_core`` the expected chance matches of the proposal's pattern
     (:func:`pattern_chance`), ``trials`` the patterns and proposals tried
     (look-elsewhere: each is another chance to be fooled), ``X ~ Binomial(
     n_others, p_hit)`` the other detections landing on predicted stars by
-    accident (tetra3's test), and ``p_missing`` the chance that a random field
-    lacks the bright stars this one lacks (:func:`_missing_bright_probability`).
+    accident (tetra3's test), and ``p_mags`` what the magnitudes add: the chance
+    that a random field lacks the bright stars this one lacks
+    (:func:`_missing_probability`) times the chance that random catalog stars
+    agree with the core's fluxes as well as these do
+    (:func:`startrack._kernels.identify.check_matches`); 1 without fluxes and
+    for algorithms whose search already chose by brightness.
     """
-    return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_missing
+    return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_mags
 
 
 def _geometry(camera):
@@ -327,7 +331,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     is_core = np.zeros(n_all, dtype=np.bool_)
     is_core[core] = True
     fl = flux if (use_magnitudes and flux is not None) else np.full(n_all, np.nan)
-    match, n_pred, p_local, missing, n_bright, _ = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
+    match, n_pred, p_local, missing, n_bright, _, p_mag = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
                                                                  is_core, fl, cos_fov, *geometry)
     matched = np.flatnonzero(match >= 0)
     n_matched = len(matched)
@@ -354,6 +358,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     e_core = pattern_chance(len(star_vec), window, b_all[core])
     # Bright catalog stars predicted in the image but not detected (magnitudes).
     p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
+    p_missing *= p_mag
     p_false = false_match_probability(e_core, trials, n_matched - core_agree, n_others, p_hit, p_missing)
     if p_false > params.max_false_probability:
         return _Verdict(None, None, None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "

@@ -43,6 +43,9 @@ class LabellingConfig:
     max_focal_error: float = field(default=0.05, metadata={
         "help": "Largest relative focal-length error a label match may imply."})
     max_entries: int = field(default=64, metadata={"help": "Database entries examined per label."})
+    group_stars: int | None = field(default=None, metadata={
+        "help": "Brightest detections whose groups are tried (default: the database's stars per field, "
+                "paper 004's 8); more find groups past bright false stars, slowly."})
 
 
 def _pair_angles(vecs):
@@ -80,7 +83,9 @@ def search_labelling(ctx, config: LabellingConfig):
     """
     b, db, eps = ctx.b, ctx.db, ctx.eps
     group = db.group_size
-    n_use = min(len(b), db.stars_per_field)
+    # The paper's groups come from the stars_per_field brightest; false stars among them push
+    # true ones further down: group_stars widens the set (groups brightest first).
+    n_use = min(len(b), db.stars_per_field if config.group_stars is None else int(config.group_stars))
     if n_use < group:
         return
     boundary = float(config.label_boundary)

@@ -21,52 +21,62 @@ from startrack.identify.base import Algorithm, Proposal
 class VotingConfig:
     """Settings of geometric voting."""
 
-    vote_fraction: float = field(default=0.75, metadata={
-        "help": "Stars whose verification votes reach this fraction of the largest count form clusters."})
-
-
-def _cluster(seed_order, identity, b, star_vec, ctx):
-    cluster = []
-    for i in seed_order:
-        ok = True
-        for j in cluster:
-            if identity[i] == identity[j]:
-                ok = False
-                break
-            th = float(np.arccos(min(1.0, float(b[i] @ b[j]))))
-            tc = float(np.arccos(min(1.0, float(star_vec[identity[i]] @ star_vec[identity[j]]))))
-            if abs(th - tc) > ctx.pair_eps(i, j):
-                ok = False
-                break
-        if ok:
-            cluster.append(i)
-    return cluster
+    vote_fraction: float = field(default=0.0, metadata={
+        "help": "Hypotheses whose verification votes reach this fraction of the largest count seed clusters."})
+    identities_per_star: int = field(default=8, metadata={
+        "help": "Most-voted catalog identities kept per image star (1: the paper's single vote winner)."})
 
 
 def search_voting(ctx, config: VotingConfig):
-    """Voting clusters, the strongest first."""
-    from startrack._kernels.identify import geometric_voting
+    """Voting clusters, the strongest first.
+
+    Each image star keeps its ``identities_per_star`` most-voted catalog
+    stars; the second voting step scores every such hypothesis; clusters are
+    grown greedily from each hypothesis whose score reaches ``vote_fraction``
+    of the best (strongest first), adding the hypotheses of other stars whose
+    catalog angles to every member agree with the image within the pair
+    tolerance.  Each cluster of at least three stars is a proposal.
+    """
+    from startrack._kernels.identify import geometric_voting_top
 
     db = ctx.db
     b = ctx.b
-    identity, votes1, votes2 = geometric_voting(b, db.star_vector, db.n_stars, db.pair_i, db.pair_j, db.pair_cos,
-                                                db.kvector, np.asarray(db.line, dtype=np.float64), ctx.eps)
+    top = max(1, int(config.identities_per_star))
+    identity, _, votes2 = geometric_voting_top(b, db.n_stars, db.pair_i, db.pair_j, db.pair_cos, db.kvector,
+                                               np.asarray(db.line, dtype=np.float64), ctx.eps, db.star_vector, top)
     n = len(b)
-    if votes2.max(initial=0) < 2:
+    best = int(votes2.max(initial=0))
+    if best < 2:
         return
-    threshold = max(2, int(np.ceil(config.vote_fraction * votes2.max())))
-    order = [int(i) for i in np.argsort(-votes2, kind="stable") if votes2[i] >= threshold and identity[i] >= 0]
+    threshold = max(2, int(np.ceil(config.vote_fraction * best)))
+    flat = [(int(votes2[i, a]), i, int(identity[i, a])) for i in range(n) for a in range(top)
+            if identity[i, a] >= 0 and votes2[i, a] >= 1]
+    flat.sort(key=lambda t: (-t[0], t[1]))
+    sv = db.star_vector
     seen = set()
-    for start in range(len(order)):
-        cluster = _cluster(order[start:] + order[:start], identity, b, db.star_vector, ctx)
+    for v0, i0, c0 in flat:
+        if v0 < threshold:
+            break
+        cluster = [(i0, c0)]
+        for _, i, c in flat:
+            if any(i == m for m, _ in cluster) or any(c == k for _, k in cluster):
+                continue
+            ok = True
+            for m, k in cluster:
+                th = float(np.arccos(min(1.0, float(b[i] @ b[m]))))
+                tc = float(np.arccos(min(1.0, float(sv[c] @ sv[k]))))
+                if abs(th - tc) > ctx.pair_eps(i, m):
+                    ok = False
+                    break
+            if ok:
+                cluster.append((i, c))
         key = frozenset(cluster)
         if len(cluster) < 3 or key in seen:
             continue
         seen.add(key)
-        cluster = cluster[:4] + sorted(cluster[4:])
-        # One hypothesis per image star (its most-voted identity): n patterns.
-        yield Proposal(cluster, [int(identity[i]) for i in cluster], n,
-                       {"votes": [int(votes2[i]) for i in cluster]})
+        # One hypothesis per image star and identity kept: n * top patterns.
+        yield Proposal([i for i, _ in cluster], [c for _, c in cluster], n * top,
+                       {"votes": [int(votes2[i, list(identity[i]).index(c)]) for i, c in cluster]})
 
 
 VOTING = Algorithm("voting", search_voting, VotingConfig, "kvector",
