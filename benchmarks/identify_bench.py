@@ -78,7 +78,8 @@ def run(n=1000, seed=11):
             for stars, truth, _ in frames:
                 res = identify_stars(stars, cam, db, "pyramid", params)
                 if res.status == "ok":
-                    results["startrack pyramid"].append(("ok", _correct(quaternion_to_dcm(res.quaternion_estimate), truth), res.time_ms))
+                    good = _correct(quaternion_to_dcm(res.quaternion_estimate), truth)
+                    results["startrack pyramid"].append(("ok", good, res.time_ms))
                 else:
                     results["startrack pyramid"].append(("fail", None, res.time_ms))
                 xy = [[s["x"], s["y"]] for s in stars]

@@ -127,3 +127,25 @@ def test_sparse_four_star_frames_are_identified(catalog):
     assert outcomes.count("success") >= 0.9 * len(frames), [r.reason for r in results if r.status != "ok"]
     assert all(r.false_match_probability <= 1e-6 for r in results if r.status == "ok")
     assert not math.isnan(sum(r.time_ms for r in results))
+
+
+def test_match_everything_against_a_deeper_catalog(catalog):
+    """Detections fainter than the database are matched to the catalog with the attitude (0 wrong)."""
+    from startrack.identify.base import CatalogStars
+
+    cam = Camera.from_fov(14, 1000, 800)                     # a sensor the other tests do not use
+    db = build_kvector(catalog.filter_magnitude(None, 5.5), max_separation_deg(camera=cam))
+    deep = CatalogStars.from_catalog(catalog)
+    frames = make_frames(catalog.filter_magnitude(None, 7.0), cam, Condition(sigma_px=0.2, false_stars=2), 15, 8,
+                         mag_limit=7.0)
+    beyond = ok = 0
+    for stars, truth, seed in frames:
+        res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.2), catalog=deep)
+        assert score(res, truth) != "bad", seed
+        if res.status == "ok":
+            ok += 1
+            beyond += res.details.get("matched_beyond_database", 0)
+            true_stars = sum(1 for i in truth["star_ids"] if i is not None)
+            assert len(res.matches) >= 0.8 * true_stars, seed
+    # A frame may hold fewer than four database stars (the database is shallow on purpose).
+    assert ok >= 13 and beyond > 100

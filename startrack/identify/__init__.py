@@ -21,7 +21,7 @@ from startrack.identify.records import Identification, Match
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
            "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars", "make_config",
-           "register"]
+           "register", "warm_up"]
 
 # The built-in algorithms, ``module:ATTRIBUTE`` of an Algorithm each (one line per algorithm).
 BUILTIN = (
@@ -82,6 +82,33 @@ def get_algorithm(name: str) -> Algorithm:
     return reg[name]
 
 
+def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
+    """Compile (or load from numba's cache) every kernel ``algorithm`` uses, on a frame made from ``db``.
+
+    Call once after loading a database so that the first real frame's
+    ``time_ms`` holds identification only.  The frame: the database's stars
+    around its first star, seen by a 10 deg camera.
+    """
+    import numpy as np
+
+    from startrack.camera import Camera
+    from startrack.rotations import radec_roll_to_dcm
+
+    v = db.star_vector[0]
+    dcm = radec_roll_to_dcm(float(np.arctan2(v[1], v[0])), float(np.arcsin(np.clip(v[2], -1, 1))), 0.3)
+    widest = getattr(db, "max_angle_deg", None) or getattr(db, "fov_deg", 20.0)
+    cam = Camera.from_fov(min(10.0, 0.5 * float(widest)), 512, 512)
+    body = db.star_vector @ dcm.T
+    front = body[:, 2] > 0.9
+    x, y = cam.vectors_to_pixels(body[front])
+    inside = cam.in_image(x, y)
+    stars = [{"x": float(a), "y": float(b), "flux": 1.0e4 * 10 ** (-0.4 * float(m))}
+             for a, b, m in zip(x[inside], y[inside], db.star_mag[front][inside])]
+    stars.sort(key=lambda s: -s["flux"])
+    identify_stars(stars[:12] if len(stars) >= 3 else stars + [{"x": 1.0, "y": 1.0}] * 3, cam, db, algorithm,
+                   params)
+
+
 def database_kind(name: str) -> str:
     """The database kind (``"kvector"``, ``"labels"``) algorithm ``name`` needs."""
     return get_algorithm(name).database
@@ -134,7 +161,7 @@ def make_config(name: str, values: dict | None = None):
 
 
 def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: IdentifyParams | None = None,
-                   config=None) -> Identification:
+                   config=None, catalog=None) -> Identification:
     """Identify the stars of one frame.
 
     Parameters
@@ -151,6 +178,9 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         Shared settings (tolerances, false-match limit, search budget).
     config : dataclass, optional
         The algorithm's own settings (default: its defaults).
+    catalog : Catalog, optional
+        Match the detections the database does not hold against this catalog
+        once the attitude is known (:func:`startrack.identify.base.match_catalog`).
 
     Returns
     -------
@@ -167,4 +197,4 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         from startrack.errors import BadInputError
 
         raise BadInputError("config", None, f"{algorithm} takes a {alg.config.__name__}, got {type(config).__name__}")
-    return run(alg, config, stars, camera, db, params or IdentifyParams())
+    return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog)

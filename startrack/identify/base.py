@@ -33,8 +33,8 @@ import numpy as np
 
 from startrack.identify.records import Identification, Match, ReasonCode, Status
 
-__all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability", "run",
-           "tolerance_rad"]
+__all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability",
+           "CatalogStars", "match_catalog", "run", "tolerance_rad"]
 
 
 @dataclass
@@ -68,6 +68,12 @@ class IdentifyParams:
         Proposals verified before giving up (the search budget).
     max_time_ms : float
         Search time before giving up, ms.
+    reported_sigma_factor : float
+        Scale applied to the stars' own ``sigma_px`` (centroid estimates run low).
+    max_chance_match : float
+        With a catalog to match everything against (:func:`run`'s ``catalog``), a
+        detection is matched only when the chance that a catalog star lies within
+        its radius by accident is below this.
     """
 
     sigma_px: float | None = None
@@ -83,6 +89,7 @@ class IdentifyParams:
     max_proposals: int = 200
     max_time_ms: float = 2000.0
     reported_sigma_factor: float = 1.5
+    max_chance_match: float = 0.001
 
 
 @dataclass(frozen=True)
@@ -418,7 +425,96 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     return v, total
 
 
-def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams) -> Identification:
+@dataclass
+class CatalogStars:
+    """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes."""
+
+    vectors: np.ndarray
+    id: np.ndarray
+    mag: np.ndarray
+
+    @classmethod
+    def from_catalog(cls, catalog) -> CatalogStars:
+        """From a :class:`startrack.catalog.Catalog` (vectors computed once)."""
+        return cls(np.ascontiguousarray(catalog.vectors()), np.asarray(catalog.id), np.asarray(catalog.mag))
+
+
+def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
+                  stars: CatalogStars, max_chance: float, cos_fov: float):
+    """Match every detection left over to a (deeper) catalog with the identification's attitude.
+
+    Each unmatched detection takes the nearest catalog star projected into the
+    image within its own radius (``radius``, rad), when no other catalog star
+    is within twice the radius (an unresolved neighbour -- closer to it than
+    the radius -- is taken only when it is the brighter), the catalog star is
+    not matched already (one-to-one, the nearer detection wins), and the
+    chance of a catalog star within that radius by accident, ``1 - exp(-lambda)``
+    with ``lambda`` the other catalog stars within ten radii / 100 (at least
+    the image's average density times the circle), is below ``max_chance``.
+    The attitude is then refined with every match (QUEST, weights ``1 / radius^2``).
+
+    Parameters
+    ----------
+    matches : list of Match
+        The identification's matches; ``ref`` their ICRS unit vectors.
+
+    Returns
+    -------
+    (matches, quaternion or None)
+        ``None`` when nothing was added.
+    """
+    from startrack._kernels.attitude import quest
+
+    vec = stars.vectors
+    front = np.flatnonzero(vec @ dcm[2] > cos_fov)
+    pc = vec[front] @ dcm.T
+    x, y = camera.vectors_to_pixels(pc)
+    keep = camera.in_image(x, y)
+    idx, pc = front[keep], pc[keep]
+    done = np.zeros(len(b_all), dtype=bool)
+    done[[m.star for m in matches]] = True
+    todo = np.flatnonzero(~done)
+    if len(idx) < 1 or len(todo) == 0:
+        return matches, None
+    taken = {int(m.id) for m in matches}
+    dots = b_all[todo] @ pc.T                                   # (detections, predicted)
+    order = np.argsort(-dots, axis=1)[:, :2]
+    r = radius[todo]
+    lam_floor = len(idx) * math.pi * (r * camera.focal_length_px) ** 2 / float(camera.width * camera.height)
+    n_local = np.count_nonzero(dots >= np.cos(10 * r)[:, None], axis=1) - 1
+    cand = {}
+    for row, i in enumerate(todo.tolist()):
+        best = int(order[row, 0])
+        if dots[row, best] < math.cos(r[row]):
+            continue
+        if order.shape[1] > 1 and dots[row, order[row, 1]] >= math.cos(2 * r[row]):
+            other = int(order[row, 1])
+            if float(pc[best] @ pc[other]) < math.cos(r[row]):
+                continue                                        # two distinct stars near it: ambiguous
+            if stars.mag[idx[other]] < stars.mag[idx[best]]:
+                best = other                                    # an unresolved pair: the brighter
+        if 1.0 - math.exp(-max(n_local[row] / 100.0, lam_floor[row])) > max_chance:
+            continue
+        cid = int(stars.id[idx[best]])
+        if cid in taken:
+            continue
+        if cid not in cand or dots[row, best] > cand[cid][1]:
+            cand[cid] = (i, float(dots[row, best]), int(idx[best]))
+    if not cand:
+        return matches, None
+    new = sorted(cand.items(), key=lambda kv: kv[1][0])
+    out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
+    body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
+    ref_all = np.vstack([ref, vec[[k for _, (_, _, k) in new]]])
+    w = 1.0 / radius[[m.star for m in out]] ** 2
+    q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref_all), w / w.sum())
+    q = q / math.sqrt(float(q @ q))
+    out.sort(key=lambda m: m.star)
+    return out, (-q if q[3] < 0 else q)
+
+
+def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams,
+        catalog=None) -> Identification:
     """The search driver: proposals from ``algorithm.search``, each verified, until one passes or the budget ends.
 
     Parameters
@@ -430,6 +526,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     camera : Camera
     db : database of ``algorithm.database`` kind
     params : IdentifyParams
+    catalog : CatalogStars or Catalog, optional
+        A catalog to match the detections the database does not hold against
+        (:func:`match_catalog`), e.g. the full catalog behind a shallow database.
 
     Returns
     -------
@@ -510,7 +609,24 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                                      details={**best_details, "patterns": int(patterns)})
     details["patterns"] = int(patterns)
     details["residual_arcsec_rms"] = round(float(np.sqrt(np.mean(accepted.residual_arcsec**2))), 3)
-    return Identification(Status.OK, name, accepted.matches, time_ms=elapsed,
+    matches, quaternion = accepted.matches, accepted.quaternion
+    if catalog is not None:
+        if not isinstance(catalog, CatalogStars):
+            catalog = CatalogStars.from_catalog(catalog)
+        cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
+        b = b_all if scale is None else cam.pixels_to_vectors(xs, ys)
+        margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
+        radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
+            np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+        n_db = len(matches)
+        matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
+                                   radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
+                                   (geom if scale is None else _geometry(cam))[0])
+        if q is not None:
+            quaternion = q
+            details["matched_beyond_database"] = len(matches) - n_db
+        elapsed = (time.perf_counter() - t0) * 1000
+    return Identification(Status.OK, name, matches, time_ms=elapsed,
                           false_match_probability=float(accepted.p_false), trials=tried,
                           tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
-                          quaternion_estimate=accepted.quaternion, details=details)
+                          quaternion_estimate=quaternion, details=details)
