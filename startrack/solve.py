@@ -28,7 +28,7 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["FOV_BANDS", "cache_dir", "band_database", "fov_hypotheses", "SolveOptions", "solve_image"]
+__all__ = ["FOV_BANDS", "SolveOptions", "band_database", "cache_dir", "fov_hypotheses", "solve_image"]
 
 # (smallest FOV, largest FOV, faintest magnitude of the k-vector database, of the label databases,
 #  field sizes of the label databases).  Which stars are "the 8 brightest of a field" depends on the
@@ -107,7 +107,7 @@ def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: 
         centre = hint_deg
     else:
         centre = 12.0
-    up = [centre * step**k for k in range(0, 200) if centre * step**k <= hi]
+    up = [centre * step**k for k in range(200) if centre * step**k <= hi]
     down = [centre / step**k for k in range(1, 200) if centre / step**k >= lo]
     out = []
     for i in range(max(len(up), len(down))):
@@ -294,8 +294,8 @@ def solve_image(image, width_height=None, options: SolveOptions | None = None, c
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.centroid import CentroidOptions, find_stars
+    from startrack.formats.sections import to_section
     from startrack.identify import IdentifyParams, identify_stars, make_config
-    from startrack.identify.records import to_section
 
     opts = options or SolveOptions()
     clock = _SearchClock(opts.timeout_s)

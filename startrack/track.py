@@ -307,8 +307,8 @@ class Tracker:
         """Lost in space: detection, streak fits, rate from streaks, identify's search, QUEST."""
         from startrack.attitude import estimate_attitude
         from startrack.centroid import CentroidOptions, find_stars
+        from startrack.formats.sections import to_section
         from startrack.identify import IdentifyParams, identify_stars
-        from startrack.identify.records import to_section
         from startrack.streak import fit_streaks, rate_from_streaks
 
         cfg = self.config

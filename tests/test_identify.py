@@ -54,7 +54,7 @@ def test_false_stars_are_not_matched(setup20):
 
 def test_result_reports_confidence_and_attitude(setup20):
     cat, db, cam = setup20
-    from startrack.identify.records import to_section
+    from startrack.formats.sections import to_section
     from startrack.render import Scene, Sensor, star_list
     from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
 
@@ -101,9 +101,8 @@ def test_evaluate_rows(setup20):
 
 @pytest.fixture(scope="module")
 def setup24(catalog):
-    from startrack.labels import build_labels
-
     from startrack.catalog import merge_radius_arcsec
+    from startrack.labels import build_labels
 
     cam = Camera.from_fov(24, 1200, 1200)
     cat = catalog.filter_magnitude(None, 5.2).merge_close(merge_radius_arcsec(cam))

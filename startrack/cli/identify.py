@@ -114,8 +114,13 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     from startrack.cli.batch import run_frames
     from startrack.cli.options import info
     from startrack.errors import BadInputError
-    from startrack.identify import IdentifyParams, database_kind, identify_stars, warm_up
-    from startrack.identify.records import to_section
+    from startrack.formats.sections import to_section
+    from startrack.identify import (
+        IdentifyParams,
+        database_kind,
+        identify_stars,
+        warm_up,
+    )
 
     config = algorithm_settings(settings, algorithm)
     if max_stars < 3:

@@ -17,7 +17,7 @@ import dataclasses
 import importlib
 
 from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposal, SearchContext
-from startrack.identify.records import Identification, Match
+from startrack.records import Identification, Match
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
            "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars", "make_config",

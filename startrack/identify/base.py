@@ -31,7 +31,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from startrack.identify.records import Identification, Match, ReasonCode, Status
+from startrack.records import Identification, Match, ReasonCode, Status
 
 __all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability",
            "CatalogStars", "match_catalog", "run", "tolerance_rad"]
@@ -440,7 +440,8 @@ class CatalogStars:
 
 
 def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
-                  stars: CatalogStars, max_chance: float, cos_fov: float):
+                  stars: CatalogStars, max_chance: float, cos_fov: float, mag_limit: float | None = None,
+                  sigma: np.ndarray | None = None):
     """Match every detection left over to a (deeper) catalog with the identification's attitude.
 
     Each unmatched detection takes the nearest catalog star projected into the
@@ -448,10 +449,14 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     is within twice the radius (an unresolved neighbour -- closer to it than
     the radius -- is taken only when it is the brighter), the catalog star is
     not matched already (one-to-one, the nearer detection wins), and the
-    chance of a catalog star within that radius by accident, ``1 - exp(-lambda)``
-    with ``lambda`` the other catalog stars within ten radii / 100 (at least
-    the image's average density times the circle), is below ``max_chance``.
-    The attitude is then refined with every match (QUEST, weights ``1 / radius^2``).
+    chance of a catalog star as close by accident, ``1 - exp(-lambda)``, is
+    below ``max_chance``: ``lambda`` is the density of catalog stars around the
+    detection (the others within ten radii, at least the image average) times
+    the disc of radius ``max(offset, sigma)`` (the observed offset, at least
+    the detection's 1-sigma ``sigma``, rad; a p-value of the distance).
+    Only catalog stars at or brighter than ``mag_limit`` take part (the
+    sensor's depth: a deeper catalog only adds chance neighbours).  The
+    attitude is then refined with every match (QUEST, weights ``1 / radius^2``).
 
     Parameters
     ----------
@@ -466,7 +471,7 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     from startrack._kernels.attitude import quest
 
     vec = stars.vectors
-    front = np.flatnonzero(vec @ dcm[2] > cos_fov)
+    front = np.flatnonzero((vec @ dcm[2] > cos_fov) & (stars.mag <= (np.inf if mag_limit is None else mag_limit)))
     pc = vec[front] @ dcm.T
     x, y = camera.vectors_to_pixels(pc)
     keep = camera.in_image(x, y)
@@ -493,7 +498,9 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
                 continue                                        # two distinct stars near it: ambiguous
             if stars.mag[idx[other]] < stars.mag[idx[best]]:
                 best = other                                    # an unresolved pair: the brighter
-        if 1.0 - math.exp(-max(n_local[row] / 100.0, lam_floor[row])) > max_chance:
+        offset = math.acos(min(1.0, float(dots[row, best])))
+        closest = max(offset, float(sigma[i]) if sigma is not None else r[row]) / r[row]
+        if 1.0 - math.exp(-max(n_local[row] / 100.0, lam_floor[row]) * min(1.0, closest) ** 2) > max_chance:
             continue
         cid = int(stars.id[idx[best]])
         if cid in taken:
@@ -511,6 +518,21 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     q = q / math.sqrt(float(q @ q))
     out.sort(key=lambda m: m.star)
     return out, (-q if q[3] < 0 else q)
+
+
+def _frame_depth(flux, star_index, mags, margin: float = 1.0):
+    """The faintest catalog magnitude the frame can hold: its faintest detection by the zero point
+    (median of catalog magnitude + 2.5 log10 flux over the identified stars) plus ``margin``; None
+    without fluxes."""
+    if flux is None:
+        return None
+    f = flux[star_index]
+    ok = np.isfinite(f) & (f > 0)
+    fl = flux[np.isfinite(flux) & (flux > 0)]
+    if ok.sum() < 3 or len(fl) == 0:
+        return None
+    zp = float(np.median(mags[ok] + 2.5 * np.log10(f[ok])))
+    return float(-2.5 * np.log10(fl.min()) + zp + margin)
 
 
 def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams,
@@ -619,9 +641,13 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
             np.maximum(1.0, params.match_sigma * sig_px + margin_px)
         n_db = len(matches)
+        depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
         matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
                                    radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
-                                   (geom if scale is None else _geometry(cam))[0])
+                                   (geom if scale is None else _geometry(cam))[0], depth,
+                                   sig_px / cam.focal_length_px)
+        if depth is not None:
+            details["match_mag_limit"] = round(depth, 2)
         if q is not None:
             quaternion = q
             details["matched_beyond_database"] = len(matches) - n_db
