@@ -675,7 +675,8 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
       catalog stars agree with the core's fluxes as well (``p_mag``, 1 without
       fluxes).
 
-    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag)``.
+    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag, n_bright_pred)``,
+    ``n_bright_pred`` the predicted stars brighter than ``cut``.
     """
     n = b.shape[0]
     m = star_vec.shape[0]
@@ -749,7 +750,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
                 zp[nz] = star_mag[out[i]] - inst
                 nz += 1
     if nz < 3:
-        return out, npred, p_local, 0, 0, np.nan, 1.0
+        return out, npred, p_local, 0, 0, np.nan, 1.0, 0
     z0 = np.median(zp[:nz])
     dev = np.empty(nz)
     for t in range(nz):
@@ -779,10 +780,12 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     if worst > 0.0:
         p_mag /= worst
     missing = 0
+    bright = 0
     for u in range(npred):
         s = pred_idx[u]
         if star_mag[s] > cut:
             continue
+        bright += 1
         found = False
         for i in range(n):
             if out[i] == s:
@@ -794,7 +797,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     for s in range(m):
         if star_mag[s] <= cut:
             n_bright += 1
-    return out, npred, p_local, missing, n_bright, cut, p_mag
+    return out, npred, p_local, missing, n_bright, cut, p_mag, bright
 
 
 @njit(cache=True)

@@ -338,7 +338,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     is_core = np.zeros(n_all, dtype=np.bool_)
     is_core[core] = True
     fl = flux if (use_magnitudes and flux is not None) else np.full(n_all, np.nan)
-    match, n_pred, p_local, missing, n_bright, _, p_mag = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
+    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
                                                                  is_core, fl, cos_fov, *geometry)
     matched = np.flatnonzero(match >= 0)
     n_matched = len(matched)
@@ -346,6 +346,13 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     agree = int(np.count_nonzero(np.einsum("ij,ij->i", b_all[img], star_vec[cat] @ dcm.T) >= np.cos(radius[img])))
     if agree < min(len(img), params.min_matches):
         return _Verdict(None, None, None, dcm, None, "the proposal's stars do not agree with the refined attitude",
+                        ReasonCode.VERIFICATION_FAILED)
+    # Consistency: the attitude must explain the bright part of the field.  Catalog stars it
+    # predicts clearly brighter than the faintest detection should be there; when most of
+    # them are not, the attitude is wrong however well its few stars fit.
+    if bright_pred >= 3 and missing > bright_pred // 2:
+        return _Verdict(None, None, None, dcm, None,
+                        f"{missing} of {bright_pred} bright catalog stars predicted in the image are not detected",
                         ReasonCode.VERIFICATION_FAILED)
     if n_matched < params.min_matches and not (n_all == 3 and n_matched == 3):
         return _Verdict(None, None, None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})",
