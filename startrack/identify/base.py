@@ -70,6 +70,9 @@ class IdentifyParams:
         Search time before giving up, ms.
     reported_sigma_factor : float
         Scale applied to the stars' own ``sigma_px`` (centroid estimates run low).
+    max_triads : int
+        Triads for 0.x-style proposers (paper 000's modified pyramid); the
+        pyramid's own setting is :class:`startrack.identify.pyramid.PyramidConfig`.
     max_chance_match : float
         With a catalog to match everything against (:func:`run`'s ``catalog``), a
         detection is matched only when the chance that a catalog star lies within
@@ -89,6 +92,7 @@ class IdentifyParams:
     max_proposals: int = 200
     max_time_ms: float = 2000.0
     reported_sigma_factor: float = 1.5
+    max_triads: int = 200
     max_chance_match: float = 0.001
 
 
@@ -566,6 +570,14 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         ``trials`` is the number of proposals verified.
     """
     t0 = time.perf_counter()
+    if isinstance(algorithm, str):
+        # The 0.x call run(name, propose, stars, camera, db, params): one proposal from propose().
+        name_, propose = algorithm, config
+
+        def search(ctx, _config):
+            yield propose(ctx.b, ctx.db, ctx.eps, ctx.params, ctx.stars, ctx.camera)
+
+        algorithm, config = Algorithm(name_, search), NoConfig()
     name = algorithm.name
     n_all = len(frame_stars)
     if n_all < 3:

@@ -40,6 +40,21 @@ class LegacyMatch(tuple):
         return getattr(self, key, default)
 
 
+@dataclass
+class LegacyIdentification(Identification):
+    """The typed record plus the 0.x attributes ``dcm`` and ``extra`` (= ``details``)."""
+
+    dcm: np.ndarray | None = None
+
+    @property
+    def extra(self) -> dict:
+        return self.details
+
+    @property
+    def false_probability(self):
+        return self.false_match_probability
+
+
 def IdentifyResult(status, algorithm, matches, time_ms, reason=None, false_probability=None, dcm=None,  # noqa: N802
                    extra=None) -> Identification:
     """The 0.x result constructor, returning the typed record (``extra`` becomes ``details``)."""
@@ -47,12 +62,12 @@ def IdentifyResult(status, algorithm, matches, time_ms, reason=None, false_proba
 
     extra = dict(extra or {})
     ok = str(status) == "ok"
-    return Identification(
+    return LegacyIdentification(
         Status.OK if ok else Status.FAILED, algorithm,
         [LegacyMatch(m["star"], m["id"], m.get("index", -1)) for m in matches], time_ms=time_ms, reason=reason,
         reason_code=None if ok else ReasonCode.NO_PATTERN, false_match_probability=false_probability,
         focal_scale=extra.pop("focal_scale", None),
-        quaternion_estimate=None if dcm is None else dcm_to_quaternion(dcm), details=extra)
+        quaternion_estimate=None if dcm is None else dcm_to_quaternion(dcm), details=extra, dcm=dcm)
 
 
 @dataclass
