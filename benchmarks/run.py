@@ -200,7 +200,6 @@ def bench_attitude():
 
 def bench_track():
     import pipeline_bench as pb
-
     import track_bench
 
     track_ms, lis_ms, n = pb.tracking_speed()
@@ -235,9 +234,22 @@ def bench_blind():
     return "blind solving (issue 15)", blind_bench.report()
 
 
-SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid,
-            "databases": bench_databases, "identify": bench_identify, "identify-compare": bench_identify_compare,
-            "attitude": bench_attitude, "track": bench_track}
+def bench_accuracy():
+    import accuracy_bench as ab
+
+    n = int(os.environ.get("ACCURACY_FRAMES", "1000"))
+    results = [ab.run(name, n, 0, peers=True, progress=False) for name in ("p000", "15deg")]
+    sweep = ab.sweep(max(20, n // 10))
+    text = (ab.__doc__.split("\n\n")[1].replace("\n", " ") + "\n\n" + ab.table(results)
+            + f"\n\nSweep on the 15-degree sensor and papers 000/003 ({max(20, n // 10)} frames each, startrack):\n\n"
+            + ab.table(sweep))
+    return "accuracy against the Cramér-Rao bound", text
+
+
+SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
+            "identify": bench_identify, "identify-compare": bench_identify_compare, "attitude": bench_attitude,
+            "track": bench_track,
+            "accuracy": bench_accuracy}
 
 
 def main():

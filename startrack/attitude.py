@@ -25,9 +25,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from startrack.errors import BadInputError
+from startrack.records import ReasonCode
 
-__all__ = ["METHODS", "profile_matrix", "wahba_loss", "solve_wahba", "q_method", "quest", "svd_solve", "foam",
-           "esoq2", "triad", "covariance", "AttitudeResult", "estimate_attitude", "wcs_header"]
+__all__ = [
+    "METHODS",
+    "AttitudeResult",
+    "covariance",
+    "esoq2",
+    "estimate_attitude",
+    "foam",
+    "profile_matrix",
+    "q_method",
+    "quest",
+    "solve_wahba",
+    "svd_solve",
+    "triad",
+    "wahba_loss",
+    "wcs_header",
+]
 
 METHODS = ("quest", "q-method", "svd", "foam", "esoq2", "triad")
 
@@ -72,7 +87,8 @@ def q_method(body, reference, weights=None):
 
 def quest(body, reference, weights=None):
     """QUEST (Shuster & Oh 1981): Newton on the characteristic equation, sequential rotations near 180 deg."""
-    from startrack._kernels.attitude import quat_to_dcm, quest as quest_kernel
+    from startrack._kernels.attitude import quat_to_dcm
+    from startrack._kernels.attitude import quest as quest_kernel
 
     b = np.ascontiguousarray(body, dtype=np.float64)
     r = np.ascontiguousarray(reference, dtype=np.float64)
@@ -235,14 +251,24 @@ class AttitudeResult:
     cov_rad2: np.ndarray | None = None
     time_ms: float = 0.0
     variance_factor: float = 1.0
+    reason_code: str | None = None
+    bound: dict | None = None
 
     def section(self) -> dict:
-        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
+        from startrack.rotations import (
+            dcm_to_euler123,
+            dcm_to_quaternion,
+            dcm_to_radec_roll,
+        )
 
         out = {"status": self.status, "method": self.method}
         if self.reason:
             out["reason"] = self.reason
+        if self.reason_code:
+            out["reason_code"] = str(self.reason_code)
         if self.dcm is None:
+            if self.rejected:
+                out["rejected"] = self.rejected
             return out
         ra, dec, roll = dcm_to_radec_roll(self.dcm)
         yaw, pitch, roll123 = dcm_to_euler123(self.dcm)
@@ -267,14 +293,21 @@ class AttitudeResult:
             out["sigma_cross_boresight_arcsec"] = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
             out["sigma_pitch_yaw_arcsec"] = [float(math.sqrt(p[0, 0]) * arcsec), float(math.sqrt(p[1, 1]) * arcsec)]
             out["sigma_roll_arcsec"] = float(math.sqrt(p[2, 2]) * arcsec)
+        if self.bound:
+            out.update(self.bound)
         if self.rejected:
             out["rejected"] = self.rejected
         return out
 
 
+def _fail(method, code, reason, t0, used=(), rejected=()):
+    return AttitudeResult("failed", method, reason=reason, reason_code=code, used=list(used), rejected=list(rejected),
+                          time_ms=(time.perf_counter() - t0) * 1000)
+
+
 def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", labels=None, gate: float = 13.8,
-                      weighted: bool = True) -> AttitudeResult:
-    """Solve the attitude with outlier rejection and uncertainty.
+                      weighted: bool = True, max_variance_factor: float = 10.0) -> AttitudeResult:
+    """Solve the attitude with outlier rejection and uncertainty, checking the identification it is given.
 
     Parameters
     ----------
@@ -283,11 +316,14 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     sigmas_rad : array (n,), optional
         1-sigma line-of-sight error per star and axis (radians); default 1e-5.
     labels : list of (star index, catalog id), optional
-        Carried into the result's residual list.
+        Carried into the result's residual list; a star index or a catalog id
+        that appears twice makes the result failed (``duplicate_match``): a
+        repeated measurement is not new information, and counting it would
+        shrink the covariance.
     gate : float
         Chi-square gate on ``residual^2 / (k sigma)^2`` (2 degrees of freedom;
         13.8 is the 0.1% point).  The worst star beyond it is dropped and the
-        attitude solved again, until all pass or two stars are left.  ``k >= 1``
+        attitude solved again, until all pass.  ``k >= 1``
         is a robust variance factor, ``k^2 = median(chi^2) / 1.386`` (the median
         of chi-square with 2 dof) when at least 5 stars remain and that ratio
         exceeds 2.5: when the given sigmas are clearly too small for the data
@@ -296,42 +332,90 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         ``k`` is reported.
     weighted : bool
         Weights ``a_i = 1 / sigma_i^2`` (the optimal QUEST weights); equal when false.
+    max_variance_factor : float
+        Largest ``k`` accepted: residuals more than this many times the
+        centroid sigmas mean a wrong identification or camera, not noise.
+
+    Returns
+    -------
+    AttitudeResult
+        Status ``failed`` with a ``reason_code`` when the identification does
+        not hold up: ``too_few_stars`` (fewer than 2), ``bad_input``
+        (non-finite vectors or sigmas), ``duplicate_match``,
+        ``degenerate_geometry`` (no two directions far enough apart, in units
+        of the sigmas, to fix the roll), ``residuals_too_large`` (a star still
+        fails the gate when no star can be dropped, fewer than half the stars
+        agree, or ``k`` exceeds ``max_variance_factor``).
     """
     t0 = time.perf_counter()
-    b = np.asarray(body, dtype=np.float64)
-    r = np.asarray(reference, dtype=np.float64)
+    b = np.asarray(body, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
     n = len(b)
     labels = list(labels) if labels is not None else [(i, None) for i in range(n)]
-    sig = np.full(n, 1e-5) if sigmas_rad is None else np.asarray(sigmas_rad, dtype=np.float64)
+    sig = np.full(n, 1e-5) if sigmas_rad is None else np.asarray(sigmas_rad, dtype=np.float64).reshape(-1)
     if n < 2:
-        return AttitudeResult("failed", method, reason=f"{n} identified star(s): at least 2 are needed",
-                              time_ms=(time.perf_counter() - t0) * 1000)
+        return _fail(method, ReasonCode.TOO_FEW_STARS, f"{n} identified star(s): at least 2 are needed", t0)
+    if len(r) != n or len(sig) != n or len(labels) != n:
+        return _fail(method, ReasonCode.BAD_INPUT, "star vectors, references, sigmas and labels differ in length", t0)
     if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
-        return AttitudeResult("failed", method, reason="non-finite star vectors or uncertainties",
-                              time_ms=(time.perf_counter() - t0) * 1000)
+        return _fail(method, ReasonCode.BAD_INPUT, "non-finite star vectors or uncertainties", t0)
+    if not (math.isfinite(gate) and gate > 0 and math.isfinite(max_variance_factor) and max_variance_factor >= 1):
+        raise BadInputError("--gate", None, f"must be a positive number, got {gate!r}")
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    r = r / np.linalg.norm(r, axis=1, keepdims=True)
+    stars = [s for s, _ in labels if s is not None]
+    ids = [i for _, i in labels if i is not None]
+    if len(set(stars)) != len(stars) or len(set(ids)) != len(ids):
+        dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
+        dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
+        what = "; ".join(x for x in (f"star(s) {dup_s} matched more than once" if dup_s else "",
+                                     f"catalog id(s) {dup_i} used more than once" if dup_i else "") if x)
+        return _fail(method, ReasonCode.DUPLICATE_MATCH, f"the identification repeats itself: {what}", t0)
     keep = np.arange(n)
     rejected = []
+    factor2 = 1.0
     while True:
+        # Geometry: two directions at least 20 sigma apart (else the roll about them is unknown).
+        kb, kr = b[keep], r[keep]
+        sep_b = np.arccos(np.clip(kb @ kb.T, -1.0, 1.0))
+        sep_r = np.arccos(np.clip(kr @ kr.T, -1.0, 1.0))
+        scale = 20.0 * float(np.median(sig[keep]))
+        if sep_b.max() < scale or sep_r.max() < scale:
+            return _fail(method, ReasonCode.DEGENERATE_GEOMETRY,
+                         f"the {len(keep)} stars are within {math.degrees(sep_b.max()) * 3600:.3g} arcsec of one "
+                         "another: their directions do not fix the roll", t0, [labels[k] for k in keep], rejected)
         w = 1.0 / sig[keep] ** 2 if weighted else np.ones(len(keep))
         w = w / w.sum()
-        use_method = method if not (method == "triad" and len(keep) < 2) else method
-        dcm = solve_wahba(use_method, b[keep], r[keep], w)
-        pred = r[keep] @ dcm.T
-        resid = np.arccos(np.clip(np.einsum("ij,ij->i", b[keep], pred), -1.0, 1.0))
+        dcm = solve_wahba(method, kb, kr, w)
+        pred = kr @ dcm.T
+        resid = np.arccos(np.clip(np.einsum("ij,ij->i", kb, pred), -1.0, 1.0))
         chi2 = (resid / sig[keep]) ** 2
         factor2 = float(np.median(chi2)) / 1.386 if len(keep) >= 5 else 1.0
         factor2 = factor2 if factor2 > 2.5 else 1.0   # only when the sigmas are clearly too small
         chi2 = chi2 / factor2
         worst = int(np.argmax(chi2))
-        if chi2[worst] <= gate or len(keep) <= 2 or method == "triad":
+        if chi2[worst] <= gate:
             break
         s, i = labels[keep[worst]]
-        rejected.append({"star": s, "id": i, "residual_arcsec": round(float(np.degrees(resid[worst]) * 3600), 3),
-                         "reason": f"chi-square {chi2[worst]:.1f} above the gate {gate:g}"})
+        rej = {"star": s, "id": i, "residual_arcsec": round(float(np.degrees(resid[worst]) * 3600), 3),
+               "reason": f"chi-square {chi2[worst]:.1f} above the gate {gate:g}"}
+        # Dropping is allowed while at least 2 stars and at least half of those given remain.
+        if len(keep) - 1 < max(2, math.ceil(n / 2)):
+            return _fail(method, ReasonCode.RESIDUALS_TOO_LARGE,
+                         f"star {s} (id {i}) is {rej['residual_arcsec']:.4g} arcsec from its catalog position "
+                         f"(chi-square {chi2[worst]:.3g} above the gate {gate:g}) and {len(rejected)} of {n} stars "
+                         "are already dropped: the identification does not hold up", t0,
+                         [labels[k] for k in keep], rejected + [rej])
+        rejected.append(rej)
         keep = np.delete(keep, worst)
+    if factor2 > max_variance_factor**2:
+        return _fail(method, ReasonCode.RESIDUALS_TOO_LARGE,
+                     f"the residuals are {math.sqrt(factor2):.3g} times the centroid sigmas (limit "
+                     f"{max_variance_factor:g}; rms {math.degrees(float(np.sqrt(np.mean(resid**2)))) * 3600:.4g} "
+                     "arcsec): a wrong identification, catalog or camera", t0, [labels[k] for k in keep], rejected)
     used = [labels[k] for k in keep]
     loss = wahba_loss(dcm, b[keep], r[keep], w)
-    cov = covariance(b[keep], sig[keep]) * factor2 if len(keep) >= 2 else None
+    cov = covariance(b[keep], sig[keep]) * factor2
     out = AttitudeResult("ok", method, dcm, None, used, rejected, list(np.degrees(resid) * 3600), loss, cov,
                          (time.perf_counter() - t0) * 1000)
     out.variance_factor = math.sqrt(factor2)

@@ -294,7 +294,7 @@ def _cells(ra_deg, dec_deg, cell_deg: float):
     return band * 100000 + ra_cell, int(band_cells.sum())
 
 
-def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 30.0,
+def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 20.0,
                    sky_fraction: float = 0.95, cell_deg: float | None = None) -> Catalog:
     """The database stars for a field: a magnitude limit and a uniform thinning.
 
@@ -509,60 +509,130 @@ def star_pairs(catalog_or_vectors, max_angle: float):
 
 @dataclass
 class FieldStatistics:
-    """Monte Carlo statistics of the stars a camera sees (paper 000 Fig. 2)."""
+    """Monte Carlo statistics of the stars a camera sees (paper 000 Fig. 2).
 
-    counts: np.ndarray
-    brightest_mag: np.ndarray
+    Held as histograms, so memory does not grow with the number of samples:
+    ``count_hist[c]`` attitudes saw ``c`` stars; ``mag_hist`` counts the
+    brightest star's magnitude in 0.5-mag bins from ``mag_hist_start``.
+    ``counts`` and ``brightest_mag`` (per attitude) are kept only for runs of at
+    most one chunk (``None`` otherwise).
+    """
+
+    count_hist: np.ndarray
+    mag_hist: np.ndarray
+    mag_hist_start: float
+    brightest_min: float
+    brightest_max: float
+    n_empty: int
     n_catalog: int
     mag_bins: list
     mag_bin_counts: list
     params: dict
+    counts: np.ndarray | None = None
+    brightest_mag: np.ndarray | None = None
+
+    def _percentile(self, p: float) -> float:
+        """numpy's default (linear) percentile of the per-attitude counts, from the histogram."""
+        cum = np.cumsum(self.count_hist)
+        n = int(cum[-1])
+        rank = (n - 1) * p / 100.0
+        lo, hi = math.floor(rank), math.ceil(rank)
+        v_lo = int(np.searchsorted(cum, lo, side="right"))
+        v_hi = int(np.searchsorted(cum, hi, side="right"))
+        return v_lo + (v_hi - v_lo) * (rank - lo)
 
     def summary(self) -> dict:
-        c = self.counts
-        pct = np.percentile(c, [1, 5, 25, 50, 75, 95, 99])
-        finite = self.brightest_mag[np.isfinite(self.brightest_mag)]
-        edges = np.arange(math.floor(finite.min()) if finite.size else -2, (math.ceil(finite.max()) if finite.size else 8) + 1, 0.5)
-        hist, edges = np.histogram(finite, bins=edges) if finite.size else (np.array([]), edges)
+        h = self.count_hist.astype(np.float64)
+        values = np.arange(len(h), dtype=np.float64)
+        n = h.sum()
+        mean = float((h * values).sum() / n)
+        std = float(math.sqrt(max(0.0, (h * (values - mean) ** 2).sum() / n)))
+        nonzero = np.flatnonzero(self.count_hist)
+        if math.isfinite(self.brightest_min):
+            lo_edge = math.floor(self.brightest_min)
+            hi_edge = math.ceil(self.brightest_max) + 1
+            edges = np.arange(lo_edge, hi_edge, 0.5)
+            i0 = int(round((lo_edge - self.mag_hist_start) / 0.5))
+            hist = self.mag_hist[i0:i0 + len(edges) - 1]
+        else:
+            edges = np.arange(-2, 9, 0.5)
+            hist = np.array([], dtype=np.int64)
+        pcts = [1, 5, 25, 50, 75, 95, 99]
         return {
-            "boresights": int(len(c)),
+            "boresights": int(n),
             "catalog_stars": int(self.n_catalog),
-            "min": int(c.min()),
-            "max": int(c.max()),
-            "mean": float(c.mean()),
-            "std": float(c.std()),
-            "percentiles": {str(p): float(v) for p, v in zip([1, 5, 25, 50, 75, 95, 99], pct)},
-            "fraction_at_least": {str(k): float(np.mean(c >= k)) for k in (1, 2, 3, 4, 5, 6, 8, 10)},
-            "brightest_mag_histogram": {"edges": [float(e) for e in edges], "counts": [int(h) for h in hist]},
-            "brightest_mag_empty_fields": int(np.sum(~np.isfinite(self.brightest_mag))),
+            "min": int(nonzero[0]),
+            "max": int(nonzero[-1]),
+            "mean": mean,
+            "std": std,
+            "percentiles": {str(p): float(self._percentile(p)) for p in pcts},
+            "fraction_at_least": {str(k): float(h[k:].sum() / n) for k in (1, 2, 3, 4, 5, 6, 8, 10)},
+            "brightest_mag_histogram": {"edges": [float(e) for e in edges], "counts": [int(v) for v in hist]},
+            "brightest_mag_empty_fields": int(self.n_empty),
             "mag_bins": {"edges": self.mag_bins, "counts": self.mag_bin_counts},
             "params": self.params,
         }
 
 
+FIELD_STATISTICS_CHUNK = 250_000
+"""Attitudes drawn and counted at a time by :func:`field_statistics` (about 100 MB of work arrays)."""
+
+
 def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random.Generator,
-                     mag_edges=None) -> FieldStatistics:
+                     mag_edges=None, chunk: int = FIELD_STATISTICS_CHUNK) -> FieldStatistics:
     """Count the catalog stars inside ``camera``'s image over random attitudes.
 
     Attitudes are uniform over SO(3) (random boresight and roll), the Monte Carlo
     of paper 000 Fig. 2 and paper 003 Fig. 3.  Radial distortion is included.
+    The attitudes are drawn and counted ``chunk`` at a time into histograms, so
+    memory stays bounded (a few hundred MB) for any ``n_boresights``; a run of at
+    most one chunk draws the same attitudes as one of any larger chunk size.
     """
     from startrack._kernels.sphere import count_in_fov
     from startrack.rotations import quaternion_to_dcm, random_quaternions
 
     if n_boresights < 1:
-        raise BadInputError("--samples", None, f"must be at least 1, got {n_boresights}")
+        raise BadInputError("n_boresights", None, f"must be at least 1, got {n_boresights}")
+    if chunk < 1:
+        raise BadInputError("chunk", None, f"must be at least 1, got {chunk}")
     vec = catalog.vectors()
     dec = np.arcsin(np.clip(vec[:, 2], -1, 1))
     order = np.argsort(dec, kind="stable")
-    dcms = np.ascontiguousarray(quaternion_to_dcm(random_quaternions(n_boresights, rng)))
-    counts, brightest = count_in_fov(
-        np.ascontiguousarray(vec[order]), np.ascontiguousarray(dec[order]),
-        np.ascontiguousarray(catalog.mag[order]), dcms, float(camera.focal_length_px),
-        float(camera.cx), float(camera.cy), float(camera.width), float(camera.height),
-        float(camera.k1), float(camera.k2), math.radians(camera.max_off_axis_deg) + 1e-9)
+    svec = np.ascontiguousarray(vec[order])
+    sdec = np.ascontiguousarray(dec[order])
+    smag = np.ascontiguousarray(catalog.mag[order])
+    mag_start = math.floor(float(np.min(catalog.mag))) if len(catalog) else -2.0
+    mag_stop = math.ceil(float(np.max(catalog.mag))) + 1 if len(catalog) else 8.0
+    mag_hist = np.zeros(int(round((mag_stop - mag_start) / 0.5)) + 1, dtype=np.int64)
+    count_hist = np.zeros(1, dtype=np.int64)
+    b_min, b_max, n_empty = math.inf, -math.inf, 0
+    keep = n_boresights <= chunk
+    counts = brightest = None
+    done = 0
+    while done < n_boresights:
+        m = min(chunk, n_boresights - done)
+        dcms = np.ascontiguousarray(quaternion_to_dcm(random_quaternions(m, rng)))
+        c, b = count_in_fov(svec, sdec, smag, dcms, float(camera.focal_length_px),
+                            float(camera.cx), float(camera.cy), float(camera.width), float(camera.height),
+                            float(camera.k1), float(camera.k2), math.radians(camera.max_off_axis_deg) + 1e-9)
+        del dcms
+        bc = np.bincount(np.asarray(c, dtype=np.int64))
+        if len(bc) > len(count_hist):
+            count_hist = np.concatenate([count_hist, np.zeros(len(bc) - len(count_hist), np.int64)])
+        count_hist[:len(bc)] += bc
+        finite = b[np.isfinite(b)]
+        n_empty += int(len(b) - len(finite))
+        if finite.size:
+            b_min = min(b_min, float(finite.min()))
+            b_max = max(b_max, float(finite.max()))
+            idx = np.clip(np.floor((finite - mag_start) / 0.5).astype(np.int64), 0, len(mag_hist) - 1)
+            mag_hist += np.bincount(idx, minlength=len(mag_hist))
+        if keep:
+            counts, brightest = c, b
+        done += m
     if mag_edges is None:
         mag_edges = [-2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
     hist, _ = np.histogram(catalog.mag, bins=mag_edges)
-    return FieldStatistics(counts, brightest, len(catalog), [float(e) for e in mag_edges],
-                           [int(h) for h in hist], {"samples": int(n_boresights)})
+    return FieldStatistics(count_hist, mag_hist, float(mag_start), b_min, b_max, n_empty, len(catalog),
+                           [float(e) for e in mag_edges], [int(h) for h in hist],
+                           {"samples": int(n_boresights), "chunk": int(chunk)}, counts, brightest)

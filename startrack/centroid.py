@@ -262,7 +262,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     -------
     CentroidResult
         ``stars``: list of dicts with ``x``, ``y``, ``flux``, ``peak``,
-        ``npix``, ``snr``, ``sigma_px`` (estimated 1-sigma uncertainty per
+        ``npix``, ``snr``, ``noise_dn`` (background noise per pixel where the
+        star lies), ``sigma_px`` (estimated 1-sigma uncertainty per
         axis), ``fwhm_px``, ``saturated``; brightest first.  An image where
         nothing can be found gives an empty list and a ``reason``.
     """
@@ -330,6 +331,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
 def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma, result):
     """Classify the labelled blobs, centroid the stars and build the result (:func:`find_stars`'s second half)."""
     from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, windowed_centroid
+    from startrack._kernels.psf_fit import weighted_gaussian_fit
 
     sigma_at = lambda x, y: float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1),  # noqa: E731
                                              min(int(x) // cell, sigma_mesh.shape[1] - 1)])
@@ -402,6 +404,13 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             x, y, s_fit, amp, ok = gaussian_fit(residual, cx, cy, sigma_psf, half, 50)
             if ok:
                 sigma_psf = s_fit
+                # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).
+                n_var = sigma_at(min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1)) ** 2
+                inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
+                wx, wy, ws, wa, wok = weighted_gaussian_fit(residual, x, y, s_fit, amp,
+                                                            max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
+                if wok:
+                    x, y, sigma_psf = wx, wy, ws
         if not ok:
             x, y = cx, cy
         # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
@@ -415,7 +424,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         stars.append({
             "x": float(x), "y": float(y), "flux": flux, "peak": float(peak), "npix": int(npix),
             "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, options.gain_e_per_dn),
-            "fwhm_px": 2.3548 * sigma_psf, "saturated": bool(nsat > 0),
+            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": float(noise), "saturated": bool(nsat > 0),
             **({"deblended": True} if deblended else {}),
         })
     stars.sort(key=lambda s: -s["flux"])

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-__all__ = ["flux_for_snr", "cramer_rao_bound", "render_single_star", "accuracy_trials"]
+__all__ = ["accuracy_trials", "cramer_rao_bound", "flux_for_snr", "render_single_star"]
 
 
 def flux_for_snr(snr: float, sigma_psf: float, noise_var_e: float) -> float:
@@ -39,7 +39,7 @@ def cramer_rao_bound(flux_e: float, sigma_psf: float, background_e: float, read_
     approximated as Poisson-like variance).  Flux and background are taken as
     known, which makes this the tightest form of the bound.
     """
-    half = half or int(math.ceil(6 * sigma_psf)) + 2
+    half = half or math.ceil(6 * sigma_psf) + 2
     n = 2 * half + 1
     cx = half + x0
     cy = half + y0
@@ -81,7 +81,7 @@ def accuracy_trials(method: str, snr: float, sigma_psf: float, n: int, rng, back
     flux = flux_for_snr(snr, sigma_psf, noise_var)
     opts = CentroidOptions(method=method, threshold_sigma=3.0, background="global", min_pixels=2,
                            deblend=False, psf_sigma_px=sigma_psf if psf_known else None, max_elongation=10.0,
-                           hot_pixel_ratio=1.1)
+                           hot_pixel_ratio=1.1, gain_e_per_dn=1.0)
     errors = []
     bounds = []
     found = 0

@@ -214,7 +214,7 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
                            cat.checksum(), all_params, "", merged_into, merged_id)
 
 
-DEFAULT_STARS_PER_FIELD = 30.0
+DEFAULT_STARS_PER_FIELD = 20.0
 """Database stars wanted in one field when ``build-kvector`` chooses the depth."""
 DEFAULT_MAX_PAIRS = 4_000_000
 """Pair budget of a chosen depth: about 50 MB on disk (12-13 bytes a pair with gzip)."""

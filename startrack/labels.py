@@ -50,6 +50,10 @@ def label_from_distances(distances, scale_digits: int = 2) -> int:
     return int(label_of_distances(d, float(10 ** scale_digits)))
 
 
+MIN_STEP_DEG = 0.1
+"""Finest boresight sweep: 0.1 deg is ~4.1 million boresights (about 2 GB of work arrays at build time)."""
+
+
 def sweep_boresights(step_deg: float) -> np.ndarray:
     """Unit vectors on declination rings ``step_deg`` apart, ``~step_deg`` apart along each ring."""
     decs = np.arange(-90.0, 90.0 + 1e-9, step_deg)
@@ -117,8 +121,10 @@ def build_labels(catalog, fov_deg: float, stars_per_field: int = 8, group_size: 
     if group_size * (group_size - 1) // 2 - 1 > 9 or scale_digits < 1 or \
             (group_size * (group_size - 1) // 2 - 1) * scale_digits > 18:
         raise BadInputError("--scale-digits", None, "the label would not fit in 64 bits: use fewer digits or a smaller group")
-    if not 0 < step_deg <= 30:
-        raise BadInputError("--step-deg", None, f"must be in (0, 30], got {step_deg:g}")
+    if not MIN_STEP_DEG <= step_deg <= 30:
+        n = 41253.0 / step_deg ** 2 if step_deg > 0 else float("inf")
+        raise BadInputError("--step-deg", None, f"must be in [{MIN_STEP_DEG:g}, 30], got {step_deg:g}"
+                            + (f" (it would sweep {n:.3g} boresights)" if step_deg < MIN_STEP_DEG else ""))
     if len(catalog) < stars_per_field:
         raise BadInputError("--catalog", None, f"has {len(catalog)} stars, fewer than --stars-per-field {stars_per_field}")
     t0 = time.perf_counter()

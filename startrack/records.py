@@ -74,6 +74,8 @@ class ReasonCode(str, enum.Enum):
     NOT_IDENTIFIED = "not_identified"
     FOCAL_LENGTH = "focal_length"
     LOST = "lost"
+    DUPLICATE_MATCH = "duplicate_match"
+    DEGENERATE_GEOMETRY = "degenerate_geometry"
     OTHER = "other"
 
     @property
@@ -97,6 +99,8 @@ _REASON_DOCS = {
     "not_identified": "An upstream stage (identification) failed, so this one could not run.",
     "focal_length": "The measured focal length is outside the range searched or given.",
     "lost": "Tracking lost the attitude and lost-in-space recovery failed.",
+    "duplicate_match": "The identification lists an image star or a catalog id twice.",
+    "degenerate_geometry": "The identified stars are too close together (in units of their sigmas) to fix the roll.",
     "other": "A reason without a code of its own (see ``reason``).",
 }
 
@@ -269,6 +273,9 @@ class Attitude:
     covariance_arcsec2: np.ndarray | None = schema_field(kind="matrix", unit="arcsec^2",
                                                          doc="3 x 3 attitude covariance, camera axes")
     variance_factor: float | None = schema_field(doc="> 1 when the residuals showed the centroid sigmas too small")
+    crb_cross_boresight_arcsec: float | None = schema_field(
+        unit="arcsec", doc="the frame's Cramér-Rao bound, per cross-boresight axis (`startrack.accuracy`)")
+    crb_roll_arcsec: float | None = schema_field(unit="arcsec", doc="the frame's Cramér-Rao bound about the boresight")
     rejected: list = schema_field(kind="list", factory=list, doc="stars dropped by the chi-square gate")
     epoch: float | None = schema_field(unit="yr", doc="decimal year of the catalog positions")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")

@@ -480,6 +480,10 @@ def frame_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
 
+MAX_FALSE_STARS = 100_000
+"""Most false stars per frame render and evaluate accept (memory grows with the count)."""
+
+
 def numbered_path(path: str, index: int, total: int) -> str:
     """``sky.png`` -> ``sky-0007.png`` when a run writes several images."""
     if total <= 1:

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from startrack.errors import BadInputError
 
 __all__ = ["FOV_BANDS", "SolveOptions", "band_database", "cache_dir", "fov_hypotheses", "solve_image"]
 
@@ -66,20 +65,11 @@ def band_database(band: int, catalog=None, progress=None, which: int = 0):
 
 def _cached(key, path, load, save, build):
     """A database from memory, else from the cache file (when its catalog checksum matches), else built and saved."""
+    from startrack.formats.hdf5 import cached_database
+
     if key in _DB_MEMO:
         return _DB_MEMO[key]
-    db = None
-    if os.path.exists(path):
-        try:
-            db = load(path)
-            if db.catalog_sha256 != key[-1]:
-                db = None
-        except BadInputError:
-            db = None
-    if db is None:
-        db = build()
-        save(db, path)
-        db.path = path
+    db = cached_database(path, load, save, build, valid=lambda d: d.catalog_sha256 == key[-1])
     _DB_MEMO[key] = db
     return db
 

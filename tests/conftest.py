@@ -32,6 +32,18 @@ def assert_refused(proc, *needles, stdout_empty=True):
         assert proc.stdout == ""
 
 
+@pytest.fixture(scope="session")
+def solve_cache(tmp_path_factory):
+    """One STARTRACK_CACHE for every test that runs `solve` (its databases are built once per session)."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # Shared by the workers of one run: databases are built once, under solve's build lock.
+        path = base.parent / "solve-cache"
+        path.mkdir(exist_ok=True)
+        return {"STARTRACK_CACHE": str(path)}
+    return {"STARTRACK_CACHE": str(tmp_path_factory.mktemp("solve-cache"))}
+
+
 @pytest.fixture
 def cli():
     return run_cli

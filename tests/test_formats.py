@@ -76,18 +76,77 @@ def test_dumps_handles_numpy_and_nan():
     assert json.loads(line) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": 4}
 
 
-def test_frame_writer_is_atomic(tmp_path):
+def test_frame_writer_is_a_journal_and_resumes(tmp_path):
+    """Each line is on disk as soon as it is written; a cut-off last line is dropped on resume."""
     out = tmp_path / "out.jsonl"
+    out.write_text("old content\n")
+    with FrameWriter(str(out)):
+        pass  # a run that writes nothing still leaves an (empty) output, like `>`
+    assert out.read_text() == ""
     with pytest.raises(RuntimeError):
         with FrameWriter(str(out)) as w:
-            w.write(frame())
+            w.write(frame(i=1))
+            w.write(frame(i=2))
+            assert [json.loads(l)["i"] for l in out.read_text().splitlines()] == [1, 2]
             raise RuntimeError("crash in the middle")
-    assert not out.exists()
-    assert os.listdir(tmp_path) == []
-    with FrameWriter(str(out)) as w:
-        w.write(frame(i=1))
-        w.write(frame(i=2))
-    assert [json.loads(l)["i"] for l in out.read_text().splitlines()] == [1, 2]
+    with open(out, "a") as fh:
+        fh.write('{"format": "startrack.frame/1", "i"')  # what kill -9 in mid-write leaves
+    w = FrameWriter(str(out), resume=True)
+    assert w.n_done == 2
+    assert w.skip(frame(i=1)) and w.skip(frame(i=2)) and not w.skip(frame(i=3))
+    with w:
+        w.write(frame(i=3))
+    assert [json.loads(l)["i"] for l in out.read_text().splitlines()] == [1, 2, 3]
+    assert sorted(os.listdir(tmp_path)) == ["out.jsonl"]
+
+
+def test_atomic_output_never_replaces_special_files_and_writes_through_links(tmp_path):
+    from startrack.formats.atomic import atomic_open
+
+    with atomic_open("/dev/null") as fh:
+        fh.write("discarded")
+    assert os.path.exists("/dev/null") and not os.path.isfile("/dev/null")
+    with pytest.raises(BadInputError, match="No space left"):
+        with atomic_open("/dev/full") as fh:
+            fh.write("x" * 10000)
+    assert not os.path.isfile("/dev/full")
+    target = tmp_path / "target.txt"
+    target.write_text("old")
+    link = tmp_path / "link.txt"
+    link.symlink_to(target)
+    with atomic_open(str(link)) as fh:
+        fh.write("new")
+    assert link.is_symlink() and target.read_text() == "new"
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    import threading
+
+    got = []
+    reader = threading.Thread(target=lambda: got.append(open(fifo).read()))  # noqa: SIM115
+    reader.start()
+    with atomic_open(str(fifo)) as fh:
+        fh.write("through the pipe")
+    reader.join(10)
+    assert got == ["through the pipe"] and not fifo.is_file()
+    assert sorted(os.listdir(tmp_path)) == ["link.txt", "pipe", "target.txt"]
+
+
+def test_stale_temporaries_of_dead_processes_are_cleaned(tmp_path):
+    import subprocess
+    import sys
+
+    from startrack.formats.atomic import atomic_open
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    pid = int(dead.stdout)
+    stale = tmp_path / f".out.txt.st{pid}-0123abcd.part.txt"
+    stale.write_text("left by kill -9")
+    mine = tmp_path / f".out.txt.st{os.getpid()}-0123abcd.part.txt"
+    mine.write_text("a live writer's")
+    with atomic_open(str(tmp_path / "out.txt")) as fh:
+        fh.write("ok")
+    assert not stale.exists() and mine.exists()
+    assert (tmp_path / "out.txt").read_text() == "ok"
 
 
 def test_atomic_open_unwritable_directory():

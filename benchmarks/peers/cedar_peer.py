@@ -32,7 +32,7 @@ def is_available() -> bool:
 
 class CedarSolver:
     def __init__(self, db="default", *, build_fov=None, build_min_fov=None, mag=None,
-                 timeout_ms=5000, stderr=subprocess.DEVNULL):
+                 timeout_ms=5000, stderr=subprocess.DEVNULL, epoch=None):
         if not is_available():
             raise RuntimeError(f"{CEDAR_PY} missing: run bash benchmarks/peers/setup_peers.sh")
         cmd = [CEDAR_PY, RUNNER, "--warmup", "--db", str(db), "--timeout-ms", str(timeout_ms)]
@@ -42,6 +42,8 @@ class CedarSolver:
                 cmd += ["--build-min-fov", f"{build_min_fov:g}"]
             if mag is not None:
                 cmd += ["--mag", f"{mag:g}"]
+            if epoch is not None:
+                cmd += ["--epoch", f"{epoch:g}"]
         self._p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                    stderr=stderr, text=True, bufsize=1)
         self._n = 0

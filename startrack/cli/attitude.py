@@ -1,7 +1,8 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
 import click
 
-from startrack.cli.options import catalog_option, handle_errors, input_argument, output_option, quiet_option
+from startrack.cli.options import (catalog_option, handle_errors, input_argument, jobs_option, output_option,
+                                   quiet_option, resume_option)
 
 
 @click.command("attitude", short_help="Attitude (quaternion, RA/Dec/roll, covariance) from identified stars.")
@@ -12,7 +13,8 @@ from startrack.cli.options import catalog_option, handle_errors, input_argument,
 @click.option("--epoch", type=float, default=None,
               help="Epoch (decimal year) of the catalog positions; default: image.time, else the render's epoch.")
 @click.option("--sigma-px", type=float, default=None,
-              help="Centroid noise (1 sigma, px) for stars without sigma_px (default 0.5).")
+              help="Centroid noise (1 sigma, px) of every star, instead of each star's own bound (default: from "
+                   "flux, PSF and noise, else sigma_px, else 0.5).")
 @click.option("--sigma-floor-px", type=float, default=0.05, show_default=True,
               help="Smallest per-star centroid sigma (px): calibration and optics limit real images.")
 @click.option("--unweighted", is_flag=True, help="Equal weights instead of 1 / sigma^2.")
@@ -21,9 +23,12 @@ from startrack.cli.options import catalog_option, handle_errors, input_argument,
 @click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
               help="Write a FITS WCS header (TAN, SIP with distortion); numbered when several frames.")
 @output_option()
+@jobs_option
+@resume_option
 @quiet_option
 @handle_errors
-def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, gate, wcs_path, output, quiet):
+def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, gate, wcs_path, output, jobs, resume,
+            quiet):
     """Solve each frame's attitude from its identified stars: adds an `attitude` section.
 
     Camera-frame vectors come from the star positions and the camera (paper 000
@@ -32,8 +37,14 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
     status, method, quaternion (scalar last, ICRS -> camera), dcm, ra, dec,
     roll, euler123_deg (yaw, pitch, roll), the Wahba loss (Eq. 15), per-star
     residuals in arcsec, and the QUEST covariance as 1-sigma cross-boresight
-    and roll errors in arcsec.  Stars failing the chi-square gate are dropped
-    and listed; fewer than 2 stars gives status "failed".
+    and roll errors in arcsec, beside the frame's Cramér-Rao bound
+    (crb_cross_boresight_arcsec, crb_roll_arcsec) from each star's flux, PSF
+    width and noise.  Each star is weighted by its own centroid bound.
+    Stars failing the chi-square gate are dropped and listed.  The
+    identification is checked, and the frame is "failed" with a reason_code
+    when it does not hold up: fewer than 2 stars, a star or id used twice,
+    stars too close together to fix the roll, or residuals too large for the
+    centroid noise (a wrong identification, catalog or camera).
 
     \b
     Example (the whole pipeline on a real photo, with a WCS for DS9 or astropy):
@@ -44,27 +55,31 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
 
     import numpy as np
 
+    from startrack.accuracy import attitude_crb, stars_crb_from_frame
     from startrack.attitude import estimate_attitude, wcs_header
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
-    from startrack.cli.batch import run_frames
+    from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
     from startrack.timeutil import julian_year, parse_time
 
     if wcs_path:
-        from startrack.formats.atomic import check_writable
+        from startrack.imageio import check_fits_output
 
-        check_writable(wcs_path)
+        check_fits_output(wcs_path)
     base = load_catalog(catalog)
     propagated = {}
+    wcs_names = StreamNames(wcs_path)
 
     def catalog_at(ep):
         key = round(ep, 6)
-        if key not in propagated:
+        found = propagated.get(key)
+        if found is None:
             cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
+            found = (cat, cat.rows_by_id(), cat.vectors())
             propagated.clear()
-            propagated[key] = (cat, cat.rows_by_id(), cat.vectors())
-        return propagated[key]
+            propagated[key] = found
+        return found
 
     def process(doc, source, index, total):
         ident = doc.get("identification")
@@ -74,7 +89,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             raise BadInputError(source, "camera", "is missing")
         cam = Camera.from_dict(doc["camera"], source)
         if ident.get("status") != "ok":
-            doc["attitude"] = {"status": "failed", "method": method,
+            doc["attitude"] = {"status": "failed", "method": method, "reason_code": "not_identified",
                                "reason": f"identification failed: {ident.get('reason', 'no reason given')}"}
             return doc
         stars = doc.get("stars") or []
@@ -89,8 +104,10 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             ep = float(doc["truth"]["epoch"])
         if ep is None:
             ep = base.epoch
-        cat, rows, vectors = catalog_at(ep)
-        body, ref, sig, labels = [], [], [], []
+        _, rows, vectors = catalog_at(ep)
+        gain = _frame_gain(doc)
+        noise_frame = (doc.get("centroid") or {}).get("noise_dn")
+        body, ref, sig, labels, bounds = [], [], [], [], []
         missing = []
         for m in matches:
             row = rows.get(int(m["id"]))
@@ -104,12 +121,27 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                 raise BadInputError(source, f"stars[{m['star']}].x", "must be a finite number")
             body.append(cam.pixels_to_vectors(x, y))
             ref.append(vectors[row])
-            sp = s.get("sigma_px")
-            sp = sp if isinstance(sp, (int, float)) and sp > 0 else (sigma_px if sigma_px else 0.5)
+            # Each star's own sigma: its centroid Cramér-Rao bound from its flux, PSF and noise
+            # (startrack.accuracy), else the sigma_px centroid wrote, else --sigma-px.
+            bound = stars_crb_from_frame([s], gain, noise_frame if isinstance(noise_frame, (int, float)) else None)[0]
+            bounds.append(bound)
+            if bound is not None and not sigma_px:
+                sp = math.sqrt(0.5 * (bound[0, 0] + bound[1, 1]))
+            else:
+                sp = s.get("sigma_px")
+                sp = sp if isinstance(sp, (int, float)) and sp > 0 else (sigma_px if sigma_px else 0.5)
             sig.append(max(sp, sigma_floor_px) / cam.focal_length_px)
             labels.append((int(m["star"]), int(m["id"])))
         result = estimate_attitude(np.array(body).reshape(-1, 3), np.array(ref).reshape(-1, 3), np.array(sig),
                                    method, labels, gate, not unweighted)
+        if result.status == "ok":
+            used = [labels.index(u) for u in result.used]
+            if all(bounds[k] is not None for k in used):
+                try:
+                    result.bound = attitude_crb(cam, np.array([body[k] for k in used]),
+                                                np.array([bounds[k] for k in used])).section()
+                except BadInputError:
+                    pass
         section = result.section()
         section["epoch"] = float(ep)
         if missing:
@@ -117,10 +149,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         doc["attitude"] = section
         if result.status == "ok" and wcs_path:
             from startrack.formats.atomic import atomic_path
-            from startrack.render import numbered_path
-
             hdr = wcs_header(result.dcm, cam)
-            path = numbered_path(wcs_path, index, total)
+            path = wcs_names(index)
             from astropy.io import fits
 
             with atomic_path(path, suffix=".fits") as tmp:
@@ -130,4 +160,13 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             section["wcs"] = {k: v for k, v in wcs_header(result.dcm, cam).items() if k not in ("COMMENT", "HISTORY")}
         return doc
 
-    run_frames(input, output, "attitude", process, quiet, "attitude", need=("stars",))
+    run_frames(input, output, "attitude", process, quiet, "attitude", need=("stars",), jobs=jobs, resume=resume)
+
+
+def _frame_gain(doc):
+    """The gain (e/DN) the frame's centroiding used, else the renderer's; None when unknown."""
+    for value in (((doc.get("centroid") or {}).get("params") or {}).get("gain_e_per_dn"),
+                  (((doc.get("render") or {}).get("params") or {}).get("sensor") or {}).get("gain_e_per_dn")):
+        if isinstance(value, (int, float)) and value > 0:
+            return float(value)
+    return None

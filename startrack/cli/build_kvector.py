@@ -12,7 +12,7 @@ from startrack.cli.options import (camera_from_options, camera_options, catalog_
               help="Faintest catalog star used.  Without --mag-max/--mag-min the depth is chosen for the sensor.")
 @click.option("--mag-min", type=float, default=None, help="Brightest catalog star used.")
 @click.option("--stars-per-field", type=float, default=None,
-              help="Chosen depth: database stars wanted per field (default 30, lowered to fit --max-pairs).")
+              help="Chosen depth: database stars wanted per field (default 20, lowered to fit --max-pairs).")
 @click.option("--max-pairs", type=int, default=None,
               help="Chosen depth: pair budget (default 4,000,000: about 50 MB).")
 @click.option("--merge-px", type=float, default=None,

@@ -1,8 +1,14 @@
 """startrack catalog-stats: how many stars will a sensor see?"""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors,
-                                   quiet_option, seed_option)
+from startrack.cli.options import (
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    quiet_option,
+    seed_option,
+)
 
 
 @click.command("catalog-stats", short_help="Monte Carlo count of catalog stars in a sensor's field.")
@@ -37,8 +43,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     import numpy as np
 
     from startrack.catalog import field_statistics, load_catalog
+    from startrack.cli.options import require_stdout
     from startrack.errors import BadInputError
 
+    require_stdout()
     cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
                               default_size="1024x1024")
     if samples < 1:

@@ -1,7 +1,14 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
 import click
 
-from startrack.cli.options import handle_errors, info, load_camera_file, output_option, quiet_option
+from startrack.cli.options import (
+    handle_errors,
+    jobs_option,
+    load_camera_file,
+    output_option,
+    quiet_option,
+    resume_option,
+)
 
 
 @click.command("centroid", short_help="Detect and centroid stars in images -> frame documents.")
@@ -33,11 +40,13 @@ from startrack.cli.options import handle_errors, info, load_camera_file, output_
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of the detections (numbered per image when several).")
 @output_option("Frame documents (JSON Lines).")
+@jobs_option
+@resume_option
 @quiet_option
 @handle_errors
 def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, matched_filter, filter_sigma_px,
             min_pixels, max_pixels, max_elongation, no_deblend, max_stars, psf_sigma_px, gain_e_per_dn, saturation_dn,
-            camera_file, windows_from, window_px, plot, output, quiet):
+            camera_file, windows_from, window_px, plot, output, jobs, resume, quiet):
     """Find the stars in each image: one frame document per image on stdout.
 
     IMAGE may be PNG, JPEG, TIFF or FITS (8/12/16-bit; colour becomes
@@ -58,104 +67,66 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
     import os
 
     from startrack.centroid import CentroidOptions, centroid_windows, find_stars
+    from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
-    from startrack.formats.frame import FRAME_FORMAT, FrameWriter, read_frames, validate_frame
-    from startrack.imageio import read_image
-    from startrack.progress import ProgressBar
+    from startrack.formats.frame import FRAME_FORMAT, FrameRecord, read_frames
+    from startrack.imageio import check_plot_output, read_image
 
     options = CentroidOptions(method, threshold_sigma, threshold_dn, background, mesh_px, matched_filter,
                               filter_sigma_px, min_pixels, max_pixels, max_elongation, 0.7, not no_deblend, max_stars,
                               psf_sigma_px, gain_e_per_dn, saturation_dn)
-    camera_doc = None
-    if camera_file:
-        pass
+    camera_doc = load_camera_file(camera_file).to_dict() if camera_file else None
+    check_plot_output(plot)
+    plot_names = StreamNames(plot)
+    names = list(inputs) or ["-"]
+    if sum(n == "-" for n in names) > 1:
+        raise BadInputError("IMAGE", None, "standard input ('-') can be read only once")
 
-        camera_doc = load_camera_file(camera_file).to_dict()
-    if plot:
-        from startrack.formats.atomic import check_writable
-
-        check_writable(plot)
-
-    def jobs():
-        """(source label, frame document or None, image path) for every input."""
-        names = list(inputs) or ["-"]
+    def records():
+        """One record per input: image files become minimal documents; documents stream in."""
         for name in names:
-            looks_like_doc = name == "-" or name.lower().endswith((".json", ".jsonl", ".ndjson"))
-            if looks_like_doc:
-                for rec in read_frames(name):
-                    if rec.error is not None:
-                        yield rec.source, None, None, rec.error
-                        continue
-                    try:
-                        validate_frame(rec.doc, rec.source)
-                        path = (rec.doc.get("image") or {}).get("path")
-                        if not path:
-                            raise BadInputError(rec.source, "image.path", "is missing: no image to centroid")
-                        yield rec.source, rec.doc, path, None
-                    except BadInputError as exc:
-                        yield rec.source, rec.doc, None, exc
+            if name == "-" or name.lower().endswith((".json", ".jsonl", ".ndjson")):
+                yield from read_frames(name)
             else:
-                yield name, None, name, None
+                yield FrameRecord(name, {"format": FRAME_FORMAT, "image": {"path": name}})
 
-    all_jobs = list(jobs())
-    if len(all_jobs) == 1 and all_jobs[0][3] is not None:
-        raise all_jobs[0][3]
-    bar = ProgressBar("centroid", quiet)
-    n_bad = 0
-    n_stars = 0
-    with FrameWriter(output) as writer:
-        for index, (source, doc, path, error) in enumerate(all_jobs):
-            out = dict(doc) if doc else {"format": FRAME_FORMAT}
-            out["format"] = FRAME_FORMAT
-            try:
-                if error is not None:
-                    raise error
-                image, meta = read_image(path)
-                if len(all_jobs) == 1 and doc is None:
-                    pass
-                height, width = image.shape
-                out["image"] = {**(out.get("image") or {}), "path": path, "width": width, "height": height,
-                                "bit_depth": meta["bit_depth"]}
-                if camera_doc is not None:
-                    out["camera"] = camera_doc
-                if windows_from:
-                    if windows_from == "truth":
-                        prior = (doc or {}).get("truth", {}).get("stars", [])
-                    else:
-                        prior = (doc or {}).get("stars", [])
-                    if not prior:
-                        raise BadInputError(source, windows_from, "has no positions for --windows-from")
-                    found = centroid_windows(image, [(p["x"], p["y"]) for p in prior], window_px, options,
-                                             saturation=meta["saturation"])
-                    stars = [dict(f, prior=i) for i, f in enumerate(found) if f is not None]
-                    stars.sort(key=lambda s: -s["flux"])
-                    out["stars"] = stars[:max_stars] if max_stars else stars
-                    out["centroid"] = {"method": method, "mode": "windows", "windows": len(prior),
-                                       "found": len(stars), "window_px": window_px}
-                else:
-                    result = find_stars(image, options, saturation=meta["saturation"], source=path)
-                    out["stars"] = result.stars
-                    out["centroid"] = result.section()
-                n_stars += len(out["stars"])
-                if plot:
-                    from startrack.plot import annotate_stars
-                    from startrack.render import numbered_path
+    n_stars = [0]
 
-                    annotate_stars(numbered_path(plot, index, len(all_jobs)), image, out["stars"],
-                                   out["centroid"].get("rejected"), title=f"{os.path.basename(path)}: "
-                                   f"{len(out['stars'])} stars ({method})")
-            except BadInputError as exc:
-                if len(all_jobs) == 1:
-                    raise
-                n_bad += 1
-                info(quiet, f"startrack centroid: {exc}")
-                out.setdefault("stars", [])
-                out["centroid"] = {"status": "failed", "reason": str(exc)}
-                if path and "image" not in out:
-                    out["image"] = {"path": path}
-            writer.write(out)
-            bar(index + 1, len(all_jobs))
-    info(quiet, f"centroid: {len(all_jobs)} image(s), {n_stars} stars"
-                + (f"; {n_bad} could not be read (status failed in their documents)" if n_bad else ""))
-    if n_bad:
-        raise SystemExit(2)
+    def process(doc, source, index, total):
+        path = (doc.get("image") or {}).get("path") if isinstance(doc.get("image"), dict) else None
+        if not path or not isinstance(path, str):
+            raise BadInputError(source, "image.path", "is missing: no image to centroid")
+        out = doc
+        out["format"] = FRAME_FORMAT
+        image, meta = read_image(path)
+        height, width = image.shape
+        out["image"] = {**out["image"], "path": path, "width": width, "height": height,
+                        "bit_depth": meta["bit_depth"]}
+        if camera_doc is not None:
+            out["camera"] = camera_doc
+        if windows_from:
+            prior = (doc.get("truth") or {}).get("stars", []) if windows_from == "truth" else doc.get("stars", [])
+            if not prior:
+                raise BadInputError(source, windows_from, "has no positions for --windows-from")
+            found = centroid_windows(image, [(p["x"], p["y"]) for p in prior], window_px, options,
+                                     saturation=meta["saturation"])
+            stars = [dict(f, prior=i) for i, f in enumerate(found) if f is not None]
+            stars.sort(key=lambda s: -s["flux"])
+            out["stars"] = stars[:max_stars] if max_stars else stars
+            out["centroid"] = {"method": method, "mode": "windows", "windows": len(prior),
+                               "found": len(stars), "window_px": window_px}
+        else:
+            result = find_stars(image, options, saturation=meta["saturation"], source=path)
+            out["stars"] = result.stars
+            out["centroid"] = result.section()
+        n_stars[0] += len(out["stars"])
+        if plot:
+            from startrack.plot import annotate_stars
+
+            annotate_stars(plot_names(index), image, out["stars"], out["centroid"].get("rejected"),
+                           title=f"{os.path.basename(path)}: {len(out['stars'])} stars ({method})")
+        return out
+
+    run_frames(names[0] if len(names) == 1 else "-", output, "centroid", process, quiet, "centroid",
+               jobs=jobs, resume=resume, records=records(), unit="image",
+               note=lambda: f"{n_stars[0]} stars")

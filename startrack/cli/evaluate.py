@@ -1,8 +1,15 @@
 """startrack evaluate: Monte Carlo comparison of identification algorithms."""
 import click
 
-from startrack.cli.options import (camera_from_options, camera_options, catalog_option, handle_errors, info,
-                                   quiet_option, seed_option)
+from startrack.cli.options import (
+    camera_from_options,
+    camera_options,
+    catalog_option,
+    handle_errors,
+    info,
+    quiet_option,
+    seed_option,
+)
 
 
 def _floats(text, name):
@@ -38,11 +45,16 @@ def _floats(text, name):
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as CSV.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Write the rows as JSON.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
+@click.option("--accuracy", is_flag=True,
+              help="Instead: render --count images (stars to --mag-limit + 1) and report the attitude error against "
+                   "each frame's Cramér-Rao bound, per axis, and NEES (identification by the first database and "
+                   "algorithm).")
 @quiet_option
 @handle_errors
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
             mag_limit, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
-            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, csv_path, json_path, plot, quiet):
+            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, csv_path, json_path, plot, accuracy,
+            quiet):
     """Compare identification algorithms over random attitudes, as the papers do.
 
     Every combination of the comma-separated condition values is one row per
@@ -57,10 +69,18 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
       startrack evaluate -d p003.h5 -a pyramid,voting --fov-deg 20 --size 1024x1024 --mag-limit 5 \\
           --sigma-arcsec 1.667 --mag-noise 0.2 --max-stars 10 --false-stars 0,1 --count 10000 --seed 1 -j 2
     \b
+    Example (accuracy: error / Cramér-Rao bound per axis on paper 000's sensor, 1000 rendered frames):
+      startrack build-kvector --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --mag-min 2.5 \\
+          --mag-max 6.59 -o p000.h5
+      startrack evaluate -d p000.h5 --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --accuracy -n 1000
+    \b
     Example (robustness to focal-length error, with a chart):
       startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-limit 5 --focal-error-pct 0,0.5,1,2 \\
           --count 1000 --plot focal.png
     """
+    from startrack.cli.options import require_stdout
+
+    require_stdout()
     import json
 
     from startrack.catalog import load_catalog
@@ -101,7 +121,12 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         noise = [v / cam.pixel_scale_arcsec for v in _floats(sigma_arcsec, "--sigma-arcsec")]
     if any(not v >= 0 for v in noise):
         raise BadInputError("--sigma-px", None, "must be >= 0")
-    conds = conditions_grid(sigma_px=noise, false_stars=[int(v) for v in _floats(false_stars, "--false-stars")],
+    from startrack.render import MAX_FALSE_STARS
+
+    n_false = [int(v) for v in _floats(false_stars, "--false-stars")]
+    if any(not 0 <= v <= MAX_FALSE_STARS for v in n_false):
+        raise BadInputError("--false-stars", None, f"each count must be in [0, {MAX_FALSE_STARS}], got {false_stars}")
+    conds = conditions_grid(sigma_px=noise, false_stars=n_false,
                             mag_noise=_floats(mag_noise, "--mag-noise"),
                             focal_error_pct=_floats(focal_error_pct, "--focal-error-pct"),
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
@@ -115,6 +140,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % (2**31))
+    if accuracy:
+        _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, json_path,
+                  quiet)
+        return
     rows = []
     bar = ProgressBar("evaluate", quiet)
     for cond in conds:
@@ -172,3 +201,41 @@ def _peek_format(path):
     if not tag.startswith("startrack."):
         raise BadInputError(path, "format", f"{tag!r} is not a startrack database")
     return tag
+
+
+def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars, json_path, quiet):
+    """``evaluate --accuracy``: startrack.accuracy.evaluate_accuracy on rendered frames, printed as a table."""
+    import json
+
+    from startrack.accuracy import evaluate_accuracy
+    from startrack.catalog import load_catalog
+    from startrack.formats.atomic import atomic_open
+    from startrack.identify import IdentifyParams, identify_stars
+    from startrack.progress import ProgressBar
+
+    params = IdentifyParams()
+
+    def identify(stars):
+        res = identify_stars(stars, cam, db, algorithm, params)
+        return [(m["star"], m["id"]) for m in res.matches] if res.status == "ok" else None
+
+    render_cat = load_catalog(catalog_path).filter_magnitude(None, lim + 1.0)
+    bar = ProgressBar("evaluate", quiet)
+    s = evaluate_accuracy(cam, cat, count, seed, render_catalog=render_cat, identify=identify, max_stars=max_stars,
+                          progress=bar)
+    if not s.get("frames"):
+        click.echo(f"no frame solved ({s['failed']} failed, {s['wrong']} wrong, {s['no_bound']} without 2 stars)")
+        return
+    click.echo(f"{s['frames']} frames solved, {s['failed']} failed, {s['wrong']} wrong, {s['no_bound']} with < 2 stars")
+    click.echo(f"cross-boresight: RMS {s['rms_cross_arcsec']:.3f}\" / RMS bound {s['crb_cross_arcsec']:.3f}\" = "
+               f"{s['ratio_cross']:.2f}  (normalised RMS {s['z_cross']:.2f})")
+    click.echo(f"roll:            RMS {s['rms_roll_arcsec']:.2f}\" / RMS bound {s['crb_roll_arcsec']:.2f}\" = "
+               f"{s['ratio_roll']:.2f}  (normalised RMS {s['z_roll']:.2f})")
+    if "nees_mean" in s:
+        lo, hi = s["nees_band"]
+        click.echo(f"NEES mean {s['nees_mean']:.3f} (95 % band {lo:.3f} to {hi:.3f}); "
+                   f"{100 * s['nees_in_95']:.1f} % of frames below the chi-square(3) 95 % point")
+    if json_path:
+        with atomic_open(json_path, "w") as fh:
+            json.dump({"accuracy": s, "seed": seed, "count": count, "camera": cam.to_dict()}, fh, indent=1,
+                      default=list)

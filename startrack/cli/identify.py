@@ -5,9 +5,11 @@ from startrack.cli.options import (
     catalog_option,
     handle_errors,
     input_argument,
+    jobs_option,
     load_camera_file,
     output_option,
     quiet_option,
+    resume_option,
 )
 
 
@@ -77,10 +79,12 @@ def _algorithm_choice():
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
 @output_option()
+@jobs_option
+@resume_option
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            max_proposals, max_time_ms, catalog, match_all, plot, output, quiet, **settings):
+            max_proposals, max_time_ms, catalog, match_all, plot, output, jobs, resume, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
@@ -111,7 +115,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     import time
 
     from startrack.camera import Camera
-    from startrack.cli.batch import run_frames
+    from startrack.cli.batch import StreamNames, run_frames
     from startrack.cli.options import info
     from startrack.errors import BadInputError
     from startrack.formats.sections import to_section
@@ -148,6 +152,10 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
                             max_false_probability=max_false_probability, max_proposals=max_proposals,
                             max_time_ms=max_time_ms)
     checked = {}
+    from startrack.imageio import check_plot_output
+
+    check_plot_output(plot)
+    plot_names = StreamNames(plot)
 
     def process(doc, source, index, total):
         if override is not None:
@@ -166,10 +174,10 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
         result = identify_stars(doc["stars"], cam, db, algorithm, params, config, deep)
         doc["identification"] = to_section(result)
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
-            _plot(plot, index, total, doc, db, cam, result)
+            _plot(plot_names(index), doc, db, cam, result)
         return doc
 
-    run_frames(input, output, "identification", process, quiet, "identify")
+    run_frames(input, output, "identification", process, quiet, "identify", jobs=jobs, resume=resume)
     # Loading is set-up, not identification: reported apart from every frame's time_ms.
     info(quiet, f"identify: database {database} loaded (and kernels readied) in {load_ms:.0f} ms, not in time_ms")
 
@@ -196,11 +204,10 @@ def _check(db, camera, kind):
     return True
 
 
-def _plot(pattern, index, total, doc, db, camera, result):
+def _plot(path, doc, db, camera, result):
     from startrack.imageio import read_image
     from startrack.names import star_label
     from startrack.plot import annotate_stars
-    from startrack.render import numbered_path
 
     image, _ = read_image(doc["image"]["path"])
     from startrack.rotations import quaternion_to_dcm
@@ -214,5 +221,5 @@ def _plot(pattern, index, total, doc, db, camera, result):
         inside = camera.in_image(x, y)
         predicted = list(zip(x[inside], y[inside]))
     title = f"{result.algorithm}: {result.status}, {len(result.matches)} stars identified"
-    annotate_stars(numbered_path(pattern, index, total), image, doc["stars"], None, labels,
+    annotate_stars(path, image, doc["stars"], None, labels,
                    predicted, title)

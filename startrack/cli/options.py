@@ -1,6 +1,7 @@
 """Options shared by several commands, defined once, and the error handling."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
@@ -21,7 +22,12 @@ def output_option(help_text="Output file, or - for standard output.", default="-
 
 seed_option = click.option("--seed", type=int, default=None,
                            help="Seed of the random generator; the same seed gives the same output.")
-quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary on stderr.")
+jobs_option = click.option("--jobs", "-j", type=int, default=1, show_default=True,
+                           help="Frames processed at once; the output keeps the input order.")
+resume_option = click.option("--resume", is_flag=True,
+                             help="Keep the frames already in the -o file (a run cut short) and do only the rest.")
+quiet_option = click.option("--quiet", "-q", is_flag=True,
+                            help="No progress bar or summary on stderr (errors and failures are still shown).")
 catalog_option = click.option("--catalog", type=click.Path(dir_okay=False), default=None,
                               help="Star catalog (startrack.catalog/1 HDF5); default: the shipped Hipparcos catalog.")
 
@@ -117,6 +123,15 @@ def handle_errors(func):
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        from startrack.formats.atomic import Terminated, install_signal_cleanup
+
+        install_signal_cleanup()
+        if not os.environ.get("STARTRACK_DEBUG"):
+            # numpy's RuntimeWarnings (empty slices, 0/0 on degenerate input) are not messages for users:
+            # every result they could touch is checked and reported as a status with a reason.
+            import warnings
+
+            warnings.filterwarnings("ignore", category=RuntimeWarning)
         try:
             return func(*args, **kwargs)
         except click.exceptions.Exit:
@@ -124,28 +139,50 @@ def handle_errors(func):
         except click.ClickException:
             raise
         except StartrackError as exc:
-            click.echo(f"{command_path()}: error: {exc}", err=True)
+            _echo_err(f"{command_path()}: error: {exc}")
             sys.exit(exc.exit_code)
         except BrokenPipeError:
-            # The reader went away (e.g. `| head`): not our failure.
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
+            # The reader went away (e.g. `| head`): not our failure, like SIGPIPE for a C tool.
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
             sys.exit(0)
         except PermissionError as exc:
-            click.echo(f"{command_path()}: error: {exc.filename}: permission denied", err=True)
+            _echo_err(f"{command_path()}: error: {exc.filename}: permission denied")
             sys.exit(2)
+        except Terminated:
+            _echo_err(f"{command_path()}: terminated (temporary files removed, outputs left as they were)")
+            sys.exit(143)
         except KeyboardInterrupt:
-            click.echo(f"{command_path()}: interrupted", err=True)
+            _echo_err(f"{command_path()}: interrupted (temporary files removed, outputs left as they were)")
             sys.exit(130)
+        except RecursionError:
+            _echo_err(f"{command_path()}: error: input nested too deeply")
+            sys.exit(2)
+        except MemoryError:
+            _echo_err(f"{command_path()}: error: out of memory (see 'Limits' in docs/formats.md)")
+            sys.exit(1)
         except Exception as exc:  # noqa: BLE001 - the last line of defence of a CLI
             if os.environ.get("STARTRACK_DEBUG"):
                 raise
             msg = str(exc).splitlines()[0] if str(exc) else ""
-            click.echo(f"{command_path()}: internal error: {type(exc).__name__}: {msg} "
-                       "(set STARTRACK_DEBUG=1 for a traceback)", err=True)
+            _echo_err(f"{command_path()}: internal error: {type(exc).__name__}: {msg} "
+                      "(set STARTRACK_DEBUG=1 for a traceback)")
             sys.exit(1)
 
     return wrapper
+
+
+def require_stdout() -> None:
+    """Refuse (exit 2, one line) a command whose result goes to standard output when it is closed (``>&-``)."""
+    if sys.stdout is None or sys.stdout.closed:
+        raise BadInputError("<stdout>", None, "is closed: the result has nowhere to go")
+
+
+def _echo_err(message: str) -> None:
+    """One line on stderr; silently nothing if stderr itself is closed."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        click.echo(message, err=True)
 
 
 def info(quiet: bool, message: str) -> None:

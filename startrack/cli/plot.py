@@ -37,6 +37,9 @@ def command(input, kind, output, mag_limit, title, quiet):
     from startrack.formats.frame import read_frames
     from startrack.render import numbered_path
 
+    from startrack.imageio import check_plot_output
+
+    check_plot_output(output)
     if kind == "evaluate":
         from startrack.evaluate import plot_results
         from startrack.formats.frame import read_json_file
@@ -47,10 +50,12 @@ def command(input, kind, output, mag_limit, title, quiet):
         plot_results(doc["rows"], output, title=title)
         info(quiet, f"plot: {output}")
         return
+    from startrack.cli.batch import resolve_image_path
     docs = []
     for rec in read_frames(input):
         if rec.error is not None:
             raise rec.error
+        resolve_image_path(rec)
         docs.append(rec.doc)
     if not docs:
         raise BadInputError(input, None, "holds no frame document")
@@ -70,7 +75,7 @@ def command(input, kind, output, mag_limit, title, quiet):
     from startrack.catalog import load_catalog
 
     cat = load_catalog()
-    made = 0
+    made = []
     for i, doc in enumerate(docs):
         path = numbered_path(output, i, len(docs))
         if kind == "residuals":
@@ -88,5 +93,8 @@ def command(input, kind, output, mag_limit, title, quiet):
                 raise BadInputError(input, "image.path", "is missing: --kind image needs the image")
             image, _ = read_image(p)
             annotate_solution(path, image, doc, cat, mag_limit)
-        made += 1
-    info(quiet, f"plot: {made} picture(s) -> {output if len(docs) == 1 else numbered_path(output, 0, 2) + ' ...'}")
+        made.append(path)
+    if not made:
+        click.echo(f"startrack plot: {input}: no frame has an attitude with status ok: no picture written", err=True)
+        raise SystemExit(1)
+    info(quiet, f"plot: {len(made)} picture(s): {made[0]}" + (f" ... {made[-1]}" if len(made) > 1 else ""))

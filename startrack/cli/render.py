@@ -111,6 +111,14 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                               default_size="1024x1024")
     if count < 1:
         raise BadInputError("--count", None, f"must be at least 1, got {count}")
+    from startrack.imageio import max_image_pixels
+    from startrack.render import MAX_FALSE_STARS
+
+    if not 0 <= false_stars <= MAX_FALSE_STARS:
+        raise BadInputError("--false-stars", None, f"must be in [0, {MAX_FALSE_STARS}], got {false_stars}")
+    if not stars_only and cam.width * cam.height > max_image_pixels():
+        raise BadInputError("--size", None, f"{cam.width}x{cam.height} is more than {max_image_pixels()} pixels "
+                            "(STARTRACK_MAX_IMAGE_PIXELS); use --stars-only for star lists of any size")
     if frames < 1:
         raise BadInputError("--frames", None, f"must be at least 1, got {frames}")
     if not frame_interval_s > 0:

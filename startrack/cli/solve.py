@@ -1,7 +1,7 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
 import click
 
-from startrack.cli.options import handle_errors, info, load_camera_file, output_option, quiet_option
+from startrack.cli.options import handle_errors, load_camera_file, output_option, quiet_option, resume_option
 
 
 def output_for(template: str | None, image_path: str, total: int, suffix: str) -> str | None:
@@ -135,10 +135,11 @@ def _solve_one(args):
               help="Matched stars per image as CSV (catalog id, RA/Dec, x/y, residual); a directory, a file, or "
                    "a pattern with {name}.")
 @output_option("Frame documents (JSON Lines).")
+@resume_option
 @quiet_option
 @handle_errors
 def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, wcs_path, plot, fits_out,
-            matches_out, output, quiet):
+            matches_out, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -164,6 +165,9 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     Example (several photos, the WCS of each as sky.wcs-NAME.fits):
       startrack solve a.tiff b.tiff --wcs out/sky.wcs.fits > solved.jsonl
     """
+    import os
+
+    from startrack.cli.batch import BatchTally
     from startrack.cluster import TaskFailure, ordered_map
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
@@ -175,6 +179,13 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
     if fov_deg is not None and not 0 < fov_deg < 90:
         raise BadInputError("--fov-deg", None, f"must be in (0, 90), got {fov_deg}")
+    if resume and output == "-":
+        raise BadInputError("--resume", None, "needs an output file (-o FILE) to resume into")
+    from startrack.imageio import check_plot_output
+
+    for t in (plot,):
+        if t and "{name}" not in t and not t.endswith(("/", os.sep)) and not os.path.isdir(t):
+            check_plot_output(t)
     camera_doc = None
     if camera_file:
         camera_doc = load_camera_file(camera_file).to_dict()
@@ -200,24 +211,23 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         for which in range(len(FOV_BANDS[b][2])):
             band_database(b, which=which)
     bar = ProgressBar("solve", quiet)
-    n_ok = n_bad = 0
-    with FrameWriter(output) as writer:
+    tally = BatchTally("solve", quiet, "image")
+    writer = FrameWriter(output, resume=resume)
+    todo = [t for t in tasks if not writer.skip({"image": {"path": t[0]}})]
+    tally.skipped = n - len(todo)
+    with writer:
         # In input order; with -j N, spawned workers share the pattern index through the page cache.
-        for i, doc in ordered_map(_solve_one, tasks, jobs=min(jobs, n)):
+        for i, doc in ordered_map(_solve_one, todo, jobs=max(1, min(jobs, len(todo)))):
             if isinstance(doc, TaskFailure):
-                doc = {"format": FRAME_FORMAT, "image": {"path": tasks[i][0]},
+                doc = {"format": FRAME_FORMAT, "image": {"path": todo[i][0]},
                        "solve": {"status": "failed", "reason": f"internal error: {doc.error}"}}
-            if n == 1 and doc["solve"].get("bad_input"):
-                raise BadInputError(tasks[i][0], None, doc["solve"]["reason"].split(": ", 1)[-1])
-            n_ok += doc["solve"]["status"] == "ok"
-            n_bad += bool(doc["solve"].get("bad_input"))
+            bad = bool(doc["solve"].get("bad_input"))
+            if n == 1 and bad:
+                raise BadInputError(todo[i][0], None, doc["solve"]["reason"].split(": ", 1)[-1])
             if doc["solve"]["status"] != "ok":
-                where = "" if doc["solve"].get("bad_input") else f"{tasks[i][0]}: "
-                click.echo(f"startrack solve: {where}{doc['solve']['reason']}", err=True)
+                reason, where = str(doc["solve"].get("reason")), str(todo[i][0])
+                tally.error(reason if reason.startswith(where) else f"{where}: {reason}")
             writer.write(doc)
-            bar(i + 1, n)
-    info(quiet, f"solve: {n_ok} of {n} image(s) solved" + (f", {n_bad} unreadable" if n_bad else ""))
-    if n_bad:
-        raise SystemExit(2)
-    if n_ok < n:
-        raise SystemExit(1)
+            tally.add(doc["solve"]["status"], bad=bad)
+            bar(i + 1, len(todo))
+    tally.finish()

@@ -45,6 +45,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     time per frame.  Stars of a turning camera are fitted as streaks (position
     at mid-exposure).  The first frame, and any frame after a gap or blackout
     longer than --max-gap-s, is solved lost in space with identify's search.
+    Catalog positions are moved to the first frame's image.time (proper motion).
     Out-of-order time stamps are refused.  Exit status 1 when any frame has no
     attitude.
 
@@ -66,7 +67,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
     from startrack.imageio import read_image
     from startrack.kvector import check_database, load_kvector
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm
-    from startrack.timeutil import parse_time
+    from startrack.timeutil import julian_year, parse_time
     from startrack.track import MODES, Tracker, TrackerConfig
 
     db = load_kvector(database)
@@ -117,7 +118,12 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
             raise BadInputError(src, "camera", "is missing (give --camera)")
         if state["tracker"] is None:
             check_database(db, cam)
-            state["tracker"] = Tracker(cat, cam, db, config, init, rate)
+            stars = cat
+            t_first = (doc.get("image") or {}).get("time")
+            if t_first:
+                # Catalog positions at the sequence's epoch (proper motion), as render placed them.
+                stars = cat.propagate(julian_year(parse_time(t_first, f"{src}: image.time")))
+            state["tracker"] = Tracker(stars, cam, db, config, init, rate)
         path = (doc.get("image") or {}).get("path")
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")
@@ -149,7 +155,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         doc["track"] = out["track"]
         return doc
 
-    run_frames(source, output, "attitude", process, quiet, "track")
+    tally = run_frames(source, output, "attitude", process, quiet, "track", finish=False)
     modes = state["modes"]
     n = sum(modes.values())
     with_att = n - modes["lost"]
@@ -157,5 +163,7 @@ def command(inputs, database, camera_file, catalog, mag_limit, frame_interval_s,
         click.echo(f"track: {with_att} of {n} frame(s) with an attitude ("
                     + ", ".join(f"{modes[m]} {m}" for m in MODES if m != "lost") + f"), {modes['lost']} lost",
                     err=True)
-    if modes["lost"]:
-        raise SystemExit(1)
+    if tally.bad:
+        click.echo(f"track: {tally.bad} frame(s) with bad input", err=True)
+    if tally.exit_code or modes["lost"]:
+        raise SystemExit(tally.exit_code or 1)

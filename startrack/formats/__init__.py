@@ -8,7 +8,7 @@
   into place (:mod:`startrack.formats.atomic`), so a crash never leaves a
   half-written file.
 """
-from startrack.formats.atomic import atomic_path, atomic_open
+from startrack.formats.atomic import atomic_open, atomic_path
 from startrack.formats.frame import (
     FRAME_FORMAT,
     FrameWriter,

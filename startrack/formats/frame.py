@@ -8,6 +8,7 @@ past a frame that cannot be parsed.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -18,7 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from startrack.errors import BadInputError
-from startrack.formats.atomic import atomic_path, check_writable
+from startrack.formats.atomic import (
+    check_writable,
+    is_special,
+    output_target,
+    write_error,
+)
 
 __all__ = [
     "FRAME_FORMAT",
@@ -26,8 +32,11 @@ __all__ = [
     "FrameWriter",
     "check_format_tag",
     "dumps_frame",
+    "frame_key",
+    "read_finished",
     "read_frames",
     "read_json_file",
+    "resolve_path",
     "validate_frame",
     "validate_stars",
 ]
@@ -142,32 +151,70 @@ def validate_frame(doc, source: str, need: tuple[str, ...] = ()) -> dict:
         for i, m in enumerate(matches):
             if not isinstance(m, dict) or "star" not in m or "id" not in m:
                 raise BadInputError(source, f"identification.matches[{i}]", "needs 'star' and 'id'")
+            ident_id = m["id"]
+            if isinstance(ident_id, bool) or not isinstance(ident_id, int):
+                raise BadInputError(source, f"identification.matches[{i}].id",
+                                    f"must be an integer catalog id, got {json.dumps(ident_id)[:40]}")
             s = m["star"]
             if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < n_stars:
                 raise BadInputError(source, f"identification.matches[{i}].star",
                                     f"must index into stars (0..{n_stars - 1}), got {s!r}")
+    elif isinstance(doc.get("identification"), dict) and isinstance(doc["identification"].get("matches"), list):
+        for i, m in enumerate(doc["identification"]["matches"]):
+            if isinstance(m, dict) and "id" in m and (isinstance(m["id"], bool) or not isinstance(m["id"], int)):
+                raise BadInputError(source, f"identification.matches[{i}].id",
+                                    f"must be an integer catalog id, got {json.dumps(m['id'])[:40]}")
     return doc
 
 
 @dataclass
 class FrameRecord:
-    """One frame read from a stream: its parsed document, or why it could not be read."""
+    """One frame read from a stream: its parsed document, or why it could not be read.
+
+    ``base_dir`` is the directory relative paths inside the document resolve
+    against: the document file's own directory, or ``None`` (the current
+    directory) for standard input.
+    """
 
     source: str
     doc: dict | None
     error: BadInputError | None = None
+    base_dir: str | None = None
 
 
 def _reject_constant(name):
     raise ValueError(f"{name} is not valid JSON")
 
 
+MAX_JSON_DEPTH = 64
+
+
 def _loads(text: str):
-    return json.loads(text, parse_constant=_reject_constant)
+    try:
+        value = json.loads(text, parse_constant=_reject_constant)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
+    _check_depth(value)
+    return value
+
+
+def _check_depth(value, limit: int = MAX_JSON_DEPTH) -> None:
+    """Refuse JSON nested deeper than ``limit`` (no frame document needs more than a few levels)."""
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > limit:
+            raise ValueError(f"nested more than {limit} levels deep")
+        if isinstance(item, dict):
+            stack.extend((v, depth + 1) for v in item.values() if isinstance(v, (dict, list)))
+        elif isinstance(item, list):
+            stack.extend((v, depth + 1) for v in item if isinstance(v, (dict, list)))
 
 
 def _open_text(path: str):
     if path == "-":
+        if sys.stdin is None or sys.stdin.closed:
+            raise BadInputError("<stdin>", None, "is closed: give an input file or pipe frame documents in")
         return sys.stdin, "<stdin>"
     if not os.path.exists(path):
         raise BadInputError(path, None, "no such file")
@@ -177,6 +224,22 @@ def _open_text(path: str):
         return open(path, encoding="utf-8"), path
     except OSError as exc:
         raise BadInputError(path, None, f"cannot read: {exc.strerror}") from None
+
+
+def resolve_path(path: str, base_dir: str | None) -> str:
+    """Resolve a path written inside a frame document.
+
+    Absolute paths are used as they are.  A relative path resolves against the
+    document's own directory ``base_dir``; if nothing exists there but the path
+    exists relative to the current directory (documents written to stdout by
+    ``render`` name paths relative to where it ran), that one is used.
+    """
+    if not isinstance(path, str) or os.path.isabs(path) or not base_dir:
+        return path
+    beside = os.path.join(base_dir, path)
+    if os.path.exists(beside) or not os.path.exists(path):
+        return os.path.normpath(beside)
+    return path
 
 
 def read_json_file(path: str) -> dict:
@@ -216,6 +279,7 @@ def read_frames(path: str):
                 break
         if not first:
             return
+        base = None if path == "-" else os.path.dirname(os.path.abspath(path))
         try:
             value = _loads(first)
             whole = None
@@ -225,27 +289,60 @@ def read_frames(path: str):
             try:
                 value = _loads(whole)
             except ValueError as exc:
-                yield FrameRecord(name, None, BadInputError(name, None, f"is not valid JSON or JSON Lines ({exc})"))
+                yield from _lines_after_bad_first(whole, first_no, name, base, exc)
                 return
             items = value if isinstance(value, list) else [value]
             for i, item in enumerate(items):
                 src = name if len(items) == 1 else f"{name}[{i}]"
-                yield FrameRecord(src, item)
+                yield FrameRecord(src, item, None, base)
             return
-        yield FrameRecord(f"{name}:{first_no}", value)
+        yield FrameRecord(f"{name}:{first_no}", value, None, base)
         for line_no, line in enumerate(handle, start=first_no + 1):
             if not line.strip():
                 continue
             src = f"{name}:{line_no}"
             try:
-                yield FrameRecord(src, _loads(line))
+                yield FrameRecord(src, _loads(line), None, base)
             except ValueError as exc:
-                yield FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({exc})"))
+                yield FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({exc})"), base)
     except UnicodeDecodeError:
         yield FrameRecord(name, None, BadInputError(name, None, "is not a UTF-8 text file"))
+    except OSError as exc:
+        yield FrameRecord(name, None, BadInputError(name, None, f"cannot read: {exc.strerror or exc}"))
     finally:
         if handle is not sys.stdin:
             handle.close()
+
+
+def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
+    """A text whose first line and whole are not JSON: JSON Lines with a bad first line, or one broken document.
+
+    If any later line is a JSON value on its own, the text is JSON Lines: the
+    first line (and any other bad line) becomes a bad-input record and the good
+    frames go on.  Otherwise it is one broken (pretty-printed) document: one record.
+    """
+    rows = text.split("\n")
+    parsed = []
+    any_good = False
+    for k, line in enumerate(rows):
+        if not line.strip():
+            continue
+        src = f"{name}:{first_no + k}"
+        if k > 0 and not any_good:
+            try:
+                json.loads(line, parse_constant=_reject_constant)
+                any_good = True
+            except (ValueError, RecursionError):
+                pass
+        try:
+            value = _loads(line)
+            parsed.append(FrameRecord(src, value, None, base))
+        except ValueError as line_exc:
+            parsed.append(FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({line_exc})"), base))
+    if any_good:
+        yield from parsed
+    else:
+        yield FrameRecord(name, None, BadInputError(name, None, f"is not valid JSON or JSON Lines ({exc})"), base)
 
 
 def _to_json(value):
@@ -270,39 +367,161 @@ def dumps_frame(doc: dict) -> str:
     return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
 
 
-class FrameWriter:
-    """Write frame documents as JSON Lines to a file (atomically) or stdout (``"-"``).
+def frame_key(doc) -> str | None:
+    """The identity of a frame, for ``--resume``: its image path and render seed, time and frame number.
 
-    Use as a context manager.  On stdout each frame is flushed as it is written,
-    so pipelines stream.  A file is written to a temporary name and renamed into
-    place only when the ``with`` block ends without an exception.
+    ``None`` when the document carries none of them (then frames are matched by position).
+    """
+    if not isinstance(doc, dict):
+        return None
+    image = doc.get("image") if isinstance(doc.get("image"), dict) else {}
+    render = doc.get("render") if isinstance(doc.get("render"), dict) else {}
+    parts = [image.get("path"), image.get("time"), render.get("frame_seed"), doc.get("frame")]
+    if all(p is None for p in parts):
+        return None
+    return json.dumps(parts, default=str)
+
+
+def read_finished(path: str):
+    """Read the complete frame documents of a batch output, for ``--resume``.
+
+    Returns ``(keys, n_unkeyed, good_bytes)``: a multiset (dict key -> count) of
+    :func:`frame_key` of every complete line, the number of complete lines
+    without a key, and the byte length of the complete lines.  A last line
+    without its newline, or one that is not valid JSON (a write cut short by
+    ``kill -9``), is not counted: the writer truncates the file to
+    ``good_bytes`` before appending.
+    """
+    keys: dict[str, int] = {}
+    n_unkeyed = 0
+    good = 0
+    if not os.path.exists(path) or is_special(path):
+        return keys, n_unkeyed, good
+    with open(path, "rb") as handle:
+        for raw in handle:
+            if not raw.endswith(b"\n"):
+                break
+            if raw.strip():
+                try:
+                    doc = _loads(raw.decode("utf-8"))
+                except (ValueError, UnicodeDecodeError):
+                    break
+                key = frame_key(doc)
+                if key is None:
+                    n_unkeyed += 1
+                else:
+                    keys[key] = keys.get(key, 0) + 1
+            good += len(raw)
+    return keys, n_unkeyed, good
+
+
+class FrameWriter:
+    """Write frame documents as JSON Lines, one line per frame, flushed as it is written.
+
+    * ``"-"``: standard output (refused with one line if it is closed).
+    * A special file (``/dev/null``, a FIFO): written directly, never replaced.
+    * A regular file (a symbolic link is written through to its target): a
+      journal.  It is opened at the first frame (an input refused before any
+      frame leaves an existing file untouched), each line is appended and
+      flushed as its frame finishes, and the file is ``fsync``-ed at the end, so
+      ``kill -9`` loses only the frames in flight.  With ``resume=True`` the
+      complete lines already there are kept (a cut-off last line is dropped) and
+      new frames are appended; :attr:`done` holds their :func:`frame_key`.
+
+    Use as a context manager.
     """
 
-    def __init__(self, path: str = "-"):
+    def __init__(self, path: str = "-", resume: bool = False):
         self.path = path
         self.count = 0
-        self._ctx = None
+        self.resume = resume
         self._handle: io.TextIOBase | None = None
-        if path != "-":
-            check_writable(path)
+        self._own = False
+        self.done: dict[str, int] = {}
+        self.done_unkeyed = 0
+        self._good_bytes = 0
+        if path == "-":
+            if sys.stdout is None:
+                raise BadInputError("<stdout>", None, "is closed: give -o FILE or let the output go somewhere")
+            return
+        check_writable(path)
+        self.target = output_target(path)
+        self.special = is_special(self.target)
+        if resume and not self.special:
+            self.done, self.done_unkeyed, self._good_bytes = read_finished(self.target)
 
-    def __enter__(self):
+    def skip(self, doc) -> bool:
+        """True (and the frame counted as done) if ``doc``'s frame is already in the output (``--resume``)."""
+        if not self.resume:
+            return False
+        key = frame_key(doc)
+        if key is None:
+            if self.done_unkeyed > 0:
+                self.done_unkeyed -= 1
+                return True
+            return False
+        if self.done.get(key, 0) > 0:
+            self.done[key] -= 1
+            return True
+        return False
+
+    @property
+    def n_done(self) -> int:
+        return sum(self.done.values()) + self.done_unkeyed
+
+    def _open(self):
         if self.path == "-":
             self._handle = sys.stdout
-        else:
-            self._ctx = atomic_path(self.path)
-            tmp = self._ctx.__enter__()
-            self._handle = open(tmp, "w", encoding="utf-8")
+            return
+        try:
+            if self.special:
+                self._handle = open(self.target, "w", encoding="utf-8")  # noqa: SIM115 - a journal kept open
+            elif self.resume and os.path.exists(self.target):
+                self._handle = open(self.target, "r+", encoding="utf-8")  # noqa: SIM115 - a journal kept open
+                self._handle.truncate(self._good_bytes)
+                self._handle.seek(self._good_bytes)
+            else:
+                self._handle = open(self.target, "w", encoding="utf-8")  # noqa: SIM115 - a journal kept open
+        except OSError as exc:
+            raise write_error(self.path, exc) from None
+        self._own = True
+
+    def __enter__(self):
         return self
 
     def write(self, doc: dict) -> None:
-        self._handle.write(dumps_frame(doc) + "\n")
-        if self.path == "-":
+        line = dumps_frame(doc) + "\n"
+        if self._handle is None:
+            self._open()
+        try:
+            self._handle.write(line)
             self._handle.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise write_error("<stdout>" if self.path == "-" else self.path, exc) from None
         self.count += 1
 
+    def close(self) -> None:
+        if self._handle is None and self.path != "-" and not (self.resume and os.path.exists(self.target)):
+            self._open()  # zero frames: an empty output, as before
+        if self._own and self._handle is not None:
+            handle, self._handle = self._handle, None
+            try:
+                handle.flush()
+                if not self.special:
+                    os.fsync(handle.fileno())
+            except OSError as exc:
+                raise write_error(self.path, exc) from None
+            finally:
+                with contextlib.suppress(OSError):
+                    handle.close()
+
     def __exit__(self, exc_type, exc, tb):
-        if self.path == "-":
-            return False
-        self._handle.close()
-        return self._ctx.__exit__(exc_type, exc, tb)
+        if exc_type is None:
+            self.close()
+        elif self._own and self._handle is not None:
+            with contextlib.suppress(OSError):
+                self._handle.close()
+            self._handle = None
+        return False

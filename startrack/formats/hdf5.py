@@ -14,17 +14,21 @@ Root attributes of every startrack HDF5 file (``docs/formats.md``):
 """
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import os
 
 import numpy as np
 
 from startrack._version import __version__
 from startrack.errors import BadInputError
-from startrack.formats.atomic import atomic_path
+from startrack.formats.atomic import atomic_path, deferred_signals
 from startrack.formats.frame import check_format_tag
 
-__all__ = ["write_hdf5", "read_hdf5", "HDF5File"]
+__all__ = ["HDF5File", "build_lock", "cached_database", "read_hdf5", "write_hdf5"]
+
+log = logging.getLogger("startrack")
 
 
 def write_hdf5(path: str, format_tag: str, params: dict, datasets: dict, attrs: dict | None = None,
@@ -47,24 +51,26 @@ def write_hdf5(path: str, format_tag: str, params: dict, datasets: dict, attrs: 
     """
     import h5py
 
-    with atomic_path(path, suffix=".h5") as tmp:
-        with h5py.File(tmp, "w") as h5:
-            h5.attrs["format"] = format_tag
-            h5.attrs["startrack_version"] = __version__
-            h5.attrs["params"] = json.dumps(params, sort_keys=True)
-            for key, value in (attrs or {}).items():
-                h5.attrs[key] = value
-            for name, value in datasets.items():
-                dattrs = {}
-                if isinstance(value, tuple):
-                    value, dattrs = value
-                value = np.asarray(value)
-                kwargs = {}
-                if compress and value.size > 1024:
-                    kwargs = dict(compression="gzip", compression_opts=4, shuffle=True)
-                ds = h5.create_dataset(name, data=value, **kwargs)
-                for key, attr in dattrs.items():
-                    ds.attrs[key] = attr
+    with atomic_path(path, suffix=".h5") as tmp, deferred_signals(), h5py.File(tmp, "w") as h5:
+        h5.attrs["format"] = format_tag
+        h5.attrs["startrack_version"] = __version__
+        h5.attrs["params"] = json.dumps(params, sort_keys=True)
+        for key, value in (attrs or {}).items():
+            h5.attrs[key] = value
+        for name, value in datasets.items():
+            dattrs = {}
+            if isinstance(value, tuple):
+                value, dattrs = value
+            value = np.asarray(value)
+            kwargs = {}
+            if compress and value.size > 1024:
+                kwargs = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+            if value.ndim >= 1 and value.size > 0 and value.dtype.kind not in "OUS":
+                # A checksum per chunk, verified by HDF5 on every read (a corrupted file is noticed).
+                kwargs["fletcher32"] = True
+            ds = h5.create_dataset(name, data=value, **kwargs)
+            for key, attr in dattrs.items():
+                ds.attrs[key] = attr
 
 
 class HDF5File:
@@ -122,14 +128,85 @@ def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
     try:
         h5 = h5py.File(path, "r")
     except OSError:
-        raise BadInputError(path, None, f"is not an HDF5 file (expected {expected_format})") from None
+        raise BadInputError(path, None, f"is not an HDF5 file or is corrupt (expected {expected_format})") from None
     with h5:
-        attrs = {k: _attr(v) for k, v in h5.attrs.items()}
+        try:
+            attrs = {k: _attr(v) for k, v in h5.attrs.items()}
+        except (OSError, ValueError, RuntimeError):
+            raise BadInputError(path, None, "is corrupt (its attributes cannot be read)") from None
         check_format_tag(attrs, expected_format, path)
-        wanted = list(names) if names is not None else [k for k in h5.keys() if isinstance(h5[k], h5py.Dataset)]
+        wanted = list(names) if names is not None else [k for k in h5 if isinstance(h5[k], h5py.Dataset)]
         datasets = {}
         for name in wanted:
             if name not in h5:
                 raise BadInputError(path, name, "dataset is missing")
-            datasets[name] = h5[name][()]
+            try:
+                datasets[name] = h5[name][()]
+            except (OSError, ValueError, RuntimeError) as exc:
+                raise BadInputError(path, name, f"is corrupt (HDF5: {str(exc).splitlines()[0][:80]})") from None
     return HDF5File(path, attrs, datasets)
+
+
+@contextlib.contextmanager
+def build_lock(path: str):
+    """Hold an exclusive lock (``fcntl``) on ``path + ".lock"`` while a cached file is checked or built.
+
+    A second process that needs the same file waits, then finds it built.
+    """
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock, builds may race (each is still atomic)
+        yield
+        return
+    lock_path = path + ".lock"
+    try:
+        handle = open(lock_path, "a+")  # noqa: SIM115 - held for the whole block
+    except OSError:
+        yield
+        return
+    with handle:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.warning("startrack: waiting for another process building %s", path)
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+
+
+def cached_database(path: str, load, save, build, valid=lambda db: True):
+    """A database from its cache file, else built and saved; a corrupt or stale file is rebuilt.
+
+    Parameters
+    ----------
+    path : str
+        The cache file.
+    load, save : callable
+        ``load(path) -> db`` (raises ``BadInputError`` for a corrupt file, e.g. a
+        failed HDF5 checksum) and ``save(db, path)`` (atomic).
+    build : callable
+        ``build() -> db``.
+    valid : callable
+        ``valid(db) -> bool``: False for a file built from another catalog.
+
+    Holds :func:`build_lock` so two processes never build the same file at once;
+    a corrupt file gets a one-line notice on stderr (logger ``startrack``) and is rebuilt.
+    """
+    with build_lock(path):
+        db = None
+        if os.path.exists(path):
+            try:
+                db = load(path)
+                if not valid(db):
+                    db = None
+            except BadInputError as exc:
+                log.warning("startrack: cached database %s: %s%s: rebuilding it", path,
+                            f"{exc.field}: " if exc.field else "", exc.problem)
+                db = None
+        if db is None:
+            db = build()
+            save(db, path)
+            db.path = path
+    return db

@@ -96,4 +96,4 @@ def test_batch_goes_on_past_a_bad_image(tmp_path):
     assert len(docs) == 3
     assert docs[1]["centroid"]["status"] == "failed" and "empty" in docs[1]["centroid"]["reason"]
     assert len(docs[0]["stars"]) > 10 and len(docs[2]["stars"]) > 10
-    assert "could not be read" in proc.stderr
+    assert "1 bad input" in proc.stderr and "empty.png: is empty" in proc.stderr

@@ -31,11 +31,14 @@ def esa_db(tmp_path_factory):
 def test_pipe_render_identify(db20):
     frames = run_cli("render", "--stars-only", "--count", "30", "--fov-deg", "20", "--size", "1024x1024",
                      "--mag-limit", "5", "--sigma-px", "0.2", "--max-stars", "10", "--seed", "5", check=True).stdout
-    proc = run_cli("identify", "--database", db20, input=frames, check=True)
+    proc = run_cli("identify", "--database", db20, input=frames)
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
     assert len(docs) == 30
     ok = [d for d in docs if d["identification"]["status"] == "ok"]
     assert len(ok) >= 29
+    # Honest exit status: 1 as soon as one frame failed, and the summary counts them.
+    assert proc.returncode == (0 if len(ok) == 30 else 1), proc.stderr
+    assert f"{len(ok)} ok, {30 - len(ok)} failed, 0 bad input" in proc.stderr
     for d in ok:
         blends = {t["id"]: set(t.get("blended", [])) for t in d["truth"]["stars"]}
         for m in d["identification"]["matches"]:

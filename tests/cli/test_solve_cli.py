@@ -111,6 +111,7 @@ def test_not_star_fields_fail_fast_and_cleanly(cache, tmp_path):
     proc = run_cli("solve", tmp_path / "daylight.png", tmp_path / "black.png", tmp_path / "noise.png", env=cache)
     elapsed = time.time() - t0
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "3 image(s): 0 ok, 3 failed, 0 bad input" in proc.stderr
     docs = [json.loads(l) for l in proc.stdout.splitlines()]
     assert [d["solve"]["status"] for d in docs] == ["failed"] * 3
     assert all(d["solve"]["reason"] and "attitude" not in d for d in docs)

@@ -1,0 +1,226 @@
+#!/usr/bin/env python3
+"""Attitude accuracy against each frame's Cramér-Rao bound (issue 21), startrack beside tetra3rs and cedar-solve.
+
+Every frame is rendered once (pixel-integrated Gaussian PSF, shot + background +
+read noise, 16-bit); each tool solves the same image with its own centroiding:
+startrack (centroid with the gain known, the truth's identification, QUEST
+weighted by each star's own bound, chi-square gate), tetra3rs
+(``extract_centroids`` + ``solve_from_centroids``) and cedar-solve
+(``solve_from_image``).  The yardstick is the frame's own attitude bound
+(:func:`startrack.accuracy.frame_bound`: every rendered star of the
+identification catalog that is unsaturated and has SNR >= 5).  Per axis we
+report the RMS error over the frames divided by the RMS of the per-frame bound
+(cross-boresight pools pitch and yaw), the RMS of the per-frame normalised
+error (error / bound), and for startrack the NEES against the covariance it
+reported, with its 95 % band.
+
+    python benchmarks/accuracy_bench.py --sensor p000 --frames 1000 --peers
+    python benchmarks/accuracy_bench.py --sensor 15deg --frames 1000 --peers
+    python benchmarks/accuracy_bench.py --sensor p000 --frames 10000 --nees-only
+    python benchmarks/accuracy_bench.py --sweep --frames 100
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "peers"))
+EPOCH = 2025.0
+
+
+def sensor_spec(name, psf_sigma=None, faint_snr=None):
+    """(camera, sensor, id magnitude range, render magnitude limit, label) of a named sensor."""
+    from startrack.camera import Camera
+    from startrack.render import Sensor
+
+    if name == "p000":      # paper 000: 752 x 480, 6 um, f 41.1 mm (30.1"/px), Hp 2.5-6.59, 200 ms
+        cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480)
+        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=200.0)
+        mags, render_mag = (2.5, 6.59), 7.5
+    elif name == "p003":    # paper 003: 20 x 20 deg, 1024 x 1024, 15 um, f 43.3 mm, Hp <= 5.0
+        cam = Camera.from_focal_length_mm(43.3, 15.0, 1024, 1024)
+        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=100.0)
+        mags, render_mag = (None, 5.0), 6.0
+    elif name == "15deg":   # a 15-degree tracker: 1024 x 1024, Hp <= 5.5
+        cam = Camera.from_fov(15.0, 1024, 1024)
+        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=100.0)
+        mags, render_mag = (None, 5.5), 6.5
+    else:
+        raise SystemExit(f"unknown sensor {name!r}")
+    if psf_sigma is not None:
+        sensor.psf_sigma_px = psf_sigma
+    if faint_snr is not None:
+        # Zero point such that the faintest identification star has SNR = faint_snr.
+        from startrack.centroid_accuracy import flux_for_snr
+
+        v = sensor.background_e + sensor.read_noise_e**2
+        f = flux_for_snr(faint_snr, sensor.psf_sigma_px, v)
+        sensor.zero_point_e_per_s = f / sensor.exposure_s * 10 ** (0.4 * mags[1])
+        sensor.full_well_e = 1e9          # nothing saturates: the sweep is about SNR
+    return cam, sensor, mags, render_mag
+
+
+class Peers:
+    """tetra3rs and cedar-solve on the same images (each skipped when absent)."""
+
+    def __init__(self, cam, mags):
+        import cedar_peer
+        import tetra3rs_peer
+
+        fov = max(cam.fov_deg)
+        self.fov = fov
+        self.t3 = None
+        self.cedar = None
+        self.tmp = tempfile.mkdtemp(prefix="acc-bench-")
+        if tetra3rs_peer.is_available():
+            self.t3mod = tetra3rs_peer
+            self.t3 = tetra3rs_peer.build_or_load(fov, mags[1] + 0.5, catalog="hip2", epoch=EPOCH)
+        if cedar_peer.is_available():
+            self.cedar = cedar_peer.CedarSolver(build_fov=round(fov, 2), mag=mags[1] + 0.5, epoch=EPOCH)
+
+    def solve(self, image):
+        from startrack.rotations import radec_roll_to_dcm
+
+        out = {}
+        if self.t3 is not None:
+            r = self.t3mod.solve_image(image, self.fov, db=self.t3, fov_max_error_deg=0.5)
+            out["tetra3rs"] = None if r["ra"] is None else radec_roll_to_dcm(
+                *np.radians([r["ra"], r["dec"], r["roll"]]))
+        if self.cedar is not None:
+            import cv2
+
+            path = os.path.join(self.tmp, "frame.png")      # cedar's Pillow has no libtiff
+            cv2.imwrite(path, image)
+            r = self.cedar.solve_image(path, self.fov, fov_max_error=0.5)
+            out["cedar-solve"] = None if r.get("ra") is None else radec_roll_to_dcm(
+                *np.radians([r["ra"], r["dec"], r["roll"]]))
+        return out
+
+    def close(self):
+        if self.cedar is not None:
+            self.cedar.close()
+
+
+def run(sensor_name, frames, seed=0, peers=False, psf_sigma=None, faint_snr=None, max_stars=None, progress=True):
+    """Render ``frames`` frames and solve them; returns {tool: summary dict} and the per-frame records."""
+    from startrack.accuracy import error_vector, frame_bound, startrack_frame, summarise
+    from startrack.catalog import load_catalog
+    from startrack.render import Scene, render_image
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    cam, sensor, mags, render_mag = sensor_spec(sensor_name, psf_sigma, faint_snr)
+    base = load_catalog().propagate(EPOCH)
+    idcat = base.filter_magnitude(*mags)
+    rcat = base.filter_magnitude(None, render_mag)
+    rvec = rcat.vectors()
+    ids = {int(i) for i in idcat.id}
+    rows = idcat.rows_by_id()
+    ivec = idcat.vectors()
+    rng = np.random.default_rng(seed)
+    dcms = quaternion_to_dcm(random_quaternions(frames, rng))
+    peer = Peers(cam, mags) if peers else None
+    tools = ["startrack"] + (["tetra3rs", "cedar-solve"] if peers else [])
+    rec = {t: {"err": [], "crb": [], "cov": [], "failed": 0, "wrong": 0} for t in tools}
+    n_nobound = 0
+    t0 = time.time()
+    for k in range(frames):
+        img, truth = render_image(rcat, cam, dcms[k], sensor, Scene(), np.random.default_rng([seed, k]), vectors=rvec)
+        bound, _ = frame_bound(cam, truth["stars"], sensor, ids, max_stars)
+        if bound is None:
+            n_nobound += 1
+            continue
+        crb = np.diag(bound.cov_rad2)
+        att = startrack_frame(img, truth, cam, sensor, rows, ivec, max_stars)
+        results = {"startrack": (att.dcm, att.cov_rad2) if att is not None and att.status == "ok" else None}
+        if peer is not None:
+            for name, dcm in peer.solve(img).items():
+                results[name] = None if dcm is None else (dcm, None)
+        for name, res in results.items():
+            r = rec[name]
+            if res is None:
+                r["failed"] += 1
+                continue
+            e = error_vector(res[0], dcms[k])
+            if np.linalg.norm(e) > math.radians(0.1):
+                r["wrong"] += 1
+                continue
+            r["err"].append(e)
+            r["crb"].append(crb)
+            if res[1] is not None:
+                r["cov"].append(res[1])
+        if progress and (k + 1) % 100 == 0:
+            print(f"  {sensor_name}: {k + 1}/{frames} frames, {time.time() - t0:.0f} s", file=sys.stderr, flush=True)
+    if peer is not None:
+        peer.close()
+    out = {}
+    for name, r in rec.items():
+        s = summarise(r["err"], r["crb"], r["cov"] if r["cov"] else None)
+        s.update(failed=r["failed"], wrong=r["wrong"])
+        out[name] = s
+    out["_meta"] = {"sensor": sensor_name, "frames": frames, "no_bound": n_nobound, "seed": seed,
+                    "psf_sigma_px": sensor.psf_sigma_px, "faint_snr": faint_snr, "max_stars": max_stars,
+                    "pixel_arcsec": cam.pixel_scale_arcsec, "fov_deg": list(cam.fov_deg)}
+    return out
+
+
+def table(results):
+    rows = [("| sensor | tool | frames ok / failed / wrong | RMS cross (\") | CRB cross (\") | ratio cross | "
+             "RMS roll (\") | CRB roll (\") | ratio roll | z cross | z roll | NEES mean [95 % band] |"),
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for res in results:
+        meta = res["_meta"]
+        label = f"{meta['sensor']} (PSF {meta['psf_sigma_px']:g} px" + \
+            (f", faint SNR {meta['faint_snr']:g}" if meta["faint_snr"] else "") + \
+            (f", <= {meta['max_stars']} stars" if meta["max_stars"] else "") + ")"
+        for tool, s in res.items():
+            if tool == "_meta" or not s.get("frames"):
+                continue
+            nees = (f"{s['nees_mean']:.3f} [{s['nees_band'][0]:.3f}, {s['nees_band'][1]:.3f}]"
+                    if "nees_mean" in s else "—")
+            rows.append(f"| {label} | {tool} | {s['frames']} / {s['failed']} / {s['wrong']} | "
+                        f"{s['rms_cross_arcsec']:.3f} | {s['crb_cross_arcsec']:.3f} | {s['ratio_cross']:.2f} | "
+                        f"{s['rms_roll_arcsec']:.2f} | {s['crb_roll_arcsec']:.2f} | {s['ratio_roll']:.2f} | "
+                        f"{s['z_cross']:.2f} | {s['z_roll']:.2f} | {nees} |")
+    return "\n".join(rows)
+
+
+def sweep(frames, seed=0):
+    out = []
+    for psf in (0.6, 1.0, 2.0):
+        out.append(run("15deg", frames, seed, psf_sigma=psf, progress=False))
+    for snr in (10, 30, 200):
+        out.append(run("15deg", frames, seed, faint_snr=snr, progress=False))
+    for n in (4, 10, 30):
+        out.append(run("15deg", frames, seed, max_stars=n, progress=False))
+    for name in ("p000", "p003"):
+        out.append(run(name, frames, seed, progress=False))
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sensor", default="p000", choices=["p000", "p003", "15deg"])
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--peers", action="store_true", help="also tetra3rs and cedar-solve on the same images")
+    p.add_argument("--sweep", action="store_true", help="PSF 0.6-2 px, faint-star SNR 10-200, 4-30 stars, sensors")
+    p.add_argument("--nees-only", action="store_true", help="(same run; the table's NEES column is the point)")
+    p.add_argument("--json", default=None, help="also write the summaries here")
+    a = p.parse_args(argv)
+    results = sweep(a.frames, a.seed) if a.sweep else [run(a.sensor, a.frames, a.seed, a.peers)]
+    print(table(results))
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(results, f, indent=1, default=lambda v: list(v) if isinstance(v, tuple) else str(v))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""Weighted pixel-integrated Gaussian fit: the centroid that reaches the Cramér-Rao bound (issue 21).
+
+The unweighted least-squares fit (``_kernels.centroid.gaussian_fit``) gives
+every pixel the same weight; with shot noise a bright star's core pixels are
+noisier than its wings, and the unweighted fit loses up to ~25 % in accuracy
+against the bound (``startrack.accuracy``).  Weighting each pixel by the
+inverse of its own variance, ``mu_k / g + n^2`` (DN^2: the star's shot noise at
+gain ``g`` e/DN plus the background noise ``n``), and iterating the weights
+with the model (iteratively reweighted least squares) gives the
+maximum-likelihood estimate under the Gaussian approximation of the noise,
+which is efficient: its covariance reaches the bound ``I^-1`` of
+``startrack.accuracy.centroid_crb`` (Kay 1993, Sec. 7.5).
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from startrack._kernels.centroid import _axis_factors, _solve_small
+
+
+@njit(cache=True)
+def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr):
+    cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
+    gy = np.empty(ys.shape[0])
+    dgy_dc = np.empty(ys.shape[0])
+    dgy_ds = np.empty(ys.shape[0])
+    gx = np.empty(xs.shape[0])
+    dgx_dc = np.empty(xs.shape[0])
+    dgx_ds = np.empty(xs.shape[0])
+    _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
+    _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
+    jtj[:, :] = 0.0
+    jtr[:] = 0.0
+    cost = 0.0
+    j = np.empty(5)
+    for m in range(ys.shape[0]):
+        for n in range(xs.shape[0]):
+            model = amp * gx[n] * gy[m]
+            w = 1.0 / (max(model, 0.0) * inv_gain + noise_var)
+            r = residual[ys[m], xs[n]] - (model + bg)
+            cost += w * r * r
+            j[0] = amp * dgx_dc[n] * gy[m]
+            j[1] = amp * gx[n] * dgy_dc[m]
+            j[2] = amp * (dgx_ds[n] * gy[m] + gx[n] * dgy_ds[m])
+            j[3] = gx[n] * gy[m]
+            j[4] = 1.0
+            for a in range(5):
+                jtr[a] += w * j[a] * r
+                for b in range(5):
+                    jtj[a, b] += w * j[a] * j[b]
+    return cost
+
+
+@njit(cache=True)
+def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain, n_iter):
+    """Inverse-variance weighted fit of ``A g(x; cx, s) g(y; cy, s) + B`` (paper 003 Eq. 5).
+
+    Parameters
+    ----------
+    residual : 2-D float array
+        Background-subtracted image (DN).
+    x0, y0, s0, amp0 : float
+        Starting point (e.g. the unweighted fit): position (px), PSF sigma
+        (px), total flux (DN).
+    half : int
+        Half-size of the square window (px).
+    noise_var : float
+        Background noise variance per pixel (DN^2).
+    inv_gain : float
+        ``1 / g`` (DN per electron) for the star's shot noise; 0 when unknown.
+    n_iter : int
+        Gauss-Newton iterations (weights recomputed from the model each time;
+        Levenberg damping when a step does not lower the cost).
+
+    Returns
+    -------
+    (cx, cy, s, A, ok)
+    """
+    h, w = residual.shape
+    xi = int(math.floor(x0 + 0.5))  # noqa: RUF046 (numba)
+    yi = int(math.floor(y0 + 0.5))  # noqa: RUF046 (numba)
+    ys = np.arange(max(0, yi - half), min(h, yi + half + 1))
+    xs = np.arange(max(0, xi - half), min(w, xi + half + 1))
+    if ys.shape[0] * xs.shape[0] < 9 or not noise_var > 0.0 or not amp0 > 0.0:
+        return x0, y0, s0, amp0, False
+    p = np.array([x0, y0, s0, amp0, 0.0])
+    jtj = np.zeros((5, 5))
+    jtr = np.zeros(5)
+    jtj2 = np.zeros((5, 5))
+    jtr2 = np.zeros(5)
+    cost = _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr)
+    lam = 1e-4
+    ok = False
+    for _ in range(n_iter):
+        a = jtj.copy()
+        for d in range(5):
+            a[d, d] += lam * (jtj[d, d] + 1e-12)
+        delta, solved = _solve_small(a, jtr)
+        if not solved:
+            break
+        trial = p + delta
+        if trial[2] <= 0.2 or trial[2] > 4 * half or trial[3] <= 0:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+            continue
+        new_cost = _weighted_normal_equations(residual, ys, xs, trial, noise_var, inv_gain, jtj2, jtr2)
+        # The weights move with the model, so the cost is compared at the new weights (IRLS).
+        if new_cost <= cost * (1.0 + 1e-9) or lam < 1e-3:
+            p = trial
+            cost = new_cost
+            jtj[:, :] = jtj2
+            jtr[:] = jtr2
+            lam = max(lam * 0.3, 1e-9)
+            ok = True
+            if abs(delta[0]) < 1e-7 and abs(delta[1]) < 1e-7:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    if abs(p[0] - x0) > 1.0 or abs(p[1] - y0) > 1.0:
+        return x0, y0, s0, amp0, False
+    return p[0], p[1], p[2], p[3], ok
