@@ -43,6 +43,7 @@ def run(n=1000, seed=11):
     from startrack.catalog import load_catalog
     from startrack.identify import IdentifyParams, identify_stars
     from startrack.kvector import build_kvector, max_separation_deg
+    from startrack.rotations import quaternion_to_dcm
     cat = load_catalog().filter_magnitude(None, 5.0)
     cam = Camera.from_fov(20, 1024, 1024)
     db = build_kvector(cat, max_separation_deg(20.0))
@@ -77,7 +78,8 @@ def run(n=1000, seed=11):
             for stars, truth, _ in frames:
                 res = identify_stars(stars, cam, db, "pyramid", params)
                 if res.status == "ok":
-                    results["startrack pyramid"].append(("ok", _correct(res.dcm, truth), res.time_ms))
+                    good = _correct(quaternion_to_dcm(res.quaternion_estimate), truth)
+                    results["startrack pyramid"].append(("ok", good, res.time_ms))
                 else:
                     results["startrack pyramid"].append(("fail", None, res.time_ms))
                 xy = [[s["x"], s["y"]] for s in stars]

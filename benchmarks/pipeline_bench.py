@@ -70,9 +70,9 @@ def paper000_end_to_end(n=1000, seed=0):
             continue
         body, ref, sig = [], [], []
         for m in ident.matches:
-            s = res.stars[m["star"]]
+            s = res.stars[m.star]
             body.append(cam.pixels_to_vectors(s["x"], s["y"]))
-            ref.append(cvec[rows[m["id"]]])
+            ref.append(cvec[rows[m.id]])
             sig.append(max(s["sigma_px"], 0.02) / cam.focal_length_px)
         att = estimate_attitude(np.array(body), np.array(ref), np.array(sig))
         _, c, r = attitude_error(att.dcm, dcms[k])
@@ -134,9 +134,9 @@ def tracking_speed(n=60, seed=5):
         res = find_stars(img, CentroidOptions(max_stars=40), saturation=65535)
         ident = identify_stars(res.stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.3))
         if ident.status == "ok":
-            body = cam.pixels_to_vectors(np.array([res.stars[m["star"]]["x"] for m in ident.matches]),
-                                         np.array([res.stars[m["star"]]["y"] for m in ident.matches]))
-            ref = tr.vectors[[rows[m["id"]] for m in ident.matches if m["id"] in rows]]
+            body = cam.pixels_to_vectors(np.array([res.stars[m.star]["x"] for m in ident.matches]),
+                                         np.array([res.stars[m.star]["y"] for m in ident.matches]))
+            ref = tr.vectors[[rows[m.id] for m in ident.matches if m.id in rows]]
             estimate_attitude(body[: len(ref)], ref, np.full(len(ref), 1e-5))
         lis_ms.append((time.perf_counter() - t0) * 1000)
     return float(np.median(track_ms)), float(np.median(lis_ms)), len(track_ms)

@@ -169,6 +169,16 @@ def bench_identify():
     return "identify (peers)", text
 
 
+def bench_identify_compare():
+    import identify_compare as ic
+
+    path = os.path.join(OUT_DIR, "identify_compare.md")
+    ic.main(["--count", os.environ.get("IDENTIFY_COMPARE_COUNT", "1000"), "--out", path])
+    with open(path) as fh:
+        text = fh.read()
+    return "identify: six algorithms beside tetra3rs and cedar-solve (issue 14)", text.split("\n", 2)[2]
+
+
 def bench_attitude():
     import pipeline_bench as pb
 
@@ -237,7 +247,8 @@ def bench_accuracy():
 
 
 SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
-            "identify": bench_identify, "attitude": bench_attitude, "track": bench_track,
+            "identify": bench_identify, "identify-compare": bench_identify_compare, "attitude": bench_attitude,
+            "track": bench_track,
             "accuracy": bench_accuracy}
 
 

@@ -97,7 +97,7 @@ def score(result, truth) -> str:
         # A blend of unresolved stars is the star the sensor sees: its truth id is
         # the brightest component's (render), as in a database built for the
         # sensor (Catalog.merge_close); naming a fainter component is wrong.
-        if ids[m["star"]] != m["id"]:
+        if ids[m.star] != m.id:
             return "bad"
     return "success"
 
@@ -110,10 +110,10 @@ def _worker_init(databases, camera, params):
 
 
 def _identify_chunk(args):
-    from startrack.identify import DATABASE_KIND, identify_stars
+    from startrack.identify import database_kind, identify_stars
 
     algorithm, frames = args
-    db = _WORKER["databases"][DATABASE_KIND[algorithm]]
+    db = _WORKER["databases"][database_kind(algorithm)]
     if frames and not _WORKER.get(("warm", algorithm)):
         # The first call in a process loads the compiled kernels: keep it out of the timings.
         identify_stars(frames[0][0], _WORKER["camera"], db, algorithm, _WORKER["params"])
@@ -122,7 +122,8 @@ def _identify_chunk(args):
     for stars, truth, frame_seed in frames:
         res = identify_stars(stars, _WORKER["camera"], db, algorithm, _WORKER["params"])
         outcome = score(res, truth)
-        wrong = [m for m in res.matches if truth["star_ids"][m["star"]] != m["id"]][:3] if outcome == "bad" else []
+        wrong = [{"star": m.star, "id": m.id, "true_id": truth["star_ids"][m.star]} for m in res.matches
+                 if truth["star_ids"][m.star] != m.id][:3] if outcome == "bad" else []
         listed = set(truth["star_ids"])
         double = any(s.get("blended") and s["id"] in listed for s in truth.get("stars", ()))
         out.append((outcome, res.time_ms, len(stars), frame_seed, wrong, double))
@@ -150,13 +151,12 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
         One row per (algorithm, condition) with the counts, rates and times,
         and the frame seeds of any bad match (to reproduce it).
     """
-    from startrack.identify import DATABASE_KIND, IdentifyParams
+    from startrack.identify import IdentifyParams, database_kind
 
     for a in algorithms:
-        if a not in DATABASE_KIND:
-            raise ParameterError("algorithms", f"unknown algorithm {a!r}")
-        if DATABASE_KIND[a] not in databases:
-            raise ParameterError("database", f"{a} needs a {DATABASE_KIND[a]} database")
+        kind = database_kind(a)
+        if kind not in databases:
+            raise ParameterError("database", f"{a} needs a {kind} database")
     params = params or IdentifyParams()
     if scheduler is not None:
         return _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params,

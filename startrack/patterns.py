@@ -332,7 +332,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     """
     from startrack._kernels.patterns import query_patterns
     from startrack.camera import Camera
-    from startrack.identify.base import (
+    from startrack.identify.legacy import (
         IdentifyParams,
         IdentifyResult,
         Proposal,

@@ -28,7 +28,7 @@ import numpy as np
 
 from startrack.errors import ParameterError
 
-__all__ = ["FOV_BANDS", "cache_dir", "band_database", "fov_hypotheses", "SolveOptions", "solve_image"]
+__all__ = ["FOV_BANDS", "SolveOptions", "band_database", "cache_dir", "fov_hypotheses", "solve_image"]
 
 # (smallest FOV, largest FOV, faintest magnitude of the k-vector database, of the label databases,
 #  field sizes of the label databases).  Which stars are "the 8 brightest of a field" depends on the
@@ -159,7 +159,7 @@ def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: 
         centre = hint_deg
     else:
         centre = 12.0
-    up = [centre * step**k for k in range(0, 200) if centre * step**k <= hi]
+    up = [centre * step**k for k in range(200) if centre * step**k <= hi]
     down = [centre / step**k for k in range(1, 200) if centre / step**k >= lo]
     out = []
     for i in range(max(len(up), len(down))):
@@ -188,7 +188,7 @@ class SolveOptions:
     fov_tolerance : float
         Relative tolerance of the hint (0.1 = +-10 %).
     algorithm : str
-        Identification algorithm of the full match (:data:`startrack.identify.ALGORITHMS`).
+        Identification algorithm of the full match (:func:`startrack.identify.algorithm_names`).
     max_stars : int
         Detections kept, brightest first.
     search_stars : int
@@ -259,7 +259,19 @@ class _SearchClock:
         return time.perf_counter() - self.t0 - self.setup_s > self.limit_s
 
 
-def _identify_in_band(stars, camera, band, databases, algorithm, params, clock):
+def _label_scale(lab):
+    """The focal-length scale a label match measured (also when the frame was not confirmed)."""
+    return lab.focal_scale if lab.focal_scale is not None else lab.details.get("label_focal_scale")
+
+
+def _pyramid_config(algorithm, max_triads):
+    from startrack.identify import config_fields, make_config
+
+    has = any(f["name"] == "max_triads" and algorithm in f["algorithms"] for f in config_fields())
+    return make_config(algorithm, {"max_triads": max_triads} if has else {})
+
+
+def _identify_in_band(stars, camera, band, databases, algorithm, params, clock, config=None):
     """Identify ``stars`` with each k-vector database of FOV band ``band`` in turn.
 
     Returns ``((camera, database, result) or None, databases tried)``.
@@ -269,7 +281,7 @@ def _identify_in_band(stars, camera, band, databases, algorithm, params, clock):
     n = databases.n_band_databases(band)
     for which in range(n):
         db = clock.setup(databases.band_database, band, which)
-        res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params)
+        res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params, config)
         if res.status == "ok":
             return (camera, db, res), which + 1
     return None, n
@@ -387,7 +399,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     """
     from startrack.camera import Camera
     from startrack.centroid import CentroidOptions, find_stars
-    from startrack.identify import IdentifyParams, identify_stars
+    from startrack.identify import IdentifyParams, identify_stars, make_config
     from startrack.records import ReasonCode, StarTable
 
     if databases is None:
@@ -413,11 +425,12 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
                        ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
     tried = 0
     result = None
-    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars, max_triads=opts.max_triads,
+    id_config = _pyramid_config(opts.algorithm, opts.max_triads)
+    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
                             max_false_probability=opts.max_false_probability)
     if camera is not None:
         result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), databases, opts.algorithm,
-                                      params, clock)
+                                      params, clock, id_config)
         tried += n
     elif opts.algorithm == "patterns" or opts.blind == "patterns":
         result, n = _solve_with_patterns(cres.stars, w, h, opts, index, clock)
@@ -428,7 +441,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         # and measures it; the frame is then identified again with that focal length.
         bands = [_band_of(opts.fov_deg)] if opts.fov_deg is not None else [1, 2, 0, 3]
         lab_params = IdentifyParams(sigma_px=opts.sigma_px or 0.5, max_false_probability=opts.max_false_probability / 5,
-                                    max_focal_error=0.6, extra={"max_focal_error": 0.6, "label_boundary": 0.3})
+                                    max_focal_error=0.6)
+        lab_config = make_config("labelling", {"max_focal_error": 0.6, "label_boundary": 0.3})
         attempts = [(band, which) for band in bands for which in range(len(FOV_BANDS[band][4]))]
         for band, which in attempts:
             if clock.expired():
@@ -439,16 +453,17 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             cam = Camera.from_fov(guess, w, h)
             for _ in range(3):
                 tried += 1
-                lab = clock.first_use("labelling", identify_stars, cres.stars, cam, labels, "labelling", lab_params)
+                lab = clock.first_use("labelling", identify_stars, cres.stars, cam, labels, "labelling", lab_params,
+                                      lab_config)
                 # The label match measures the focal length even when the label database's
                 # stars alone cannot confirm the frame: the pyramid below decides.
-                scale = lab.extra.get("focal_scale")
+                scale = _label_scale(lab)
                 if scale is None:
                     break
                 cam = cam.with_focal_length(cam.focal_length_px / scale)
                 if abs(scale - 1.0) < 1e-4:
                     break
-            if lab.extra.get("focal_scale") is None:
+            if _label_scale(lab) is None:
                 continue
             if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
                 continue
@@ -456,7 +471,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
                 continue
             b = _band_of(cam.fov_deg[0])
             params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
-            result, n = _identify_in_band(cres.stars, cam, b, databases, opts.algorithm, params, clock)
+            result, n = _identify_in_band(cres.stars, cam, b, databases, opts.algorithm, params, clock, id_config)
             tried += n
             if result is not None:
                 break
@@ -465,7 +480,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
         # verification measures and corrects the focal length).
         cam = Camera.from_fov(opts.fov_deg, w, h)
-        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), databases, opts.algorithm, params, clock)
+        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), databases, opts.algorithm, params,
+                                      clock, id_config)
         tried += n
     if result is None:
         from startrack.records import Identification
@@ -479,7 +495,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         return _failed(reason, code, t0, stars, centroid, hypotheses=tried,
                        identification=Identification.failed(opts.algorithm, reason, code))
     cam, db, res = result
-    scale = res.extra.get("focal_scale")
+    scale = res.focal_scale
     if scale:
         cam = cam.with_focal_length(cam.focal_length_px / scale)
     if db is not None and hasattr(db, "star_vec") and opts.epoch is None and catalog is None:

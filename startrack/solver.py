@@ -41,7 +41,7 @@ class Solver:
         (default: the cached database of the camera's field-of-view band,
         built on first use).
     algorithm : str
-        Identification algorithm (:data:`startrack.identify.ALGORITHMS`).
+        Identification algorithm (:func:`startrack.identify.algorithm_names`).
     method : str
         Wahba solver of the attitude (``quest``, ``svd``, ``q-method``, ``foam``, ``esoq2``, ``triad``).
     epoch : float, optional
@@ -107,9 +107,9 @@ class Solver:
         if self._database is None and self._database_arg is not None:
             arg = self._database_arg
             if isinstance(arg, (str, os.PathLike)):
-                from startrack.identify import DATABASE_KIND
+                from startrack.identify import database_kind
 
-                if DATABASE_KIND.get(self.algorithm) == "labels":
+                if database_kind(self.algorithm) == "labels":
                     from startrack.labels import load_labels as load
                 else:
                     from startrack.kvector import load_kvector as load

@@ -306,6 +306,7 @@ class Tracker:
         """Lost in space: detection, streak fits, rate from streaks, identify's search, QUEST."""
         from startrack.attitude import estimate_attitude
         from startrack.centroid import CentroidOptions, find_stars
+        from startrack.formats.sections import to_section
         from startrack.identify import IdentifyParams, identify_stars
         from startrack.streak import fit_streaks, rate_from_streaks
 
@@ -358,25 +359,25 @@ class Tracker:
                           "reason": res.reason or f"{len(stars)} star(s) found: at least 3 are needed"}, stars, None, info
         ident = identify_stars(stars, self.camera, self.db, cfg.algorithm, IdentifyParams())
         if ident.status != "ok":
-            return None, ident.section(), stars, rate_est, info
+            return None, to_section(ident), stars, rate_est, info
         body, ref, labels, sig = [], [], [], []
         f = self.camera.focal_length_px
         for m in ident.matches:
-            k = self.row_of_id.get(int(m["id"]))
+            k = self.row_of_id.get(int(m.id))
             if k is None:
                 continue
-            s = stars[m["star"]]
+            s = stars[m.star]
             body.append(self.camera.pixels_to_vectors(s["x"], s["y"]))
             ref.append(self.vectors[k])
-            labels.append((m["star"], int(m["id"])))
+            labels.append((m.star, int(m.id)))
             sp = s.get("sigma_px")
             sp = sp if isinstance(sp, (int, float)) and sp > 0 else 0.5
             sig.append(max(sp, cfg.sigma_floor_px) / f)
         att = estimate_attitude(np.array(body).reshape(-1, 3), np.array(ref).reshape(-1, 3), np.array(sig),
                                 "quest", labels)
         if att.status != "ok":
-            return None, ident.section(), stars, rate_est, info
-        return att, ident.section(), stars, rate_est, info
+            return None, to_section(ident), stars, rate_est, info
+        return att, to_section(ident), stars, rate_est, info
 
     def _track(self, img, dcm_pred, p_pred, exposure_s, track, details=True):
         """Windowed tracking at the predicted attitude; returns ``(result, stars, reason)``."""

@@ -48,25 +48,27 @@ def test_false_stars_are_not_matched(setup20):
         res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.3))
         assert score(res, truth) != "bad", seed
         if res.status == "ok":
-            matched = {m["star"] for m in res.matches}
+            matched = {m.star for m in res.matches}
             assert all(truth["star_ids"][i] is not None for i in matched), seed
 
 
 def test_result_reports_confidence_and_attitude(setup20):
     cat, db, cam = setup20
+    from startrack.formats.sections import to_section
     from startrack.render import Scene, Sensor, star_list
-    from startrack.rotations import attitude_error, radec_roll_to_dcm
+    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
 
     a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.4)
     stars, truth = star_list(cat, cam, a, Sensor(), Scene(mag_limit=5.0), np.random.default_rng(1), sigma_px=0.2)
     res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.2))
     assert res.status == "ok" and len(res.matches) >= 0.9 * len(stars)
     assert score(res, truth) == "success"
-    assert 0 <= res.false_probability < 1e-10
-    total, cross, roll = attitude_error(res.dcm, a)
+    assert 0 <= res.false_match_probability < 1e-10
+    total, cross, roll = attitude_error(quaternion_to_dcm(res.quaternion_estimate), a)
     assert math.degrees(cross) * 3600 < 5
-    sec = res.section()
+    sec = to_section(res)
     assert sec["algorithm"] == "pyramid" and sec["time_ms"] > 0 and len(sec["quaternion_estimate"]) == 4
+    assert sec["trials"] >= 1
 
 
 @pytest.mark.parametrize("n", [0, 1, 2])
@@ -126,16 +128,19 @@ def test_labelling_tolerates_focal_length_error_pyramid_does_not(setup24):
     lab = [score(identify_stars(s, cam, labels, "labelling", IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
     pyr = [score(identify_stars(s, cam, kv, "pyramid", IdentifyParams(sigma_px=sigma)), t) for s, t, _ in frames]
     assert lab.count("success") >= 0.97 * len(frames) and lab.count("bad") == 0
-    assert pyr.count("success") < 0.6 * len(frames)
+    # Paper 004's pyramid fails at 1 %; ours keeps looking and the shared verification measures
+    # and corrects the focal length, so it recovers part of the frames -- still fewer than the
+    # labels (whose ratios do not see the scale), and never wrongly.
+    assert pyr.count("bad") == 0 and pyr.count("success") < lab.count("success")
     # The focal-length error is measured: the image was made with f * 1.01, so the
     # measured angles are 1% too large and focal_scale = theta_cat / theta_mea ~ 1 / 1.01.
     res = identify_stars(frames[0][0], cam, labels, "labelling", IdentifyParams(sigma_px=sigma))
-    assert res.extra["focal_scale"] == pytest.approx(1 / 1.01, abs=0.002)
+    assert res.focal_scale == pytest.approx(1 / 1.01, abs=0.002)
 
 
 def test_brightness_modes(setup24):
     cat, kv, labels, cam = setup24
     frames = make_frames(cat, cam, Condition(sigma_px=0.2, mag_noise=0.1), 100, 6, mag_limit=5.2)
-    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2)).extra.get("mode")
+    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2)).details.get("mode")
              for s, _, _ in frames}
     assert {"reference-star", "four-star"} <= modes

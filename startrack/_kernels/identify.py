@@ -5,6 +5,7 @@ import numpy as np
 from numba import njit
 
 from startrack._kernels.database import kvector_range, quadratic_range
+from startrack._kernels.sphere import project_to_pixel
 
 
 @njit(cache=True, inline="always")
@@ -365,7 +366,7 @@ def _unique_triangle(cij, cik, star_vec, th_jk, eps, cat):
 
 @njit(cache=True)
 def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kvector, line, eps, gamma, ref_flux_ok,
-                      ref_mag, max_loops):
+                      ref_mag, max_loops, skip=0):
     """Paper 003's brightness-referenced identification (Sec. 4.3, Figs. 5-6).
 
     ``b`` image vectors sorted brightest first, ``mags`` their instrumental
@@ -384,6 +385,10 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
       pairs, checked against the three angles among ``j, k, l``.
     * ``n = 3``: the triangle, unique.
 
+    The loops up to ``skip`` are passed over, so that calling again with
+    ``skip`` = the returned ``loops`` continues the search after a match the
+    verification rejected (the Fig. 5 loop goes on to the next candidate).
+
     Returns ``(mode, idx[4], cat[4], loops)``: mode 1 reference, 2 four-star,
     3 triangle, 0 none.
     """
@@ -394,6 +399,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
     if n < 3:
         return 0, idx, cat, loops
     if n == 3:
+        if skip >= 1:
+            return 0, idx, cat, 1
         cij = _pair_candidates(b, mags, 0, 1, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
         cik = _pair_candidates(b, mags, 0, 2, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma, 1e9)
         if _unique_triangle(cij, cik, star_vec, _angle(b[1], b[2]), eps, cat) == 1:
@@ -410,6 +417,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                 loops += 1
                 if loops > max_loops:
                     return 0, idx, cat, loops
+                if loops <= skip:
+                    continue
                 cij = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line, gamma,
                                        ref_mag)
                 if cij.shape[0] == 0:
@@ -433,6 +442,8 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                     loops += 1
                     if loops > max_loops:
                         return 0, idx, cat, loops
+                    if loops <= skip:
+                        continue
                     c0 = _pair_candidates(b, mags, i, j, eps, star_mag, pair_i, pair_j, pair_cos, kvector, line,
                                           gamma, 1e9)
                     if c0.shape[0] == 0:
@@ -487,3 +498,428 @@ def brightness_search(b, mags, star_vec, star_mag, pair_i, pair_j, pair_cos, kve
                         cat[:] = res
                         return 2, idx, cat, loops
     return 0, idx, cat, loops
+
+
+@njit(cache=True)
+def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
+                       use_quadratic, max_triangles, max_out):
+    """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
+
+    The triad's catalog triangles come from k-vector (or paper 000 quadratic)
+    range look-ups on its angles ``theta_ij`` and ``theta_ik``, the third angle
+    and the specular (handedness) test.  Each triangle is confirmed by the
+    first other image star ``r`` (brightest first) whose three angles to it
+    match exactly one catalog star ``R``; with three image stars the triangle
+    itself is the candidate.  The tolerance of pair ``(u, v)`` is
+    ``sqrt(tol_u^2 + tol_v^2) + margin``.
+
+    Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
+    a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
+    triangles found (``max_triangles + 1`` when there were more: the triad is
+    then skipped as uninformative).
+    """
+    n = b.shape[0]
+    out = np.full((max_out, 5), -1, dtype=np.int64)
+    no = 0
+    th_ij = _angle(b[i], b[j])
+    th_ik = _angle(b[i], b[k])
+    th_jk = _angle(b[j], b[k])
+    e_ij = math.sqrt(tol[i] ** 2 + tol[j] ** 2) + margin
+    e_ik = math.sqrt(tol[i] ** 2 + tol[k] ** 2) + margin
+    e_jk = math.sqrt(tol[j] ** 2 + tol[k] ** 2) + margin
+    lo_ij = math.cos(th_ij + e_ij)
+    hi_ij = math.cos(max(th_ij - e_ij, 0.0))
+    lo_ik = math.cos(th_ik + e_ik)
+    hi_ik = math.cos(max(th_ik - e_ik, 0.0))
+    # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
+    s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
+    n_cat = star_vec.shape[0]
+    head = np.full(n_cat, -1, dtype=np.int64)
+    nxt = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
+    other = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
+    m = 0
+    for t in range(s2, e2):
+        c = pair_cos[t]
+        if c < lo_ik or c > hi_ik:
+            continue
+        a = pair_i[t]
+        z = pair_j[t]
+        other[m] = z
+        nxt[m] = head[a]
+        head[a] = m
+        m += 1
+        other[m] = a
+        nxt[m] = head[z]
+        head[z] = m
+        m += 1
+    if m == 0:
+        return out[:0], 0
+    cb = _triple(b[i], b[j], b[k])
+    tri = np.empty((max_triangles, 3), dtype=np.int64)
+    nt = 0
+    s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
+    for t in range(s, e):
+        c = pair_cos[t]
+        if c < lo_ij or c > hi_ij:
+            continue
+        for o in range(2):
+            I = pair_i[t] if o == 0 else pair_j[t]
+            J = pair_j[t] if o == 0 else pair_i[t]
+            p = head[I]
+            while p >= 0:
+                K = other[p]
+                p = nxt[p]
+                if K == J:
+                    continue
+                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) > e_jk:
+                    continue
+                if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
+                    continue
+                if nt >= max_triangles:
+                    return out[:0], nt + 1
+                tri[nt, 0] = I
+                tri[nt, 1] = J
+                tri[nt, 2] = K
+                nt += 1
+    if n == 3:
+        for t in range(min(nt, max_out)):
+            out[no, 1] = tri[t, 0]
+            out[no, 2] = tri[t, 1]
+            out[no, 3] = tri[t, 2]
+            no += 1
+        return out[:no], nt
+    # Per fourth star: its range of pairs by the angle to star i.
+    rs = np.empty(n, dtype=np.int64)
+    rstart = np.empty(n, dtype=np.int64)
+    rend = np.empty(n, dtype=np.int64)
+    nr = 0
+    for r in range(n):
+        if r == i or r == j or r == k:
+            continue
+        th_ir = _angle(b[i], b[r])
+        e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
+        s, e = _range(kvector, line, kquad, quad, use_quadratic, math.cos(th_ir + e_ir),
+                      math.cos(max(th_ir - e_ir, 0.0)))
+        rs[nr] = r
+        rstart[nr] = s
+        rend[nr] = e
+        nr += 1
+    for t in range(nt):
+        fI = tri[t, 0]
+        fJ = tri[t, 1]
+        fK = tri[t, 2]
+        for u in range(nr):
+            r = rs[u]
+            th_ir = _angle(b[i], b[r])
+            th_jr = _angle(b[j], b[r])
+            th_kr = _angle(b[k], b[r])
+            e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
+            e_jr = math.sqrt(tol[j] ** 2 + tol[r] ** 2) + margin
+            e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
+            lo = math.cos(th_ir + e_ir)
+            hi = math.cos(max(th_ir - e_ir, 0.0))
+            nR = 0
+            fR = -1
+            for q in range(rstart[u], rend[u]):
+                cq = pair_cos[q]
+                if cq < lo or cq > hi:
+                    continue
+                if pair_i[q] == fI:
+                    R = pair_j[q]
+                elif pair_j[q] == fI:
+                    R = pair_i[q]
+                else:
+                    continue
+                if R == fJ or R == fK:
+                    continue
+                if abs(_angle(star_vec[fJ], star_vec[R]) - th_jr) > e_jr:
+                    continue
+                if abs(_angle(star_vec[fK], star_vec[R]) - th_kr) > e_kr:
+                    continue
+                nR += 1
+                fR = R
+                if nR > 1:
+                    break
+            if nR == 1 and no < max_out:
+                out[no, 0] = r
+                out[no, 1] = fI
+                out[no, 2] = fJ
+                out[no, 3] = fK
+                out[no, 4] = fR
+                no += 1
+                break
+    return out[:no], nt
+
+
+@njit(cache=True)
+def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height,
+                  k1, k2):
+    """The verification's bookkeeping after the attitude, in one pass.
+
+    * catalog stars predicted in the image with ``dcm``;
+    * each detection's match kept only within its own ``radius[i]`` (rad);
+    * an unresolved pair -- two predicted stars within a detection's radius of
+      it and of each other -- is named after its brighter star (the one the
+      sensor sees), when that star is not matched elsewhere;
+    * the chance-hit probability of the detections outside the core: the mean
+      over them of ``min(1, k_i / 100)``, ``k_i`` the predicted stars within ten
+      of its radii (the local density; a circle of one radius is 1/100 of it);
+    * the bright stars missing: with the frame's zero point (median of catalog
+      magnitude + 2.5 log10 flux over matched stars with a flux) and its robust
+      scatter, ``cut`` = (faintest detection's magnitude) - max(0.5, 3 scatter);
+      ``missing`` = unmatched predicted stars brighter than ``cut``; ``n_bright``
+      = database stars brighter than ``cut`` (``cut`` is NaN with fewer than
+      three matched fluxes).
+
+    * the magnitude agreement of the core (``is_core``): the chance that random
+      catalog stars agree with the core's fluxes as well (``p_mag``, 1 without
+      fluxes).
+
+    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag, n_bright_pred)``,
+    ``n_bright_pred`` the predicted stars brighter than ``cut``.
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    pred_idx = np.empty(m, dtype=np.int64)
+    pred = np.empty((m, 3))
+    npred = 0
+    for s in range(m):
+        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
+        if z < cos_fov:
+            continue
+        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
+        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
+        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+        if px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5:
+            continue
+        pred_idx[npred] = s
+        pred[npred, 0] = x
+        pred[npred, 1] = y
+        pred[npred, 2] = z
+        npred += 1
+    out = match.copy()
+    for i in range(n):
+        c = out[i]
+        if c < 0:
+            continue
+        d = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
+        e = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
+        f = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
+        if b[i, 0] * d + b[i, 1] * e + b[i, 2] * f < math.cos(radius[i]):
+            out[i] = -1
+    hit_sum = 0.0
+    n_others = 0
+    for i in range(n):
+        cos_r = math.cos(radius[i])
+        cos_l = math.cos(10.0 * radius[i])
+        best = -1
+        k = 0
+        for u in range(npred):
+            d = b[i, 0] * pred[u, 0] + b[i, 1] * pred[u, 1] + b[i, 2] * pred[u, 2]
+            if d >= cos_l:
+                k += 1
+            if out[i] >= 0 and d >= cos_r:
+                s = pred_idx[u]
+                if best < 0 or star_mag[s] < star_mag[best]:
+                    best = s
+        if not is_core[i]:
+            hit_sum += min(1.0, k * 0.01)
+            n_others += 1
+        c = out[i]
+        if c < 0 or best < 0 or best == c:
+            continue
+        if _dot(star_vec[best], star_vec[c]) < cos_r:
+            continue
+        used = False
+        for j in range(n):
+            if out[j] == best:
+                used = True
+                break
+        if not used:
+            out[i] = best
+    p_local = hit_sum / n_others if n_others > 0 else 0.0
+    # Bright stars that should have been detected.
+    zp = np.empty(n)
+    nz = 0
+    faint = -np.inf
+    for i in range(n):
+        if flux[i] > 0 and np.isfinite(flux[i]):
+            inst = -2.5 * math.log10(flux[i])
+            faint = max(faint, inst)
+            if out[i] >= 0:
+                zp[nz] = star_mag[out[i]] - inst
+                nz += 1
+    if nz < 3:
+        return out, npred, p_local, 0, 0, np.nan, 1.0, 0
+    z0 = np.median(zp[:nz])
+    dev = np.empty(nz)
+    for t in range(nz):
+        dev[t] = abs(zp[t] - z0)
+    scatter = 1.4826 * np.median(dev)
+    delta = max(0.5, 3.0 * scatter)
+    cut = faint + z0 - delta
+    # Magnitude agreement of the core: a chance pattern has catalog magnitudes drawn from
+    # the database, so a core star whose catalog magnitude lies within delta of the one its
+    # flux predicts does so by chance with probability (database stars within delta) / N.
+    # The product over the core, less its largest factor (the zero point was fitted).
+    p_mag = 1.0
+    worst = 0.0
+    for i in range(n):
+        if not is_core[i] or out[i] < 0 or not (flux[i] > 0 and np.isfinite(flux[i])):
+            continue
+        want = -2.5 * math.log10(flux[i]) + z0
+        if abs(star_mag[out[i]] - want) > delta:
+            continue
+        k = 0
+        for s in range(m):
+            if abs(star_mag[s] - want) <= delta:
+                k += 1
+        frac = k / m
+        p_mag *= frac
+        worst = max(worst, frac)
+    if worst > 0.0:
+        p_mag /= worst
+    missing = 0
+    bright = 0
+    for u in range(npred):
+        s = pred_idx[u]
+        if star_mag[s] > cut:
+            continue
+        bright += 1
+        found = False
+        for i in range(n):
+            if out[i] == s:
+                found = True
+                break
+        if not found:
+            missing += 1
+    n_bright = 0
+    for s in range(m):
+        if star_mag[s] <= cut:
+            n_bright += 1
+    return out, npred, p_local, missing, n_bright, cut, p_mag, bright
+
+
+@njit(cache=True)
+def core_window(b, r, floor, cap):
+    """``max |theta_b - theta_r|`` over the pairs of the core (rad), clipped to ``[floor, cap]``."""
+    worst = 0.0
+    for u in range(b.shape[0]):
+        for v in range(u + 1, b.shape[0]):
+            worst = max(worst, abs(_angle(b[u], b[v]) - _angle(r[u], r[v])))
+    return min(cap, max(worst, floor))
+
+
+@njit(cache=True)
+def _inner(p, q, r):
+    """Spherical angle at vertex ``p`` between the arcs to ``q`` and ``r``."""
+    u0 = p[1] * q[2] - p[2] * q[1]
+    u1 = p[2] * q[0] - p[0] * q[2]
+    u2 = p[0] * q[1] - p[1] * q[0]
+    v0 = p[1] * r[2] - p[2] * r[1]
+    v1 = p[2] * r[0] - p[0] * r[2]
+    v2 = p[0] * r[1] - p[1] * r[0]
+    nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    nv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if nu == 0.0 or nv == 0.0:
+        return 0.0
+    return math.acos(min(1.0, max(-1.0, (u0 * v0 + u1 * v1 + u2 * v2) / (nu * nv))))
+
+
+@njit(cache=True)
+def pattern_chance(n_cat, eps, v):
+    """Expected catalog patterns matching directions ``v`` (2-4 rows) within ``eps`` by chance.
+
+    Mortari et al. (2004) / LOST: a pair ``N (N-1)/2 eps sin(theta)``; a triangle
+    ``N^3 eps^3 sin(theta_ij) / (pi sin(phi_k))``; a pyramid
+    ``N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``.
+    """
+    n = v.shape[0]
+    if n < 3:
+        th = _angle(v[0], v[1]) if n == 2 else math.pi / 2
+        return n_cat * (n_cat - 1) / 2.0 * eps * math.sin(th)
+    th_ij = _angle(v[0], v[1])
+    p0 = _inner(v[0], v[1], v[2])
+    p1 = _inner(v[1], v[0], v[2])
+    p2 = _inner(v[2], v[0], v[1])
+    s2 = max(math.sin(p2), 1e-6)
+    if n < 4:
+        return float(n_cat) ** 3 * eps ** 3 * math.sin(th_ij) / (math.pi * s2)
+    smax = max(max(math.sin(p0), math.sin(p1)), max(math.sin(p2), 1e-6))
+    return float(n_cat) ** 4 * eps ** 5 * math.sin(th_ij) / (2.0 * math.pi ** 2 * s2 * smax)
+
+
+@njit(cache=True)
+def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps, star_vec, top):
+    """Kolomenkin et al. (2008) voting, keeping each image star's ``top`` most-voted identities.
+
+    First step as :func:`geometric_voting` (each image pair votes for both
+    stars of every catalog pair at its angle within ``eps``, once per image
+    pair).  Each image star keeps its ``top`` most-voted catalog stars (ties
+    by index).  Second (verification) step over these hypotheses: hypothesis
+    ``(i, a)`` gets a vote from every hypothesis ``(j, c)`` of another star
+    whose catalog angle agrees with the image angle within ``eps``.
+
+    Returns ``(identity[n, top], votes1[n, top], votes2[n, top])``, identity -1
+    where fewer candidates were voted for.
+    """
+    n = b.shape[0]
+    votes = np.zeros((n, n_cat), dtype=np.int32)
+    stamp = np.full((n, n_cat), -1, dtype=np.int64)
+    pair_id = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            th = _angle(b[i], b[j])
+            lo = math.cos(th + eps)
+            hi = math.cos(max(th - eps, 0.0))
+            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+            for t in range(s, e):
+                c = pair_cos[t]
+                if c < lo or c > hi:
+                    continue
+                k = pair_i[t]
+                l = pair_j[t]
+                if stamp[i, k] != pair_id:
+                    stamp[i, k] = pair_id
+                    votes[i, k] += 1
+                if stamp[i, l] != pair_id:
+                    stamp[i, l] = pair_id
+                    votes[i, l] += 1
+                if stamp[j, k] != pair_id:
+                    stamp[j, k] = pair_id
+                    votes[j, k] += 1
+                if stamp[j, l] != pair_id:
+                    stamp[j, l] = pair_id
+                    votes[j, l] += 1
+            pair_id += 1
+    identity = np.full((n, top), -1, dtype=np.int64)
+    votes1 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for c in range(n_cat):
+            v = votes[i, c]
+            if v == 0 or v <= votes1[i, top - 1]:
+                continue
+            # insert into the sorted top list
+            p = top - 1
+            while p > 0 and votes1[i, p - 1] < v:
+                votes1[i, p] = votes1[i, p - 1]
+                identity[i, p] = identity[i, p - 1]
+                p -= 1
+            votes1[i, p] = v
+            identity[i, p] = c
+    votes2 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for a in range(top):
+            ci = identity[i, a]
+            if ci < 0:
+                continue
+            for j in range(i + 1, n):
+                th = _angle(b[i], b[j])
+                for c in range(top):
+                    cj = identity[j, c]
+                    if cj < 0 or cj == ci:
+                        continue
+                    if abs(_angle(star_vec[ci], star_vec[cj]) - th) <= eps:
+                        votes2[i, a] += 1
+                        votes2[j, c] += 1
+    return identity, votes1, votes2

@@ -6,6 +6,7 @@ from startrack.cli.options import (
     FiniteFloat,
     Int,
     RegistryChoice,
+    catalog_option,
     handle_errors,
     identify_algorithms,
     input_argument,
@@ -18,20 +19,70 @@ from startrack.cli.options import (
 )
 
 
+def _algorithm_options(func):
+    """One option per configuration field of the registered algorithms (``--max-triads``, ``--gamma-mag``, ...)."""
+    from startrack.identify import config_fields
+
+    for f in reversed(config_fields()):
+        kind = f["type"] if f["type"] in (int, float, bool, str) else float
+        flag = "--" + f["name"].replace("_", "-")
+        default = "" if f["default"] is None else f" (default {f['default']})"
+        text = f"{f['help']}{default} [{', '.join(f['algorithms'])}]"
+        if kind is bool:
+            func = click.option(flag + "/--no-" + f["name"].replace("_", "-"), f["name"], default=None,
+                                help=text)(func)
+        else:
+            func = click.option(flag, f["name"], type=kind, default=None, help=text)(func)
+    return func
+
+
+def algorithm_settings(kwargs, algorithm):
+    """The chosen algorithm's configuration from the generated options; another algorithm's option is an error."""
+    from startrack.errors import BadInputError
+    from startrack.identify import config_fields, make_config
+
+    values = {}
+    for f in config_fields():
+        v = kwargs.pop(f["name"], None)
+        if v is None:
+            continue
+        if algorithm not in f["algorithms"]:
+            flag = "--" + f["name"].replace("_", "-")
+            raise BadInputError(flag, None, f"is a setting of {', '.join(f['algorithms'])}, not of {algorithm}")
+        values[f["name"]] = v
+    return make_config(algorithm, values)
+
+
+def _algorithm_choice():
+    from startrack.identify import algorithm_names
+
+    return click.Choice(algorithm_names())
+
+
 @click.command("identify", cls=Command, short_help="Identify the stars of frame documents (lost in space).")
 @input_argument
 @click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
               help="Database from build-kvector (or build-labels for --algorithm labelling).")
 @click.option("--algorithm", "-a", type=RegistryChoice(identify_algorithms), default="pyramid", show_default=True,
-              help="Identification algorithm (labelling takes a build-labels database, the others build-kvector's).")
+              help="Identification algorithm (a registered name; labelling takes a build-labels database, "
+                   "modified-pyramid a build-triangles one, the others build-kvector's).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON, for frames without a camera section (or to override it).")
 @sigma_px_option()
 @click.option("--tolerance-arcsec", type=FiniteFloat(0, 600, min_open=True), default=None,
               help="Inter-star angle tolerance (arcsec), overriding the one derived from --sigma-px.")
-@click.option("--max-stars", type=Int(3, 1000), default=12, show_default=True, help="Brightest stars used to search.")
+@click.option("--max-stars", type=Int(3, 1000), default=20, show_default=True,
+              help="Brightest stars the pattern search uses (all are matched at the end).")
 @click.option("--max-false-probability", type=FiniteFloat(0, 1, min_open=True), default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
+@click.option("--max-proposals", type=int, default=200, show_default=True,
+              help="Search budget: proposals verified per frame before giving up.")
+@click.option("--max-time-ms", type=float, default=2000.0, show_default=True,
+              help="Search budget: milliseconds per frame before giving up.")
+@catalog_option
+@click.option("--match-all/--database-only", default=True, show_default=True,
+              help="After the attitude, match the detections the database lacks to the catalog (--catalog).")
+@_algorithm_options
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
 @output_option()
@@ -40,14 +91,20 @@ from startrack.cli.options import (
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            plot, output, jobs, resume, quiet):
+            max_proposals, max_time_ms, catalog, match_all, plot, output, jobs, resume, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
     from a file or stdin; writes `identification` with status, algorithm,
-    matches (star index -> HIP id), time_ms and false_match_probability, the
-    probability that the match is a coincidence.  A frame that cannot be
-    identified gets status "failed" and a reason; the batch goes on.
+    matches (star index -> HIP id), time_ms, trials (proposals verified) and
+    false_match_probability, the probability that the match is a coincidence.
+    The algorithm proposes star patterns in its paper's order; each is verified
+    (attitude, every detection matched within its own sigma) until one passes
+    the false-match limit or the search budget runs out.  A frame that cannot
+    be identified gets status "failed" and a reason; the batch goes on.  The
+    database is loaded once (its time is reported on stderr, not in time_ms).
+    Each algorithm's own settings are options below, marked with the
+    algorithms that take them.
 
     \b
     Example (build a database once, then identify a stream):
@@ -60,22 +117,45 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
       startrack centroid sky.tiff --camera cam.json | startrack identify -d esa.h5 --plot sky-id.png > sky-id.json
     """
     import os
+    import time
 
     from startrack.camera import Camera
     from startrack.cli.batch import StreamNames, run_frames
+    from startrack.cli.options import info
     from startrack.errors import BadInputError
-    from startrack.identify import ALGORITHMS, DATABASE_KIND, IdentifyParams, identify_stars
+    from startrack.formats.sections import to_section
+    from startrack.identify import (
+        IdentifyParams,
+        database_kind,
+        identify_stars,
+        warm_up,
+    )
 
-    if algorithm not in ALGORITHMS:
-        raise BadInputError("--algorithm", None, f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+    config = algorithm_settings(settings, algorithm)
     if max_stars < 3:
         raise BadInputError("--max-stars", None, f"must be at least 3, got {max_stars}")
-    db = _load_database(database, DATABASE_KIND[algorithm])
+    if max_proposals < 1:
+        raise BadInputError("--max-proposals", None, f"must be at least 1, got {max_proposals}")
+    if not max_time_ms > 0:
+        raise BadInputError("--max-time-ms", None, f"must be positive, got {max_time_ms}")
+    kind = database_kind(algorithm)
+    t_load = time.perf_counter()
+    db = _load_database(database, kind)
+    deep = None
+    if match_all:
+        from startrack.catalog import load_catalog
+        from startrack.identify.base import CatalogStars
+
+        deep = CatalogStars.from_catalog(load_catalog(catalog))
+    params_for_warm_up = IdentifyParams(max_time_ms=max_time_ms)
+    warm_up(algorithm, db, params_for_warm_up)
+    load_ms = (time.perf_counter() - t_load) * 1000
     override = None
     if camera_file:
         override = load_camera_file(camera_file)
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
-                            max_false_probability=max_false_probability)
+                            max_false_probability=max_false_probability, max_proposals=max_proposals,
+                            max_time_ms=max_time_ms)
     checked = {}
     from startrack.imageio import check_plot_output
 
@@ -92,17 +172,19 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
             cam = Camera.from_dict(doc["camera"], source)
         key = (cam.width, cam.height, cam.focal_length_px, cam.k1, cam.k2)
         if key not in checked:
-            checked[key] = _check(db, cam, DATABASE_KIND[algorithm])
+            checked[key] = _check(db, cam, kind)
         from startrack.formats.frame import validate_stars
 
         validate_stars(doc, source)
-        result = identify_stars(doc["stars"], cam, db, algorithm, params)
-        doc["identification"] = result.section()
+        result = identify_stars(doc["stars"], cam, db, algorithm, params, config, deep)
+        doc["identification"] = to_section(result)
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
             _plot(plot_names(index), doc, db, cam, result)
         return doc
 
     run_frames(input, output, "identification", process, quiet, "identify", jobs=jobs, resume=resume)
+    # Loading is set-up, not identification: reported apart from every frame's time_ms.
+    info(quiet, f"identify: database {database} loaded (and kernels readied) in {load_ms:.0f} ms, not in time_ms")
 
 
 def _load_database(path, kind):
@@ -133,10 +215,12 @@ def _plot(path, doc, db, camera, result):
     from startrack.plot import annotate_stars
 
     image, _ = read_image(doc["image"]["path"])
-    labels = {m["star"]: star_label(m["id"]) for m in result.matches}
+    from startrack.rotations import quaternion_to_dcm
+
+    labels = {m.star: star_label(m.id) for m in result.matches}
     predicted = []
-    if result.dcm is not None:
-        cam_vec = db.star_vector @ result.dcm.T
+    if result.quaternion_estimate is not None:
+        cam_vec = db.star_vector @ quaternion_to_dcm(result.quaternion_estimate).T
         front = cam_vec[:, 2] > 0
         x, y = camera.vectors_to_pixels(cam_vec[front])
         inside = camera.in_image(x, y)

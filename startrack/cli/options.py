@@ -132,7 +132,7 @@ class Size(click.ParamType):
 class RegistryChoice(click.Choice):
     """A ``click.Choice`` whose names come from a registry, read when first needed.
 
-    ``loader`` returns the names (e.g. ``lambda: list(startrack.identify.ALGORITHMS)``);
+    ``loader`` returns the names (e.g. :func:`startrack.identify.algorithm_names`);
     it runs only when the option is parsed or its help is shown, so ``startrack --help``
     imports no numerical library.
     """
@@ -179,9 +179,9 @@ class NameList(click.ParamType):
 
 def identify_algorithms(kind=None):
     """The identification algorithms of the registry (of one database kind if given)."""
-    from startrack.identify import ALGORITHMS, DATABASE_KIND
+    from startrack.identify import algorithm_names, database_kind
 
-    return [name for name in ALGORITHMS if kind is None or DATABASE_KIND[name] == kind]
+    return [name for name in algorithm_names() if kind is None or database_kind(name) == kind]
 
 
 def attitude_methods():

@@ -1,58 +1,200 @@
-"""Lost-in-space star identification: one signature, a registry by name.
+"""Lost-in-space star identification: a registry of algorithms and one search driver.
 
-Every algorithm is a ``propose(b, db, eps, params, stars, camera) -> Proposal``
-function; :func:`identify_stars` runs it and the shared verification
-(:mod:`startrack.identify.base`).  Adding an algorithm is adding a module and
-an entry in :data:`ALGORITHMS`.
+Every algorithm is an :class:`~startrack.identify.base.Algorithm`: a generator
+of proposals in its paper's order, a configuration dataclass and the kind of
+database it needs.  :func:`identify_stars` runs it through the shared driver
+(:func:`startrack.identify.base.run`), which verifies each proposal until one
+passes the false-match gate.
+
+Adding an algorithm is one module defining an ``Algorithm`` and one line in
+:data:`BUILTIN` (or, outside startrack, an entry point in the group
+``startrack.identify`` naming ``module:ATTRIBUTE``; or :func:`register` at run
+time).
 """
 from __future__ import annotations
 
-from startrack.identify.base import IdentifyParams, IdentifyResult
+import dataclasses
+import importlib
 
-__all__ = ["ALGORITHMS", "DATABASE_KIND", "IdentifyParams", "IdentifyResult", "identify_stars", "algorithm_names"]
+from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposal, SearchContext
+from startrack.records import Identification, Match
 
-# name -> (module, function, database kind)
-ALGORITHMS = {
-    "pyramid": ("startrack.identify.pyramid", "propose_pyramid", "kvector"),
-    "pyramid-quadratic": ("startrack.identify.pyramid", "propose_pyramid_quadratic", "kvector"),
-    "voting": ("startrack.identify.voting", "propose_voting", "kvector"),
-    "brightness": ("startrack.identify.brightness", "propose_brightness", "kvector"),
-    "labelling": ("startrack.identify.labelling", "propose_labelling", "labels"),
-    "grid": ("startrack.identify.grid", "propose_grid", "kvector"),
-}
-DATABASE_KIND = {name: kind for name, (_, _, kind) in ALGORITHMS.items()}
+__all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
+           "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars", "make_config",
+           "register", "warm_up"]
+
+# The built-in algorithms, ``module:ATTRIBUTE`` of an Algorithm each (one line per algorithm).
+BUILTIN = (
+    "startrack.identify.pyramid:PYRAMID",
+    "startrack.identify.pyramid:PYRAMID_QUADRATIC",
+    "startrack.identify.voting:VOTING",
+    "startrack.identify.brightness:BRIGHTNESS",
+    "startrack.identify.labelling:LABELLING",
+    "startrack.identify.grid:GRID",
+)
+ENTRY_POINT_GROUP = "startrack.identify"
+
+_registered: dict = {}
 
 
-def algorithm_names():
-    return list(ALGORITHMS)
+def _load(ref: str) -> Algorithm:
+    module, _, attr = ref.partition(":")
+    alg = getattr(importlib.import_module(module), attr)
+    if not isinstance(alg, Algorithm):
+        raise TypeError(f"{ref} is not a startrack.identify.Algorithm")
+    return alg
 
 
-def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: IdentifyParams | None = None
-                   ) -> IdentifyResult:
+def _registry() -> dict:
+    if not _registered:
+        for ref in BUILTIN:
+            alg = _load(ref)
+            _registered[alg.name] = alg
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINT_GROUP):
+            alg = ep.load()
+            if isinstance(alg, Algorithm) and alg.name not in _registered:
+                _registered[alg.name] = alg
+    return _registered
+
+
+def register(algorithm: Algorithm) -> Algorithm:
+    """Add ``algorithm`` to the registry (replacing one of the same name); returns it."""
+    if not isinstance(algorithm, Algorithm):
+        raise TypeError("register() takes a startrack.identify.Algorithm")
+    _registry()[algorithm.name] = algorithm
+    return algorithm
+
+
+def algorithm_names() -> list:
+    """Names of every registered algorithm, built-ins first."""
+    return list(_registry())
+
+
+def get_algorithm(name: str) -> Algorithm:
+    """The registered algorithm ``name``; ``BadInputError`` naming the parameter ``algorithm`` otherwise."""
+    reg = _registry()
+    if name not in reg:
+        from startrack.errors import BadInputError
+
+        raise BadInputError("algorithm", None, f"unknown algorithm {name!r}; choose from {', '.join(reg)}")
+    return reg[name]
+
+
+def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
+    """Compile (or load from numba's cache) every kernel ``algorithm`` uses, on a frame made from ``db``.
+
+    Call once after loading a database so that the first real frame's
+    ``time_ms`` holds identification only.  The frame: the database's stars
+    around its first star, seen by a 10 deg camera.
+    """
+    import numpy as np
+
+    from startrack.camera import Camera
+    from startrack.rotations import radec_roll_to_dcm
+
+    v = db.star_vector[0]
+    dcm = radec_roll_to_dcm(float(np.arctan2(v[1], v[0])), float(np.arcsin(np.clip(v[2], -1, 1))), 0.3)
+    widest = getattr(db, "max_angle_deg", None) or getattr(db, "fov_deg", 20.0)
+    cam = Camera.from_fov(min(10.0, 0.5 * float(widest)), 512, 512)
+    body = db.star_vector @ dcm.T
+    front = body[:, 2] > 0.9
+    x, y = cam.vectors_to_pixels(body[front])
+    inside = cam.in_image(x, y)
+    stars = [{"x": float(a), "y": float(b), "flux": 1.0e4 * 10 ** (-0.4 * float(m))}
+             for a, b, m in zip(x[inside], y[inside], db.star_mag[front][inside])]
+    stars.sort(key=lambda s: -s["flux"])
+    identify_stars(stars[:12] if len(stars) >= 3 else stars + [{"x": 1.0, "y": 1.0}] * 3, cam, db, algorithm,
+                   params)
+
+
+def database_kind(name: str) -> str:
+    """The database kind (``"kvector"``, ``"labels"``) algorithm ``name`` needs."""
+    return get_algorithm(name).database
+
+
+def _field_type(f) -> type:
+    """``int``, ``float``, ``bool`` or ``str`` from a field's annotation (``int | None`` -> ``int``)."""
+    text = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    for name, kind in (("bool", bool), ("int", int), ("float", float), ("str", str)):
+        if name in text.replace("None", "").split("|")[0] or text.strip() == name:
+            return kind
+    return type(f.default) if f.default is not None else float
+
+
+def config_fields() -> list:
+    """Every configuration field of every registered algorithm.
+
+    Returns
+    -------
+    list of dict
+        ``name`` (the field name), ``type`` (``int``, ``float``, ``bool``,
+        ``str``), ``default`` (of the first algorithm that has it), ``help``,
+        ``algorithms`` (names of the algorithms that have it).  A front end (the
+        command line) offers one setting per entry.
+    """
+    out: dict = {}
+    for alg in _registry().values():
+        for f in dataclasses.fields(alg.config):
+            entry = out.setdefault(f.name, {"name": f.name, "type": _field_type(f), "default": f.default,
+                                            "help": f.metadata.get("help", ""), "algorithms": []})
+            entry["algorithms"].append(alg.name)
+    return list(out.values())
+
+
+def make_config(name: str, values: dict | None = None):
+    """The configuration of algorithm ``name`` from its defaults and ``values`` (field name -> value).
+
+    A value for a field the algorithm does not have is a ``BadInputError``
+    naming the field.
+    """
+    alg = get_algorithm(name)
+    values = {k: v for k, v in (values or {}).items() if v is not None}
+    known = {f.name: f for f in dataclasses.fields(alg.config)}
+    for k in values:
+        if k not in known:
+            from startrack.errors import BadInputError
+
+            raise BadInputError(k, None, f"is not a setting of {name} (its settings: {', '.join(known) or 'none'})")
+    return alg.config(**values)
+
+
+def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: IdentifyParams | None = None,
+                   config=None, catalog=None) -> Identification:
     """Identify the stars of one frame.
 
     Parameters
     ----------
     stars : list of dict
-        ``x``, ``y`` (pixels), brightest first (as ``centroid`` writes them).
+        ``x``, ``y`` (pixels), optionally ``flux`` and ``sigma_px`` (px),
+        brightest first (as ``centroid`` writes them).
     camera : Camera
-    db : KVectorDatabase (or the algorithm's database kind)
+    db : KVectorDatabase or LabelDatabase
+        The database kind of the algorithm (:func:`database_kind`).
     algorithm : str
-        A key of :data:`ALGORITHMS`.
+        A registered name (:func:`algorithm_names`).
+    params : IdentifyParams, optional
+        Shared settings (tolerances, false-match limit, search budget).
+    config : dataclass, optional
+        The algorithm's own settings (default: its defaults).
+    catalog : Catalog, optional
+        Match the detections the database does not hold against this catalog
+        once the attitude is known (:func:`startrack.identify.base.match_catalog`).
 
     Returns
     -------
-    IdentifyResult
-        ``status`` ``"ok"`` with matches (star index -> catalog id), or
-        ``"failed"`` with a reason.  Never raises for an unidentifiable frame.
+    Identification
+        ``ok`` with matches (star index -> catalog id) or ``failed`` with a
+        reason.  Never raises for an unidentifiable frame.
     """
-    import importlib
-
-    from startrack.errors import ParameterError
     from startrack.identify.base import run
 
-    if algorithm not in ALGORITHMS:
-        raise ParameterError("algorithm", f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}")
-    module, func, _ = ALGORITHMS[algorithm]
-    propose = getattr(importlib.import_module(module), func)
-    return run(algorithm, propose, stars, camera, db, params or IdentifyParams())
+    alg = get_algorithm(algorithm)
+    if config is None:
+        config = alg.config()
+    elif not isinstance(config, alg.config):
+        from startrack.errors import BadInputError
+
+        raise BadInputError("config", None, f"{algorithm} takes a {alg.config.__name__}, got {type(config).__name__}")
+    return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog)

@@ -1,36 +1,83 @@
-"""What every identification algorithm shares: tolerances, verification, confidence, the result.
+"""What every identification algorithm shares: the search driver, tolerances, verification, the result.
 
-An algorithm proposes a few star correspondences (a pyramid, a voting
-cluster, a label group).  Then, identically for all algorithms:
+An algorithm is a *generator of proposals*: a few star correspondences (a
+pyramid, a voting cluster, a label group, ...) in the order its paper searches
+them.  The driver :func:`run` takes them one by one and, identically for every
+algorithm,
 
-1. the attitude of the proposal is solved (SVD, determinant fixed);
-2. every catalog star is projected with it and each image star is matched
-   to the nearest catalog star within the match radius (uniquely);
-3. the attitude is refined on all matches and the matching repeated;
-4. the probability that the result is a coincidence is computed and the
-   identification refused when it is above ``max_false_probability``.
+1. solves the attitude of the proposal (QUEST) and measures the focal-length
+   scale it implies;
+2. projects every database star with it and matches every detection to the
+   nearest predicted star within the detection's own match radius
+   (``match_sigma`` of its centroid sigma; one-to-one, ambiguous neighbours
+   refused), refines the attitude on all matches and matches again;
+3. computes the probability that the result is a coincidence
+   (:func:`false_match_probability`) and accepts the first proposal whose
+   probability, *multiplied by the number of patterns and proposals tried*
+   (look-elsewhere), is below ``max_false_probability``.
 
-The false-match probability combines Mortari's argument for the pyramid (the
-expected number of catalog pyramids matching by chance, ``E = N^4 eps^5 ...``,
-the LOST estimate of Mortari et al. 2004) with tetra3's test of the other stars:
-the binomial probability that at least ``m`` of the ``n`` other image stars land
-by chance within the match radius of one of the ``k`` catalog stars predicted in
-the image.
+The search stops at the first accepted proposal or when a budget
+(``max_proposals``, ``max_time_ms``) runs out; the result reports the trials.
+Because every proposal passes the same gate, an algorithm that proposes more
+(continuing after a rejected candidate, as paper 003's Fig. 5 loop and paper
+004's search do) gains success but never wrong answers.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable, Iterator
 
 import numpy as np
 
-__all__ = ["IdentifyParams", "IdentifyResult", "Proposal", "tolerance_rad", "verify"]
+from startrack.records import Identification, Match, ReasonCode, Status
+
+__all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability",
+           "CatalogStars", "match_catalog", "run", "tolerance_rad"]
 
 
 @dataclass
 class IdentifyParams:
-    """Settings shared by all algorithms (angles in radians, pixels for the centroid noise)."""
+    """Settings shared by all algorithms.
+
+    Attributes
+    ----------
+    sigma_px : float or None
+        1-sigma centroid noise (px) of every star; ``None``: each star's own
+        ``sigma_px`` (times ``reported_sigma_factor``), else 0.5 px.
+    tolerance_sigma : float
+        Half-width of an inter-star angle window in sigmas of that angle.
+    match_sigma : float
+        Match radius of a detection in sigmas of its centroid.
+    tolerance_arcsec : float or None
+        Fixed angle half-width (arcsec), overriding the sigma-based one.
+    margin_arcsec : float
+        Added to every tolerance (calibration, aberration), arcsec.
+    match_radius_px : float or None
+        Fixed match radius (px), overriding the sigma-based one.
+    max_stars : int
+        Brightest detections the pattern search uses (all are matched at the end).
+    min_matches : int
+        Matched stars needed (three when the frame has only three).
+    max_false_probability : float
+        Refuse an identification more likely than this to be a coincidence.
+    max_focal_error : float
+        Largest relative focal-length error measured and corrected.
+    max_proposals : int
+        Proposals verified before giving up (the search budget).
+    max_time_ms : float
+        Search time before giving up, ms.
+    reported_sigma_factor : float
+        Scale applied to the stars' own ``sigma_px`` (centroid estimates run low).
+    max_triads : int
+        Triads for 0.x-style proposers (paper 000's modified pyramid); the
+        pyramid's own setting is :class:`startrack.identify.pyramid.PyramidConfig`.
+    max_chance_match : float
+        With a catalog to match everything against (:func:`run`'s ``catalog``), a
+        detection is matched only when the chance that a catalog star lies within
+        its radius by accident is below this.
+    """
 
     sigma_px: float | None = None
     tolerance_sigma: float = 4.0
@@ -38,69 +85,135 @@ class IdentifyParams:
     tolerance_arcsec: float | None = None
     margin_arcsec: float = 2.0
     match_radius_px: float | None = None
-    max_stars: int = 12
-    max_triads: int = 200
+    max_stars: int = 20
     min_matches: int = 4
     max_false_probability: float = 1e-6
     max_focal_error: float = 0.05
-    extra: dict = field(default_factory=dict)
+    max_proposals: int = 200
+    max_time_ms: float = 2000.0
+    reported_sigma_factor: float = 1.5
+    max_triads: int = 200
+    max_chance_match: float = 0.001
+
+
+@dataclass(frozen=True)
+class NoConfig:
+    """An algorithm without settings of its own."""
 
 
 @dataclass
 class Proposal:
-    """An algorithm's hypothesis: image-star indices and catalog indices (into the database's star table)."""
+    """An algorithm's hypothesis.
+
+    Attributes
+    ----------
+    image : list of int
+        Indices of the search stars (into :attr:`SearchContext.b`).
+    catalog : list of int
+        Database star indices (into the database's star table), same order.
+    patterns : int
+        Image patterns the algorithm has compared with the database so far
+        (cumulative; the look-elsewhere factor of the confidence).
+    details : dict
+        Algorithm-specific facts reported with the result (``mode``, ``votes``, ...).
+    """
 
     image: list
     catalog: list
-    trials: int = 0
-    extra: dict = field(default_factory=dict)
+    patterns: int = 1
+    details: dict = field(default_factory=dict)
 
 
 @dataclass
-class IdentifyResult:
-    """The ``identification`` section of a frame document."""
+class SearchContext:
+    """What a proposal generator gets for one frame.
 
-    status: str
-    algorithm: str
-    matches: list
-    time_ms: float
-    reason: str | None = None
-    false_probability: float | None = None
-    dcm: np.ndarray | None = None
-    extra: dict = field(default_factory=dict)
+    Attributes
+    ----------
+    b : ndarray, shape (n, 3)
+        Unit vectors (camera frame) of the search stars, brightest first.
+    stars : list of dict
+        The search stars as given (``x``, ``y``, ``flux``, ``sigma_px``, ...).
+    camera : Camera
+    db : database of the algorithm's kind
+    eps : float
+        Angle tolerance (rad) valid for every pair of search stars (the largest pair tolerance).
+    tol : ndarray, shape (n,)
+        Per-star angle tolerance (rad): the pair (i, j) tolerance is
+        ``sqrt(tol_i^2 + tol_j^2) + margin``.
+    margin : float
+        Additive part of every pair tolerance (rad).
+    params : IdentifyParams
+    flux : ndarray or None
+        Fluxes of the search stars (``None`` when the frame has none).
+    """
 
-    def section(self) -> dict:
-        out = {"status": self.status, "algorithm": self.algorithm,
-               "matches": [{"star": m["star"], "id": m["id"]} for m in self.matches],
-               "time_ms": round(self.time_ms, 4)}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.false_probability is not None:
-            out["false_match_probability"] = float(self.false_probability)
-        if self.dcm is not None:
-            from startrack.rotations import dcm_to_quaternion
+    b: np.ndarray
+    stars: list
+    camera: object
+    db: object
+    eps: float
+    tol: np.ndarray
+    margin: float
+    params: IdentifyParams
+    flux: np.ndarray | None = None
 
-            out["quaternion_estimate"] = dcm_to_quaternion(self.dcm).tolist()
-        out.update(self.extra)
-        return out
+    def pair_eps(self, i: int, j: int) -> float:
+        """Tolerance (rad) of the angle between search stars ``i`` and ``j``."""
+        return math.hypot(self.tol[i], self.tol[j]) + self.margin
 
 
-def centroid_sigma_px(stars: list, params: IdentifyParams) -> float:
-    """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
+@dataclass(frozen=True)
+class Algorithm:
+    """A registered identification algorithm.
+
+    Attributes
+    ----------
+    name : str
+        The name on the command line (``-a NAME``).
+    search : callable
+        ``search(ctx: SearchContext, config) -> Iterator[Proposal]`` in the paper's order.
+    config : type
+        Dataclass of the algorithm's settings (every field has a default and
+        ``metadata["help"]``); the command line offers each field as an option.
+    database : str
+        The database kind it needs (``"kvector"``, ``"labels"``).
+    summary : str
+        One line for ``--help``.
+    uses_brightness : bool
+        True when the search itself selects candidates by brightness (the
+        confidence then does not count magnitude agreement again).
+    """
+
+    name: str
+    search: Callable[..., Iterator[Proposal]]
+    config: type = NoConfig
+    database: str = "kvector"
+    summary: str = ""
+    uses_brightness: bool = False
+
+
+def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
+    """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
+    n = len(stars)
     if params.sigma_px is not None:
-        return float(params.sigma_px)
-    reported = [s.get("sigma_px") for s in stars if isinstance(s.get("sigma_px"), (int, float))]
-    reported = [v for v in reported if v is not None and math.isfinite(v) and v > 0]
-    if reported:
-        return float(max(0.05, min(2.0, np.median(reported) * 1.5)))
-    return 0.5
+        return np.full(n, float(params.sigma_px))
+    out = np.full(n, 0.5)
+    reported = np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
+                         for s in stars], dtype=np.float64)
+    ok = np.isfinite(reported) & (reported > 0)
+    if ok.any():
+        scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
+        # A star without a reported sigma gets the frame's median.
+        out = np.where(ok, scaled, float(np.median(scaled[ok])))
+    return out
 
 
 def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
-    """Half-width of the inter-star angle window.
+    """Half-width of the angle window between two stars of centroid noise ``sigma_px`` each.
 
-    ``eps = k sqrt(2) sigma_px / f + margin``: an angle between two stars
-    errs by the two centroid errors along their separation (``sqrt 2`` of one),
+    ``eps = k sqrt(2) sigma_px / f + margin``: an angle between two stars errs
+    by the two centroid errors along their separation (``sqrt 2`` of one),
     ``k`` = ``tolerance_sigma`` (4 by default: a pyramid has six angles, and at
     3 sigma one in sixty true pyramids would be missed), plus a small margin
     for calibration.  ``tolerance_arcsec`` overrides it.
@@ -123,168 +236,442 @@ def _binomial_sf(m: int, n: int, p: float) -> float:
     return min(1.0, total)
 
 
-def _pyramid_chance(n_cat: int, eps: float, vecs) -> float:
-    """Expected number of catalog pyramids matching four measured directions by chance (Mortari 2004; LOST)."""
-    if len(vecs) < 3:
-        # A lone pair: E = N (N - 1) / 2 * eps * sin(theta) chance pairs at that angle.
-        th = math.acos(max(-1.0, min(1.0, float(vecs[0] @ vecs[1])))) if len(vecs) == 2 else math.pi / 2
-        return float(n_cat * (n_cat - 1) / 2 * eps * math.sin(th))
-    a, b, c = vecs[0], vecs[1], vecs[2]
-    th_ij = math.acos(max(-1.0, min(1.0, float(a @ b))))
+def pattern_chance(n_cat: int, eps: float, vecs) -> float:
+    """Expected number of catalog patterns matching the measured directions by chance.
 
-    def cross(p, q):
-        return (p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0])
-
-    def inner(p, q, r):
-        """Spherical angle at vertex p between the arcs to q and r."""
-        u = cross(p, q)
-        v = cross(p, r)
-        nu = math.sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2)
-        nv = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
-        if nu == 0 or nv == 0:
-            return 0.0
-        return math.acos(max(-1.0, min(1.0, (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]) / (nu * nv))))
-
-    phis = [inner(a, b, c), inner(b, a, c), inner(c, a, b)]
-    if len(vecs) < 4:
-        # A lone triangle: E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k)).
-        return float(n_cat**3 * eps**3 * math.sin(th_ij) / (math.pi * max(math.sin(phis[2]), 1e-6)))
-    denom = 2 * math.pi**2 * max(math.sin(phis[2]), 1e-6) * max(max(math.sin(p) for p in phis), 1e-6)
-    return float(n_cat**4 * eps**5 * math.sin(th_ij) / denom)
-
-
-def verify(proposal: Proposal, b_vectors: np.ndarray, stars: list, camera, star_vec, star_id, eps: float,
-           sigma_px: float, params: IdentifyParams):
-    """Attitude, remaining stars and confidence for a proposal; returns ``(matches, dcm, p_false, reason)``."""
-    from startrack._kernels.attitude import quat_to_dcm, refine
-
-    img = np.array(proposal.image, dtype=np.int64)
-    cat = np.array(proposal.catalog, dtype=np.int64)
-    if len(img) < 2:
-        return None, None, None, "fewer than two stars identified"
-    radius_px = params.match_radius_px if params.match_radius_px is not None else \
-        max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
-    radius = radius_px / camera.focal_length_px
-    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
-    match, q, n_pred = refine(np.ascontiguousarray(b_vectors), star_vec, img, cat, cos_fov,
-                              float(camera.focal_length_px), float(camera.cx), float(camera.cy),
-                              float(camera.width), float(camera.height), float(camera.k1), float(camera.k2),
-                              radius, 2)
-    dcm = quat_to_dcm(q)
-    n_matched = int(np.sum(match >= 0))
-    # A proposal star agrees when the refined attitude puts its catalog star
-    # within the match radius of it (whether or not the star-by-star matching,
-    # which refuses ambiguous neighbours, kept it).
-    predicted = star_vec[cat] @ dcm.T
-    agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[img], predicted) >= math.cos(radius)))
-    if agree < min(len(img), params.min_matches):
-        return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
-    if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
-        return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})"
-    # Confidence: the chance that a pattern of the proposal's first four stars
-    # (three when that is all) matches by coincidence, times the chance that the
-    # other stars fall on predicted catalog stars by accident.
-    core = img[:4]
-    p_hit = _local_hit_probability(b_vectors, np.delete(np.arange(len(b_vectors)), core), star_vec, dcm, camera,
-                                   radius, cos_fov, n_pred, radius_px)
-    others = len(b_vectors) - len(core)
-    core_pred = star_vec[cat[:4]] @ dcm.T
-    core_agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[core], core_pred) >= math.cos(radius)))
-    e_pyr = _pyramid_chance(len(star_vec), eps, b_vectors[core])
-    p_false = min(1.0, e_pyr * max(proposal.trials, 1)) * _binomial_sf(n_matched - core_agree, others, p_hit)
-    if p_false > params.max_false_probability:
-        return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
-                                    f"{params.max_false_probability:g}")
-    out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in enumerate(match) if c >= 0]
-    return out, dcm, p_false, None
-
-
-def _local_hit_probability(b_vectors, others, star_vec, dcm, camera, radius, cos_fov, n_pred, radius_px):
-    """Mean chance that one of ``others`` lands within ``radius`` of a predicted catalog star by accident.
-
-    The density of catalog stars is taken around each image star (within ten
-    match radii), not over the whole image: in a cluster (the Hyades, the
-    Pleiades) chance coincidences are far more likely than the field average
-    suggests.  The global average is the floor.
+    Mortari et al. (2004) / LOST: for a pair ``E = N (N-1)/2 eps sin(theta)``;
+    a triangle ``E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k))``; a pyramid
+    (four stars) ``E = N^4 eps^5 sin(theta_ij) / (2 pi^2 sin(phi_k) max sin(phi))``,
+    ``phi`` the triangle's inner angles.  ``eps`` is the angle window (rad),
+    ``N`` the stars of the database, ``vecs`` the first two to four unit vectors.
     """
-    floor = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
-    if len(others) == 0:
-        return floor
-    front = star_vec @ dcm[2] > cos_fov
-    pred = star_vec[front] @ dcm.T
-    if len(pred) == 0:
-        return floor
-    local = 10.0 * radius
-    cos_local = math.cos(local)
-    counts = np.sum((b_vectors[others] @ pred.T) >= cos_local, axis=1)
-    p_each = np.minimum(1.0, counts * (radius / local) ** 2)
-    return float(max(floor, np.mean(p_each)))
+    from startrack._kernels.identify import pattern_chance as kernel
+
+    return float(kernel(int(n_cat), float(eps), np.ascontiguousarray(vecs, dtype=np.float64)))
 
 
-def _focal_scale(b_all, proposal, star_vec):
-    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the proposal's pairs (None if < 3 stars)."""
-    img, cat = list(proposal.image), list(proposal.catalog)
+def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float:
+    """Chance that a random field holds no more undetected bright catalog stars than this one.
+
+    With the attitude, the catalog stars predicted in the image that are
+    clearly brighter than the faintest detection (by the frame's own
+    flux-magnitude zero point, less three times its scatter and at least
+    0.5 mag; :func:`startrack._kernels.identify.check_matches`) should all be
+    detected.  A coincidental match puts the pattern at a random place of the
+    sky, where such stars appear at the catalog's average density: Poisson with
+    mean ``lambda`` = ``n_bright`` (database stars brighter than the cut) x
+    ``area_frac`` (image solid angle / 4 pi), halved for the sparsest skies.
+    Returns ``P(K <= missing)``; 1 without magnitudes (``n_bright`` = 0).
+    """
+    lam = 0.5 * n_bright * area_frac
+    if lam <= 0:
+        return 1.0
+    term = math.exp(-lam)
+    total = term
+    for k in range(1, missing + 1):
+        term *= lam / k
+        total += term
+    return min(1.0, total)
+
+
+@dataclass
+class _Verdict:
+    matches: list | None
+    star_index: np.ndarray | None
+    cat_index: np.ndarray | None
+    dcm: np.ndarray | None
+    p_false: float | None
+    reason: str | None
+    code: ReasonCode | None
+    residual_arcsec: np.ndarray | None = None
+    quaternion: np.ndarray | None = None
+
+
+def false_match_probability(e_core: float, trials: int, n_others_matched: int, n_others: int, p_hit: float,
+                            p_mags: float = 1.0) -> float:
+    """The chance that an accepted identification is a coincidence.
+
+    ``min(1, E_core * trials) * P(X >= n_others_matched) * p_mags`` with
+    ``E_core`` the expected chance matches of the proposal's pattern
+    (:func:`pattern_chance`), ``trials`` the patterns and proposals tried
+    (look-elsewhere: each is another chance to be fooled), ``X ~ Binomial(
+    n_others, p_hit)`` the other detections landing on predicted stars by
+    accident (tetra3's test), and ``p_mags`` what the magnitudes add: the chance
+    that a random field lacks the bright stars this one lacks
+    (:func:`_missing_probability`) times the chance that random catalog stars
+    agree with the core's fluxes as well as these do
+    (:func:`startrack._kernels.identify.check_matches`); 1 without fluxes and
+    for algorithms whose search already chose by brightness.
+    """
+    return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_mags
+
+
+def _geometry(camera):
+    """``cos`` of the largest off-axis angle (plus 0.5 deg) and the projection numbers of ``camera``."""
+    return (math.cos(math.radians(camera.max_off_axis_deg + 0.5)),
+            (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
+             float(camera.height), float(camera.k1), float(camera.k2)))
+
+
+def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.ndarray, camera, db, eps: float,
+           params: IdentifyParams, trials: int, use_magnitudes: bool, geom=None) -> _Verdict:
+    """Attitude, every other detection and the confidence of one proposal (see the module docstring).
+
+    ``geom`` is :func:`_geometry` of ``camera`` (computed when not given).
+    """
+    from startrack._kernels.attitude import quat_to_dcm, refine
+    from startrack._kernels.identify import check_matches, core_window
+
+    star_vec = db.star_vector
+    img = np.asarray(proposal.image, dtype=np.int64)
+    cat = np.asarray(proposal.catalog, dtype=np.int64)
+    if len(img) < 2:
+        return _Verdict(None, None, None, None, None, "fewer than two stars proposed", ReasonCode.NO_PATTERN)
+    f = camera.focal_length_px
+    margin_px = math.radians(params.margin_arcsec / 3600.0) * f
+    if params.match_radius_px is not None:
+        radius_px = np.full(len(b_all), float(params.match_radius_px))
+    else:
+        radius_px = np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+    radius = radius_px / f
+    cos_fov, geometry = geom if geom is not None else _geometry(camera)
+    match, q, _ = refine(b_all, star_vec, img, cat, cos_fov, *geometry, float(radius.max()), 2)
+    dcm = quat_to_dcm(q)
+    n_all = len(b_all)
+    core = img[:4]
+    is_core = np.zeros(n_all, dtype=np.bool_)
+    is_core[core] = True
+    fl = flux if (use_magnitudes and flux is not None) else np.full(n_all, np.nan)
+    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
+                                                                 is_core, fl, cos_fov, *geometry)
+    matched = np.flatnonzero(match >= 0)
+    n_matched = len(matched)
+    # The proposal's stars must sit on their catalog stars with the refined attitude.
+    agree = int(np.count_nonzero(np.einsum("ij,ij->i", b_all[img], star_vec[cat] @ dcm.T) >= np.cos(radius[img])))
+    if agree < min(len(img), params.min_matches):
+        return _Verdict(None, None, None, dcm, None, "the proposal's stars do not agree with the refined attitude",
+                        ReasonCode.VERIFICATION_FAILED)
+    # Consistency: the attitude must explain the bright part of the field.  Catalog stars it
+    # predicts clearly brighter than the faintest detection should be there; when most of
+    # them are not, the attitude is wrong however well its few stars fit.
+    if bright_pred >= 3 and missing > bright_pred // 2:
+        return _Verdict(None, None, None, dcm, None,
+                        f"{missing} of {bright_pred} bright catalog stars predicted in the image are not detected",
+                        ReasonCode.VERIFICATION_FAILED)
+    if n_matched < params.min_matches and not (n_all == 3 and n_matched == 3):
+        return _Verdict(None, None, None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})",
+                        ReasonCode.TOO_FEW_STARS)
+    # The other detections test the core pattern (tetra3's binomial test): the chance of
+    # landing on a predicted star is the local density of predicted stars around each
+    # one (ten match radii) -- clusters make coincidences likelier -- with the image
+    # average as the floor.
+    n_others = n_all - int(np.count_nonzero(is_core))
+    mean_r = float(radius_px.mean())
+    p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (camera.width * camera.height)), p_local)
+    core_agree = int(np.count_nonzero(match[core] >= 0))
+    # The chance that a catalog pattern matches the core as well as this one does: the
+    # angle window is the core's largest actual angle residual (at least one sigma of
+    # an angle), not the search tolerance -- a p-value of the fit, at most E(eps).
+    window = core_window(b_all[core], star_vec[cat[:4]], math.sqrt(2.0) * float(sig_px[core].max()) / f, eps)
+    e_core = pattern_chance(len(star_vec), window, b_all[core])
+    # Bright catalog stars predicted in the image but not detected (magnitudes).
+    p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
+    p_missing *= p_mag
+    p_false = false_match_probability(e_core, trials, n_matched - core_agree, n_others, p_hit, p_missing)
+    if p_false > params.max_false_probability:
+        return _Verdict(None, None, None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
+                                                         f"{params.max_false_probability:g}"),
+                        ReasonCode.FALSE_MATCH_PROBABILITY)
+    resid = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b_all[matched], star_vec[match[matched]] @ dcm.T),
+                                         -1, 1))) * 3600
+    ids = db.star_id[match[matched]].tolist()
+    out = [Match(s, i) for s, i in zip(matched.tolist(), ids)]
+    q = q / math.sqrt(float(q @ q))
+    return _Verdict(out, matched, match[matched], dcm, p_false, None, None, resid, -q if q[3] < 0 else q)
+
+
+def _focal_scale(b_all, img, cat, star_vec):
+    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the given pairs (None if < 3 stars)."""
     if len(img) < 3:
         return None
-    iu = np.triu_indices(len(img), 1)
-    b = b_all[img]
-    r = star_vec[cat]
-    mea = np.arccos(np.clip((b @ b.T)[iu], -1.0, 1.0))
-    ref = np.arccos(np.clip((r @ r.T)[iu], -1.0, 1.0))
+    b = b_all[np.asarray(img)]
+    r = star_vec[np.asarray(cat)]
+    iu = np.triu_indices(len(b), 1)
+    mea = np.arccos(np.minimum((b @ b.T)[iu], 1.0))
+    ref = np.arccos(np.minimum((r @ r.T)[iu], 1.0))
     denom = float(mea @ mea)
-    return float(ref @ mea / denom) if denom > 0 else None
+    return float(ref @ mea) / denom if denom > 0 else None
 
 
-def run(algorithm_name: str, propose, frame_stars: list, camera, db, params: IdentifyParams) -> IdentifyResult:
-    """Common driver: vectors, tolerance, the algorithm's proposal, verification and timing."""
-    t0 = time.perf_counter()
-    n_all = len(frame_stars)
-    if n_all < 3:
-        return IdentifyResult("failed", algorithm_name, [], (time.perf_counter() - t0) * 1000,
-                              f"{n_all} star(s): at least 3 are needed")
-    xs = np.array([s["x"] for s in frame_stars], dtype=np.float64)
-    ys = np.array([s["y"] for s in frame_stars], dtype=np.float64)
-    b_all = camera.pixels_to_vectors(xs, ys)
-    sigma_px = centroid_sigma_px(frame_stars, params)
-    eps = tolerance_rad(camera, sigma_px, params)
-    use = min(n_all, params.max_stars)
-    proposal = propose(np.ascontiguousarray(b_all[:use]), db, eps, params, frame_stars[:use], camera)
-    if proposal is None or len(proposal.image) == 0:
-        reason = (proposal.extra.get("reason") if proposal is not None else None) or "no consistent star pattern found"
-        return IdentifyResult("failed", algorithm_name, [], (time.perf_counter() - t0) * 1000, reason,
-                              extra={"tolerance_arcsec": math.degrees(eps) * 3600})
-    # The focal-length scale the proposal implies (angles scale as 1 / f): a
-    # focal-length error is measured here, and the rest of the frame is matched
-    # with the corrected focal length; the scale is then re-estimated from every
-    # matched star and the matching repeated until it settles.
-    scale = _focal_scale(b_all, proposal, db.star_vector)
-    total_scale = 1.0
+def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
+    """:func:`verify`, measuring and correcting the focal-length scale the proposal implies.
+
+    Angles scale as ``1 / f``: the proposal's pairs measure the scale, the
+    frame is matched with the corrected focal length, then the scale is
+    re-estimated from every matched star and the matching repeated until it
+    settles.  Returns ``(verdict, focal scale or None)``.
+    """
+    scale = _focal_scale(b_all, proposal.image, proposal.catalog, db.star_vector)
     if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
         scale = None    # within noise (or beyond belief): keep the nominal focal length
+    cam = camera
     if scale is not None:
-        total_scale = scale
-        camera = camera.with_focal_length(camera.focal_length_px / scale)
-        b_all = camera.pixels_to_vectors(xs, ys)
-    matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id, eps,
-                                           sigma_px, params)
+        cam = camera.with_focal_length(camera.focal_length_px / scale)
+        b_all = cam.pixels_to_vectors(xs, ys)
+    v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags,
+               geom if scale is None else None)
+    if scale is None:
+        return v, None
+    total = scale
     for _ in range(3):
-        if matches is None or scale is None or len(matches) < 3:
+        if v.matches is None or len(v.matches) < 3:
             break
-        everything = Proposal([m["star"] for m in matches], [m["index"] for m in matches])
-        step = _focal_scale(b_all, everything, db.star_vector)
-        if step is None or abs(step - 1.0) < 1e-5 or abs(total_scale * step - 1.0) > params.max_focal_error:
+        step = _focal_scale(b_all, v.star_index, v.cat_index, db.star_vector)
+        if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
             break
-        total_scale *= step
-        camera = camera.with_focal_length(camera.focal_length_px / step)
-        b_all = camera.pixels_to_vectors(xs, ys)
-        matches, dcm, p_false, reason = verify(proposal, b_all, frame_stars, camera, db.star_vector, db.star_id,
-                                               eps, sigma_px, params)
-    scale = total_scale if scale is not None else None
+        total *= step
+        cam = cam.with_focal_length(cam.focal_length_px / step)
+        b_all = cam.pixels_to_vectors(xs, ys)
+        v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags)
+    return v, total
+
+
+@dataclass
+class CatalogStars:
+    """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes."""
+
+    vectors: np.ndarray
+    id: np.ndarray
+    mag: np.ndarray
+
+    @classmethod
+    def from_catalog(cls, catalog) -> CatalogStars:
+        """From a :class:`startrack.catalog.Catalog` (vectors computed once)."""
+        return cls(np.ascontiguousarray(catalog.vectors()), np.asarray(catalog.id), np.asarray(catalog.mag))
+
+
+def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
+                  stars: CatalogStars, max_chance: float, cos_fov: float, mag_limit: float | None = None,
+                  sigma: np.ndarray | None = None):
+    """Match every detection left over to a (deeper) catalog with the identification's attitude.
+
+    Each unmatched detection takes the nearest catalog star projected into the
+    image within its own radius (``radius``, rad), when no other catalog star
+    is within twice the radius (an unresolved neighbour -- closer to it than
+    the radius -- is taken only when it is the brighter), the catalog star is
+    not matched already (one-to-one, the nearer detection wins), and the
+    chance of a catalog star as close by accident, ``1 - exp(-lambda)``, is
+    below ``max_chance``: ``lambda`` is the density of catalog stars around the
+    detection (the others within ten radii, at least the image average) times
+    the disc of radius ``max(offset, sigma)`` (the observed offset, at least
+    the detection's 1-sigma ``sigma``, rad; a p-value of the distance).
+    Only catalog stars at or brighter than ``mag_limit`` take part (the
+    sensor's depth: a deeper catalog only adds chance neighbours).  The
+    attitude is then refined with every match (QUEST, weights ``1 / radius^2``).
+
+    Parameters
+    ----------
+    matches : list of Match
+        The identification's matches; ``ref`` their ICRS unit vectors.
+
+    Returns
+    -------
+    (matches, quaternion or None)
+        ``None`` when nothing was added.
+    """
+    from startrack._kernels.attitude import quest
+
+    vec = stars.vectors
+    front = np.flatnonzero((vec @ dcm[2] > cos_fov) & (stars.mag <= (np.inf if mag_limit is None else mag_limit)))
+    pc = vec[front] @ dcm.T
+    x, y = camera.vectors_to_pixels(pc)
+    keep = camera.in_image(x, y)
+    idx, pc = front[keep], pc[keep]
+    done = np.zeros(len(b_all), dtype=bool)
+    done[[m.star for m in matches]] = True
+    todo = np.flatnonzero(~done)
+    if len(idx) < 1 or len(todo) == 0:
+        return matches, None
+    taken = {int(m.id) for m in matches}
+    dots = b_all[todo] @ pc.T                                   # (detections, predicted)
+    order = np.argsort(-dots, axis=1)[:, :2]
+    r = radius[todo]
+    lam_floor = len(idx) * math.pi * (r * camera.focal_length_px) ** 2 / float(camera.width * camera.height)
+    n_local = np.count_nonzero(dots >= np.cos(10 * r)[:, None], axis=1) - 1
+    cand = {}
+    for row, i in enumerate(todo.tolist()):
+        best = int(order[row, 0])
+        if dots[row, best] < math.cos(r[row]):
+            continue
+        if order.shape[1] > 1 and dots[row, order[row, 1]] >= math.cos(2 * r[row]):
+            other = int(order[row, 1])
+            if float(pc[best] @ pc[other]) < math.cos(r[row]):
+                continue                                        # two distinct stars near it: ambiguous
+            if stars.mag[idx[other]] < stars.mag[idx[best]]:
+                best = other                                    # an unresolved pair: the brighter
+        offset = math.acos(min(1.0, float(dots[row, best])))
+        closest = max(offset, float(sigma[i]) if sigma is not None else r[row]) / r[row]
+        if 1.0 - math.exp(-max(n_local[row] / 100.0, lam_floor[row]) * min(1.0, closest) ** 2) > max_chance:
+            continue
+        cid = int(stars.id[idx[best]])
+        if cid in taken:
+            continue
+        if cid not in cand or dots[row, best] > cand[cid][1]:
+            cand[cid] = (i, float(dots[row, best]), int(idx[best]))
+    if not cand:
+        return matches, None
+    new = sorted(cand.items(), key=lambda kv: kv[1][0])
+    out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
+    body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
+    ref_all = np.vstack([ref, vec[[k for _, (_, _, k) in new]]])
+    w = 1.0 / radius[[m.star for m in out]] ** 2
+    q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref_all), w / w.sum())
+    q = q / math.sqrt(float(q @ q))
+    out.sort(key=lambda m: m.star)
+    return out, (-q if q[3] < 0 else q)
+
+
+def _frame_depth(flux, star_index, mags, margin: float = 1.0):
+    """The faintest catalog magnitude the frame can hold: its faintest detection by the zero point
+    (median of catalog magnitude + 2.5 log10 flux over the identified stars) plus ``margin``; None
+    without fluxes."""
+    if flux is None:
+        return None
+    f = flux[star_index]
+    ok = np.isfinite(f) & (f > 0)
+    fl = flux[np.isfinite(flux) & (flux > 0)]
+    if ok.sum() < 3 or len(fl) == 0:
+        return None
+    zp = float(np.median(mags[ok] + 2.5 * np.log10(f[ok])))
+    return float(-2.5 * np.log10(fl.min()) + zp + margin)
+
+
+def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams,
+        catalog=None) -> Identification:
+    """The search driver: proposals from ``algorithm.search``, each verified, until one passes or the budget ends.
+
+    Parameters
+    ----------
+    algorithm : Algorithm
+    config : dataclass instance of ``algorithm.config``
+    frame_stars : list of dict
+        ``x``, ``y`` (px), optionally ``flux`` and ``sigma_px``, brightest first.
+    camera : Camera
+    db : database of ``algorithm.database`` kind
+    params : IdentifyParams
+    catalog : CatalogStars or Catalog, optional
+        A catalog to match the detections the database does not hold against
+        (:func:`match_catalog`), e.g. the full catalog behind a shallow database.
+
+    Returns
+    -------
+    Identification
+        ``ok`` with every matched detection, or ``failed`` with a reason and code;
+        ``trials`` is the number of proposals verified.
+    """
+    t0 = time.perf_counter()
+    if isinstance(algorithm, str):
+        # The 0.x call run(name, propose, stars, camera, db, params): one proposal from propose().
+        name_, propose = algorithm, config
+
+        def search(ctx, _config):
+            yield propose(ctx.b, ctx.db, ctx.eps, ctx.params, ctx.stars, ctx.camera)
+
+        algorithm, config = Algorithm(name_, search), NoConfig()
+    name = algorithm.name
+    n_all = len(frame_stars)
+    if n_all < 3:
+        return Identification.failed(name, f"{n_all} star(s): at least 3 are needed", ReasonCode.TOO_FEW_STARS,
+                                     time_ms=(time.perf_counter() - t0) * 1000, trials=0)
+    xs = np.array([s["x"] for s in frame_stars], dtype=np.float64)
+    ys = np.array([s["y"] for s in frame_stars], dtype=np.float64)
+    flux = np.array([s.get("flux") if isinstance(s.get("flux"), (int, float)) else np.nan for s in frame_stars],
+                    dtype=np.float64)
+    has_flux = bool(np.isfinite(flux).sum() >= 3)
+    b_all = camera.pixels_to_vectors(xs, ys)
+    sig_px = star_sigmas_px(frame_stars, params)
+    f = camera.focal_length_px
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    use = min(n_all, params.max_stars)
+    if params.tolerance_arcsec is not None:
+        tol = np.zeros(use)
+        margin = math.radians(params.tolerance_arcsec / 3600.0)
+    else:
+        tol = params.tolerance_sigma * sig_px[:use] / f
+    eps = float(math.sqrt(2.0) * tol.max() + margin)
+    ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
+                        flux[:use] if has_flux else None)
+    use_mags = has_flux and not algorithm.uses_brightness
+    deadline = t0 + params.max_time_ms / 1000.0
+    geom = _geometry(camera)
+    tried = 0
+    best = None
+    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
+    accepted = None
+    scale = None
+    details = {}
+    best_details = {}
+    patterns = 0
+    seen = set()
+    for proposal in algorithm.search(ctx, config):
+        if proposal is None or len(proposal.image) == 0:
+            continue
+        # The same correspondences proposed again (another triad of the same stars) are no new trial.
+        key = frozenset(zip(proposal.image, proposal.catalog))
+        if key in seen:
+            continue
+        seen.add(key)
+        tried += 1
+        patterns = max(patterns, proposal.patterns)
+        v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
+                                      params, max(tried, proposal.patterns), use_mags, geom)
+        if v.matches is not None:
+            accepted = v
+            details = dict(proposal.details)
+            break
+        if best is None or (v.p_false is not None and (best.p_false is None or v.p_false < best.p_false)):
+            best = v
+            best_details = dict(proposal.details)
+        if tried >= params.max_proposals:
+            reason, code = f"search budget of {params.max_proposals} proposals spent", ReasonCode.NO_PATTERN
+            break
+        if time.perf_counter() > deadline:
+            reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
+            break
     elapsed = (time.perf_counter() - t0) * 1000
-    extra = {"tolerance_arcsec": round(math.degrees(eps) * 3600, 3), "trials": int(proposal.trials)}
-    if scale is not None:
-        extra["focal_scale"] = round(float(scale), 7)
-    extra.update(proposal.extra)
-    if matches is None:
-        return IdentifyResult("failed", algorithm_name, [], elapsed, reason, p_false, extra=extra)
-    return IdentifyResult("ok", algorithm_name, matches, elapsed, None, p_false, dcm, extra)
+    tol_arcsec = round(math.degrees(eps) * 3600, 3)
+    if accepted is None:
+        if best is not None and reason.startswith("no consistent"):
+            reason, code = best.reason, best.code
+        elif best is not None:
+            reason = f"{reason}; best: {best.reason}"
+        return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
+                                     false_match_probability=best.p_false if best is not None else None,
+                                     details={**best_details, "patterns": int(patterns)})
+    details["patterns"] = int(patterns)
+    details["residual_arcsec_rms"] = round(float(np.sqrt(np.mean(accepted.residual_arcsec**2))), 3)
+    matches, quaternion = accepted.matches, accepted.quaternion
+    if catalog is not None:
+        if not isinstance(catalog, CatalogStars):
+            catalog = CatalogStars.from_catalog(catalog)
+        cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
+        b = b_all if scale is None else cam.pixels_to_vectors(xs, ys)
+        margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
+        radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
+            np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+        n_db = len(matches)
+        depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
+        matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
+                                   radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
+                                   (geom if scale is None else _geometry(cam))[0], depth,
+                                   sig_px / cam.focal_length_px)
+        if depth is not None:
+            details["match_mag_limit"] = round(depth, 2)
+        if q is not None:
+            quaternion = q
+            details["matched_beyond_database"] = len(matches) - n_db
+        elapsed = (time.perf_counter() - t0) * 1000
+    return Identification(Status.OK, name, matches, time_ms=elapsed,
+                          false_match_probability=float(accepted.p_false), trials=tried,
+                          tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
+                          quaternion_estimate=quaternion, details=details)

@@ -19,9 +19,22 @@ finds nothing and the four-star mode runs.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from startrack.identify.base import Proposal
+from startrack.identify.base import Algorithm, Proposal
+
+
+@dataclass(frozen=True)
+class BrightnessConfig:
+    """Settings of the brightness-referenced search (paper 003 Sec. 4.3)."""
+
+    gamma_mag: float = field(default=0.6, metadata={
+        "help": "Brightness difference (mag) beyond which a pair's order must match the catalog's."})
+    reference_mag: float = field(default=3.0, metadata={
+        "help": "M_t: reference-star mode for stars brighter than this magnitude."})
+    max_loops: int = field(default=2000, metadata={"help": "Loops of the Fig. 5 search before giving up."})
 
 
 def calibrate_zero_point(fluxes, db_mag_max: float):
@@ -37,16 +50,19 @@ def calibrate_zero_point(fluxes, db_mag_max: float):
     return float(np.median(quarter)), k
 
 
-def propose_brightness(b, db, eps, params, stars, camera):
+def search_brightness(ctx, config: BrightnessConfig):
+    """Paper 003's Fig. 5 loop: each unique match in turn, continuing after one the verification rejects."""
     from startrack._kernels.identify import brightness_search
+
+    b, db, eps, stars = ctx.b, ctx.db, ctx.eps, ctx.stars
 
     flux = np.array([max(float(s.get("flux", 0.0)), 1e-12) for s in stars])
     if not np.all(np.diff(flux) <= 1e-9 * max(flux.max(), 1.0)) and len(flux) > 1:
         order = np.argsort(-flux, kind="stable")
     else:
         order = np.arange(len(flux))
-    gamma = float(params.extra.get("gamma_mag", 0.6))
-    ref_mag = float(params.extra.get("reference_mag", 3.0))
+    gamma = float(config.gamma_mag)
+    ref_mag = float(config.reference_mag)
     cal = calibrate_zero_point(flux, float(db.star_mag.max()))
     inst = -2.5 * np.log10(flux[order])
     if cal is not None:
@@ -55,12 +71,20 @@ def propose_brightness(b, db, eps, params, stars, camera):
         ref_ok = flux[order] >= m_t
     else:
         ref_ok = np.zeros(len(order), dtype=bool)
-    mode, idx, cat, loops = brightness_search(
-        np.ascontiguousarray(b[order]), inst, db.star_vector, db.star_mag, db.pair_i, db.pair_j, db.pair_cos,
-        db.kvector, np.array(db.line), eps, gamma, ref_ok, ref_mag, int(params.extra.get("max_loops", 2000)))
-    if mode == 0:
-        return Proposal([], [], int(loops), {"reason": f"no unique brightness-referenced match in {loops} loops"})
-    keep = [t for t in range(4) if idx[t] >= 0]
     names = {1: "reference-star", 2: "four-star", 3: "triangle"}
-    return Proposal([int(order[idx[t]]) for t in keep], [int(cat[t]) for t in keep], int(loops),
-                    {"mode": names[int(mode)]})
+    bo = np.ascontiguousarray(b[order])
+    loops = 0
+    while True:
+        mode, idx, cat, loops = brightness_search(
+            bo, inst, db.star_vector, db.star_mag, db.pair_i, db.pair_j, db.pair_cos, db.kvector,
+            np.asarray(db.line, dtype=np.float64), eps, gamma, ref_ok, ref_mag, int(config.max_loops), int(loops))
+        if mode == 0:
+            return
+        keep = [t for t in range(4) if idx[t] >= 0]
+        yield Proposal([int(order[idx[t]]) for t in keep], [int(cat[t]) for t in keep], int(loops),
+                       {"mode": names[int(mode)]})
+
+
+BRIGHTNESS = Algorithm("brightness", search_brightness, BrightnessConfig, "kvector",
+                       "Paper 003's brightness-referenced search on the k-vector pair database.",
+                       uses_brightness=True)

@@ -29,10 +29,23 @@ field with a much deeper catalog).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Proposal
+from startrack.identify.base import Algorithm, Proposal
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """Settings of the grid algorithm (Padgett & Kreutz-Delgado 1997)."""
+
+    grid_size: int = field(default=40, metadata={"help": "Cells per side of the pattern grid (g)."})
+    pattern_radius_deg: float | None = field(default=None, metadata={
+        "help": "Pattern radius pr (deg); default 0.6 of the narrower field."})
+    buffer_px: float = field(default=6.0, metadata={"help": "Buffer radius br (px; at least 3 tolerances)."})
+    min_overlap: int = field(default=3, metadata={"help": "On-cells a catalog pattern must share."})
+    references: int = field(default=12, metadata={"help": "Reference stars (nearest the centre) matched."})
 
 
 def _tangent_basis(v):
@@ -71,11 +84,11 @@ def _pattern(centre, neighbours, pr, br, g):
 
 def catalog_patterns(db, pr, br, g):
     """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> stars), orientation stars."""
-    # Cached on the database itself (it lives as long as its patterns are valid).
     key = (round(pr, 9), round(br, 9), g)
-    cache = db.__dict__.setdefault("_grid_patterns", {})
-    if key in cache:
-        return cache[key]
+    # Kept on the database object itself (dropped with it), keyed by (pr, br, g).
+    per_db = db.__dict__.setdefault("_grid_patterns", {})
+    if key in per_db:
+        return per_db[key]
     n = db.n_stars
     ptr = np.zeros(n + 1, dtype=np.int64)
     cells_all = []
@@ -94,19 +107,21 @@ def catalog_patterns(db, pr, br, g):
     order = np.argsort(cells, kind="stable")
     inv_stars = owner[order]
     inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
-    cache.clear()
-    cache[key] = (ptr, cells, inv_ptr, inv_stars, orient)
-    return cache[key]
+    per_db.clear()
+    per_db[key] = (ptr, cells, inv_ptr, inv_stars, orient)
+    return per_db[key]
 
 
-def propose_grid(b, db, eps, params, stars, camera):
-    g = int(params.extra.get("grid_size", 40))
+def search_grid(ctx, config: GridConfig):
+    """Grid matches of the reference stars; the confirmed groups, largest first."""
+    b, db, eps, camera = ctx.b, ctx.db, ctx.eps, ctx.camera
+    g = int(config.grid_size)
     fov = math.radians(min(camera.fov_deg))
-    pr = float(params.extra.get("pattern_radius_deg", math.degrees(fov) * 0.6)) * math.pi / 180
+    pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else 0.6 * fov
     pr = min(pr, math.radians(db.max_angle_deg))
-    br = max(float(params.extra.get("buffer_px", 6.0)) / camera.focal_length_px, 3 * eps)
-    min_overlap = int(params.extra.get("min_overlap", 3))
-    n_refs = int(params.extra.get("references", 12))
+    br = max(float(config.buffer_px) / camera.focal_length_px, 3 * eps)
+    min_overlap = int(config.min_overlap)
+    n_refs = int(config.references)
     ptr, cells_db, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g)
     boresight = np.array([0.0, 0.0, 1.0])
     # Reference stars: nearest the image centre first.
@@ -126,9 +141,9 @@ def propose_grid(b, db, eps, params, stars, camera):
             continue
         refs.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
     if not refs:
-        return Proposal([], [], n_refs, {"reason": "no grid pattern matched"})
-    # Confirmation: the largest set of references whose catalog angles agree with the image.
-    best_set = []
+        return
+    # Confirmation: groups of references whose catalog angles agree with the image, largest first.
+    groups = []
     for i in range(len(refs)):
         group = [refs[i]]
         for j in range(len(refs)):
@@ -138,19 +153,22 @@ def propose_grid(b, db, eps, params, stars, camera):
             for rr in group:
                 th = math.acos(min(1.0, float(b[refs[j][0]] @ b[rr[0]])))
                 tc = math.acos(min(1.0, float(db.star_vector[refs[j][1]] @ db.star_vector[rr[1]])))
-                if abs(th - tc) > eps or refs[j][1] == rr[1]:
+                if abs(th - tc) > ctx.pair_eps(refs[j][0], rr[0]) or refs[j][1] == rr[1]:
                     ok = False
                     break
             if ok:
                 group.append(refs[j])
-        if len(group) > len(best_set):
-            best_set = group
-    if len(best_set) < 2:
-        return Proposal([], [], n_refs, {"reason": "grid matches do not confirm each other"})
+        key = frozenset(r for r, *_ in group)
+        if len(group) >= 2 and key not in {k for k, _ in groups}:
+            groups.append((key, group))
     # The confirmed reference stars are the proposal.  (Their orientation
     # neighbours are not added: the image's nearest neighbour need not be the
     # catalog's -- a missing or extra star changes it -- and one wrong pair in
     # the proposal can pull the attitude onto the wrong member of a close pair.)
-    img = [r for r, *_ in best_set]
-    cat = [c for _, c, *_ in best_set]
-    return Proposal(img, cat, len(refs), {"grid_votes": [v for *_, v in best_set]})
+    for _, group in sorted(groups, key=lambda kg: -len(kg[1])):
+        yield Proposal([r for r, *_ in group], [c for _, c, *_ in group], len(refs),
+                       {"grid_votes": [v for *_, v in group]})
+
+
+GRID = Algorithm("grid", search_grid, GridConfig, "kvector",
+                 "Padgett & Kreutz-Delgado's grid patterns, built from the k-vector database's neighbour lists.")

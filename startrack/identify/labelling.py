@@ -27,10 +27,25 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Proposal
+from startrack.identify.base import Algorithm, Proposal
+
+
+@dataclass(frozen=True)
+class LabellingConfig:
+    """Settings of the labelling search (paper 004)."""
+
+    label_boundary: float = field(default=0.2, metadata={
+        "help": "Sub-labels this close to a rounding boundary are looked up both ways."})
+    max_focal_error: float = field(default=0.05, metadata={
+        "help": "Largest relative focal-length error a label match may imply."})
+    max_entries: int = field(default=64, metadata={"help": "Database entries examined per label."})
+    group_stars: int | None = field(default=None, metadata={
+        "help": "Brightest detections whose groups are tried (default: the database's stars per field, "
+                "paper 004's 8); more find groups past bright false stars, slowly."})
 
 
 def _pair_angles(vecs):
@@ -60,13 +75,21 @@ def _labels_with_variants(angles, digits, boundary, max_variants=8):
     return out
 
 
-def propose_labelling(b, db, eps, params, stars, camera):
+def search_labelling(ctx, config: LabellingConfig):
+    """Groups of the brightest stars in paper 004's order; each group's label matches, best Eq. 5 error first.
+
+    The paper stops at the first group that matches; here the matches of a
+    group the verification rejects are followed by the next group's.
+    """
+    b, db, eps = ctx.b, ctx.db, ctx.eps
     group = db.group_size
-    n_use = min(len(b), db.stars_per_field)
+    # The paper's groups come from the stars_per_field brightest; false stars among them push
+    # true ones further down: group_stars widens the set (groups brightest first).
+    n_use = min(len(b), db.stars_per_field if config.group_stars is None else int(config.group_stars))
     if n_use < group:
-        return Proposal([], [], 0, {"reason": f"{len(b)} stars, a group needs {group}"})
-    boundary = float(params.extra.get("label_boundary", 0.2))
-    max_scale = float(params.extra.get("max_focal_error", 0.05))
+        return
+    boundary = float(config.label_boundary)
+    max_scale = float(config.max_focal_error)
     perms = list(itertools.permutations(range(group)))
     pair_index = [(a, c) for a in range(group) for c in range(a + 1, group)]
     tried = 0
@@ -74,12 +97,13 @@ def propose_labelling(b, db, eps, params, stars, camera):
         tried += 1
         vecs = b[list(combo)]
         mea = _pair_angles(vecs)
-        best = None
+        found = {}
         for label in _labels_with_variants(mea, db.scale_digits, boundary):
             start, end = db.lookup(label)
-            for entry in range(start, min(end, start + 64)):
+            for entry in range(start, min(end, start + config.max_entries)):
                 members = db.members[entry]
                 cvec = db.star_vector[members]
+                best = None
                 for perm in perms:
                     cat_angles = np.array([math.acos(min(1.0, max(-1.0, float(cvec[perm[a]] @ cvec[perm[c]]))))
                                            for a, c in pair_index])
@@ -88,13 +112,18 @@ def propose_labelling(b, db, eps, params, stars, camera):
                         continue
                     err = float(np.sum(np.abs(s * mea - cat_angles)))     # Eq. 5 after the scale
                     if best is None or err < best[0]:
-                        best = (err, [int(members[perm[a]]) for a in range(group)], s)
-        if best is None:
-            continue
-        # Accept when the residual is what centroid noise explains (eps per angle) plus, when the
-        # focal length is far off, the departure of the gnomonic angles from one common scale.
-        allowance = len(mea) * (eps + 0.5 * abs(best[2] - 1.0) * float(np.max(mea)) ** 3)
-        if best[0] <= allowance:
-            return Proposal(list(combo), best[1], tried, {"label_error_arcsec": round(math.degrees(best[0]) * 3600, 3),
-                                                          "focal_scale": round(best[2], 6)})
-    return Proposal([], [], tried, {"reason": f"no label matched within tolerance in {tried} groups"})
+                        best = (err, tuple(int(members[perm[a]]) for a in range(group)), s)
+                if best is None:
+                    continue
+                # Accept when the residual is what centroid noise explains (eps per angle) plus, when the
+                # focal length is far off, the departure of the gnomonic angles from one common scale.
+                allowance = len(mea) * (eps + 0.5 * abs(best[2] - 1.0) * float(np.max(mea)) ** 3)
+                if best[0] <= allowance and (best[1] not in found or best[0] < found[best[1]][0]):
+                    found[best[1]] = best
+        for err, cat, s in sorted(found.values()):
+            yield Proposal(list(combo), list(cat), tried, {"label_error_arcsec": round(math.degrees(err) * 3600, 3),
+                                                          "label_focal_scale": round(s, 6)})
+
+
+LABELLING = Algorithm("labelling", search_labelling, LabellingConfig, "labels",
+                      "Kim & Cho's labelling on a label database (build-labels).")

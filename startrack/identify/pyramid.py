@@ -1,34 +1,73 @@
 """Pyramid identification (Mortari, Samaan, Bruccoleri & Junkins 2004) and paper 000's quadratic variant.
 
-The kernel (:func:`startrack._kernels.identify.pyramid_search`) walks the
-smart triad sequence, finds catalog triangles through k-vector range look-ups
-on the three inter-star angles with tolerance ``eps`` and the specular
-(handedness) test, and confirms a unique triangle with a fourth star.
-``pyramid-quadratic`` replaces the k-vector range by paper 000's quadratic
-search (Eqs. 10-12), clipped to the k-vector range.
+Triads of image stars are taken in Mortari's smart index sequence (every
+triad once, bright stars early, spikes spread out); for each, the kernel
+(:func:`startrack._kernels.identify.pyramid_candidates`) finds the catalog
+triangles through k-vector range look-ups on the inter-star angles, the
+third angle and the specular (handedness) test, and confirms each triangle
+with a fourth image star matching exactly one catalog star (the pyramid).
+Every confirmed pyramid is a proposal, the triad's in the order found: where
+Mortari's pyramid stops at the first triad with a *unique* triangle, this
+search also proposes the pyramids of ambiguous triads and goes on after a
+rejected one (the shared verification decides), which is what a sparse field
+of four or five stars needs.  ``pyramid-quadratic`` replaces the k-vector
+range by paper 000's quadratic search (Eqs. 10-12), clipped to the k-vector
+range.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from startrack.identify.base import Proposal
+from startrack.identify.base import Algorithm, Proposal
 
 
-def _propose(b, db, eps, params, stars, camera, quadratic):
-    from startrack._kernels.identify import pyramid_search
+@dataclass(frozen=True)
+class PyramidConfig:
+    """Settings of the pyramid search."""
 
-    status, idx, cat, tried, _ = pyramid_search(
-        b, db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, np.array(db.line), db.kquad,
-        np.array(db.quad), quadratic, eps, params.max_triads, float(params.extra.get("relative_tolerance", 0.0)))
-    if status == 0:
-        return Proposal([], [], int(tried), {"reason": f"no unique pyramid among {tried} triads"})
-    keep = [k for k in range(4) if idx[k] >= 0]
-    return Proposal([int(idx[k]) for k in keep], [int(cat[k]) for k in keep], int(tried))
+    max_triads: int = field(default=300, metadata={"help": "Triads of image stars tried (smart index order)."})
+    max_triangles: int = field(default=64, metadata={
+        "help": "Catalog triangles of one triad beyond which the triad is skipped as uninformative."})
 
 
-def propose_pyramid(b, db, eps, params, stars, camera):
-    return _propose(b, db, eps, params, stars, camera, False)
+def _search(ctx, config, quadratic):
+    from startrack._kernels.identify import pyramid_candidates, smart_triads
+
+    db = ctx.db
+    n = len(ctx.b)
+    line = np.asarray(db.line, dtype=np.float64)
+    quad = np.asarray(db.quad, dtype=np.float64)
+    tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
+    triads = smart_triads(n)
+    seen = set()
+    for t, (i, j, k) in enumerate(triads[: config.max_triads].tolist(), start=1):
+        out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
+                                        db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
+                                        config.max_triangles, 256)
+        for r, I, J, K, R in out.tolist():
+            key = (i, j, k, I, J, K)
+            if key in seen:
+                continue
+            seen.add(key)
+            if r < 0:
+                yield Proposal([i, j, k], [I, J, K], t, {"triangles": int(n_tri)})
+            else:
+                yield Proposal([i, j, k, r], [I, J, K, R], t, {"triangles": int(n_tri)})
 
 
-def propose_pyramid_quadratic(b, db, eps, params, stars, camera):
-    return _propose(b, db, eps, params, stars, camera, True)
+def search_pyramid(ctx, config: PyramidConfig):
+    """Pyramid proposals with k-vector range look-ups."""
+    return _search(ctx, config, False)
+
+
+def search_pyramid_quadratic(ctx, config: PyramidConfig):
+    """Pyramid proposals with paper 000's quadratic range search."""
+    return _search(ctx, config, True)
+
+
+PYRAMID = Algorithm("pyramid", search_pyramid, PyramidConfig, "kvector",
+                    "Mortari's pyramid on the k-vector pair database.")
+PYRAMID_QUADRATIC = Algorithm("pyramid-quadratic", search_pyramid_quadratic, PyramidConfig, "kvector",
+                              "The pyramid with paper 000's quadratic k-vector search.")

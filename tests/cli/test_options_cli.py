@@ -230,15 +230,16 @@ def test_vocabulary_is_one():
 def test_choices_come_from_the_registries():
     from startrack.attitude import METHODS as ATT
     from startrack.centroid import METHODS as CEN
-    from startrack.identify import ALGORITHMS, DATABASE_KIND
+    from startrack.identify import algorithm_names, database_kind
 
+    ALGORITHMS = algorithm_names()
     cmds = _commands()
 
     def opt(cmd, name):
         return next(p for p in cmds[cmd].params if p.name == name)
 
     assert list(opt("identify", "algorithm").type.choices) == list(ALGORITHMS)
-    assert list(opt("track", "algorithm").type.choices) == [a for a in ALGORITHMS if DATABASE_KIND[a] == "kvector"]
+    assert list(opt("track", "algorithm").type.choices) == [a for a in ALGORITHMS if database_kind(a) == "kvector"]
     assert list(opt("attitude", "method").type.choices) == list(ATT)
     assert list(opt("centroid", "method").type.choices) == list(CEN)
     help_text = run_main("identify", "--help").stdout
@@ -252,9 +253,10 @@ def test_a_registered_algorithm_is_a_choice(monkeypatch):
     import importlib
 
     import startrack.identify as ident
+    from startrack.identify.pyramid import PYRAMID
 
-    monkeypatch.setitem(ident.ALGORITHMS, "toy", ("startrack.identify.pyramid", "propose_pyramid", "kvector"))
-    monkeypatch.setitem(ident.DATABASE_KIND, "toy", "kvector")
+    registry = ident._registry()
+    monkeypatch.setitem(registry, "toy", ident.Algorithm("toy", PYRAMID.search, PYRAMID.config, "kvector"))
     module = importlib.reload(importlib.import_module("startrack.cli.identify"))
     try:
         assert "toy" in next(p for p in module.command.params if p.name == "algorithm").type.choices

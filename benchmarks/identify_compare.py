@@ -1,0 +1,150 @@
+"""Identification side by side: startrack's six algorithms, tetra3rs and cedar-solve on the same star lists.
+
+The star lists are those of ``startrack evaluate`` (:func:`startrack.evaluate.make_frames`,
+same seed, same conditions); startrack's rows come from :func:`startrack.evaluate.evaluate`,
+the function behind the command.  Peers get the same centroids (brightest first) and the
+true field of view; a peer answer counts as correct when its boresight is within 0.1 deg
+and its roll within 1 deg of the truth, wrong otherwise (peers report an attitude, not
+star ids).  Database loading is outside every timing.
+
+    .venv/bin/python benchmarks/identify_compare.py --count 1000            # the issue-14 table
+    .venv/bin/python benchmarks/identify_compare.py --fov 12 --size 1024x768 --count 300
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "peers"))
+OUT = os.path.join(os.path.dirname(HERE), "bench-output")
+
+ALGORITHMS = ["pyramid", "pyramid-quadratic", "voting", "brightness", "labelling", "grid"]
+
+
+def _peer_correct(r, truth):
+    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+
+    est = radec_roll_to_dcm(math.radians(r["ra"]), math.radians(r["dec"]), math.radians(r["roll"]))
+    _, cross, roll = attitude_error(est, quaternion_to_dcm(truth["quaternion"]))
+    return math.degrees(cross) < 0.1 and abs(math.degrees(roll)) < 1.0
+
+
+def _row(tool, cond, outcomes, times):
+    t = np.array(times, dtype=float)
+    n = len(outcomes)
+    return {"algorithm": tool, "condition": cond, "frames": n, "success": outcomes.count("success"),
+            "failure": outcomes.count("failure"), "bad": outcomes.count("bad"),
+            "median_ms": float(np.nanmedian(t)), "p95_ms": float(np.nanpercentile(t, 95))}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--fov", type=float, default=15.0)
+    ap.add_argument("--size", default="1280x960")
+    ap.add_argument("--db-mag", type=float, default=6.0)
+    ap.add_argument("--star-mag", type=float, default=5.5)
+    ap.add_argument("--min-stars", type=int, default=4)
+    ap.add_argument("--count", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=14)
+    ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10", help="sigma_px:false_stars, ...")
+    ap.add_argument("--algorithms", default=",".join(ALGORITHMS))
+    ap.add_argument("--no-peers", action="store_true")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--out", default=os.path.join(OUT, "identify_compare.md"))
+    args = ap.parse_args(argv)
+
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.evaluate import Condition, evaluate, make_frames
+    from startrack.identify import IdentifyParams
+    from startrack.kvector import build_kvector, max_separation_deg
+    from startrack.labels import build_labels
+
+    w, h = (int(v) for v in args.size.split("x"))
+    cam = Camera.from_fov(args.fov, w, h)
+    full = load_catalog()
+    db_cat = full.filter_magnitude(None, args.db_mag)
+    star_cat = full.filter_magnitude(None, args.star_mag)
+    t0 = time.perf_counter()
+    kv = build_kvector(db_cat, max_separation_deg(camera=cam))
+    t_kv = time.perf_counter() - t0
+    algos = [a for a in args.algorithms.split(",") if a]
+    dbs = {"kvector": kv}
+    t_lab = None
+    if "labelling" in algos:
+        t0 = time.perf_counter()
+        dbs["labels"] = build_labels(db_cat, max(cam.fov_deg))
+        t_lab = time.perf_counter() - t0
+    peers = {}
+    notes = [f"startrack k-vector database: {kv.n_stars} stars (Hp <= {args.db_mag:g}), {kv.n_pairs} pairs, "
+             f"built in {t_kv:.1f} s" + (f"; label database built in {t_lab:.1f} s" if t_lab else "")]
+    if not args.no_peers:
+        try:
+            import tetra3rs_peer
+
+            if tetra3rs_peer.is_available():
+                peers["tetra3rs"] = tetra3rs_peer.build_or_load(args.fov * max(w, h) / w if w >= h else args.fov,
+                                                                args.db_mag, catalog="hip2")
+                notes.append(f"tetra3rs database (hip2, Hp <= {args.db_mag:g}): {tetra3rs_peer.LAST_BUILD}")
+        except Exception as exc:  # noqa: BLE001
+            notes.append(f"tetra3rs unavailable: {type(exc).__name__}: {exc}")
+        try:
+            import cedar_peer
+
+            if cedar_peer.is_available():
+                peers["cedar-solve"] = cedar_peer.CedarSolver(build_fov=args.fov, mag=args.db_mag)
+        except Exception as exc:  # noqa: BLE001
+            notes.append(f"cedar-solve unavailable: {type(exc).__name__}: {exc}")
+    rows = []
+    try:
+        for spec in args.conditions.split(","):
+            sigma, nfalse = spec.split(":")
+            cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_stars=args.min_stars)
+            params = IdentifyParams(sigma_px=float(sigma))
+            rows += [dict(r, condition=cond.label()) for r in
+                     evaluate(algos, [cond], args.count, dbs, cam, star_cat, args.seed, args.jobs, params,
+                              args.star_mag)]
+            if not peers:
+                continue
+            frames = make_frames(star_cat, cam, cond, args.count, args.seed, mag_limit=args.star_mag)
+            for tool, peer in peers.items():
+                outcomes, times = [], []
+                for stars, truth, _ in frames:
+                    xy = [[s["x"], s["y"]] for s in stars]
+                    if tool == "tetra3rs":
+                        r = tetra3rs_peer.solve(xy, w, h, args.fov, db=peer)
+                        t = r["elapsed_ms"]
+                    else:
+                        r = peer.solve_centroids(xy, w, h, args.fov)
+                        t = r.get("t_solve_ms") or r.get("t_wall_ms") or float("nan")
+                    times.append(t)
+                    if r.get("ra") is None:
+                        outcomes.append("failure")
+                    else:
+                        outcomes.append("success" if _peer_correct(r, truth) else "bad")
+                rows.append(_row(tool, cond.label(), outcomes, times))
+    finally:
+        if "cedar-solve" in peers:
+            peers["cedar-solve"].close()
+    lines = [f"# Identification, {args.fov:g} deg {args.size}, stars to Hp {args.star_mag:g}, database Hp <= "
+             f"{args.db_mag:g}, >= {args.min_stars} stars a frame, {args.count} frames, seed {args.seed}", ""]
+    lines += [f"- {n}" for n in notes] + [""]
+    lines += ["| condition | algorithm | success | failed | wrong | median ms | p95 ms |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['condition']} | {r['algorithm']} | {100 * r['success'] / r['frames']:.1f} % "
+                     f"({r['success']}) | {r['failure']} | {r['bad']} | {r['median_ms']:.3f} | {r['p95_ms']:.3f} |")
+    text = "\n".join(lines) + "\n"
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as fh:
+        fh.write(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
