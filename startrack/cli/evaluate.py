@@ -255,7 +255,7 @@ def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars
 
     def identify(stars):
         res = identify_stars(stars, cam, db, algorithm, params)
-        return [(m["star"], m["id"]) for m in res.matches] if res.status == "ok" else None
+        return [(m.star, m.id) for m in res.matches] if res.status == "ok" else None
 
     render_cat = load_catalog(catalog_path).filter_magnitude(None, lim + 1.0)
     bar = ProgressBar("evaluate", quiet)
