@@ -148,6 +148,11 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
             db = load_labels(path)
             check_labels(db, cam)
+        elif kind == "triangles":
+            from startrack.triangles import check_triangles, load_triangles
+
+            db = load_triangles(path)
+            check_triangles(db, cam)
         else:
             raise BadInputError(path, "format", f"{tag!r} is not an identification database")
         loaded[kind] = db

@@ -110,7 +110,9 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     Example (build a database once, then identify a stream):
       startrack build-kvector --fov-deg 20 --mag-max 5.0 -o db.h5
       startrack render --stars-only --count 100 --fov-deg 20 --mag-max 5 --sigma-px 0.3 --seed 1 \\
-          | startrack identify --database db.h5 --algorithm pyramid | jq -c .identification.status
+          | startrack identify --database db.h5 --algorithm pyramid -o ids.jsonl \\
+          || echo "exit status $?: some frames were not identified (too few stars)"
+      jq -c .identification.status ids.jsonl | sort | uniq -c
     \b
     Example (a real photo: the database is built for its camera, 11.4 x 8.6 deg):
       startrack build-kvector --camera cam.json --mag-max 6.5 -o esa.h5
@@ -192,6 +194,10 @@ def _load_database(path, kind):
         from startrack.labels import load_labels
 
         return load_labels(path)
+    if kind == "triangles":
+        from startrack.triangles import load_triangles
+
+        return load_triangles(path)
     from startrack.kvector import load_kvector
 
     return load_kvector(path)
@@ -202,6 +208,10 @@ def _check(db, camera, kind):
         from startrack.labels import check_labels
 
         check_labels(db, camera)
+    elif kind == "triangles":
+        from startrack.triangles import check_triangles
+
+        check_triangles(db, camera)
     else:
         from startrack.kvector import check_database
 

@@ -31,6 +31,7 @@ BUILTIN = (
     "startrack.identify.brightness:BRIGHTNESS",
     "startrack.identify.labelling:LABELLING",
     "startrack.identify.grid:GRID",
+    "startrack.identify.modified_pyramid:MODIFIED_PYRAMID",
 )
 ENTRY_POINT_GROUP = "startrack.identify"
 

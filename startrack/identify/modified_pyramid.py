@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Proposal
+from startrack.identify.base import Algorithm, Proposal
 
 MAX_CANDIDATES = 4096      # catalog triangles kept per look-up
 
@@ -34,7 +35,7 @@ def _sides_ok(b, stars, cos_max) -> bool:
 
 
 def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200, quadratic: bool = True):
-    """Proposals of paper 000's modified pyramid, in its order; ``trials`` counts the catalog triangles tried.
+    """Proposals of paper 000's modified pyramid, in its order (``patterns``: four-star sets tried so far).
 
     Parameters
     ----------
@@ -92,8 +93,9 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 200, quadratic: bool
                 theta = math.acos(min(1.0, max(-1.0, float(db.star_vector[co] @ db.star_vector[cr]))))
                 if abs(theta - theta_other) > eps:
                     continue
+                # ``patterns``: the four-star sets compared with the database so far (look-elsewhere).
                 yield Proposal([int(p0), int(p1), int(p2), int(p3)], [int(c[0]), int(c[1]), int(c[2]), int(cr)],
-                               trials)
+                               count + 1, {"triangles": trials})
 
 
 def propose_modified_pyramid(b, db, eps, params, stars, camera):
@@ -101,3 +103,26 @@ def propose_modified_pyramid(b, db, eps, params, stars, camera):
     for proposal in iter_modified_pyramid(b, db, eps, params.max_triads):
         return proposal
     return Proposal([], [], 0, {"reason": "no confirmed four-star pattern in the triangle database"})
+
+
+@dataclass(frozen=True)
+class ModifiedPyramidConfig:
+    """Settings of paper 000's modified pyramid."""
+
+    max_quadruples: int = field(default=200, metadata={"help": "Four-star sets tried, brightest first."})
+    range_search: str = field(default="quadratic", metadata={
+        "help": "Smallest-angle look-up: 'quadratic' (paper 000 Eqs. 10-12) or 'line' (Mortari's k-vector)."})
+
+
+def search_modified_pyramid(ctx, config: ModifiedPyramidConfig):
+    """Paper 000's modified pyramid proposals for the shared driver."""
+    if config.range_search not in ("quadratic", "line"):
+        from startrack.errors import ParameterError
+
+        raise ParameterError("range_search", f"must be 'quadratic' or 'line', got {config.range_search!r}")
+    yield from iter_modified_pyramid(ctx.b, ctx.db, ctx.eps, config.max_quadruples,
+                                     config.range_search == "quadratic")
+
+
+MODIFIED_PYRAMID = Algorithm("modified-pyramid", search_modified_pyramid, ModifiedPyramidConfig, "triangles",
+                             "Paper 000's modified pyramid on the triangle database (build-triangles).")
