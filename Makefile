@@ -62,6 +62,9 @@ bench-blind: bench-peers
 reproduce: install
 	bash examples/reproduce-papers.sh
 	bash examples/tracking.sh
+	$(PY) examples/paper000.py
+	$(PY) examples/p003_fig1.py
+	$(PY) examples/paper_reports.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache .hypothesis bench-output

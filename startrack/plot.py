@@ -478,23 +478,45 @@ def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -
     names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
              "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
              "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
-    fig = _figure(figsize=(11, 4.2), dpi=110)
+    from matplotlib.ticker import MaxNLocator, NullFormatter, ScalarFormatter
+
+    fig = _figure(figsize=(11, 4.6), dpi=110)
     ax1, ax2 = fig.subplots(1, 2)
-    for algorithm in dict.fromkeys(r["algorithm"] for r in rows):
+    algorithms = list(dict.fromkeys(r["algorithm"] for r in rows))
+    styles = ["-", "--", "-.", ":"]
+    markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
+    values = sorted({r[x_field] for r in rows})
+    step = min((b - a for a, b in zip(values, values[1:])), default=1.0) or 1.0
+    for k, algorithm in enumerate(algorithms):
         sub = sorted((r for r in rows if r["algorithm"] == algorithm), key=lambda r: r[x_field])
-        xs = [r[x_field] for r in sub]
-        ax1.plot(xs, [100 * r["success_rate"] for r in sub], marker="o", label=algorithm)
-        ax2.plot(xs, [r["median_ms"] for r in sub], marker="o", label=algorithm)
-    ax1.set_xlabel(names.get(x_field, x_field))
+        # Lines that coincide (several algorithms at 100 %) are told apart by a small sideways
+        # offset, a marker and a line style of their own.
+        shift = (k - (len(algorithms) - 1) / 2) * 0.06 * step
+        xs = [r[x_field] + shift for r in sub]
+        style = dict(marker=markers[k % len(markers)], linestyle=styles[k % len(styles)], label=algorithm,
+                     markersize=5, linewidth=1.4, alpha=0.9)
+        ax1.plot(xs, [100 * r["success_rate"] for r in sub], **style)
+        ax2.plot(xs, [r["median_ms"] for r in sub], **style)
+    integer = x_field in ("false_stars", "min_stars")
+    for ax in (ax1, ax2):
+        ax.set_xlabel(names.get(x_field, x_field))
+        if integer:
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        else:
+            ax.set_xticks(values)
     ax1.set_ylabel("success rate (%)")
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=8)
-    ax2.set_xlabel(names.get(x_field, x_field))
     ax2.set_ylabel("median identification time (ms)")
     ax2.set_yscale("log")
+    ax2.yaxis.set_major_formatter(ScalarFormatter())
+    ax2.yaxis.set_minor_formatter(NullFormatter())
     ax2.grid(alpha=0.3, which="both")
     n = rows[0]["frames"] if rows else 0
-    fig.suptitle(title or f"{n} random attitudes per point")
+    fixed = [f"{names.get(f, f)} {rows[0][f]:g}" for f in fields if f != x_field and rows and
+             rows[0].get(f) and len({r[f] for r in rows}) == 1]
+    conditions = f"{n:,} random attitudes per point" + (f"; {', '.join(fixed)}" if fixed else "")
+    fig.suptitle(f"{title}\n{conditions}" if title else conditions, fontsize=10)
     fig.tight_layout()
     _save(fig, path)
     return path
