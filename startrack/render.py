@@ -500,6 +500,7 @@ class RenderRun:
     first_seed: int | None = None
     params: dict = field(default_factory=dict)
     blackout: tuple = ()
+    first_index: int = 0           # index of the first frame (a chunk of a larger set: same seeds and names)
 
     @property
     def total(self) -> int:
@@ -516,7 +517,7 @@ class RenderRun:
         vectors = self.catalog.vectors()
         rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
         start = self.start_time if self.start_time is not None else epoch_time(self.catalog.epoch)
-        index = 0
+        index = self.first_index
         for _ in range(self.count):
             base = None
             for k in range(self.frames):

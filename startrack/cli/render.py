@@ -18,6 +18,34 @@ from startrack.cli.options import (
 )
 
 
+class _ImagePath:
+    """Picklable ``index -> file name`` of a batch's images (numbered as the serial run numbers them)."""
+
+    def __init__(self, output, total):
+        self.output, self.total = output, total
+
+    def __call__(self, index):
+        from startrack.cli.paths import numbered_path
+
+        return numbered_path(self.output, index, self.total)
+
+
+def _write_images(items):
+    """The frame documents of ``(doc, image, path)`` items, their images written."""
+    from startrack.imageio import write_image
+
+    for doc, image, path in items:
+        if image is not None and path:
+            write_image(path, image, header={"STVER": doc["render"]["startrack_version"],
+                                             "FRSEED": str(doc["render"]["frame_seed"])})
+        yield doc
+
+
+def _render_chunk(run):
+    """Dask task: render one chunk of a Monte Carlo set; images written here, documents returned."""
+    return list(_write_images(run.frames_iter()))
+
+
 def _floats(text, name, n):
     from startrack.errors import BadInputError
 
@@ -79,6 +107,11 @@ def _floats(text, name, n):
 @click.option("--count", "-n", type=Int(1, 100_000_000), default=1, show_default=True,
               help="Number of random-attitude frames (or sequences).")
 @seed_option
+@click.option("--jobs", "-j", type=Int(1, 1024), default=1, show_default=True,
+              help="With --scheduler: worker processes of a local cluster.")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Render a large --count on a Dask cluster ('local', or tcp://HOST:8786): chunks of frames per "
+                   "task, images written by the workers (a shared filesystem), documents in order.")
 @click.option("--frame-seed", type=Int(0, 2**63 - 1), default=None, help="Re-render exactly one frame from its recorded frame_seed.")
 @quiet_option
 @handle_errors
@@ -86,7 +119,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             output, documents, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
-            sigma_arcsec, max_stars, drop_fraction, count, seed, frame_seed, quiet):
+            sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
 
     The image goes to --output (format by extension: 8/16-bit PNG, 16-bit TIFF,
@@ -117,7 +150,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
     from startrack.formats.frame import FrameWriter
-    from startrack.imageio import check_image_output, write_image
+    from startrack.imageio import check_image_output
     from startrack.progress import ProgressBar
     from startrack.render import RenderRun, Scene, Sensor
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm, radec_roll_to_dcm
@@ -225,14 +258,34 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
     bar = ProgressBar("render", quiet)
     n_stars = 0
+    from startrack.cluster import TaskFailure
+
     with FrameWriter(documents) as writer:
-        for i, (doc, image, path) in enumerate(run.frames_iter()):
-            if image is not None and path:
-                write_image(path, image, header={"STVER": doc["render"]["startrack_version"],
-                                                 "FRSEED": str(doc["render"]["frame_seed"])})
-            writer.write(doc)
-            n_stars += len(doc["truth"]["stars"])
-            bar(i + 1, run.total)
+        if scheduler is None:
+            results = ((i, [item]) for i, item in enumerate(_write_images(run.frames_iter())))
+        else:
+            # Chunks of random attitudes (or of whole sequences) rendered by the Dask workers, which write
+            # their image files themselves (a shared filesystem); the documents come back in order.
+            import dataclasses
+
+            from startrack.cluster import chunks, default_chunk, ordered_map
+
+            if output:
+                run = dataclasses.replace(run, image_path=_ImagePath(os.path.abspath(output), count * frames))
+            parts = [dataclasses.replace(run, count=b - a, first_index=a * frames)
+                     for a, b in chunks(count, default_chunk(count, jobs))]
+            results = ordered_map(_render_chunk, parts, jobs=jobs, scheduler=scheduler)
+        done = 0
+        for _, docs in results:
+            if isinstance(docs, TaskFailure):
+                raise BadInputError("--scheduler", None, f"a chunk of frames failed on the cluster: {docs.error}")
+            for doc in docs:
+                if scheduler is not None and output and "path" in doc["image"]:
+                    doc["image"]["path"] = numbered_path(output, done, run.total)   # as the user named it
+                writer.write(doc)
+                n_stars += len(doc["truth"]["stars"])
+                done += 1
+                bar(done, run.total)
     info(quiet, f"render: {run.total} frame(s), {n_stars / run.total:.1f} catalog stars per frame on average, seed {seed}"
                 + (f", images {output if run.total == 1 else os.path.splitext(output)[0] + '-NNNN' + os.path.splitext(output)[1]}"
                    if output else ""))
