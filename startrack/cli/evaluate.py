@@ -106,7 +106,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     Example (accuracy: error / Cramér-Rao bound per axis on paper 000's sensor, 1000 rendered frames):
       startrack build-kvector --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --mag-min 2.5 \\
           --mag-max 6.59 -o p000.h5
-      startrack evaluate -d p000.h5 --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --accuracy -n 1000
+      startrack evaluate -d p000.h5 --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --accuracy -n 100
     \b
     Example (robustness to focal-length error, with a chart):
       startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-max 5 --focal-error-pct 0,0.5,1,2 \\
