@@ -159,38 +159,50 @@ def _length(items) -> int:
         return 0
 
 
+def _windowed(items, window, submit, collect, progress):
+    """Keep at most ``window`` tasks submitted; yield ``(index, result)`` in input order.
+
+    ``submit(item)`` starts a task and returns its handle; ``collect(index, handle)`` waits for it
+    and returns its result (a :class:`TaskFailure` when it failed).
+    """
+    state = BatchProgress(total=_length(items), started=time.perf_counter())
+    pending = {}
+    source = enumerate(items)
+    exhausted = False
+    next_out = 0
+    while True:
+        while not exhausted and len(pending) < window:
+            try:
+                i, item = next(source)
+            except StopIteration:
+                exhausted = True
+                break
+            pending[i] = submit(i, item)
+        if next_out not in pending:
+            return
+        state.in_flight = len(pending)
+        result = collect(next_out, pending.pop(next_out))
+        state.done += 1
+        state.failed += isinstance(result, TaskFailure)
+        state.in_flight = len(pending)
+        if progress:
+            progress(state)
+        yield next_out, result
+        next_out += 1
+
+
 def _pool_map(fn, items, jobs, window, progress):
     import multiprocessing as mp
 
-    state = BatchProgress(total=_length(items), started=time.perf_counter())
+    def collect(index, handle):
+        try:
+            return handle.get()
+        except Exception as exc:  # noqa: BLE001 - a task's failure is reported in its place
+            return TaskFailure(index, _describe(exc))
+
     # spawn, not fork: numba's threading layer and HDF5 must not be forked.
     with mp.get_context("spawn").Pool(jobs) as pool:
-        pending = {}
-        source = enumerate(items)
-        exhausted = False
-        next_out = 0
-        while True:
-            while not exhausted and len(pending) < window:
-                try:
-                    i, item = next(source)
-                except StopIteration:
-                    exhausted = True
-                    break
-                pending[i] = pool.apply_async(fn, (item,))
-            if next_out not in pending:
-                return
-            state.in_flight = len(pending)
-            try:
-                result = pending.pop(next_out).get()
-            except Exception as exc:  # noqa: BLE001
-                result = TaskFailure(next_out, _describe(exc))
-            state.done += 1
-            state.failed += isinstance(result, TaskFailure)
-            state.in_flight = len(pending)
-            if progress:
-                progress(state)
-            yield next_out, result
-            next_out += 1
+        yield from _windowed(items, window, lambda _i, item: pool.apply_async(fn, (item,)), collect, progress)
 
 
 def _connect(scheduler: str, jobs: int):
@@ -217,40 +229,23 @@ def _dask_map(fn, items, jobs, scheduler, window, retries, progress):
     from distributed import wait
 
     client, cluster = _connect(scheduler, jobs)
+
+    def submit(i, item):
+        return client.submit(fn, item, retries=retries, pure=False, key=f"startrack-{os.getpid()}-{i}")
+
+    def collect(index, future):
+        wait(future)
+        if future.status == "finished":
+            result = future.result()
+        else:
+            exc = future.exception()
+            result = TaskFailure(index, _describe(exc) if exc is not None else future.status)
+        future.release()
+        return result
+
     try:
         n_workers = max(1, len(client.scheduler_info().get("workers", {})) or jobs)
-        window = window or 4 * n_workers
-        state = BatchProgress(total=_length(items), started=time.perf_counter())
-        pending = {}
-        source = enumerate(items)
-        exhausted = False
-        next_out = 0
-        while True:
-            while not exhausted and len(pending) < window:
-                try:
-                    i, item = next(source)
-                except StopIteration:
-                    exhausted = True
-                    break
-                pending[i] = client.submit(fn, item, retries=retries, pure=False, key=f"startrack-{os.getpid()}-{i}")
-            if next_out not in pending:
-                return
-            state.in_flight = len(pending)
-            future = pending.pop(next_out)
-            wait(future)
-            if future.status == "finished":
-                result = future.result()
-            else:
-                exc = future.exception()
-                result = TaskFailure(next_out, _describe(exc) if exc is not None else future.status)
-            future.release()
-            state.done += 1
-            state.failed += isinstance(result, TaskFailure)
-            state.in_flight = len(pending)
-            if progress:
-                progress(state)
-            yield next_out, result
-            next_out += 1
+        yield from _windowed(items, window or 4 * n_workers, submit, collect, progress)
     finally:
         client.close()
         if cluster is not None:
