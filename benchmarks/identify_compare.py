@@ -60,7 +60,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from startrack.camera import Camera
-    from startrack.catalog import load_catalog
+    from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
     from startrack.evaluate import Condition, evaluate, make_frames
     from startrack.identify import IdentifyParams
     from startrack.kvector import build_kvector, max_separation_deg
@@ -69,7 +69,9 @@ def main(argv=None):
     w, h = (int(v) for v in args.size.split("x"))
     cam = Camera.from_fov(args.fov, w, h)
     full = load_catalog()
-    db_cat = full.filter_magnitude(None, args.db_mag)
+    # As build-kvector --size does: stars closer than 2 px are one entry (the sensor sees one blob).
+    merge_arcsec = merge_radius_arcsec(cam, DEFAULT_MERGE_PX)
+    db_cat = full.filter_magnitude(None, args.db_mag).merge_close(merge_arcsec)
     star_cat = full.filter_magnitude(None, args.star_mag)
     t0 = time.perf_counter()
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
@@ -82,7 +84,8 @@ def main(argv=None):
         dbs["labels"] = build_labels(db_cat, max(cam.fov_deg))
         t_lab = time.perf_counter() - t0
     peers = {}
-    notes = [f"startrack k-vector database: {kv.n_stars} stars (Hp <= {args.db_mag:g}), {kv.n_pairs} pairs, "
+    notes = [f"startrack k-vector database: {kv.n_stars} stars (Hp <= {args.db_mag:g}, pairs closer than "
+             f"{merge_arcsec:.0f}\" merged as build-kvector --size does), {kv.n_pairs} pairs, "
              f"built in {t_kv:.1f} s" + (f"; label database built in {t_lab:.1f} s" if t_lab else "")]
     if not args.no_peers:
         try:
@@ -102,14 +105,16 @@ def main(argv=None):
         except Exception as exc:  # noqa: BLE001
             notes.append(f"cedar-solve unavailable: {type(exc).__name__}: {exc}")
     rows = []
+    bad = []
     try:
         for spec in args.conditions.split(","):
             sigma, nfalse = spec.split(":")
             cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_stars=args.min_stars)
             params = IdentifyParams(sigma_px=float(sigma))
-            rows += [dict(r, condition=cond.label()) for r in
-                     evaluate(algos, [cond], args.count, dbs, cam, star_cat, args.seed, args.jobs, params,
-                              args.star_mag)]
+            got = evaluate(algos, [cond], args.count, dbs, cam, star_cat, args.seed, args.jobs, params, args.star_mag)
+            rows += [dict(r, condition=cond.label()) for r in got]
+            bad += [f"{r['algorithm']} [{cond.label()}]: frame seed {b['frame_seed']}: {b['wrong']}"
+                    for r in got for b in r["bad_seeds"]]
             if not peers:
                 continue
             frames = make_frames(star_cat, cam, cond, args.count, args.seed, mag_limit=args.star_mag)
@@ -139,6 +144,8 @@ def main(argv=None):
     for r in rows:
         lines.append(f"| {r['condition']} | {r['algorithm']} | {100 * r['success'] / r['frames']:.1f} % "
                      f"({r['success']}) | {r['failure']} | {r['bad']} | {r['median_ms']:.3f} | {r['p95_ms']:.3f} |")
+    if bad:
+        lines += ["", "Wrong answers (frame seed, star, reported id, true id):", ""] + [f"- {b}" for b in bad]
     text = "\n".join(lines) + "\n"
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
