@@ -81,7 +81,7 @@ def build_triangles(catalog, max_separation_deg: float, progress=None, params: d
     progress : callable, optional
         ``progress(done, total)``.
     """
-    from startrack._kernels.triangles import count_triangles, fill_triangles
+    from startrack._kernels.triangles import fill_triangles
     from startrack.catalog import star_pairs
     from startrack.kvector import _kvector_line, _quadratic_fit
 
@@ -101,7 +101,8 @@ def build_triangles(catalog, max_separation_deg: float, progress=None, params: d
     np.add.at(ptr, a + 1, 1)
     ptr = np.cumsum(ptr)
     cos_max = math.cos(math.radians(max_separation_deg))
-    n = int(count_triangles(ptr, idx, vec, cos_max))
+    none = np.empty((0, 3), dtype=np.int32)
+    n = int(fill_triangles(ptr, idx, vec, cos_max, none, np.empty((0, 3)), np.empty(0, dtype=np.int8), False))
     if n == 0:
         raise BadInputError("max_separation_deg", None, "no three stars are that close: the database would be empty")
     if n > MAX_TRIANGLES:

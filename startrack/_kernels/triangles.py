@@ -40,26 +40,13 @@ def _handedness(p0, p1, p2):
 
 
 @njit(cache=True)
-def count_triangles(ptr, idx, vec, cos_max):
-    """Number of star triples whose three pairs are all within the largest separation."""
-    n = 0
-    for i in range(ptr.shape[0] - 1):
-        for a in range(ptr[i], ptr[i + 1]):
-            j = idx[a]
-            if j <= i:
-                continue
-            for b in range(a + 1, ptr[i + 1]):
-                k = idx[b]
-                if k <= j:
-                    continue
-                if vec[j, 0] * vec[k, 0] + vec[j, 1] * vec[k, 1] + vec[j, 2] * vec[k, 2] >= cos_max:
-                    n += 1
-    return n
+def fill_triangles(ptr, idx, vec, cos_max, stars, angles, hand, fill=True):
+    """Every star triple whose three pairs are within the largest separation; returns how many.
 
-
-@njit(cache=True)
-def fill_triangles(ptr, idx, vec, cos_max, stars, angles, hand):
-    """Every triangle: its stars ordered by internal angle (smallest first), the angles, the handedness."""
+    With ``fill``, triangle ``n`` is written to ``stars[n]`` (vertex of the smallest internal angle
+    first), ``angles[n]`` (ascending) and ``hand[n]``; without it the triples are only counted (the
+    first of the two passes, which sizes the arrays).
+    """
     n = 0
     for i in range(ptr.shape[0] - 1):
         for a in range(ptr[i], ptr[i + 1]):
@@ -72,13 +59,14 @@ def fill_triangles(ptr, idx, vec, cos_max, stars, angles, hand):
                     continue
                 if vec[j, 0] * vec[k, 0] + vec[j, 1] * vec[k, 1] + vec[j, 2] * vec[k, 2] < cos_max:
                     continue
-                ang = internal_angles(vec[i], vec[j], vec[k])
-                order = np.argsort(ang)
-                tri = (i, j, k)
-                for v in range(3):
-                    stars[n, v] = tri[order[v]]
-                    angles[n, v] = ang[order[v]]
-                hand[n] = _handedness(vec[stars[n, 0]], vec[stars[n, 1]], vec[stars[n, 2]])
+                if fill:
+                    ang = internal_angles(vec[i], vec[j], vec[k])
+                    order = np.argsort(ang)
+                    tri = (i, j, k)
+                    for v in range(3):
+                        stars[n, v] = tri[order[v]]
+                        angles[n, v] = ang[order[v]]
+                    hand[n] = _handedness(vec[stars[n, 0]], vec[stars[n, 1]], vec[stars[n, 2]])
                 n += 1
     return n
 
