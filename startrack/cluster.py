@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -77,6 +78,10 @@ _PROCESS_CACHE: dict = {}
 
 def worker_cache() -> dict:
     """The cache of the process (or Dask worker) that runs the current task."""
+    # A Dask worker has ``distributed`` loaded already; anywhere else importing
+    # it would cost most of a second of start-up for nothing.
+    if "distributed" not in sys.modules:
+        return _PROCESS_CACHE
     try:
         from distributed import get_worker
 

@@ -305,8 +305,11 @@ def warm_kernels(index: PatternIndex) -> None:
                    1.0, 2.0, 1)
     b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]])
     b /= np.linalg.norm(b, axis=1)[:, None]
-    refine(b, b.copy(), np.array([0, 1]), np.array([0, 1]), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
-    quick_check(b, b.copy(), np.array([0, 1]), np.array([0, 1]), 0.5, 0.01)
+    # The catalog side is the index's own (read-only, memory-mapped) array, as in the
+    # search, so that one compiled signature serves both (each one costs a load).
+    rows = np.array([0, 1])
+    refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
+    quick_check(b, index.star_vec, rows, rows, 0.5, 0.01)
 
 
 def solve_blind(stars: list, width: int, height: int, index: PatternIndex, options: BlindOptions | None = None,

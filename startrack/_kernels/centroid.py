@@ -2,7 +2,7 @@
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 
 @njit(cache=True)
@@ -31,7 +31,11 @@ def _clipped_stats(values, n_iter, kappa):
     return med, sig
 
 
-@njit(cache=True, parallel=True)
+# Serial on purpose: these passes are memory-bound (two multiply-adds per pixel,
+# ~100 samples per tile), and for star-tracker frames numba's thread start-up and
+# spinning cost more than they save; under contention (``-j N`` batches, a busy
+# cluster node) parallel loops were 2-3x slower in wall time.
+@njit(cache=True)
 def background_mesh(image, cell, step):
     """Sigma-clipped median and sigma on a mesh of ``cell`` x ``cell`` tiles.
 
@@ -43,7 +47,7 @@ def background_mesh(image, cell, step):
     nx = (w + cell - 1) // cell
     level = np.empty((ny, nx))
     sigma = np.empty((ny, nx))
-    for t in prange(ny * nx):
+    for t in range(ny * nx):
         j = t // nx
         i = t % nx
         y0 = j * cell
@@ -290,7 +294,7 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
     return p[0], p[1], p[2], p[3], ok
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask):
     """``residual = image - level`` and ``mask = residual > threshold`` in one pass.
 
@@ -310,7 +314,7 @@ def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask)
         i0[x] = a
         i1[x] = min(a + 1, nx - 1)
         tx[x] = fx - a
-    for y in prange(h):
+    for y in range(h):
         fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
         j0 = min(int(fy), ny - 2) if ny > 1 else 0
         j1 = min(j0 + 1, ny - 1)
