@@ -314,10 +314,14 @@ def _geometry(camera):
 
 
 def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.ndarray, camera, db, eps: float,
-           params: IdentifyParams, trials: int, use_magnitudes: bool, geom=None) -> _Verdict:
+           params: IdentifyParams, trials: int, use_magnitudes: bool, geom=None, scale_offset: float = 0.0) -> _Verdict:
     """Attitude, every other detection and the confidence of one proposal (see the module docstring).
 
-    ``geom`` is :func:`_geometry` of ``camera`` (computed when not given).
+    ``geom`` is :func:`_geometry` of ``camera`` (computed when not given).  ``scale_offset``
+    is ``|s - 1|`` of a focal-length scale fitted to the data before this call: a random
+    catalog pattern then needs to match the core's shape only up to a scale that close to
+    nominal, which multiplies the chance of a coincidence by ``1 + |s - 1| theta_max / window``
+    (``theta_max`` the core's largest angle; see :func:`_verify_with_focal`).
     """
     from startrack._kernels.attitude import quat_to_dcm, refine
     from startrack._kernels.identify import check_matches, core_window
@@ -374,6 +378,9 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     # an angle), not the search tolerance -- a p-value of the fit, at most E(eps).
     window = core_window(b_all[core], star_vec[cat[:4]], math.sqrt(2.0) * float(sig_px[core].max()) / f, eps)
     e_core = pattern_chance(len(star_vec), window, b_all[core])
+    if scale_offset > 0.0:
+        g = b_all[core] @ b_all[core].T
+        e_core *= 1.0 + scale_offset * math.acos(max(-1.0, min(1.0, float(g.min())))) / window
     # Bright catalog stars predicted in the image but not detected (magnitudes).
     p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
     p_missing *= p_mag
@@ -403,15 +410,67 @@ def _focal_scale(b_all, img, cat, star_vec):
     return float(ref @ mea) / denom if denom > 0 else None
 
 
+def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err):
+    """The focal-length scale the whole field implies (None with fewer than four tentative matches).
+
+    With the attitude of a proposal solved at a wrong focal length, the other stars sit
+    off their predictions by up to ``max_err`` times their distance from the core (the
+    error grows away from where the attitude was fitted), so the normal match radius
+    misses the outer ones and a scale fitted to the few matched near the core stays
+    wrong.  Each detection here takes the one predicted star within its radius widened by
+    that displacement (none when two are), and the scale is the median of catalog over
+    measured angle over the long pairs of these tentative matches (robust to the odd
+    wrong one).
+    """
+    front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
+    if len(front) < 4:
+        return None
+    x, y = camera.vectors_to_pixels(star_vec[front] @ dcm.T)
+    ok = np.isfinite(x) & np.isfinite(y)
+    front, x, y = front[ok], x[ok], y[ok]
+    if len(front) < 4:
+        return None
+    d_core = np.hypot(xs - float(np.mean(xs[core])), ys - float(np.mean(ys[core])))
+    allowed = radius_px + max_err * d_core
+    dist = np.hypot(xs[:, None] - x[None, :], ys[:, None] - y[None, :])
+    order = np.argsort(dist, axis=1)[:, :2]
+    rows = np.arange(len(xs))
+    near = dist[rows, order[:, 0]]
+    second = dist[rows, order[:, 1]] if order.shape[1] > 1 else np.full(len(xs), np.inf)
+    take = (near <= allowed) & (second > allowed)
+    img = np.flatnonzero(take)
+    if len(img) < 4:
+        return None
+    cat = front[order[img, 0]]
+    if len(np.unique(cat)) < len(cat):
+        keep = np.unique(cat, return_index=True)[1]
+        img, cat = img[keep], cat[keep]
+        if len(img) < 4:
+            return None
+    iu = np.triu_indices(len(img), 1)
+    mea = np.arccos(np.minimum((b_all[img] @ b_all[img].T)[iu], 1.0))
+    ref = np.arccos(np.minimum((star_vec[cat] @ star_vec[cat].T)[iu], 1.0))
+    long = mea >= 0.3 * mea.max()
+    if np.count_nonzero(long) < 3:
+        return None
+    return float(np.median(ref[long] / mea[long]))
+
+
 def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
     """:func:`verify`, measuring and correcting the focal-length scale the proposal implies.
 
-    Angles scale as ``1 / f``: the proposal's pairs measure the scale, the
-    frame is matched with the corrected focal length, then the scale is
-    re-estimated from every matched star and the matching repeated until it
-    settles.  Returns ``(verdict, focal scale or None)``.
+    Angles scale as ``1 / f``: the proposal's pairs measure the scale and the frame is
+    matched with the corrected focal length.  An accepted match is then checked against
+    the scale the whole field implies (:func:`_field_scale`), and the scale re-estimated
+    from every matched star until it settles; each verification after a scale was fitted
+    pays for the freedom (``scale_offset`` of :func:`verify`), and the identification is
+    refused when the field's scale refuses it.  Without this, a focal-length error left a
+    few outer stars matched to the wrong neighbour (paper 004 Fig. 7 conditions).
+    Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used.
+    Returns ``(verdict, focal scale or None)``.
     """
-    scale = _focal_scale(b_all, proposal.image, proposal.catalog, db.star_vector)
+    star_vec = db.star_vector
+    scale = _focal_scale(b_all, proposal.image, proposal.catalog, star_vec)
     if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
         scale = None    # within noise (or beyond belief): keep the nominal focal length
     cam = camera
@@ -419,21 +478,31 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
         cam = camera.with_focal_length(camera.focal_length_px / scale)
         b_all = cam.pixels_to_vectors(xs, ys)
     v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags,
-               geom if scale is None else None)
-    if scale is None:
-        return v, None
-    total = scale
-    for _ in range(3):
+               geom if scale is None else None, abs(scale - 1.0) if scale is not None else 0.0)
+    if v.matches is None or v.dcm is None:
+        return v, scale
+    total = 1.0 if scale is None else scale
+    margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
+    radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
+        np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+    step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
+                        params.max_focal_error)
+    if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
+        total *= step
+        cam = camera.with_focal_length(camera.focal_length_px / total)
+        b_all = cam.pixels_to_vectors(xs, ys)
+        v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
+    for _ in range(4):
         if v.matches is None or len(v.matches) < 3:
             break
-        step = _focal_scale(b_all, v.star_index, v.cat_index, db.star_vector)
+        step = _focal_scale(b_all, v.star_index, v.cat_index, star_vec)
         if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
             break
         total *= step
-        cam = cam.with_focal_length(cam.focal_length_px / step)
+        cam = camera.with_focal_length(camera.focal_length_px / total)
         b_all = cam.pixels_to_vectors(xs, ys)
-        v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags)
-    return v, total
+        v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
+    return v, (None if total == 1.0 else total)
 
 
 @dataclass
