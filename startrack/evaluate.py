@@ -105,8 +105,8 @@ def score(result, truth) -> str:
 _WORKER = {}
 
 
-def _worker_init(databases, camera, params):
-    _WORKER.update(databases=databases, camera=camera, params=params)
+def _worker_init(databases, camera, params, configs=None):
+    _WORKER.update(databases=databases, camera=camera, params=params, configs=dict(configs or {}))
 
 
 def _identify_chunk(args):
@@ -114,13 +114,14 @@ def _identify_chunk(args):
 
     algorithm, frames = args
     db = _WORKER["databases"][database_kind(algorithm)]
+    config = _WORKER.get("configs", {}).get(algorithm)
     if frames and not _WORKER.get(("warm", algorithm)):
         # The first call in a process loads the compiled kernels: keep it out of the timings.
-        identify_stars(frames[0][0], _WORKER["camera"], db, algorithm, _WORKER["params"])
+        identify_stars(frames[0][0], _WORKER["camera"], db, algorithm, _WORKER["params"], config)
         _WORKER[("warm", algorithm)] = True
     out = []
     for stars, truth, frame_seed in frames:
-        res = identify_stars(stars, _WORKER["camera"], db, algorithm, _WORKER["params"])
+        res = identify_stars(stars, _WORKER["camera"], db, algorithm, _WORKER["params"], config)
         outcome = score(res, truth)
         wrong = [{"star": m.star, "id": m.id, "true_id": truth["star_ids"][m.star]} for m in res.matches
                  if truth["star_ids"][m.star] != m.id][:3] if outcome == "bad" else []
@@ -131,7 +132,8 @@ def _identify_chunk(args):
 
 
 def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: int = 0, jobs: int = 1,
-             params=None, mag_limit=None, progress=None, scheduler: str | None = None, catalog_path=None):
+             params=None, mag_limit=None, progress=None, scheduler: str | None = None, catalog_path=None,
+             configs: dict | None = None):
     """Run every algorithm on every condition.
 
     Parameters
@@ -144,6 +146,9 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
         (from their files) and the catalog (``catalog_path``, None for the
         shipped one) once, and the results are reduced as the chunks arrive, so
         the client holds no frame.
+    configs : dict, optional
+        Algorithm name -> its configuration (:func:`startrack.identify.make_config`);
+        the defaults for the others.
 
     Returns
     -------
@@ -160,7 +165,7 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
     params = params or IdentifyParams()
     if scheduler is not None:
         return _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params,
-                                    mag_limit, progress, scheduler)
+                                    mag_limit, progress, scheduler, configs)
     vectors = catalog.vectors()
     rows = []
     total = len(conditions) * len(algorithms)
@@ -170,9 +175,9 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
         import multiprocessing as mp
 
         # spawn, not fork: numba's OpenMP threading layer must not be forked.
-        pool = mp.get_context("spawn").Pool(jobs, _worker_init, (databases, camera, params))
+        pool = mp.get_context("spawn").Pool(jobs, _worker_init, (databases, camera, params, configs))
     else:
-        _worker_init(databases, camera, params)
+        _worker_init(databases, camera, params, configs)
     try:
         for cond in conditions:
             frames = make_frames(catalog, camera, cond, n, seed, mag_limit=mag_limit, vectors=vectors)
@@ -243,7 +248,7 @@ def _cluster_chunk(spec):
     from startrack.catalog import load_catalog
     from startrack.cluster import worker_cache
 
-    paths, catalog_path, mag_limit, camera_doc, params, cond, algorithms, seed, start, stop = spec
+    paths, catalog_path, mag_limit, camera_doc, params, cond, algorithms, seed, start, stop, configs = spec
     cache = worker_cache()
     key = ("evaluate", tuple(sorted(paths.items())), catalog_path, mag_limit)
     if key not in cache:
@@ -253,12 +258,12 @@ def _cluster_chunk(spec):
     dbs, cat, vectors = cache[key]
     camera = Camera.from_dict(camera_doc)
     frames = make_frames(cat, camera, cond, stop - start, seed, mag_limit=mag_limit, vectors=vectors, start=start)
-    _worker_init(dbs, camera, params)
+    _worker_init(dbs, camera, params, configs)
     return {algorithm: _identify_chunk((algorithm, frames)) for algorithm in algorithms}
 
 
 def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params, mag_limit,
-                         progress, scheduler):
+                         progress, scheduler, configs=None):
     from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map
 
     paths = {}
@@ -269,7 +274,7 @@ def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_p
     if catalog_path is not None:
         catalog_path = os.path.abspath(catalog_path)
     size = default_chunk(n, jobs)
-    specs = [(paths, catalog_path, mag_limit, camera.to_dict(), params, cond, list(algorithms), seed, a, b)
+    specs = [(paths, catalog_path, mag_limit, camera.to_dict(), params, cond, list(algorithms), seed, a, b, configs)
              for cond in conditions for a, b in chunks(n, size)]
     per_cond = len(chunks(n, size))
     rows, results, done = [], {}, 0

@@ -139,8 +139,16 @@ def test_labelling_tolerates_focal_length_error_pyramid_does_not(setup24):
 
 
 def test_brightness_modes(setup24):
+    """Paper 003: the reference-star mode needs Eq. 9's calibration (M_t); without one, four-star mode only."""
+    from startrack.identify import make_config
+    from startrack.render import Sensor, electrons_from_magnitude
+
     cat, kv, labels, cam = setup24
     frames = make_frames(cat, cam, Condition(sigma_px=0.2, mag_noise=0.1), 100, 6, mag_limit=5.2)
-    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2)).details.get("mode")
+    cal = make_config("brightness", {"brightness_calibration": f"3:{electrons_from_magnitude(3.0, Sensor()):.6g}"})
+    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2), cal).details.get("mode")
              for s, _, _ in frames}
     assert {"reference-star", "four-star"} <= modes
+    modes = {identify_stars(s, cam, kv, "brightness", IdentifyParams(sigma_px=0.2)).details.get("mode")
+             for s, _, _ in frames[:30]}
+    assert "reference-star" not in modes and "four-star" in modes

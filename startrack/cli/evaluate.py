@@ -22,6 +22,32 @@ from startrack.cli.options import (
 )
 
 
+def algorithm_options(func):
+    """The algorithms' own settings, as ``identify`` offers them (each applies to the algorithms that have it)."""
+    from startrack.cli.identify import _algorithm_options
+
+    return _algorithm_options(func)
+
+
+def algorithm_configs(settings, algorithms):
+    """Algorithm name -> configuration from the generated options; an option none of ``algorithms`` has is an error."""
+    from startrack.errors import BadInputError
+    from startrack.identify import config_fields, make_config
+
+    values = {a: {} for a in algorithms}
+    for f in config_fields():
+        v = settings.pop(f["name"], None)
+        if v is None:
+            continue
+        takers = [a for a in algorithms if a in f["algorithms"]]
+        if not takers:
+            flag = "--" + f["name"].replace("_", "-")
+            raise BadInputError(flag, None, f"is a setting of {', '.join(f['algorithms'])}, none of which is compared")
+        for a in takers:
+            values[a][f["name"]] = v
+    return {a: make_config(a, v) for a, v in values.items() if v}
+
+
 def _floats(text, name):
     from startrack.errors import BadInputError
 
@@ -84,11 +110,12 @@ def _legacy_json_path(ctx, args):
                    "each frame's Cramér-Rao bound, per axis, and NEES (identification by the first database and "
                    "algorithm).")
 @quiet_option
+@algorithm_options
 @handle_errors
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
             mag_max, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
             min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, as_json, output, plot,
-            accuracy, quiet):
+            accuracy, quiet, **settings):
     """Compare identification algorithms over random attitudes, as the papers do.
 
     Every combination of the comma-separated condition values is one row per
@@ -172,6 +199,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
                             max_stars=[max_stars])
     algos = list(algorithms)
+    configs = algorithm_configs(settings, algos)
     lim = mag_max
     if lim is None:
         lim = min(float(db.star_mag.max()) for db in loaded.values())
@@ -190,7 +218,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         hint = sigma_hint_px if sigma_hint_px is not None else max(cond.sigma_px, 0.01)
         params = IdentifyParams(sigma_px=hint, tolerance_arcsec=tolerance_arcsec)
         rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim, scheduler=scheduler,
-                         catalog_path=catalog)
+                         catalog_path=catalog, configs=configs)
         bar(len(rows), len(conds) * len(algos))
     for r in rows:
         if r.get("double_frames"):
