@@ -7,6 +7,7 @@ from numba import njit
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 N_PARAMS = 7     # cx, cy, l (half length), theta, flux, background, sigma
+STEP_TOL = 0.05  # converged: the last step in position, length and direction below this many sigma
 N_OUT = 14       # cx, cy, l, theta, flux, bg, sigma, sig_cx, sig_cy, sig_l, sig_theta, chi2_dof, n_pix, ok
 
 
@@ -20,36 +21,31 @@ def _cdf(z):
     return 0.5 * (1.0 + math.erf(z / _SQRT2))
 
 
+_Z_FLAT = 6.0    # beyond 6 sigma Phi is 0 or 1 and phi is 0 to 1e-8 of the peak: not evaluated
+
+
+@njit(cache=True, inline="always")
+def _edge(z):
+    """``(Phi(z), phi(z))``, with the far tails (``|z| > 6``) taken as exactly flat."""
+    if z > _Z_FLAT:
+        return 1.0, 0.0
+    if z < -_Z_FLAT:
+        return 0.0, 0.0
+    return _cdf(z), _phi(z)
+
+
 @njit(cache=True)
-def _model(px, py, p, grad):
-    """Segment PSF at pixel (px, py) and its gradient w.r.t. the 7 parameters (paper-free: see startrack.streak)."""
-    cx, cy, l, th, f, b, s = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
-    ux = math.cos(th)
-    uy = math.sin(th)
-    rx = px - cx
-    ry = py - cy
-    a = rx * ux + ry * uy          # along the streak
-    d = -rx * uy + ry * ux         # across it
-    g = _INV_SQRT_2PI / s * math.exp(-0.5 * d * d / (s * s))
-    zp = (a + l) / s
-    zm = (a - l) / s
-    e = _cdf(zp) - _cdf(zm)
-    inv2l = 0.5 / l
-    core = g * e * inv2l           # profile for unit flux
-    i = f * core
-    pp = _phi(zp)
-    pm = _phi(zm)
-    di_da = f * g * inv2l * (pp - pm) / s
-    di_dd = -i * d / (s * s)
-    # d/d cx: a = r.u, d = r.n, r = p - c
-    grad[0] = -(di_da * ux - di_dd * uy)
-    grad[1] = -(di_da * uy + di_dd * ux)
-    grad[2] = f * g * inv2l * (pp + pm) / s - i / l
-    grad[3] = di_da * d + di_dd * (-a)
-    grad[4] = core
-    grad[5] = 1.0
-    grad[6] = i * (d * d / (s * s * s) - 1.0 / s) + f * g * inv2l * (-pp * zp / s + pm * zm / s)
-    return i + b
+def _small_step(jtj, step, cost, npx, tol):
+    """True when the last step in ``cx``, ``cy``, ``l`` and ``theta`` was below ``tol`` times their
+    1-sigma (``(J^T J)^-1 cost / dof``): converged to a small fraction of the parameters' own uncertainty."""
+    s2 = cost / max(npx - N_PARAMS, 1)
+    for a_ in range(4):
+        e = np.zeros(N_PARAMS)
+        e[a_] = 1.0
+        col, good = _solve(jtj, e, N_PARAMS)
+        if not good or step[a_] * step[a_] > tol * tol * col[a_] * s2:
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -82,35 +78,64 @@ def _solve(a, b, n):
     return x, True
 
 
-@njit(cache=True, inline="always")
-def _signal(image, x, y, x0, x1, y0, y1, thr):
-    """A pixel above the threshold with at least two of its 8 neighbours above it too (not lone noise)."""
-    if image[y, x] <= thr:
-        return False
-    c = 0
-    for yy in range(max(y0, y - 1), min(y1, y + 1) + 1):
-        for xx in range(max(x0, x - 1), min(x1, x + 1) + 1):
-            if (xx != x or yy != y) and image[yy, xx] > thr:
-                c += 1
-    return c >= 2
+@njit(cache=True, fastmath=True)
+def _accumulate(pxs, pys, vals, npx, p, grad, jtj, jtr, meat):
+    """Eq. (1) of :mod:`startrack.streak` at parameters ``p`` on the fit's pixels: the sum of squared
+    residuals, the normal equations ``J^T J``, ``J^T r`` (analytic Jacobian) and the sandwich estimator's
+    middle term ``sum r_i^2 J_i J_i^T``.
 
-
-@njit(cache=True)
-def _accumulate(pxs, pys, vals, npx, p, grad, jtj, jtr):
-    """Sum of squared residuals at ``p``, and the normal equations ``J^T J``, ``J^T r``."""
+    Parameters ``p = cx, cy, l, theta, F, B, s``.  With ``a``, ``d`` the pixel's offsets along and across
+    the segment, ``g = exp(-d^2 / 2 s^2) / (sqrt(2 pi) s)``, ``z+- = (a +- l) / s``:
+    ``I = B + F g [Phi(z+) - Phi(z-)] / 2 l``.
+    """
+    cx, cy, l, th, f, b, s = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
+    ux = math.cos(th)
+    uy = math.sin(th)
+    inv_s = 1.0 / s
+    inv_s2 = inv_s * inv_s
+    inv2l = 0.5 / l
+    inv_l = 1.0 / l
     jtj[:, :] = 0.0
     jtr[:] = 0.0
+    meat[:, :] = 0.0
     cost = 0.0
     for i in range(npx):
-        r = vals[i] - _model(pxs[i], pys[i], p, grad)
-        cost += r * r
+        rx = pxs[i] - cx
+        ry = pys[i] - cy
+        a = rx * ux + ry * uy          # along the streak
+        d = -rx * uy + ry * ux         # across it
+        g = _INV_SQRT_2PI * inv_s * math.exp(-0.5 * d * d * inv_s2)
+        zp = (a + l) * inv_s
+        zm = (a - l) * inv_s
+        cp, pp = _edge(zp)
+        cm, pm = _edge(zm)
+        core = g * (cp - cm) * inv2l   # profile for unit flux
+        val = f * core
+        fg = f * g * inv2l * inv_s
+        di_da = fg * (pp - pm)
+        di_dd = -val * d * inv_s2
+        # d/d cx: a = r.u, d = r.n, r = p - c
+        grad[0] = -(di_da * ux - di_dd * uy)
+        grad[1] = -(di_da * uy + di_dd * ux)
+        grad[2] = fg * (pp + pm) - val * inv_l
+        grad[3] = di_da * d - di_dd * a
+        grad[4] = core
+        grad[5] = 1.0
+        grad[6] = val * inv_s * (d * d * inv_s2 - 1.0) - fg * (pp * zp - pm * zm)
+        r = vals[i] - (val + b)
+        r2 = r * r
+        cost += r2
         for a_ in range(N_PARAMS):
-            jtr[a_] += grad[a_] * r
+            ga = grad[a_]
+            jtr[a_] += ga * r
             for b_ in range(a_ + 1):
-                jtj[a_, b_] += grad[a_] * grad[b_]
+                gg = ga * grad[b_]
+                jtj[a_, b_] += gg
+                meat[a_, b_] += r2 * gg
     for a_ in range(N_PARAMS):
         for b_ in range(a_):
             jtj[b_, a_] = jtj[a_, b_]
+            meat[b_, a_] = meat[a_, b_]
     return cost
 
 
@@ -145,37 +170,55 @@ def _moments(image, xc, yc, half, k_sigma):
     if noise <= 0.0:
         noise = max(1e-3, math.sqrt(max(bg, 1.0)) * 0.01)
     thr = bg + k_sigma * noise
+    # Pixels above the threshold (one pass over the box), then the signal among them: those with at
+    # least two of their 8 neighbours (inside the box) above it too, not lone noise.
+    nx = x1 - x0 + 1
+    ny = y1 - y0 + 1
+    above = np.zeros((ny + 2, nx + 2), dtype=np.uint8)
+    n_above = 0
+    for y in range(y0, y1 + 1):
+        for x in range(x0, x1 + 1):
+            if image[y, x] > thr:
+                above[y - y0 + 1, x - x0 + 1] = 1
+                n_above += 1
     s0 = 0.0
     sx = 0.0
     sy = 0.0
-    touches = False
-    for y in range(y0, y1 + 1):
-        for x in range(x0, x1 + 1):
-            if _signal(image, x, y, x0, x1, y0, y1, thr):
-                # Only the signal counts: weight by (value - background) above the threshold.
-                wgt = image[y, x] - bg
-                s0 += wgt
-                sx += wgt * x
-                sy += wgt * y
-                if x == x0 or x == x1 or y == y0 or y == y1:
-                    touches = True
-    if s0 <= 0.0:
-        return False, bg, noise, xc, yc, 0.5, 0.0, 0.0, False
-    mx = sx / s0
-    my = sy / s0
     sxx = 0.0
     syy = 0.0
     sxy = 0.0
-    for y in range(y0, y1 + 1):
-        for x in range(x0, x1 + 1):
-            if _signal(image, x, y, x0, x1, y0, y1, thr):
-                wgt = image[y, x] - bg
-                sxx += wgt * (x - mx) * (x - mx)
-                syy += wgt * (y - my) * (y - my)
-                sxy += wgt * (x - mx) * (y - my)
-    sxx /= s0
-    syy /= s0
-    sxy /= s0
+    touches = False
+    if n_above > 0:
+        for j in range(1, ny + 1):
+            for i in range(1, nx + 1):
+                if above[j, i] == 0:
+                    continue
+                c = (above[j - 1, i - 1] + above[j - 1, i] + above[j - 1, i + 1] + above[j, i - 1]
+                     + above[j, i + 1] + above[j + 1, i - 1] + above[j + 1, i] + above[j + 1, i + 1])
+                if c < 2:
+                    continue
+                # Only the signal counts: weight by (value - background) above the threshold; raw moments
+                # about the box's corner.
+                wgt = image[y0 + j - 1, x0 + i - 1] - bg
+                xr = float(i - 1)
+                yr = float(j - 1)
+                s0 += wgt
+                sx += wgt * xr
+                sy += wgt * yr
+                sxx += wgt * xr * xr
+                syy += wgt * yr * yr
+                sxy += wgt * xr * yr
+                if i == 1 or i == nx or j == 1 or j == ny:
+                    touches = True
+    if s0 <= 0.0:
+        return False, bg, noise, xc, yc, 0.5, 0.0, 0.0, False
+    mxr = sx / s0
+    myr = sy / s0
+    sxx = sxx / s0 - mxr * mxr
+    syy = syy / s0 - myr * myr
+    sxy = sxy / s0 - mxr * myr
+    mx = x0 + mxr
+    my = y0 + myr
     tr = sxx + syy
     disc = math.sqrt(max(0.25 * (sxx - syy) * (sxx - syy) + sxy * sxy, 0.0))
     l1 = 0.5 * tr + disc
@@ -211,6 +254,8 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
     jtr = np.empty(N_PARAMS)
     jtj2 = np.empty((N_PARAMS, N_PARAMS))
     jtr2 = np.empty(N_PARAMS)
+    meat = np.empty((N_PARAMS, N_PARAMS))
+    meat2 = np.empty((N_PARAMS, N_PARAMS))
     for k in range(n):
         out[k, :] = np.nan
         out[k, 13] = 0.0
@@ -269,7 +314,7 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
         p[5] = bg
         p[6] = psf_sigma
         lam = 1e-3
-        cost = _accumulate(pxs, pys, vals, npx, p, grad, jtj, jtr)
+        cost = _accumulate(pxs, pys, vals, npx, p, grad, jtj, jtr, meat)
         converged = False
         fails = 0
         for _ in range(max_iter):
@@ -287,17 +332,19 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
                 trial[a_] = p[a_] + step[a_]
             trial[2] = max(trial[2], 0.05)
             trial[6] = min(max(trial[6], 0.3), 10.0)
-            # One pass gives the trial's cost and, if it is accepted, its normal equations.
-            c2 = _accumulate(pxs, pys, vals, npx, trial, grad, jtj2, jtr2)
+            # One pass gives the trial's cost and, if it is accepted, its normal equations (and the
+            # covariance's middle term).
+            c2 = _accumulate(pxs, pys, vals, npx, trial, grad, jtj2, jtr2, meat2)
             if c2 <= cost:
                 rel = (cost - c2) / max(cost, 1e-300)
                 p[:] = trial
                 cost = c2
                 jtj[:, :] = jtj2
                 jtr[:] = jtr2
+                meat[:, :] = meat2
                 lam = max(lam * 0.3, 1e-7)
                 fails = 0
-                if rel < 1e-6 or (abs(step[0]) < 1e-3 and abs(step[1]) < 1e-3 and abs(step[2]) < 1e-3):
+                if rel < 1e-6 or _small_step(jtj, step, cost, npx, STEP_TOL):
                     converged = True
                     break
             else:
@@ -310,14 +357,8 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
             continue
         # Covariance at the solution: the sandwich (Huber-White) estimator
         # (J^T J)^-1 (sum r_i^2 J_i J_i^T) (J^T J)^-1, valid whatever the noise model (shot noise makes the
-        # bright core noisier than the wings, so the homoscedastic (J^T J)^-1 s^2 would be too small).
-        meat = np.zeros((N_PARAMS, N_PARAMS))
-        for i in range(npx):
-            r = vals[i] - _model(pxs[i], pys[i], p, grad)
-            r2 = r * r
-            for a_ in range(N_PARAMS):
-                for b_ in range(N_PARAMS):
-                    meat[a_, b_] += r2 * grad[a_] * grad[b_]
+        # bright core noisier than the wings, so the homoscedastic (J^T J)^-1 s^2 would be too small);
+        # ``meat`` was summed in the pass that evaluated ``p``.
         dof = npx - N_PARAMS
         s2 = cost / dof
         inv = np.zeros((N_PARAMS, N_PARAMS))
