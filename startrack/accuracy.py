@@ -40,11 +40,14 @@ __all__ = [
     "AttitudeBound",
     "attitude_crb",
     "attitude_fisher",
+    "blended_references",
     "centroid_crb",
     "centroid_crb_px",
     "error_vector",
     "frame_bound",
     "projection_jacobian",
+    "reference_stars",
+    "star_covariance",
     "star_snr",
     "stars_crb_from_frame",
     "startrack_frame",
@@ -242,11 +245,53 @@ def star_snr(flux_e, sigma_psf_px, noise_var_e):
     return f / np.sqrt(f + 4.0 * math.pi * sigma_psf_px**2 * noise_var_e)
 
 
+def blended_references(catalog, render_catalog, camera, merge_px=None):
+    """The identification catalog's stars at the directions the sensor sees them.
+
+    Stars closer than ``merge_px`` pixels (default
+    :data:`startrack.catalog.DEFAULT_MERGE_PX`, two PSF sigmas) image as one
+    blob whose centroid is the group's photocentre, not the brighter star:
+    the rendered (deeper) catalog is merged
+    (:meth:`startrack.catalog.Catalog.merge_close`) and the entries whose id
+    is in ``catalog`` are kept, at their photocentre with their summed
+    brightness.  A star's companions fainter than the identification
+    catalog's limit still move its centroid, so the reference must know them.
+    """
+    from startrack.catalog import DEFAULT_MERGE_PX, merge_radius_arcsec
+
+    merged = render_catalog.merge_close(merge_radius_arcsec(camera, DEFAULT_MERGE_PX if merge_px is None else merge_px))
+    ids = {int(i) for i in catalog.id}
+    return merged.subset(np.array([int(i) in ids for i in merged.id], dtype=bool))
+
+
+def reference_stars(camera, dcm, catalog, sensor, vectors=None, focal_length_px=None):
+    """The identification catalog's stars as the sensor sees them at attitude ``dcm``: truth-like dicts.
+
+    ``x``, ``y`` (the catalog direction projected, at ``focal_length_px`` when
+    the frame was rendered with another focal length), ``electrons`` (from the
+    catalog magnitude), ``id`` and ``saturated`` (the brightest pixel over the
+    full well), for the entries inside the image.  With a catalog whose
+    unresolved doubles are merged (:meth:`startrack.catalog.Catalog.merge_close`
+    on the deeper catalog that was rendered) an entry is the photocentre and
+    the summed brightness of its group: what the centroider measures.
+    """
+    from startrack.render import _peak_fraction, electrons_from_magnitude, project_stars
+
+    cam = camera if focal_length_px is None else camera.with_focal_length(focal_length_px)
+    vec = catalog.vectors() if vectors is None else vectors
+    index, x, y = project_stars(vec, dcm, cam)
+    e = electrons_from_magnitude(catalog.mag[index], sensor)
+    sat = e * _peak_fraction(sensor.psf_sigma_px) + sensor.background_e >= sensor.full_well_e
+    return [{"id": int(catalog.id[i]), "x": float(a), "y": float(b), "electrons": float(c), "saturated": bool(d)}
+            for i, a, b, c, d in zip(index, x, y, e, sat)]
+
+
 def frame_bound(camera, truth_stars, sensor, ids=None, max_stars=None, min_snr=5.0):
     """The frame's own attitude bound: the Cramér-Rao bound of the stars a tracker could use.
 
-    Those are the rendered catalog stars (``truth_stars`` of :func:`startrack.render.render_image`)
-    whose id is in ``ids`` (the identification catalog; all when ``None``), not
+    Those are the stars of ``truth_stars`` (the rendered stars of
+    :func:`startrack.render.render_image`, or :func:`reference_stars`) whose id
+    is in ``ids`` (the identification catalog; all when ``None``), not
     saturated, inside the image, with SNR >= ``min_snr``; the ``max_stars``
     brightest of them.  Each contributes its centroid bound (true electrons,
     the sensor's background and read noise, its PSF, its pixel phase).
@@ -269,22 +314,46 @@ def frame_bound(camera, truth_stars, sensor, ids=None, max_stars=None, min_snr=5
         return None, len(keep)
 
 
+def star_covariance(star, gain_e_per_dn=None, noise_dn=None):
+    """The covariance (2 x 2, px^2) of a star's centroid as its estimator reports it, else its bound.
+
+    ``cov_px2`` is what centroid's weighted fit reports: the inverse of its own
+    information over the pixels it fitted, with the PSF width and the local
+    background estimated alongside, so that a star cut by the image edge has
+    the larger sigma it really has.  Without it (another centroid method, an
+    older document) the centroid bound from the measured flux, PSF and noise
+    (:func:`stars_crb_from_frame`).  ``None`` when neither is known.
+    """
+    c = star.get("cov_px2")
+    if isinstance(c, (list, tuple)) and len(c) == 2:
+        try:
+            m = np.array(c, dtype=np.float64).reshape(2, 2)
+        except (TypeError, ValueError):
+            m = None
+        if m is not None and np.all(np.isfinite(m)) and m[0, 0] > 0 and m[1, 1] > 0 and np.linalg.det(m) > 0:
+            return m
+    return stars_crb_from_frame([star], gain_e_per_dn, noise_dn)[0]
+
+
 def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_stars=None, gate=13.8,
                     sigma_floor_px=0.0, max_match_px=1.0, identify=None):
     """startrack's estimate on one rendered frame: centroid (gain known), identification, attitude.
 
-    With ``identify=None`` the identification is taken from the truth (each
-    detection within ``max_match_px`` of a rendered star of the identification
-    catalog gets that star's id), so that this measures accuracy, not
-    identification; otherwise ``identify(stars)`` returns a list of
-    ``(star index, catalog id)`` or ``None`` (failed).  Each star is weighted by
-    its own centroid bound from its measured flux, PSF and noise
-    (:func:`stars_crb_from_frame`).  Returns the
+    With ``identify=None`` the identification is taken from the truth: each
+    detection within ``max_match_px`` of an identification-catalog entry
+    projected at the true attitude (``truth["quaternion"]``, its focal length)
+    gets that entry's id, so that this measures accuracy, not identification;
+    otherwise ``identify(stars)`` returns a list of ``(star index, catalog id)``
+    or ``None`` (failed).  Each star is weighted by the covariance its
+    centroid reports (:func:`star_covariance`); stars whose fit fails its
+    chi-square test (``misfit``: a neighbour in the window, a distorted
+    image) are not used.  Returns the
     :class:`startrack.attitude.AttitudeResult`, or ``None`` when fewer than 2
     stars are identified.
     """
     from startrack.attitude import estimate_attitude
     from startrack.centroid import CentroidOptions, find_stars
+    from startrack.rotations import quaternion_to_dcm
 
     res = find_stars(image, CentroidOptions(gain_e_per_dn=sensor.gain), saturation=sensor.max_dn)
     if identify is not None:
@@ -293,27 +362,35 @@ def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_sta
             return None
     else:
         pairs = []
-        tx = np.array([t["x"] for t in truth["stars"]])
-        ty = np.array([t["y"] for t in truth["stars"]])
+        ids = np.empty(len(ref_rows), dtype=np.int64)
+        rows = np.empty(len(ref_rows), dtype=np.int64)
+        for j, (tid, row) in enumerate(ref_rows.items()):
+            ids[j], rows[j] = tid, row
+        dcm = quaternion_to_dcm(np.asarray(truth["quaternion"], dtype=np.float64))
+        cam = camera.with_focal_length(truth.get("focal_length_px", camera.focal_length_px))
+        from startrack.render import project_stars
+
+        index, tx, ty = project_stars(np.asarray(ref_vectors)[rows], dcm, cam, margin_px=2.0 * max_match_px)
+        tids = ids[index]
         seen = set()
         for k, s in enumerate(res.stars):
             if s.get("saturated") or not len(tx):
                 continue
             d = np.hypot(tx - s["x"], ty - s["y"])
             j = int(np.argmin(d))
-            tid = int(truth["stars"][j]["id"])
-            if d[j] <= max_match_px and tid in ref_rows and tid not in seen:
+            tid = int(tids[j])
+            if d[j] <= max_match_px and tid not in seen:
                 seen.add(tid)
                 pairs.append((k, tid))
     body, ref, sig, labels = [], [], [], []
     for k, tid in pairs:
         s = res.stars[k]
-        bound = stars_crb_from_frame([s], sensor.gain, res.background_sigma)[0]
-        if bound is None or s.get("saturated") or tid not in ref_rows:
+        cov = star_covariance(s, sensor.gain, res.background_sigma)
+        if cov is None or s.get("saturated") or s.get("misfit") or tid not in ref_rows:
             continue
         body.append(camera.pixels_to_vectors(s["x"], s["y"]))
         ref.append(ref_vectors[ref_rows[tid]])
-        sig.append(max(math.sqrt(0.5 * (bound[0, 0] + bound[1, 1])), sigma_floor_px) / camera.focal_length_px)
+        sig.append(max(math.sqrt(0.5 * (cov[0, 0] + cov[1, 1])), sigma_floor_px) / camera.focal_length_px)
         labels.append((k, tid))
         if max_stars and len(body) >= max_stars:
             break
@@ -323,7 +400,7 @@ def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_sta
 
 
 def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None, identify=None, max_stars=None,
-                      progress=None):
+                      progress=None, merge_px=None):
     """Attitude error against each frame's Cramér-Rao bound over ``n`` rendered frames.
 
     Parameters
@@ -343,6 +420,8 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
         At most this many stars per frame (the brightest), in the estimate and in the bound.
     progress : callable, optional
         ``progress(done, total)``.
+    merge_px : float, optional
+        Unresolved separation for the reference directions (:func:`blended_references`).
 
     Returns
     -------
@@ -357,16 +436,17 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
     sensor = sensor or Sensor()
     render_catalog = render_catalog or catalog
     rvec = render_catalog.vectors()
-    ids = {int(i) for i in catalog.id}
-    rows = catalog.rows_by_id()
-    ivec = catalog.vectors()
+    refs = blended_references(catalog, render_catalog, camera, merge_px)
+    rows = refs.rows_by_id()
+    ivec = refs.vectors()
     dcms = quaternion_to_dcm(random_quaternions(n, np.random.default_rng(seed)))
     errs, crbs, covs = [], [], []
     counts = {"failed": 0, "wrong": 0, "no_bound": 0}
     for k in range(n):
         img, truth = render_image(render_catalog, camera, dcms[k], sensor, Scene(), np.random.default_rng([seed, k]),
                                   vectors=rvec)
-        bound, _ = frame_bound(camera, truth["stars"], sensor, ids, max_stars)
+        bound, _ = frame_bound(camera, reference_stars(camera, dcms[k], refs, sensor, ivec, truth["focal_length_px"]),
+                               sensor, None, max_stars)
         if bound is None:
             counts["no_bound"] += 1
         else:

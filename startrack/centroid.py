@@ -62,6 +62,7 @@ class CentroidOptions:
     saturation_dn: float | None = None
     tophat_px: float | None = None
     max_fwhm_ratio: float | None = None
+    misfit_p: float = 1e-3
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -78,6 +79,8 @@ class CentroidOptions:
             raise ParameterError("mesh_px", f"must be at least 8, got {self.mesh_px}")
         if self.min_pixels < 1 or self.max_pixels < self.min_pixels:
             raise ParameterError("min_pixels", f"must be from 1 to the largest blob size ({self.max_pixels}), got {self.min_pixels}")
+        if not 0 <= self.misfit_p < 1:
+            raise ParameterError("misfit_p", f"must be in [0, 1), got {self.misfit_p}")
         if self.max_stars is not None and self.max_stars < 1:
             raise ParameterError("max_stars", f"must be at least 1, got {self.max_stars}")
 
@@ -195,6 +198,15 @@ def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_rat
     return [(left + px, top + py) for (py, px) in kept]
 
 
+def _chi2_p_value(chi2, dof):
+    """Upper tail ``P(X >= chi2)`` of chi-square with ``dof`` degrees of freedom (Wilson-Hilferty)."""
+    if dof <= 0 or not math.isfinite(chi2):
+        return 1.0
+    k = 2.0 / (9.0 * dof)
+    z = ((max(chi2, 0.0) / dof) ** (1.0 / 3.0) - (1.0 - k)) / math.sqrt(k)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
 def _uncertainty(flux, sigma_psf, noise, gain):
     """1-sigma centroid uncertainty per axis, px (King 1983; Liebe 2002).
 
@@ -252,7 +264,14 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         ``stars``: list of dicts with ``x``, ``y``, ``flux``, ``peak``,
         ``npix``, ``snr``, ``noise_dn`` (background noise per pixel where the
         star lies), ``sigma_px`` (estimated 1-sigma uncertainty per
-        axis), ``fwhm_px``, ``saturated``; brightest first.  An image where
+        axis), ``fwhm_px``, ``saturated``; brightest first.  With the
+        ``gauss`` method, when the weighted fit converges: ``cov_px2`` (the
+        fit's own 2 x 2 position covariance, the inverse of its information
+        over the fitted pixels; ``sigma_px`` is then its per-axis RMS),
+        ``fit_chi2`` and ``fit_dof`` (its weighted residual sum and degrees of
+        freedom), and ``misfit: true`` when that chi-square's p-value is below
+        ``options.misfit_p`` (a neighbour in the window, a cut or distorted
+        image: the position may be biased beyond ``cov_px2``).  An image where
         nothing can be found gives an empty list and a ``reason``.
     """
     import cv2
@@ -377,6 +396,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
         x, y, ok = cx, cy, True
+        fit = None
         xi, yi = int(round(cx)), int(round(cy))
         if deblended or method == "iwc":
             x, y, ok = windowed_centroid(residual, cx, cy, sigma_psf, half, 30)
@@ -395,10 +415,12 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
                 # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).
                 n_var = sigma_at(min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1)) ** 2
                 inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
-                wx, wy, ws, wa, wok = weighted_gaussian_fit(residual, x, y, s_fit, amp,
-                                                            max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
-                if wok:
+                wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
+                    residual, x, y, s_fit, amp, max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
+                if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
                     x, y, sigma_psf = wx, wy, ws
+                    fit = {"cov_px2": [[float(cxx), float(cxy)], [float(cxy), float(cyy)]],
+                           "fit_chi2": float(chi2), "fit_dof": int(n_pix - 5)}
         if not ok:
             x, y = cx, cy
         # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
@@ -409,12 +431,19 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             continue
         var = n_ap * noise**2 + (flux / options.gain_e_per_dn if options.gain_e_per_dn else 0.0)
         snr = flux / math.sqrt(var) if var > 0 else float("inf")
-        stars.append({
+        star = {
             "x": float(x), "y": float(y), "flux": flux, "peak": float(peak), "npix": int(npix),
             "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, options.gain_e_per_dn),
             "fwhm_px": 2.3548 * sigma_psf, "noise_dn": float(noise), "saturated": bool(nsat > 0),
             **({"deblended": True} if deblended else {}),
-        })
+        }
+        if fit is not None:
+            # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
+            star["sigma_px"] = math.sqrt(0.5 * (fit["cov_px2"][0][0] + fit["cov_px2"][1][1]))
+            star.update(fit)
+            if _chi2_p_value(fit["fit_chi2"], fit["fit_dof"]) < options.misfit_p:
+                star["misfit"] = True
+        stars.append(star)
     stars.sort(key=lambda s: -s["flux"])
     stars = _unique(stars)
     if options.max_fwhm_ratio is not None:

@@ -103,3 +103,29 @@ def test_wrong_identifications_fail():
     assert perm.status == "failed" and perm.reason_code == "residuals_too_large"
     two = estimate_attitude(b[:2], np.vstack([r[0], r[2]]), sig[:2])
     assert two.status == "failed" and two.reason_code == "residuals_too_large"
+
+
+def test_star_covariance_prefers_the_fit_s_own():
+    from startrack.accuracy import star_covariance
+
+    s = {"x": 10.2, "y": 5.7, "flux": 3000.0, "fwhm_px": 2.3548, "noise_dn": 10.0,
+         "cov_px2": [[0.01, 0.001], [0.001, 0.02]]}
+    assert np.allclose(star_covariance(s, 2.0), [[0.01, 0.001], [0.001, 0.02]])
+    bad = dict(s, cov_px2=[[0.01, 0.5], [0.5, 0.02]])          # not positive definite: the bound instead
+    assert np.allclose(star_covariance(bad, 2.0), centroid_crb(6000, 1.0, 400.0, 10.2, 5.7))
+
+
+def test_blended_references_sit_at_the_photocentre():
+    from startrack.accuracy import blended_references
+    from startrack.catalog import Catalog
+
+    cam = Camera.from_fov(10.0, 1000, 1000)                       # 36"/px: a 2 px merge radius is 72"
+    d = 40.0 / 3600.0
+    nan = np.full(3, np.nan)
+    cat = Catalog(np.array([1, 2, 3]), np.array([10.0, 10.0 + d, 20.0]), np.array([0.0, 0.0, 0.0]),
+                  np.array([5.0, 7.0, 5.0]), nan, nan, nan, 2000.0)
+    refs = blended_references(cat.filter_magnitude(None, 6.0), cat, cam)
+    assert sorted(refs.id.tolist()) == [1, 3]
+    one = refs.ra[refs.id.tolist().index(1)]
+    w = 10 ** (-0.4 * 2.0)                                        # the companion is 2 mag fainter
+    assert one == pytest.approx(10.0 + d * w / (1 + w), abs=1e-7)

@@ -75,15 +75,25 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
 
     Returns
     -------
-    (cx, cy, s, A, ok)
+    (cx, cy, s, A, ok, cov_xx, cov_xy, cov_yy, chi2, n_pix)
+        ``cov_*`` (px^2) is the position block of the inverse of the weighted
+        normal matrix ``J^T W J`` at the solution: the fit's own covariance (the
+        inverse Fisher information of the five parameters over the window's
+        pixels, so a star cut by the image edge, or one whose PSF width and
+        local background must be estimated alongside, gets the larger sigma it
+        really has).  ``chi2`` is the weighted residual sum ``sum w r^2`` over
+        the ``n_pix`` pixels: ``chi-square(n_pix - 5)`` when the model holds
+        (a second star in the window, a truncated or non-Gaussian PSF raise it).
     """
     h, w = residual.shape
     xi = int(math.floor(x0 + 0.5))  # noqa: RUF046 (numba)
     yi = int(math.floor(y0 + 0.5))  # noqa: RUF046 (numba)
     ys = np.arange(max(0, yi - half), min(h, yi + half + 1))
     xs = np.arange(max(0, xi - half), min(w, xi + half + 1))
-    if ys.shape[0] * xs.shape[0] < 9 or not noise_var > 0.0 or not amp0 > 0.0:
-        return x0, y0, s0, amp0, False
+    nan = math.nan
+    n_pix = ys.shape[0] * xs.shape[0]
+    if n_pix < 9 or not noise_var > 0.0 or not amp0 > 0.0:
+        return x0, y0, s0, amp0, False, nan, nan, nan, nan, n_pix
     p = np.array([x0, y0, s0, amp0, 0.0])
     jtj = np.zeros((5, 5))
     jtr = np.zeros(5)
@@ -121,5 +131,16 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
             if lam > 1e8:
                 break
     if abs(p[0] - x0) > 1.0 or abs(p[1] - y0) > 1.0:
-        return x0, y0, s0, amp0, False
-    return p[0], p[1], p[2], p[3], ok
+        return x0, y0, s0, amp0, False, nan, nan, nan, nan, n_pix
+    # The weighted normal matrix at the accepted solution (jtj, from its weights) inverted:
+    # the position block of the estimate's covariance.
+    ident = np.zeros(5)
+    cov = np.empty((5, 2))
+    for c in range(2):
+        ident[:] = 0.0
+        ident[c] = 1.0
+        col, solved = _solve_small(jtj.copy(), ident)
+        if not solved:
+            return p[0], p[1], p[2], p[3], False, nan, nan, nan, nan, n_pix
+        cov[:, c] = col
+    return p[0], p[1], p[2], p[3], ok, cov[0, 0], 0.5 * (cov[0, 1] + cov[1, 0]), cov[1, 1], cost, n_pix
