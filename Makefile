@@ -63,6 +63,7 @@ reproduce: install
 	bash examples/reproduce-papers.sh
 	bash examples/tracking.sh
 	$(PY) examples/paper000.py
+	bash examples/paper000_pipeline.sh 300
 	$(PY) examples/p003_fig1.py
 	$(PY) examples/paper_reports.py
 

@@ -6,9 +6,10 @@ Paper 003's sensor (20 x 20 deg, 1024 x 1024, catalog to 5.0, 5" (3 sigma), 0.2 
 the 10 brightest stars, at least 3 per frame), no false star: Table 3's first block.
 
 1. The Eq. 9 calibration the paper's way ("In_k is obtained by averaging the intensity
-   values of an identified bright star in different images"): the first M frames are
-   identified with the pyramid and the brightest identified star of each gives
-   ``In_3 = In 2.512^(m - 3)``; their mean is the sensor calibration ``3:In_3``.
+   values of an identified bright star in different images"): M other frames (seed + 1000)
+   are identified with the pyramid and the brightest identified star of each gives
+   ``In_3 = In 2.512^(m - 3)``; their mean is the sensor calibration ``3:In_3``
+   (examples/intensity_calibration.py).
 2. N other frames identified by ``brightness`` with that calibration (reference-star mode
    where a star brighter than magnitude 3 is seen), by ``brightness`` without one (the
    four-star mode only) and by ``pyramid``.  Per frame: outcome, identification time
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -85,7 +87,6 @@ def main(argv=None):
     from startrack.evaluate import Condition, make_frames, score
     from startrack.identify import IdentifyParams, get_algorithm, identify_stars, make_config, register, warm_up
     from startrack.identify.base import SearchContext, star_sigmas_px
-    from startrack.identify.brightness import intensity_calibration
     from startrack.kvector import build_kvector, load_kvector, max_separation_deg
 
     cam = Camera.from_fov(20, 1024, 1024)
@@ -98,19 +99,14 @@ def main(argv=None):
     sigma = (5.0 / 3.0) / cam.pixel_scale_arcsec
     params = IdentifyParams(sigma_px=sigma)
     cond = Condition(sigma_px=sigma, mag_noise=0.2, max_stars=10, min_stars=3)
-    frames = make_frames(cat, cam, cond, a.calibration_frames + a.frames, a.seed, mag_limit=lim)
+    frames = make_frames(cat, cam, cond, a.frames + 1, a.seed, mag_limit=lim)
     warm_up("pyramid", db, params)
 
-    # 1. Calibration from identified bright stars (one per frame).
-    samples = []
-    for stars, _, _ in frames[: a.calibration_frames]:
-        res = identify_stars(stars, cam, db, "pyramid", params)
-        if res.status != "ok":
-            continue
-        best = min(res.matches, key=lambda m: m.star)           # brightest identified (stars brightest first)
-        mag = float(db.star_mag[np.flatnonzero(db.star_id == best.id)[0]])
-        samples.append((mag, float(stars[best.star]["flux"])))
-    k, in_k = intensity_calibration(samples, 3.0)
+    # 1. Calibration from identified bright stars (one per frame; examples/intensity_calibration.py).
+    sys.path.insert(0, str(Path(__file__).parent))
+    from intensity_calibration import calibrate
+
+    k, in_k, n_cal = calibrate(db, cam, cat, a.calibration_frames, a.seed + 1000, sigma, 0.2, lim)
     calibration = f"{k:g}:{in_k:.6g}"
 
     runs = {"brightness (calibrated)": ("brightness", make_config("brightness", {"brightness_calibration": calibration})),
@@ -120,7 +116,7 @@ def main(argv=None):
         register(timed(get_algorithm(name)))
     for name, cfg in runs.values():
         identify_stars(frames[0][0], cam, db, name + "/timed", params, cfg)     # compile / load kernels
-    test = frames[a.calibration_frames:]
+    test = frames[1:]
     rows = {}
     for label, (name, cfg) in runs.items():
         per = []
@@ -169,7 +165,7 @@ def main(argv=None):
                        "mean_unnarrowed": float(un.mean()) if len(un) else None, "modes": by_mode}
     out = {"command": f"examples/p003_scope.py --frames {a.frames} --calibration-frames {a.calibration_frames} "
                       f"--seed {a.seed}",
-           "calibration": calibration, "calibration_samples": len(samples),
+           "calibration": calibration, "calibration_samples": n_cal,
            "sensor": "20 x 20 deg, 1024 x 1024, catalog to 5.0, 5\" (3 sigma), 0.2 mag, 10 brightest, >= 3 stars",
            "database_pairs": int(db.n_pairs), "rows": rows}
     Path(a.output).parent.mkdir(parents=True, exist_ok=True)
@@ -177,7 +173,7 @@ def main(argv=None):
     for label, r in rows.items():
         print(f"{label:28s} success {r['success']}/{r['frames']} bad {r['bad']}  mean {r['mean_ms']:.3f} ms  "
               f"median {r['median_ms']:.3f} ms  search mean {r['mean_search_ms']:.3f} median {r['median_search_ms']:.3f} ms  scope {r['mean_scope']}  unnarrowed {r['mean_unnarrowed']}")
-    print(f"calibration {calibration} from {len(samples)} frames -> {a.output}")
+    print(f"calibration {calibration} from {n_cal} frames -> {a.output}")
 
 
 if __name__ == "__main__":

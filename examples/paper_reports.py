@@ -71,6 +71,7 @@ def report_000(results):
     if d is None:
         return "\n".join(lines + ["**Not measured**: examples/results/paper-000.json is missing "
                                   "(run `.venv/bin/python examples/paper000.py`)."])
+    lines += _headline_000(d, results)
     lines += [f"Command: `{d.get('command', 'examples/paper000.py')}`", "",
               "## Catalog", "",
               _table(["", "paper", "ours", "why they differ"],
@@ -124,6 +125,7 @@ def report_000(results):
                   "", "The paper's 14x follows from its 3x shorter interval (and, we suspect, from a linear scan of "
                   "the whole table as its 'k-vector'); with equal intervals the two searches cost the same. "
                   f"Times: {HARDWARE}.", ""]
+    lines += _p000_pipeline(results)
     real = d.get("real_image")
     lines += ["## Sec. 4 — the real-image experiment (Eqs. 27-29)", ""]
     if not real:
@@ -146,6 +148,106 @@ def report_000(results):
                   "stars are often saturated, and a saturated centroid is no better than a faint one: the "
                   "paper's camera (threshold 60 of 255) may not have saturated its four."]
     return "\n".join(lines) + "\n"
+
+
+P000_DESIGN = {"cross": 20.0, "roll": 100.0, "identify_ms": 25.0}
+
+
+def _headline_000(d, results):
+    rows = []
+    e = next((v for k, v in d["sensors"].items() if k.startswith("8x8")), None)
+    if e:
+        db = e["databases"]["triangles"]
+        q = e["identification"].get("modified-pyramid (quadratic, Eqs. 10-12)", {})
+        p = e["identification"].get("pyramid (Mortari, k-vector pairs)", {})
+        rows.append(["triangle database, 8 x 8 deg, Hp 2.5-6.59", f"{P000_DB_ROWS:,} triangles (Table 5)",
+                     f"{db['n']:,} triangles, {db['mb']} MB, built in {db['build_s']} s",
+                     "our rule keeps every triple with sides <= 8 deg; the paper's rule and catalog are not given"])
+        if q and p:
+            rows.append([f"modified pyramid vs pyramid, {q['frames']} frames (success / failed / wrong, median ms)",
+                         "0.01581 ms (quadratic) vs 0.228295 ms (k-vector line), no success rate",
+                         f"{q['success']} / {q['failure']} / {q['bad']}, {q['median_ms']:.3f} ms vs pyramid "
+                         f"{p['success']} / {p['failure']} / {p['bad']}, {p['median_ms']:.3f} ms",
+                         "ARM C vs numba on this machine; the triangle search looks up many more candidates than "
+                         "the pair k-vector"])
+        t5 = e["table5"]
+        rows.append(["interval searched: line vs quadratic", "165,379 vs 51,514 (3.2x)",
+                     f"{t5['mean_linear']:.0f} vs {t5['mean_quadratic']:.0f} (exact {t5['mean_exact']:.0f})",
+                     "a k-vector line already returns the exact window; the paper's 'k-vector' interval is the "
+                     "whole table"])
+    pipe = _load(os.path.join(results, "p000-pipeline.json"))
+    if pipe:
+        for s in pipe["sensors"].values():
+            r = s["rows"].get("paper")
+            if r:
+                rows.append([f"the paper's pipeline, {s['label']}", "< 20\" pitch/yaw, < 100\" roll (design)",
+                             f"{r['success']}/{r['frames']} frames, median {r['median_cross_boresight_arcsec'] or 0:.1f}\" "
+                             f"/ roll {r['median_roll_arcsec'] or 0:.1f}\"",
+                             "rendered images; see the pipeline section"])
+    if not rows:
+        return []
+    return ["## Headline", "", _table(["", "paper", "ours", "why they differ"], rows), ""]
+
+
+def _p000_pipeline(results):
+    """The paper's pipeline on rendered images beside startrack's default (examples/paper000_pipeline.sh)."""
+    doc = _load(os.path.join(results, "p000-pipeline.json"))
+    lines = ["## The paper's pipeline beside startrack's default (rendered images)", ""]
+    if doc is None:
+        return lines + ["Not measured (p000-pipeline.json missing: run `bash examples/paper000_pipeline.sh`).", ""]
+    lines += ["Command: `bash examples/paper000_pipeline.sh 300` (then `examples/paper000_pipeline.py`). "
+              "Paper 000's pipeline: " + doc["pipelines"]["paper"].split(": ", 1)[1] + ". startrack's default: "
+              + doc["pipelines"]["default"].split(": ", 1)[1] + ". The same rendered 8-bit frames for both; the "
+              "photometry is not in the paper (a magnitude-6.59 star peaks near the 60 DN threshold). Success: "
+              "boresight within 60\" of the truth; wrong: an attitude farther off.", ""]
+    rows = []
+    for s in doc["sensors"].values():
+        for p, r in s["rows"].items():
+            f = lambda v, fmt="{:.1f}": "-" if v is None else fmt.format(v)  # noqa: E731
+            rows.append([s["label"], "paper 000" if p == "paper" else "startrack default", r["frames"], r["success"],
+                         r["failed"], r["wrong"], f(r["median_cross_boresight_arcsec"]), f(r["median_roll_arcsec"]),
+                         f(r["median_identify_ms"], "{:.2f}"),
+                         ", ".join(f"{k} {v}" for k, v in sorted(r["failure_reasons"].items())) or "-"])
+    lines += [_table(["sensor", "pipeline", "frames", "success", "failed", "wrong", "median cross-boresight (\")",
+                      "median roll (\")", "median identify ms", "failures"], rows), "",
+              f"Paper 000's design figures: < {P000_DESIGN['cross']:.0f}\" pitch/yaw, < {P000_DESIGN['roll']:.0f}\" "
+              f"roll, identification < {P000_DESIGN['identify_ms']:.0f} ms on an ARM Cortex-A8; it reports no "
+              "success rate for its pipeline. " + _p000_why(doc), ""]
+    return lines
+
+
+def _p000_why(doc):
+    """Why the paper's pipeline and ours differ, from the failure reasons actually seen."""
+    seen = set()
+    for sensor in doc["sensors"].values():
+        for p, r in sensor["rows"].items():
+            seen |= {(p, k) for k in r["failure_reasons"]}
+    out = ["Why they differ: four stars leave the attitude to four centroids (the roll to a baseline of a few "
+           "hundred pixels) where the default pipeline uses every star."]
+    if ("paper", "too_few_stars") in seen:
+        out.append("Frames with fewer than four stars above 60 DN fail the paper's pipeline (too_few_stars); the "
+                   "default's threshold follows the noise (5 sigma) and finds fainter stars.")
+    if ("paper", "no_pattern") in seen:
+        out.append("no_pattern: the four brightest form no confirmed pattern in the triangle database -- one of "
+                   "them is outside the catalog (brighter than 2.5 or fainter than 6.59: the sky has both), or "
+                   "a side is longer than the database's longest (the field's shorter side, the paper's rule: "
+                   "4.01 deg on the camera reading, whose four brightest are often spread along its 6.28 deg).")
+    if any(k == "false_match_probability" for _, k in seen):
+        out.append("false_match_probability: a confirmed pattern whose chance of coincidence is above 1e-6 "
+                   "is refused by the shared verification (with four stars no other star tests it); the paper "
+                   "accepts every confirmed pattern.")
+    if ("default", "no_pattern") in seen:
+        import math
+
+        # Mean catalog stars (Hp 2.5-6.59: 8,752) in each field, and the Poisson chance of fewer than four.
+        parts = []
+        for w, h in ((8.0, 8.0), (6.284, 4.013)):
+            lam = 8752 * w * h / 41253.0
+            p3 = sum(math.exp(-lam) * lam**k / math.factorial(k) for k in range(4))
+            parts.append(f"{lam:.1f} on {w:g} x {h:g} deg ({100 * p3:.0f} % of fields with fewer than four)")
+        out.append("Both pipelines fail where the field holds too few catalog stars: on average " + "; ".join(parts)
+                   + " (the database's stars; fainter detections cannot be identified).")
+    return " ".join(out)
 
 
 def report_001(results):
@@ -188,9 +290,86 @@ def _p003_counts():
     return out
 
 
+def _headline_003(results):
+    rows = []
+    doc = _load(os.path.join(results, P003_FILES["no false star"]))
+    if doc:
+        by = {r["algorithm"]: r for r in doc["rows"]}
+        for m in ("brightness", "pyramid"):
+            if m in by:
+                succ, ms, fail, bad = P003_TABLE3["no false star"][m]
+                rows.append([f"Table 3, no false star: {m}", f"{succ} %, {ms} ms, {bad} bad",
+                             f"{_pct(by[m]['success_rate'])}, {by[m]['mean_ms']:.3f} ms, {by[m]['bad']} bad "
+                             f"({doc['params']['count']:,} frames)", "MATLAB vs numba; shared verification"])
+    sc = _load(os.path.join(results, "p003-scope.json"))
+    if sc:
+        b, p = sc["rows"].get("brightness (calibrated)"), sc["rows"].get("pyramid")
+        ref = (b or {}).get("modes", {}).get("reference-star")
+        if b and p and ref:
+            rows.append(["search scope, reference-star mode", "narrowed (not counted in the paper)",
+                         f"{ref['mean_scope']:.1f} entries vs {ref['mean_unnarrowed']:.1f} unnarrowed, pyramid "
+                         f"{p['mean_scope']:.1f}", "reproduced"])
+            rows.append(["search time vs pyramid", "5.1x faster (0.77 vs 3.93 ms)",
+                         f"{p['median_search_ms'] / max(b['median_search_ms'], 1e-9):.2f}x "
+                         f"({b['median_search_ms']:.3f} vs {p['median_search_ms']:.3f} ms median)",
+                         "fixed per-frame cost dominates a compiled search of a few dozen entries"])
+    return ["## Headline", "", _table(["", "paper", "ours", "why they differ"], rows), ""] if rows else []
+
+
+def _p003_scope(results):
+    """Sec. 4.3's claim: the search scope narrowed by brightness, and the time beside the pyramid."""
+    doc = _load(os.path.join(results, "p003-scope.json"))
+    lines = ["## Sec. 4.3 — the narrowed search scope, and the claim of 4-5x the pyramid's speed", ""]
+    if doc is None:
+        return lines + ["Not measured (p003-scope.json missing: run `examples/p003_scope.py`).", ""]
+    rows = []
+    for label, r in doc["rows"].items():
+        for mode, m in sorted(r["modes"].items()):
+            rows.append([label, mode, m["frames"], f"{m['mean_scope']:.1f}" if m["mean_scope"] is not None else "-",
+                         f"{m['mean_unnarrowed']:.1f}" if m.get("mean_unnarrowed") is not None else "-",
+                         f"{m['mean_search_ms']:.3f}", f"{m['mean_ms']:.3f}"])
+    tot = [[label, r["frames"], r["success"], r["failure"], r["bad"], f"{r['mean_scope']:.1f}",
+            f"{r['median_search_ms']:.3f}", f"{r['mean_search_ms']:.3f}", f"{r['median_ms']:.3f}",
+            f"{r['mean_ms']:.3f}"] for label, r in doc["rows"].items()]
+    b = doc["rows"].get("brightness (calibrated)", {})
+    p = doc["rows"].get("pyramid", {})
+    ref = b.get("modes", {}).get("reference-star", {})
+    lines += [f"Command: `{doc['command']}` ({doc['sensor']}; calibration `{doc['calibration']}` from "
+              f"{doc['calibration_samples']} identified frames). The scope is the number of oriented star-pair "
+              "entries the k-vector look-ups (Eqs. 13-14) examine; 'unnarrowed' is what the whole star-pair "
+              "catalog's ranges of the same look-ups hold (what a search filtering inside the full range "
+              "examines); the pyramid's is the entries of the ranges of theta_ij and theta_ik of every triad it "
+              "tried. Search time is the time inside the algorithm's proposal generator; identification time "
+              "adds the shared verification.", "",
+              _table(["search", "frames", "success", "failed", "bad", "mean scope", "median search ms",
+                      "mean search ms", "median identify ms", "mean identify ms"], tot), "",
+              _table(["search", "mode", "frames", "mean scope", "mean unnarrowed", "mean search ms",
+                      "mean identify ms"], rows), ""]
+    if ref and p:
+        lines += [f"The scope saving appears: in the reference-star mode ({ref['frames']} of {b['frames']} frames) "
+                  f"the look-ups examine {ref['mean_scope']:.1f} entries against {ref['mean_unnarrowed']:.1f} in "
+                  f"the unnarrowed ranges ({ref['mean_unnarrowed'] / max(ref['mean_scope'], 1e-9):.1f}x fewer) "
+                  f"and the pyramid's {p['mean_scope']:.1f}. "]
+        ratio = p["median_search_ms"] / max(b["median_search_ms"], 1e-9)
+        lines[-1] += (f"Median search time: brightness {b['median_search_ms']:.3f} ms, pyramid "
+                      f"{p['median_search_ms']:.3f} ms ({ratio:.2f}x; paper, Table 3: 0.77 against 3.93 ms, 5.1x). ")
+        if ratio >= 4:
+            lines[-1] += "The paper's 4-5x speed-up is reproduced."
+        else:
+            lines[-1] += ("The paper's 4-5x speed-up is **not reproduced**: both searches take tens of "
+                          "microseconds, most of it fixed per-frame cost (Python around a compiled kernel, sorting "
+                          "the stars, the calibration) rather than entries examined; a MATLAB search whose cost "
+                          "grows with the entries it examines gains from the narrower scope, a compiled one that "
+                          "examines a few dozen does not. The identification time is dominated by the shared "
+                          "verification, the same for both. The scope narrowing is reproduced.")
+        lines.append("")
+    return lines
+
+
 def report_003(results):
     lines = ["# Paper 003 — Zhang, Zhao, Liu & Liu (2014), brightness-referenced star identification", "",
              "Produced by `make reproduce` (`examples/reproduce-papers.sh`, then `examples/paper_reports.py`).", "",
+             *_headline_003(results),
              "## Table 2 — Hipparcos stars per magnitude", "",
              _table(["Hp", "paper", "ours", "difference"], _p003_counts()), "",
              "Identical: the paper's 'HC' is Hipparcos in Hp.", "",
@@ -214,11 +393,18 @@ def report_003(results):
         lines += [f"{doc['params']['count']:,} attitudes (paper: 10,000), seed {doc['params']['seed']}.", "",
                   _table(["method", "success (paper)", "success (ours)", "mean ms (paper)", "mean ms (ours)",
                           "ID failures (paper)", "(ours)", "bad matches (paper)", "(ours)"], rows), ""]
+    first = _load(os.path.join(results, P003_FILES["no false star"])) or {}
+    cal = ((first.get("params") or {}).get("settings") or {}).get("brightness", {}).get("brightness_calibration")
     lines += ["Why they differ: our verification refuses any identification whose false-match probability is "
-              "above 1e-6, so a doubtful frame is an ID failure, never a bad match (the paper's pyramid has 75 "
-              "bad matches with one false star; ours has none); the paper's magnitudes come from in-orbit "
-              f"calibration, ours from the renderer's photometry with 0.2 mag noise; {HARDWARE}.", "",
-              "## Table 4 — 1000 in-orbit ZY-3 images", "",
+              "above 1e-6, so a doubtful frame is an ID failure rather than a bad match (the paper's pyramid has "
+              "75 bad matches with one false star); the paper's magnitudes come from in-orbit calibration, ours "
+              "from the renderer's photometry with 0.2 mag noise, and brightness's Eq. 9 calibration "
+              + (f"(`--brightness-calibration {cal}`) was measured the paper's way, from the brightest identified "
+                 "star of 100 other frames (examples/intensity_calibration.py)" if cal else
+                 "was not recorded with this run (without one, brightness runs the four-star mode only)")
+              + f"; {HARDWARE}.", ""]
+    lines += _p003_scope(results)
+    lines += ["## Table 4 — 1000 in-orbit ZY-3 images", "",
               "**No data**: the ZY-3 images are not published, so Table 4 cannot be reproduced.", "",
               "## Fig. 1 — centre of mass vs Gaussian interpolation on a slewing star", ""]
     fig1 = _load(os.path.join(results, "p003-fig1.json"))
@@ -232,10 +418,44 @@ def report_003(results):
     return "\n".join(lines) + "\n"
 
 
+def _headline_004(results):
+    rows = []
+    doc = _load(os.path.join(results, "p004-table2.json"))
+    if doc:
+        by = {r["algorithm"]: r for r in doc["rows"]}
+        if "labelling" in by and "pyramid" in by:
+            rows.append(["Table 2: labelling / pyramid time", f"{0.76 / 3.09:.2f} (0.76 vs 3.09 ms)",
+                         f"{by['labelling']['mean_ms'] / by['pyramid']['mean_ms']:.2f} "
+                         f"({by['labelling']['mean_ms']:.3f} vs {by['pyramid']['mean_ms']:.3f} ms, "
+                         f"{doc['params']['count']:,} frames)",
+                         "MATLAB vs numba; every algorithm's time includes the same shared verification"])
+    doc = _load(os.path.join(results, "p004-fig7-focal.json"))
+    if doc:
+        top = max(r["focal_error_pct"] for r in doc["rows"])
+        by = {r["algorithm"]: r for r in doc["rows"] if r["focal_error_pct"] == top}
+        if "labelling" in by and "pyramid" in by:
+            rows.append([f"Fig. 7 at {top:g} % focal error: labelling / pyramid success",
+                         "no failure / < 40 %",
+                         f"{_pct(by['labelling']['success_rate'])} / {_pct(by['pyramid']['success_rate'])}; "
+                         f"{sum(r['bad'] for r in doc['rows'])} wrong in the sweep",
+                         "reproduced" if by["labelling"]["success_rate"] >= 0.99 and by["pyramid"]["success_rate"] < 0.4
+                         else "not reproduced: see Figs. 7-8"])
+    doc = _load(os.path.join(results, "p004-fig9-false-stars.json"))
+    if doc:
+        top = max(r["false_stars"] for r in doc["rows"])
+        by = {r["algorithm"]: r for r in doc["rows"] if r["false_stars"] == top}
+        if all(a in by for a in ("labelling", "pyramid", "grid")):
+            rows.append([f"Fig. 10 at {top} false stars: labelling / pyramid / grid success", "> 95 % / > 95 % / 85 %",
+                         f"{_pct(by['labelling']['success_rate'])} / {_pct(by['pyramid']['success_rate'])} / "
+                         f"{_pct(by['grid']['success_rate'])}", "false-star brightness not given; see Figs. 9-10"])
+    return ["## Headline", "", _table(["", "paper", "ours", "why they differ"], rows), ""] if rows else []
+
+
 def report_004(results):
     lines = ["# Paper 004 — Kim & Cho (2019), the labelling technique", "",
              "Produced by `make reproduce` (`examples/reproduce-papers.sh`, then `examples/paper_reports.py`).", "",
              "Sensor as in the paper: 24 x 24 deg, 1200 x 1200 px, magnitude 5.2, 38\" (1 sigma).", "",
+             *_headline_004(results),
              "## Table 2 — identification time", ""]
     doc = _load(os.path.join(results, "p004-table2.json"))
     if doc:
@@ -276,9 +496,19 @@ def report_004(results):
         if key == "false_stars":
             lab = [r for r in doc["rows"] if r["algorithm"] == "labelling"]
             worst = min((r["success_rate"] for r in lab), default=float("nan"))
+            pyr = [r for r in doc["rows"] if r["algorithm"] == "pyramid"]
+            grid = [r for r in doc["rows"] if r["algorithm"] == "grid"]
             lines += [f"Paper (Fig. 10): labelling and pyramid keep > 95 % with up to 5 false stars, grid falls to "
-                      f"85 %. Ours: labelling's lowest success over 0-5 false stars is {_pct(worst)}, with "
-                      f"{sum(r['bad'] for r in lab)} wrong identifications in all.", ""]
+                      f"85 %. Ours: lowest success over 0-5 false stars: labelling {_pct(worst)}, pyramid "
+                      f"{_pct(min((r['success_rate'] for r in pyr), default=float('nan')))}, grid "
+                      f"{_pct(min((r['success_rate'] for r in grid), default=float('nan')))}; wrong identifications "
+                      f"in all: labelling {sum(r['bad'] for r in lab)}, pyramid {sum(r['bad'] for r in pyr)}, "
+                      f"grid {sum(r['bad'] for r in grid)}. Why labelling differs: the paper does not say how "
+                      "bright its false stars are; ours are uniform in magnitude over the 5 magnitudes above the "
+                      "limit, so they are often among the 8 brightest stars whose groups the labelling tries (the "
+                      "paper's 8; `--group-stars` widens it, slowly), and a 4-star group that contains one has a "
+                      "label no sky gives. The pyramid tries triads of all the stars and keeps looking, so a false star "
+                      "costs it time rather than success.", ""]
         else:
             by = {(r["algorithm"], r[key]): r for r in doc["rows"]}
             lab = [by[("labelling", v)]["success_rate"] for v in values if ("labelling", v) in by]
@@ -288,9 +518,14 @@ def report_004(results):
                       f"falls below 40 %. Ours: labelling {_pct(min(lab))} at worst, the pyramid "
                       f"{_pct(min(pyr))} at {values[-1]:g} %: the paper's finding holds (distance ratios do not "
                       "depend on the focal length, angles do). "
-                      + (f"**{wrong} wrong identifications** appear with focal-length errors (see the table): the "
-                         "false-match test assumes the nominal focal length, so a scaled field can pass it; "
-                         "this is a defect to fix." if wrong else "No wrong identification."), ""]
+                      + (f"**{wrong} wrong identifications** appear with focal-length errors (frame seeds in "
+                         f"{fname}: " + "; ".join(f"{r['algorithm']} {r[key]:g} %: "
+                                                   + ", ".join(str(b['frame_seed']) for b in r['bad_seeds'])
+                                                   for r in doc["rows"] if r["bad"]) + ")."
+                         if wrong else "No wrong identification: the shared verification measures the focal "
+                         "scale on the whole field once a proposal is accepted (an earlier run, before that, had 8 "
+                         "wrong identifications at 0.5-2 %: a scale fitted to the few stars near the core left "
+                         "outer stars matched to a neighbour)."), ""]
     return "\n".join(lines) + "\n"
 
 

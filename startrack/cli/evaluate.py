@@ -228,8 +228,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         for b in r["bad_seeds"]:
             info(quiet, f"bad match: {r['algorithm']} [{r['condition']}] frame seed {b['frame_seed']}: "
                         f"{b['wrong']}")
+    from dataclasses import asdict
+
     meta = {"seed": seed, "count": count, "camera": cam.to_dict(), "mag_limit": lim,
-            "databases": list(databases)}
+            "databases": list(databases), "settings": {a: asdict(c) for a, c in configs.items()}}
     from startrack._version import __version__
 
     text = (json.dumps({"startrack_version": __version__, "params": meta, "rows": rows}, indent=1) if as_json

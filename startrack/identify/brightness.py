@@ -172,10 +172,13 @@ def search_brightness(ctx, config: BrightnessConfig):
     from startrack._kernels.brightness import brightness_search
 
     db = ctx.db
-    fo = np.array([s.get("flux") or 0.0 for s in ctx.stars], dtype=np.float64)
-    np.maximum(fo, 1e-12, out=fo)
-    order = np.argsort(-fo, kind="stable")          # brightest first (identity when already sorted)
-    fo = fo[order]
+    fo = np.array(ctx.flux if ctx.flux is not None else np.zeros(len(ctx.b)), dtype=np.float64)
+    fo[~(fo > 1e-12)] = 1e-12                       # missing (NaN) or non-positive: the faintest
+    if np.all(fo[:-1] >= fo[1:]):
+        order = np.arange(len(fo))                  # brightest first already (as centroid writes them)
+    else:
+        order = np.argsort(-fo, kind="stable")
+        fo = fo[order]
     inst = -2.5 * np.log10(fo)
     ref_mag = float(config.reference_mag)
     cal = _calibration(config.brightness_calibration)
