@@ -257,3 +257,32 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
         q, _ = quest(bi, ri, np.ones(k))
     match, npred = match_stars(b, star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, radius)
     return match, q, npred
+
+
+@njit(cache=True)
+def leave_one_out(b, r, w):
+    """For every pair ``(b_i, r_i)``: the angle (rad) between ``b_i`` and ``A r_i``, ``A`` solved
+    (QUEST, weights ``w``) from all the other pairs -- how well the rest predicts this star."""
+    n = b.shape[0]
+    out = np.full(n, np.inf)
+    if n < 3:
+        return out
+    bi = np.empty((n - 1, 3))
+    ri = np.empty((n - 1, 3))
+    wi = np.empty(n - 1)
+    for i in range(n):
+        t = 0
+        for j in range(n):
+            if j == i:
+                continue
+            bi[t] = b[j]
+            ri[t] = r[j]
+            wi[t] = w[j]
+            t += 1
+        q, _ = quest(bi, ri, wi)
+        a = quat_to_dcm(q)
+        d = 0.0
+        for u in range(3):
+            d += b[i, u] * (a[u, 0] * r[i, 0] + a[u, 1] * r[i, 1] + a[u, 2] * r[i, 2])
+        out[i] = math.acos(min(1.0, max(-1.0, d)))
+    return out

@@ -709,3 +709,214 @@ def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps,
                         votes2[i, a] += 1
                         votes2[j, c] += 1
     return identity, votes1, votes2
+
+
+@njit(cache=True)
+def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is_core, cos_fov, max_chi2, mag_floor,
+                      mag_gate):
+    """Make every match unambiguous within its tolerance, and magnitude-consistent.
+
+    Each detection ``i`` is linked to every catalog star predicted (``dcm``)
+    within its own radius ``radius[i]`` (rad).  Detections linked to a common
+    star form a group; in a group of two or more detections, every one-to-one
+    assignment of the group's detections to its stars (a detection may stay
+    unassigned, at the cost of ``radius / sigma`` squared) is scored by
+    ``sum (offset_i / sigma_i)^2`` plus, with fluxes, ``sum (m_cat - m_pred)^2 /
+    sigma_m^2`` -- ``m_pred`` = instrumental magnitude ``inst`` + the frame's
+    zero point (median over the matched stars), ``sigma_m`` their robust
+    scatter, at least ``mag_floor``.  The best assignment names its
+    detections, except a detection whose star differs in another assignment
+    scoring within ``max_chi2`` of the best: that detection is left unnamed
+    (a close pair the frame cannot tell apart is refused, never swapped).  A
+    group too large to enumerate leaves all its detections unnamed.  A
+    detection alone with its stars keeps its match (the unresolved-pair rule
+    of :func:`check_matches`).  Finally a match outside the core whose
+    magnitude disagrees by more than ``max(mag_gate, 4 sigma_m)`` is dropped
+    (a false star on an undetected catalog star).
+
+    Returns ``(match, n_refused, n_inconsistent)``.
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    out = match.copy()
+    # Catalog stars predicted within some detection's radius.
+    cand = np.full((n, 8), -1, dtype=np.int64)
+    ncand = np.zeros(n, dtype=np.int64)
+    cnt = np.zeros(n, dtype=np.int64)
+    rmax = 0.0
+    for i in range(n):
+        rmax = max(rmax, radius[i])
+    cos_rmax = math.cos(rmax)
+    pidx = np.empty(64, dtype=np.int64)
+    npi = 0
+    for s in range(m):
+        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
+        if z < cos_fov:
+            continue
+        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
+        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
+        hit = False
+        for i in range(n):
+            d = b[i, 0] * x + b[i, 1] * y + b[i, 2] * z
+            if d < cos_rmax or d < math.cos(radius[i]):
+                continue
+            hit = True
+            if ncand[i] < 8:
+                cand[i, ncand[i]] = s
+            ncand[i] += 1
+        if hit:
+            if npi == pidx.shape[0]:
+                grown = np.empty(2 * npi, dtype=np.int64)
+                grown[:npi] = pidx
+                pidx = grown
+            pidx[npi] = s
+            npi += 1
+    near_star = pidx[:npi]
+    # Zero point and scatter of the frame's magnitudes.
+    has_mag = False
+    z0 = 0.0
+    sig_m = mag_floor
+    zp = np.empty(n)
+    nz = 0
+    for i in range(n):
+        if out[i] >= 0 and np.isfinite(inst[i]):
+            zp[nz] = star_mag[out[i]] - inst[i]
+            nz += 1
+    if nz >= 3:
+        has_mag = True
+        z0 = np.median(zp[:nz])
+        dev = np.empty(nz)
+        for t in range(nz):
+            dev[t] = abs(zp[t] - z0)
+        sig_m = max(mag_floor, 1.4826 * np.median(dev))
+    # Groups: detections sharing a star (union-find over detections).
+    parent = np.arange(n)
+    for u in range(near_star.shape[0]):
+        s = near_star[u]
+        first = -1
+        for i in range(n):
+            hit = False
+            for c in range(min(ncand[i], 8)):
+                if cand[i, c] == s:
+                    hit = True
+            if not hit:
+                continue
+            if first < 0:
+                first = i
+                continue
+            a = first
+            while parent[a] != a:
+                a = parent[a]
+            z = i
+            while parent[z] != z:
+                z = parent[z]
+            if a != z:
+                parent[max(a, z)] = min(a, z)
+    for i in range(n):
+        a = i
+        while parent[a] != a:
+            a = parent[a]
+        parent[i] = a
+    for i in range(n):
+        cnt[parent[i]] += 1
+    refused = 0
+    members = np.empty(n, dtype=np.int64)
+    for root in range(n):
+        if cnt[root] < 2:
+            continue
+        k = 0
+        total = 1
+        too_big = False
+        for i in range(n):
+            if parent[i] == root:
+                members[k] = i
+                k += 1
+                if ncand[i] > 8:
+                    too_big = True
+                total *= ncand[i] + 1
+        if too_big or total > 4096:
+            for t in range(k):
+                if out[members[t]] >= 0:
+                    refused += 1
+                out[members[t]] = -1
+            continue
+        # Cost of each (detection, option); option ncand = unassigned.
+        cost = np.zeros((k, 9))
+        for t in range(k):
+            i = members[t]
+            for c in range(ncand[i]):
+                s = cand[i, c]
+                ang = math.acos(min(1.0, b[i, 0] * (dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1]
+                                                    + dcm[0, 2] * star_vec[s, 2])
+                                    + b[i, 1] * (dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1]
+                                                 + dcm[1, 2] * star_vec[s, 2])
+                                    + b[i, 2] * (dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1]
+                                                 + dcm[2, 2] * star_vec[s, 2])))
+                cc = (ang / sigma[i]) ** 2
+                if has_mag and np.isfinite(inst[i]):
+                    cc += ((star_mag[s] - inst[i] - z0) / sig_m) ** 2
+                cost[t, c] = cc
+            cost[t, ncand[i]] = (radius[i] / sigma[i]) ** 2
+        digits = np.zeros(k, dtype=np.int64)
+        best = np.inf
+        best_digits = np.zeros(k, dtype=np.int64)
+        # First pass: the best assignment; second pass: which detections differ within max_chi2.
+        unsure = np.zeros(k, dtype=np.bool_)
+        for rnd in range(2):
+            for t in range(k):
+                digits[t] = 0
+            for _ in range(total):
+                ok = True
+                for t in range(k):
+                    if digits[t] == ncand[members[t]]:
+                        continue
+                    s = cand[members[t], digits[t]]
+                    for v in range(t):
+                        if digits[v] < ncand[members[v]] and cand[members[v], digits[v]] == s:
+                            ok = False
+                if ok:
+                    c = 0.0
+                    for t in range(k):
+                        c += cost[t, digits[t]]
+                    if rnd == 0:
+                        if c < best:
+                            best = c
+                            best_digits[:] = digits
+                    elif c < best + max_chi2:
+                        for t in range(k):
+                            if digits[t] != best_digits[t]:
+                                unsure[t] = True
+                t = 0
+                while t < k:
+                    digits[t] += 1
+                    if digits[t] <= ncand[members[t]]:
+                        break
+                    digits[t] = 0
+                    t += 1
+        for t in range(k):
+            i = members[t]
+            if unsure[t] or best_digits[t] == ncand[i]:
+                if out[i] >= 0:
+                    refused += 1
+                out[i] = -1
+            else:
+                out[i] = cand[i, best_digits[t]]
+    # Magnitude consistency of the matches outside the core.
+    inconsistent = 0
+    if has_mag:
+        gate = max(mag_gate, 4.0 * sig_m)
+        for i in range(n):
+            if out[i] < 0 or is_core[i] or not np.isfinite(inst[i]):
+                continue
+            if abs(star_mag[out[i]] - inst[i] - z0) > gate:
+                out[i] = -1
+                inconsistent += 1
+    # One detection per star (a group assignment is one-to-one; guard the rest).
+    for i in range(n):
+        if out[i] < 0:
+            continue
+        for j in range(i + 1, n):
+            if out[j] == out[i]:
+                out[j] = -1
+                refused += 1
+    return out, refused, inconsistent

@@ -10,7 +10,12 @@ algorithm,
 2. projects every database star with it and matches every detection to the
    nearest predicted star within the detection's own match radius
    (``match_sigma`` of its centroid sigma; one-to-one, ambiguous neighbours
-   refused), refines the attitude on all matches and matches again;
+   refused), refines the attitude on all matches and matches again; then
+   every match must be unambiguous within its radius (a close pair of catalog
+   stars with two detections is named by position and magnitude only when the
+   other assignment is clearly worse, else refused), magnitude-consistent
+   (outside the proposal) and agree with the attitude the *other* matches give
+   (leave one out: a proposal whose fit bent to take a wrong star is rejected);
 3. computes the probability that the result is a coincidence
    (:func:`false_match_probability`) and accepts the first proposal whose
    probability, *multiplied by the number of patterns and proposals tried*
@@ -274,6 +279,16 @@ def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float
     return min(1.0, total)
 
 
+# A close pair is named only when the other assignment is this much worse in chi-square
+# (position and magnitude): a likelihood ratio of e^8, about 3000 to 1.
+AMBIGUITY_CHI2 = 16.0
+# Magnitude scatter assumed at least (mag): catalog band against the sensor's, colour.
+MAG_SIGMA_FLOOR = 0.2
+# A match outside the proposal whose magnitude disagrees by more than this (or four
+# times the frame's scatter) is dropped: a false star on an undetected catalog star.
+MAG_GATE = 1.0
+
+
 @dataclass
 class _Verdict:
     matches: list | None
@@ -323,8 +338,8 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     nominal, which multiplies the chance of a coincidence by ``1 + |s - 1| theta_max / window``
     (``theta_max`` the core's largest angle; see :func:`_verify_with_focal`).
     """
-    from startrack._kernels.attitude import quat_to_dcm, refine
-    from startrack._kernels.identify import check_matches, core_window
+    from startrack._kernels.attitude import leave_one_out, quat_to_dcm, refine
+    from startrack._kernels.identify import check_matches, core_window, resolve_conflicts
 
     star_vec = db.star_vector
     img = np.asarray(proposal.image, dtype=np.int64)
@@ -345,10 +360,37 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     core = img[:4]
     is_core = np.zeros(n_all, dtype=np.bool_)
     is_core[core] = True
-    fl = flux if (use_magnitudes and flux is not None) else np.full(n_all, np.nan)
-    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(b_all, star_vec, db.star_mag, dcm, match, radius,
-                                                                 is_core, fl, cos_fov, *geometry)
+    # Fluxes serve the consistency checks (bright stars missing, close pairs, magnitudes of the
+    # matches) for every algorithm; only the confidence leaves out the core's magnitude
+    # agreement when the search itself chose by brightness (``use_magnitudes`` False).
+    fl = flux if flux is not None else np.full(n_all, np.nan)
+    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(
+        b_all, star_vec, db.star_mag, dcm, match, radius, is_core, fl, cos_fov, *geometry)
+    if not use_magnitudes:
+        p_mag = 1.0
+    # Every match unambiguous within its tolerance: a close pair of catalog stars with two
+    # detections is named by position and magnitude only when the alternative is clearly
+    # worse, else refused; a non-core match of the wrong magnitude is dropped.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inst = np.where(np.isfinite(fl) & (fl > 0), -2.5 * np.log10(fl), np.nan)
+    match, _, _ = resolve_conflicts(b_all, star_vec, db.star_mag, dcm, match, radius, sig_px / f, inst, is_core,
+                                    cos_fov, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
     matched = np.flatnonzero(match >= 0)
+    # Each match must agree with the attitude the *other* matches give (leave one out):
+    # a fit can bend to take one wrong star within its radius (a false star in the core,
+    # a swapped neighbour), the rest then points elsewhere.  The window widens with the
+    # attitude's own error from few stars.
+    if len(matched) >= 4:
+        w = 1.0 / sig_px[matched] ** 2
+        loo = leave_one_out(b_all[matched], star_vec[match[matched]], w / w.sum())
+        off = loo > radius[matched] * math.sqrt(1.0 + 4.0 / (len(matched) - 1))
+        if off.any():
+            if is_core[matched[off]].any():
+                return _Verdict(None, None, None, dcm, None,
+                                "a star of the proposal disagrees with the attitude of the others",
+                                ReasonCode.VERIFICATION_FAILED)
+            match[matched[off]] = -1
+            matched = matched[~off]
     n_matched = len(matched)
     # The proposal's stars must sit on their catalog stars with the refined attitude.
     agree = int(np.count_nonzero(np.einsum("ij,ij->i", b_all[img], star_vec[cat] @ dcm.T) >= np.cos(radius[img])))
