@@ -362,6 +362,24 @@ def _warm(index):
     warm_kernels(index)
 
 
+def warm_for_build(index=None) -> None:
+    """Run the solver end to end on a rendered 12 degree frame (8- and 16-bit), so that every kernel a real
+    image needs is compiled in this process (before an ahead-of-time build of them)."""
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.render import Scene, Sensor, render_image
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    catalog = load_catalog().filter_magnitude(mag_max=7.0)
+    camera = Camera.from_fov(12.0, 1024, 768)
+    index = index if index is not None else _process_index()
+    for bits, q in ((16, random_quaternions(1, np.random.default_rng(1))[0]),
+                    (8, random_quaternions(1, np.random.default_rng(2))[0])):
+        image, _ = render_image(catalog, camera, quaternion_to_dcm(q), Sensor(bit_depth=bits), Scene(),
+                                np.random.default_rng(3))
+        solve_image(image, index=index)
+
+
 def _notice(text: str) -> None:
     """A one-line notice on stderr, shown whether or not stderr is a terminal (long one-time set-up)."""
     import sys

@@ -2,8 +2,8 @@
 import math
 
 import numpy as np
-from numba import njit
 
+from startrack._kernels._jit import njit
 from startrack._kernels.database import kvector_range, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 

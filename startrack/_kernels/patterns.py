@@ -7,8 +7,8 @@ Keys are free of the focal length, so one index serves every field of view.
 import math
 
 import numpy as np
-from numba import njit
 
+from startrack._kernels._jit import njit
 from startrack._kernels.attitude import quat_to_dcm, quest
 
 NBINS = 32

@@ -14,8 +14,8 @@ which is efficient: its covariance reaches the bound ``I^-1`` of
 import math
 
 import numpy as np
-from numba import njit
 
+from startrack._kernels._jit import njit
 from startrack._kernels.centroid import _axis_factors, _solve_small
 
 

@@ -7,7 +7,8 @@ threads, and rows can be drawn in parallel.
 import math
 
 import numpy as np
-from numba import njit, prange
+
+from startrack._kernels._jit import njit, prange
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)

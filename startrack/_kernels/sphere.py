@@ -1,6 +1,7 @@
 """Kernels on the celestial sphere: neighbour pairs and field-of-view counts."""
 import numpy as np
-from numba import njit, prange
+
+from startrack._kernels._jit import njit, prange
 
 
 @njit(cache=True, inline="always")

@@ -2,7 +2,8 @@
 import math
 
 import numpy as np
-from numba import njit
+
+from startrack._kernels._jit import njit
 
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)

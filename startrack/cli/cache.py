@@ -54,8 +54,43 @@ def command(action, quiet):
             verb = "opened" if existed else "built"
             click.echo(f"cache: {verb} {index.path} ({index.size_bytes / 1e6:.1f} MB, "
                        f"{len(index.keys):,} patterns) in {time.perf_counter() - t0:.1f} s", err=True)
+        _build_kernels(quiet, index)
     else:
-        for p in files:
+        from startrack._kernels._jit import kernels_dir
+
+        kernels = sorted(glob.glob(os.path.join(kernels_dir(), "kernels-*")))
+        for p in files + kernels:
             os.remove(p)
         if not quiet:
-            click.echo(f"cache: removed {len(files)} file(s) from {root}", err=True)
+            click.echo(f"cache: removed {len(files) + len(kernels)} file(s) from {root}"
+                       + (f" and {kernels_dir()}" if kernels else ""), err=True)
+
+
+def _build_kernels(quiet: bool, index) -> None:
+    """The ahead-of-time build of the solver's kernels (start-up without numba), once per code version."""
+    import os
+    import sys
+    import time
+
+    from startrack._kernels._jit import aot_path, build_aot
+    from startrack.formats.hdf5 import build_lock
+
+    path = aot_path()
+    if os.environ.get("STARTRACK_AOT", "1") == "0" or os.path.exists(path):
+        return
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with build_lock(path):
+        if os.path.exists(path):
+            return
+        # Always visible, like the index's notice: a minute of silence looks like a hang.
+        sys.stderr.write(f"startrack: compiling the solver's kernels ahead of time once, ~60 s, into "
+                         f"{os.path.dirname(path)}\n")
+        sys.stderr.flush()
+        t0 = time.perf_counter()
+        from startrack.solve import warm_for_build
+
+        warm_for_build(index)
+        path, n = build_aot()
+        if not quiet:
+            click.echo(f"cache: built {path} ({n} kernel entry points) in {time.perf_counter() - t0:.1f} s",
+                       err=True)

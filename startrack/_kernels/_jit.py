@@ -1,0 +1,319 @@
+"""Kernels that start fast: compiled ahead of time when possible, else by numba on first use.
+
+A command-line call is a fresh process.  With numba alone it pays ~0.4 s to
+import numba and ~0.2 s to initialise its compiler target before the first
+kernel runs (then ~10 ms per kernel loaded from numba's on-disk cache), even
+when every kernel is cached: most of a one-image `startrack solve`.
+
+So every kernel of :mod:`startrack._kernels` is declared with this module's
+:func:`njit`, which returns a :class:`LazyKernel` instead of a numba
+dispatcher.  A call goes to
+
+1. the ahead-of-time (AOT) build, when ``startrack cache build`` (run by
+   ``make install``) has compiled one for exactly this code, numba, numpy and
+   Python, and it holds an entry for exactly the argument types of the call
+   (dtype, dimensions, memory layout, writability, alignment; a Python
+   ``float`` is ``float64``, an ``int`` ``int64``); such a process never
+   imports numba; else
+2. numba's just-in-time dispatcher, as before (``cache=True``): on the first
+   such call every kernel module's lazy kernels are replaced by real numba
+   dispatchers, so that kernels calling kernels compile as ordinary numba code.
+
+The AOT build is made with :mod:`numba.pycc` from the signatures the process
+that builds it has compiled (the warm-up of the solver and the identification
+algorithms), into ``kernels-<tag>.so`` in the cache directory beside the
+pattern index's (see :func:`kernels_dir`); ``<tag>`` hashes the kernels' source, numba's, numpy's and
+Python's versions, so an edited kernel or an upgrade simply misses the build
+(and falls back to numba) until the next ``startrack cache build``.  Parallel
+kernels (``parallel=True``) and kernels that are only inlined into others are
+never built ahead of time.  ``STARTRACK_AOT=0`` turns the AOT build off.
+
+Exact type matching matters: an AOT entry called with another dtype reads
+memory as the wrong type, so the key below is strict and anything it does not
+know (tuples, lists, ``None``, records) goes to numba.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.util
+import json
+import os
+import sys
+
+import numpy as np
+
+__all__ = ["njit", "prange", "LazyKernel", "kernels_dir", "aot_path", "build_aot", "aot_loaded"]
+
+_KERNELS: list = []          # every LazyKernel, in definition order
+_MATERIALISED = False        # numba imported and every lazy kernel bound to a dispatcher
+_AOT_TABLE: dict | None = None   # qualified name -> {argument key: compiled function}; {} when none
+
+
+class _PRange:
+    """Stands for ``numba.prange`` until numba is imported (replaced before anything compiles)."""
+
+    def __call__(self, *args):
+        return range(*args)
+
+
+prange = _PRange()
+
+
+def njit(*args, **options):
+    """``numba.njit``'s decorator, lazily: ``@njit(cache=True)`` or ``@njit``."""
+    if args and callable(args[0]) and not options:
+        return njit()(args[0])
+
+    def wrap(py_func):
+        kernel = LazyKernel(py_func, options)
+        _KERNELS.append(kernel)
+        if _MATERIALISED:
+            # numba is here already: the module gets the dispatcher itself (kernels
+            # defined later call it as numba code), the record stays for the AOT build.
+            import numba
+
+            kernel._dispatcher = numba.njit(**options)(py_func)
+            return kernel._dispatcher
+        return kernel
+
+    return wrap
+
+
+def _qualname(py_func) -> str:
+    return f"{py_func.__module__.rsplit('.', 1)[-1]}.{py_func.__qualname__}"
+
+
+def _arg_key(a):
+    """The exact type of one argument, as numba's ``typeof`` would see it; None when unsupported."""
+    if isinstance(a, np.ndarray):
+        f = a.flags
+        layout = "C" if f.c_contiguous else ("F" if f.f_contiguous else "A")
+        return (a.dtype.str, a.ndim, layout, bool(f.writeable), bool(f.aligned))
+    t = type(a)
+    if t is float:
+        return "<f8"
+    if t is bool:
+        return "|b1"
+    if t is int:
+        return "<i8" if -(2**63) <= a < 2**63 else None
+    if isinstance(a, np.generic) and a.dtype.kind in "biuf":
+        return a.dtype.str
+    return None
+
+
+def _call_key(args):
+    keys = tuple(_arg_key(a) for a in args)
+    return None if None in keys else keys
+
+
+def _numba_key(ty):
+    """The key of a numba type (the build side of :func:`_arg_key`); None when unsupported."""
+    from numba.core import types
+    from numba.np.numpy_support import as_dtype
+
+    if isinstance(ty, types.Array):
+        try:
+            dt = as_dtype(ty.dtype)
+        except Exception:  # noqa: BLE001 - records and other dtypes stay with numba
+            return None
+        if dt.kind not in "biuf":
+            return None
+        return (dt.str, ty.ndim, ty.layout, bool(ty.mutable), bool(ty.aligned))
+    if isinstance(ty, types.Boolean):
+        return "|b1"
+    if isinstance(ty, (types.Integer, types.Float)):
+        return as_dtype(ty).str
+    return None
+
+
+class LazyKernel:
+    """A kernel that runs its AOT build when it has one for the arguments, else numba's dispatcher."""
+
+    def __init__(self, py_func, options: dict):
+        self.py_func = py_func
+        self.options = dict(options)
+        self.qualname = _qualname(py_func)
+        self._dispatcher = None
+        self._aot = None
+        functools.update_wrapper(self, py_func)
+
+    def __call__(self, *args):
+        aot = self._aot
+        if aot is None:
+            aot = self._aot = _aot_table().get(self.qualname, {})
+        if aot:
+            fn = aot.get(_call_key(args))
+            if fn is not None:
+                return fn(*args)
+        return self.dispatcher(*args)
+
+    @property
+    def dispatcher(self):
+        """The numba dispatcher (numba imported and every lazy kernel bound on first use)."""
+        if self._dispatcher is None:
+            _materialise()
+        return self._dispatcher
+
+    @property
+    def signatures(self) -> list:
+        """Argument types this process can run without compiling (AOT entries or compiled overloads)."""
+        aot = self._aot if self._aot is not None else _aot_table().get(self.qualname, {})
+        compiled = list(self._dispatcher.signatures) if self._dispatcher is not None else []
+        return list(aot) + compiled
+
+    def __getattr__(self, name):
+        # overloads, inspect_types, parallel_diagnostics ...: numba's own.
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.dispatcher, name)
+
+    def __repr__(self) -> str:
+        return f"<LazyKernel {self.qualname}>"
+
+
+def _materialise() -> None:
+    """Import numba; bind every lazy kernel to a dispatcher and put the dispatchers in the modules."""
+    global _MATERIALISED, prange
+    import numba
+
+    for k in _KERNELS:
+        if k._dispatcher is None:
+            k._dispatcher = numba.njit(**k.options)(k.py_func)
+    _MATERIALISED = True
+    prange = numba.prange
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("startrack._kernels") or mod is None:
+            continue
+        space = vars(mod)
+        for attr, value in list(space.items()):
+            if isinstance(value, LazyKernel):
+                space[attr] = value._dispatcher
+            elif isinstance(value, _PRange):
+                space[attr] = numba.prange
+
+
+# ---------------------------------------------------------------- the AOT build
+
+def _versions() -> str:
+    from importlib.metadata import version
+
+    return f"numba {version('numba')}; numpy {np.__version__}; python {sys.version}; {sys.platform}"
+
+
+@functools.lru_cache(maxsize=1)
+def _tag() -> str:
+    """Hash of the kernels' source and the versions that compile and run them."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha1(_versions().encode())
+    for name in sorted(os.listdir(here)):
+        if name.endswith(".py"):
+            with open(os.path.join(here, name), "rb") as f:
+                h.update(name.encode() + b"\0" + f.read())
+    return h.hexdigest()[:12]
+
+
+def kernels_dir() -> str:
+    """``$STARTRACK_KERNELS``, else ``$XDG_CACHE_HOME/startrack/kernels``, else ``~/.cache/startrack/kernels``.
+
+    Not under ``$STARTRACK_CACHE``: the build depends on the code, not on the
+    star data a cache directory holds, and one build serves every cache.
+    """
+    return os.environ.get("STARTRACK_KERNELS") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "startrack", "kernels")
+
+
+def aot_path(directory: str | None = None) -> str:
+    """Where the AOT build of this code's kernels lives (it may not exist)."""
+    return os.path.join(directory or kernels_dir(), f"kernels-{_tag()}.so")
+
+
+def _aot_table() -> dict:
+    global _AOT_TABLE
+    if _AOT_TABLE is None:
+        _AOT_TABLE = _load_aot()
+    return _AOT_TABLE
+
+
+def _load_aot() -> dict:
+    if os.environ.get("STARTRACK_AOT", "1") == "0":
+        return {}
+    path = aot_path()
+    try:
+        with open(path[:-3] + ".json") as f:
+            manifest = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    spec = importlib.util.spec_from_file_location(manifest["module"], path)
+    if spec is None:
+        return {}
+    try:
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    except (ImportError, OSError):
+        return {}
+    table: dict = {}
+    for qualname, entries in manifest["kernels"].items():
+        table[qualname] = {_as_key(key): getattr(mod, symbol) for symbol, key in entries}
+    return table
+
+
+def _as_key(key):
+    return tuple(tuple(k) if isinstance(k, list) else k for k in key)
+
+
+def aot_loaded() -> bool:
+    """Whether this process runs kernels from an AOT build."""
+    return bool(_aot_table())
+
+
+def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
+    """Compile the signatures this process has compiled with numba into an AOT build.
+
+    Parameters
+    ----------
+    directory : str, optional
+        Directory of the build (default: :func:`kernels_dir`).
+    kernels : iterable of LazyKernel, optional
+        Which kernels (default: all that have compiled signatures).
+
+    Returns
+    -------
+    (path, entries) : the ``.so`` written and its number of entry points.
+    """
+    import tempfile
+    import warnings
+
+    _materialise()
+    from numba.pycc import CC
+
+    path = aot_path(directory)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    module = f"_startrack_kernels_{_tag()}"
+    cc = CC(module)
+    manifest: dict = {"module": module, "versions": _versions(), "kernels": {}}
+    n = 0
+    for k in (list(kernels) if kernels is not None else _KERNELS):
+        if k.options.get("parallel") or k.options.get("inline") == "always" or k._dispatcher is None:
+            continue
+        for args in list(k._dispatcher.signatures):
+            key = tuple(_numba_key(t) for t in args)
+            if None in key:
+                continue
+            symbol = f"k{n}_{k.py_func.__name__}"
+            cc.export(symbol, k._dispatcher.overloads[args].signature)(k.py_func)
+            manifest["kernels"].setdefault(k.qualname, []).append([symbol, key])
+            n += 1
+    if n == 0:
+        return path, 0
+    with tempfile.TemporaryDirectory(dir=os.path.dirname(path)) as tmp:
+        cc.output_dir = tmp
+        cc.output_file = os.path.basename(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cc.compile()
+        os.replace(os.path.join(tmp, os.path.basename(path)), path)
+    with open(path[:-3] + ".json.tmp", "w") as f:
+        json.dump(manifest, f)
+    os.replace(path[:-3] + ".json.tmp", path[:-3] + ".json")
+    return path, n

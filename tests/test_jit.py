@@ -1,0 +1,102 @@
+"""Lazy kernels and their ahead-of-time build (startrack._kernels._jit)."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from startrack._kernels import _jit
+
+
+def _arrays():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(6, 5))
+    ro = base.copy()
+    ro.flags.writeable = False
+    yield base
+    yield base.astype(np.float32)
+    yield base.astype(np.int64)
+    yield base.astype(np.uint8)
+    yield base.astype(np.int32)
+    yield base.T                      # F order
+    yield base[:, ::2]                # neither
+    yield base[0]                     # 1-D contiguous
+    yield base[:, 0]                  # 1-D strided
+    yield ro
+    yield np.zeros((0, 4))
+    yield np.zeros(3, dtype=bool)
+    yield np.arange(4.0).reshape(1, 1, 4)
+    yield np.zeros((2, 2), np.uint32)
+
+
+@pytest.mark.parametrize("value", list(_arrays()) + [1.5, 3, True, np.float32(2.0), np.int64(7), np.float64(1.0),
+                                                      np.uint32(4), np.bool_(False)])
+def test_argument_key_is_numbas_type(value):
+    """The run-time key of an argument is exactly the key of numba's own type for it (else a wrong AOT entry
+    would read memory as the wrong type)."""
+    import numba
+
+    assert _jit._arg_key(value) == _jit._numba_key(numba.typeof(value))
+
+
+def test_unsupported_arguments_go_to_numba():
+    assert _jit._call_key((np.zeros(3), None)) is None
+    assert _jit._call_key((np.zeros(3), (1, 2))) is None
+    assert _jit._call_key((2**70,)) is None
+    assert _jit._call_key((np.zeros(3, dtype=np.complex128),)) is not None  # a key, but never an AOT entry's
+
+
+_CHILD = r"""
+import json, sys
+import numpy as np
+from startrack._kernels import _jit
+from startrack._kernels.attitude import quat_to_dcm
+q = np.array([0.1, -0.2, 0.3, 0.9]); q /= np.linalg.norm(q)
+out = {"aot": _jit.aot_loaded(), "dcm": quat_to_dcm(q).tolist(), "numba_after_aot_call": "numba" in sys.modules}
+# float32 has no AOT entry: numba compiles it (a wrong-type AOT call would crash or give garbage)
+out["dcm32"] = quat_to_dcm(q.astype(np.float32)).tolist()
+out["numba_after_fallback"] = "numba" in sys.modules
+print(json.dumps(out))
+"""
+
+
+def test_aot_build_runs_without_numba_and_falls_back_exactly(tmp_path):
+    env = dict(os.environ, STARTRACK_KERNELS=str(tmp_path))
+    build = ("import numpy as np; from startrack._kernels import _jit; "
+             "from startrack._kernels.attitude import quat_to_dcm; "
+             "quat_to_dcm(np.array([0.0, 0.0, 0.0, 1.0])); "
+             "print(_jit.build_aot(kernels=[k for k in _jit._KERNELS if k.qualname == 'attitude.quat_to_dcm']))")
+    proc = subprocess.run([sys.executable, "-c", build], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "1)" in proc.stdout
+    manifest = json.loads(next(tmp_path.glob("kernels-*.json")).read_text())
+    assert list(manifest["kernels"]) == ["attitude.quat_to_dcm"]
+
+    child = subprocess.run([sys.executable, "-c", _CHILD], env=env, capture_output=True, text=True, timeout=600)
+    assert child.returncode == 0, child.stderr
+    out = json.loads(child.stdout)
+    assert out["aot"] and not out["numba_after_aot_call"] and out["numba_after_fallback"]
+    from startrack.rotations import quaternion_to_dcm
+
+    q = np.array([0.1, -0.2, 0.3, 0.9])
+    q /= np.linalg.norm(q)
+    np.testing.assert_allclose(out["dcm"], quaternion_to_dcm(q), atol=1e-15)
+    np.testing.assert_allclose(out["dcm32"], quaternion_to_dcm(q), atol=1e-6)
+
+    # Another version of the code (a different tag) misses the build: numba, same numbers.
+    off = subprocess.run([sys.executable, "-c", _CHILD], env=dict(env, STARTRACK_AOT="0"), capture_output=True,
+                         text=True, timeout=600)
+    assert off.returncode == 0, off.stderr
+    assert not json.loads(off.stdout)["aot"]
+    assert json.loads(off.stdout)["dcm"] == out["dcm"]
+
+
+def test_every_kernel_module_declares_lazy_kernels():
+    """A kernel module that took njit from numba would hand numba a lazy kernel it cannot type."""
+    here = os.path.dirname(_jit.__file__)
+    for name in sorted(os.listdir(here)):
+        if name.endswith(".py") and name != "_jit.py":
+            text = open(os.path.join(here, name)).read()
+            assert "from numba import" not in text and "import numba" not in text, name
