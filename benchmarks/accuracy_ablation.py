@@ -20,7 +20,7 @@ from startrack.camera import Camera
 from startrack.catalog import load_catalog
 from startrack.centroid import CentroidOptions, find_stars
 from startrack.render import Scene, Sensor, render_image
-from startrack.rotations import quaternion_to_dcm, random_quaternions, rotation_vector
+from startrack.rotations import _rotation_vector_rad, quaternion_to_dcm, random_quaternions
 
 n = int(sys.argv[1]) if len(sys.argv) > 1 else 200
 cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480)
@@ -36,7 +36,7 @@ f = cam.focal_length_px
 res = {k: [] for k in ["A", "B", "C", "D", "E"]}
 crbs = []; cent = []; nst=[]
 def err(dcm, truth):
-    return rotation_vector(dcm @ truth.T)
+    return _rotation_vector_rad(dcm @ truth.T)
 for k in range(n):
     img, truth = render_image(render_cat, cam, dcms[k], sensor, Scene(), np.random.default_rng([0, k]), vectors=vec)
     r = find_stars(img, CentroidOptions(max_stars=30, gain_e_per_dn=sensor.gain), saturation=65535)

@@ -102,7 +102,7 @@ class Peers:
         if self.t3 is not None:
             r = self.t3mod.solve_image(image, self.fov, db=self.t3, fov_max_error_deg=0.5)
             out["tetra3rs"] = None if r["ra"] is None else radec_roll_to_dcm(
-                *np.radians([r["ra"], r["dec"], r["roll"]]))
+                r["ra"], r["dec"], r["roll"])
         if self.cedar is not None:
             import cv2
 
@@ -110,7 +110,7 @@ class Peers:
             cv2.imwrite(path, image)
             r = self.cedar.solve_image(path, self.fov, fov_max_error=0.5)
             out["cedar-solve"] = None if r.get("ra") is None else radec_roll_to_dcm(
-                *np.radians([r["ra"], r["dec"], r["roll"]]))
+                r["ra"], r["dec"], r["roll"])
         return out
 
     def close(self):

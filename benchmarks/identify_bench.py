@@ -8,7 +8,6 @@ when it returns none.
 """
 from __future__ import annotations
 
-import math
 import os
 import sys
 
@@ -29,13 +28,13 @@ def _correct(dcm, truth):
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
     _, cross, roll = attitude_error(dcm, quaternion_to_dcm(truth["quaternion"]))
-    return math.degrees(cross) < 0.1 and abs(math.degrees(roll)) < 1.0
+    return cross < 0.1 and abs(roll) < 1.0
 
 
 def _peer_correct(ra, dec, roll, truth):
     from startrack.rotations import radec_roll_to_dcm
 
-    return _correct(radec_roll_to_dcm(math.radians(ra), math.radians(dec), math.radians(roll)), truth)
+    return _correct(radec_roll_to_dcm(ra, dec, roll), truth)
 
 
 def run(n=1000, seed=11):

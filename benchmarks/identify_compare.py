@@ -13,7 +13,6 @@ star ids).  Database loading is outside every timing.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -30,9 +29,9 @@ ALGORITHMS = ["pyramid", "pyramid-quadratic", "voting", "brightness", "labelling
 def _peer_correct(r, truth):
     from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
 
-    est = radec_roll_to_dcm(math.radians(r["ra"]), math.radians(r["dec"]), math.radians(r["roll"]))
+    est = radec_roll_to_dcm(r["ra"], r["dec"], r["roll"])
     _, cross, roll = attitude_error(est, quaternion_to_dcm(truth["quaternion"]))
-    return math.degrees(cross) < 0.1 and abs(math.degrees(roll)) < 1.0
+    return cross < 0.1 and abs(roll) < 1.0
 
 
 def _row(tool, cond, outcomes, times):

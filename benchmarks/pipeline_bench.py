@@ -76,12 +76,12 @@ def paper000_end_to_end(n=1000, seed=0):
             sig.append(max(s["sigma_px"], 0.02) / cam.focal_length_px)
         att = estimate_attitude(np.array(body), np.array(ref), np.array(sig))
         _, c, r = attitude_error(att.dcm, dcms[k])
-        if math.degrees(c) > 0.1:
+        if c > 0.1:
             outcomes["bad"] += 1
             continue
         outcomes["ok"] += 1
-        cross.append(math.degrees(c) * 3600)
-        roll.append(math.degrees(r) * 3600)
+        cross.append(float(c) * 3600)
+        roll.append(float(r) * 3600)
         nstars.append(len(att.used))
         sig_px.append(np.median(np.array(sig)) * cam.focal_length_px)
     cross = np.array(cross)
@@ -115,7 +115,7 @@ def tracking_speed(n=60, seed=5):
     cam = Camera.from_fov(12, 1024, 768)
     cat = load_catalog()
     db = build_kvector(cat.filter_magnitude(None, 6.0), max_separation_deg(camera=cam))
-    a0 = radec_roll_to_dcm(*np.radians([120.0, 30.0, 15.0]))
+    a0 = radec_roll_to_dcm(120.0, 30.0, 15.0)
     run = RenderRun(cat.filter_magnitude(None, 7.0), cam, Sensor(), Scene(rate_deg_s=(0.3, 0.4, 0.0)), seed, a0, 1, n,
                     0.1)
     frames = [img.astype(np.float32) for _, img, _ in run.frames_iter()]

@@ -73,7 +73,7 @@ def track(cat, cam, db, frames):
                "streak_rate": out["track"].details.get("streak_rate_deg_s"), "n_truth": len(doc["truth"]["stars"])}
         if out["dcm"] is not None:
             _, c, r = attitude_error(out["dcm"], quaternion_to_dcm(doc["truth"]["quaternion"]))
-            row["cross"], row["roll"] = math.degrees(c) * 3600, abs(math.degrees(r)) * 3600
+            row["cross"], row["roll"] = float(c) * 3600, abs(float(r)) * 3600
         rows.append(row)
     return rows
 

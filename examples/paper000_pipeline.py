@@ -42,7 +42,7 @@ def score(path):
             reasons[str(why)] = reasons.get(str(why), 0) + 1
             continue
         _, c, r = attitude_error(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
-        c, r = math.degrees(float(c)) * 3600, abs(math.degrees(float(r))) * 3600
+        c, r = float(c) * 3600, abs(float(r)) * 3600       # attitude_error gives degrees
         if c <= 60.0:
             ok += 1
             cross.append(c)

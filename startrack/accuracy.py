@@ -470,9 +470,9 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
 
 def error_vector(dcm_estimate, dcm_truth):
     """Small-angle error rotation ``phi`` of ``A_est A_true^T`` (rad; camera frame: x, y cross-boresight, z roll)."""
-    from startrack.rotations import rotation_vector
+    from startrack.rotations import _rotation_vector_rad
 
-    return rotation_vector(np.asarray(dcm_estimate) @ np.asarray(dcm_truth).T)
+    return _rotation_vector_rad(np.asarray(dcm_estimate) @ np.asarray(dcm_truth).T)
 
 
 def summarise(errors, bounds, covariances=None):

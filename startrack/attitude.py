@@ -255,11 +255,7 @@ class AttitudeResult:
     bound: dict | None = None
 
     def section(self) -> dict:
-        from startrack.rotations import (
-            dcm_to_euler123,
-            dcm_to_quaternion,
-            dcm_to_radec_roll,
-        )
+        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
 
         out = {"status": self.status, "method": self.method}
         if self.reason:
@@ -276,9 +272,8 @@ class AttitudeResult:
         out.update(
             quaternion=[float(v) for v in dcm_to_quaternion(self.dcm)],
             dcm=[[float(v) for v in row] for row in self.dcm],
-            ra=float(np.degrees(ra)) % 360.0, dec=float(np.degrees(dec)), roll=float(np.degrees(roll)),
-            euler123_deg={"yaw": float(np.degrees(yaw)), "pitch": float(np.degrees(pitch)),
-                          "roll": float(np.degrees(roll123))},
+            ra=float(ra), dec=float(dec), roll=float(roll),
+            euler123_deg={"yaw": float(yaw), "pitch": float(pitch), "roll": float(roll123)},
             n_stars=len(self.used), loss=self.loss,
             residuals=[{"star": s, "id": i, "residual_arcsec": round(float(r), 4)}
                        for (s, i), r in zip(self.used, self.residuals_arcsec)],
@@ -449,8 +444,8 @@ def wcs_header(dcm, camera, sip_order: int = 5):
     hdr["CTYPE2"] = "DEC--TAN-SIP" if camera.has_distortion else "DEC--TAN"
     hdr["CRPIX1"] = camera.cx + 1.0
     hdr["CRPIX2"] = camera.cy + 1.0
-    hdr["CRVAL1"] = math.degrees(ra) % 360.0
-    hdr["CRVAL2"] = math.degrees(dec)
+    hdr["CRVAL1"] = float(ra)
+    hdr["CRVAL2"] = float(dec)
     hdr["CUNIT1"] = "deg"
     hdr["CUNIT2"] = "deg"
     hdr["CD1_1"], hdr["CD1_2"] = float(cd[0, 0]), float(cd[0, 1])

@@ -281,7 +281,7 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
         cross = roll = float("nan")
         if att.get("status") == "ok" and "truth" in d:
             _, c, r = attitude_error(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
-            cross, roll = math.degrees(c) * 3600, math.degrees(r) * 3600
+            cross, roll = float(c) * 3600, float(r) * 3600
         rows.append((k, mode, cross, roll))
     # Frames without a track section (e.g. centroid | identify | attitude) are "solved".
     colours = {"tracking": "tab:green", "single-star": "tab:orange", "lost-in-space": "tab:blue", "lost": "tab:red",
@@ -445,13 +445,13 @@ def _catalog_at_epoch(catalog, att: dict):
 
 def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     """Image-plane unit directions of celestial north and east at the image centre."""
-    from startrack.rotations import east_north
+    from startrack.rotations import _east_north_rad
 
     centre = cam.pixels_to_vectors(np.array([(cam.width - 1) / 2.0]), np.array([(cam.height - 1) / 2.0]))[0]
     inertial = a.T @ centre
     ra = math.atan2(inertial[1], inertial[0])
     dec = math.asin(max(-1.0, min(1.0, inertial[2])))
-    east, north = east_north(ra, dec)
+    east, north = _east_north_rad(ra, dec)
     x0, y0 = cam.vectors_to_pixels(centre)
     out = []
     for d in (north, east):

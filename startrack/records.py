@@ -303,8 +303,7 @@ class Attitude:
         dcm = np.asarray(dcm, dtype=np.float64)
         ra, dec, roll = dcm_to_radec_roll(dcm)
         q = dcm_to_quaternion(dcm)
-        return cls(Status.OK, method, np.asarray(q, dtype=np.float64), float(np.degrees(ra)) % 360.0,
-                   float(np.degrees(dec)), float(np.degrees(roll)), **kw)
+        return cls(Status.OK, method, np.asarray(q, dtype=np.float64), float(ra), float(dec), float(roll), **kw)
 
     @classmethod
     def failed(cls, reason: str, reason_code: ReasonCode | str = ReasonCode.OTHER, method: str = "quest",

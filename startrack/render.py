@@ -31,11 +31,11 @@ import numpy as np
 from startrack.camera import Camera
 from startrack.errors import ParameterError
 from startrack.rotations import (
+    _propagate_attitude_rad,
+    _rotation_vector_rad,
     dcm_to_quaternion,
     dcm_to_radec_roll,
-    propagate_attitude,
     quaternion_to_dcm,
-    rotation_vector,
 )
 
 __all__ = [
@@ -260,7 +260,7 @@ def _trail_positions(vectors, dcm, camera, rate_rad_s, exposure_s, sigma):
     xs = np.empty((len(vectors), n_sub))
     ys = np.empty((len(vectors), n_sub))
     for t_index, t in enumerate(times * exposure_s):
-        a = propagate_attitude(dcm, rate, t)
+        a = _propagate_attitude_rad(dcm, rate, t)
         xs[:, t_index], ys[:, t_index] = camera.vectors_to_pixels(vectors @ a.T)
     return xs, ys
 
@@ -340,7 +340,7 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     peak_e = electrons[: len(index)] * _peak_fraction(sensor.psf_sigma_px)
     truth = {
         "quaternion": dcm_to_quaternion(dcm).tolist(),
-        "ra": math.degrees(ra), "dec": math.degrees(dec), "roll": math.degrees(roll),
+        "ra": float(ra), "dec": float(dec), "roll": float(roll),
         "stars": [
             {"id": int(catalog.id[i]), "x": float(x), "y": float(y), "mag": float(m),
              "mag_rendered": float(mr), "electrons": float(e), "saturated": bool(p + sensor.background_e >= sensor.full_well_e)}
@@ -446,7 +446,7 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
     ra, dec, roll = dcm_to_radec_roll(dcm)
     truth = {
         "quaternion": dcm_to_quaternion(dcm).tolist(),
-        "ra": math.degrees(ra), "dec": math.degrees(dec), "roll": math.degrees(roll),
+        "ra": float(ra), "dec": float(dec), "roll": float(roll),
         "stars": truth_stars,
         "star_ids": [all_ids[k] for k in order],
         "epoch": float(catalog.epoch),
@@ -458,7 +458,7 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
 def attitude_rate_check(dcm_a, dcm_b, dt):
     """Body rate (rad/s) that turns ``dcm_a`` into ``dcm_b`` in ``dt`` seconds."""
     delta = np.asarray(dcm_b) @ np.asarray(dcm_a).T
-    return rotation_vector(delta) / dt
+    return _rotation_vector_rad(delta) / dt
 
 
 def frame_seed(seed: int, index: int) -> int:
@@ -528,7 +528,7 @@ class RenderRun:
                         base = np.asarray(self.attitude, dtype=np.float64)
                     else:
                         base = quaternion_to_dcm(random_quaternions_one(rng))
-                dcm = propagate_attitude(base, rate, k * self.frame_interval_s) if k else base
+                dcm = _propagate_attitude_rad(base, rate, k * self.frame_interval_s) if k else base
                 doc = {"format": FRAME_FORMAT}
                 image_doc = {"width": self.camera.width, "height": self.camera.height}
                 # Every frame carries its time (mid-exposure) and exposure, so `track` needs no option.

@@ -20,8 +20,11 @@ Conventions (``docs/formats.md``, "Attitude"):
   last rotation is about the boresight.  Paper 000 (Eqs. 27-29) reports
   attitudes as roll/pitch/yaw without naming its sequence; this is ours.
 
-All functions take radians and broadcast over leading dimensions: a quaternion
-array has shape ``(..., 4)`` and a DCM array ``(..., 3, 3)``.
+Every public function takes and returns angles in **degrees** (rates in degrees
+per second), as everywhere at startrack's public boundary; the radian forms the
+library computes with are private (``_radec_roll_to_dcm_rad`` and so on).  All
+functions broadcast over leading dimensions: a quaternion array has shape
+``(..., 4)`` and a DCM array ``(..., 3, 3)``.
 """
 from __future__ import annotations
 
@@ -153,7 +156,7 @@ def quaternion_inverse(q):
     return normalize_quaternion(np.concatenate([-q[..., :3], q[..., 3:]], axis=-1))
 
 
-def elementary_rotation(axis: int, angle):
+def _elementary_rotation_rad(axis: int, angle):
     """Passive rotation ``R_axis(angle)`` about axis 1, 2 or 3; shape ``(..., 3, 3)``.
 
     ``R3(t) = [[c, s, 0], [-s, c, 0], [0, 0, 1]]`` and likewise for 1 and 2.
@@ -172,7 +175,7 @@ def elementary_rotation(axis: int, angle):
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def radec_to_vector(ra, dec):
+def _radec_to_vector_rad(ra, dec):
     """ICRS unit vector ``(cos a cos d, sin a cos d, sin d)`` (paper 000 Eq. 14).
 
     Parameters
@@ -190,7 +193,7 @@ def radec_to_vector(ra, dec):
     return np.stack([np.cos(ra) * cd, np.sin(ra) * cd, np.sin(dec)], axis=-1)
 
 
-def vector_to_radec(v):
+def _vector_to_radec_rad(v):
     """Right ascension in ``[0, 2 pi)`` and declination of vectors ``(..., 3)``."""
     v = np.asarray(v, dtype=np.float64)
     ra = np.mod(np.arctan2(v[..., 1], v[..., 0]), 2 * np.pi)
@@ -198,7 +201,7 @@ def vector_to_radec(v):
     return ra, dec
 
 
-def east_north(ra, dec):
+def _east_north_rad(ra, dec):
     """Unit vectors of local east and north (ICRS) at right ascension ``ra`` and declination ``dec`` (radians).
 
     ``east = (-sin a, cos a, 0)`` and ``north = (-sin d cos a, -sin d sin a, cos d)``,
@@ -218,15 +221,15 @@ def east_north(ra, dec):
     return east, north
 
 
-def radec_roll_to_dcm(ra, dec, roll):
+def _radec_roll_to_dcm_rad(ra, dec, roll):
     """Attitude matrix from boresight ``(ra, dec)`` and ``roll`` (radians).
 
     Rows of the result: camera ``+x`` (image right), ``+y`` (image down) and
     ``+z`` (boresight) in ICRS.  With ``roll = 0`` image up is north and image
     left is east; ``roll`` turns image up from north toward east.
     """
-    east, north = east_north(ra, dec)
-    bore = radec_to_vector(ra, dec)
+    east, north = _east_north_rad(ra, dec)
+    bore = _radec_to_vector_rad(ra, dec)
     roll = np.asarray(roll, dtype=np.float64)[..., None]
     c, s = np.cos(roll), np.sin(roll)
     # image up (-y) = cos(roll) N + sin(roll) E;  +x = y x z.
@@ -235,32 +238,32 @@ def radec_roll_to_dcm(ra, dec, roll):
     return np.stack([x_axis, y_axis, bore], axis=-2)
 
 
-def dcm_to_radec_roll(dcm):
-    """Inverse of :func:`radec_roll_to_dcm`: ``(ra, dec, roll)`` in radians.
+def _dcm_to_radec_roll_rad(dcm):
+    """Inverse of :func:`_radec_roll_to_dcm_rad`: ``(ra, dec, roll)`` in radians.
 
     ``ra`` is in ``[0, 2 pi)``, ``roll`` in ``(-pi, pi]``.  At a pole ``ra`` is
     undefined; the returned triple then still reproduces ``dcm`` exactly.
     """
     a = np.asarray(dcm, dtype=np.float64)
     bore = a[..., 2, :]
-    ra, dec = vector_to_radec(bore)
-    east, north = east_north(ra, dec)
+    ra, dec = _vector_to_radec_rad(bore)
+    east, north = _east_north_rad(ra, dec)
     up = -a[..., 1, :]
     roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
     return ra, dec, roll
 
 
-def euler123_to_dcm(yaw, pitch, roll):
+def _euler123_to_dcm_rad(yaw, pitch, roll):
     """``A = R3(roll) R2(pitch) R1(yaw)``: the roll/pitch/yaw of our reports."""
     return (
-        elementary_rotation(3, roll)
-        @ elementary_rotation(2, pitch)
-        @ elementary_rotation(1, yaw)
+        _elementary_rotation_rad(3, roll)
+        @ _elementary_rotation_rad(2, pitch)
+        @ _elementary_rotation_rad(1, yaw)
     )
 
 
-def dcm_to_euler123(dcm):
-    """Inverse of :func:`euler123_to_dcm`: ``(yaw, pitch, roll)`` in radians.
+def _dcm_to_euler123_rad(dcm):
+    """Inverse of :func:`_euler123_to_dcm_rad`: ``(yaw, pitch, roll)`` in radians.
 
     ``pitch`` is in ``[-pi/2, pi/2]``.  At ``|pitch| = pi/2`` (gimbal lock) only
     ``roll -/+ yaw`` is defined; the returned triple still reproduces ``dcm``.
@@ -271,12 +274,12 @@ def dcm_to_euler123(dcm):
     yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
     # Roll from what is left once pitch and yaw are undone: stable near gimbal
     # lock (|pitch| -> 90 deg), where any error in yaw is absorbed by roll.
-    rest = a @ np.swapaxes(elementary_rotation(2, pitch) @ elementary_rotation(1, yaw), -1, -2)
+    rest = a @ np.swapaxes(_elementary_rotation_rad(2, pitch) @ _elementary_rotation_rad(1, yaw), -1, -2)
     roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
     return yaw, pitch, roll
 
 
-def propagate_attitude(dcm, rate_rad_s, dt):
+def _propagate_attitude_rad(dcm, rate_rad_s, dt):
     """Attitude after ``dt`` seconds at constant body rate ``rate_rad_s`` (camera frame).
 
     ``A(t) = exp(-[w x] t) A(0)``: the camera turns by ``w t`` about the
@@ -302,7 +305,7 @@ def random_quaternions(n: int, rng: np.random.Generator):
     return normalize_quaternion(q)
 
 
-def rotation_vector(dcm):
+def _rotation_vector_rad(dcm):
     """Rotation vector ``phi`` (radians) with ``A ~ I - [phi x]`` for small angles."""
     q = dcm_to_quaternion(dcm)
     qv = q[..., :3]
@@ -312,7 +315,7 @@ def rotation_vector(dcm):
     return qv * scale
 
 
-def attitude_error(dcm_estimate, dcm_truth):
+def _attitude_error_rad(dcm_estimate, dcm_truth):
     """Angle between two attitudes, split into cross-boresight and roll parts.
 
     Returns
@@ -326,9 +329,101 @@ def attitude_error(dcm_estimate, dcm_truth):
     a_est = np.asarray(dcm_estimate, dtype=np.float64)
     a_true = np.asarray(dcm_truth, dtype=np.float64)
     delta = a_est @ np.swapaxes(a_true, -1, -2)
-    phi = rotation_vector(delta)
+    phi = _rotation_vector_rad(delta)
     total = np.linalg.norm(phi, axis=-1)
     cos_b = np.clip(np.sum(a_est[..., 2, :] * a_true[..., 2, :], axis=-1), -1, 1)
     sin_b = np.linalg.norm(np.cross(a_est[..., 2, :], a_true[..., 2, :]), axis=-1)
     cross = np.arctan2(sin_b, cos_b)
     return total, cross, phi[..., 2]
+
+
+# ---------------------------------------------------------------------------------------------
+# The public functions: degrees in, degrees out (the radian forms above are the library's own)
+# ---------------------------------------------------------------------------------------------
+
+def _deg(x):
+    return np.radians(np.asarray(x, dtype=np.float64))
+
+
+def radec_to_vector(ra, dec):
+    """ICRS unit vector ``(cos a cos d, sin a cos d, sin d)`` of right ascension ``ra`` and declination ``dec`` (degrees).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+    """
+    return _radec_to_vector_rad(_deg(ra), _deg(dec))
+
+
+def vector_to_radec(v):
+    """Right ascension in ``[0, 360)`` and declination (degrees) of vectors ``(..., 3)``."""
+    ra, dec = _vector_to_radec_rad(v)
+    return np.mod(np.degrees(ra), 360.0), np.degrees(dec)
+
+
+def east_north(ra, dec):
+    """Unit vectors (ICRS) of local east and north at ``ra``, ``dec`` (degrees); each shape ``(..., 3)``."""
+    return _east_north_rad(_deg(ra), _deg(dec))
+
+
+def radec_roll_to_dcm(ra, dec, roll):
+    """Attitude matrix ``A`` (ICRS to camera) from boresight ``ra``, ``dec`` and ``roll``, all in degrees.
+
+    Rows of the result: camera ``+x`` (image right), ``+y`` (image down) and
+    ``+z`` (boresight) in ICRS.  With ``roll = 0`` image up is north and image
+    left is east; ``roll`` turns image up from north toward east (see the
+    README's "Roll").  Broadcasts over leading dimensions: shape ``(..., 3, 3)``.
+
+    >>> a = radec_roll_to_dcm(83.8, -1.2, 30.0)
+    >>> [round(float(v), 1) for v in dcm_to_radec_roll(a)]
+    [83.8, -1.2, 30.0]
+    """
+    return _radec_roll_to_dcm_rad(_deg(ra), _deg(dec), _deg(roll))
+
+
+def dcm_to_radec_roll(dcm):
+    """Inverse of :func:`radec_roll_to_dcm`: ``(ra, dec, roll)`` in degrees.
+
+    ``ra`` is in ``[0, 360)``, ``roll`` in ``[-180, 180]``.  At a pole ``ra`` is
+    undefined; the returned triple then still reproduces ``dcm``.
+    """
+    ra, dec, roll = _dcm_to_radec_roll_rad(dcm)
+    return np.mod(np.degrees(ra), 360.0), np.degrees(dec), np.degrees(roll)
+
+
+def euler123_to_dcm(yaw, pitch, roll):
+    """``A = R3(roll) R2(pitch) R1(yaw)`` (degrees): the roll/pitch/yaw of our reports."""
+    return _euler123_to_dcm_rad(_deg(yaw), _deg(pitch), _deg(roll))
+
+
+def dcm_to_euler123(dcm):
+    """Inverse of :func:`euler123_to_dcm`: ``(yaw, pitch, roll)`` in degrees, ``pitch`` in ``[-90, 90]``."""
+    return tuple(np.degrees(a) for a in _dcm_to_euler123_rad(dcm))
+
+
+def elementary_rotation(axis: int, angle):
+    """Passive rotation ``R_axis(angle)`` (``angle`` in degrees) about axis 1, 2 or 3; shape ``(..., 3, 3)``."""
+    return _elementary_rotation_rad(axis, _deg(angle))
+
+
+def propagate_attitude(dcm, rate_deg_s, dt):
+    """Attitude after ``dt`` seconds at constant body rate ``rate_deg_s`` (degrees per second, camera axes)."""
+    return _propagate_attitude_rad(dcm, _deg(rate_deg_s), dt)
+
+
+def rotation_vector(dcm):
+    """Rotation vector ``phi`` (degrees) of ``dcm``: ``A ~ I - [phi x]`` for small angles (phi in radians)."""
+    return np.degrees(_rotation_vector_rad(dcm))
+
+
+def attitude_error(dcm_estimate, dcm_truth):
+    """Angle between two attitudes and its cross-boresight and roll parts, in degrees.
+
+    Returns
+    -------
+    total, cross_boresight, roll : ndarray
+        ``total`` is the angle of ``A_est A_true^T``; ``cross_boresight`` the
+        angle between the two boresights; ``roll`` the signed rotation about the
+        true boresight.
+    """
+    return tuple(np.degrees(a) for a in _attitude_error_rad(dcm_estimate, dcm_truth))

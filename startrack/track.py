@@ -150,7 +150,7 @@ def _log_minus(r):
 
 def _exp_minus(phi):
     """``exp(-[phi x])`` (Rodrigues): the passive rotation by ``|phi|`` about ``phi`` (as
-    :func:`startrack.rotations.propagate_attitude`)."""
+    :func:`startrack.rotations._propagate_attitude_rad`)."""
     angle = math.sqrt(float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]))
     if angle < 1e-12:
         return _I3 - _cross(phi)
@@ -644,9 +644,9 @@ class Tracker:
             # Consecutive fixes: the attitude difference measures the rate (resolving the streak sign).
             if prev is not None and dt is not None and self.last_fix_t is not None and self.mode is not None \
                     and self.mode != "lost" and dt <= cfg.max_gap_s:
-                from startrack.rotations import rotation_vector
+                from startrack.rotations import _rotation_vector_rad
 
-                measured = rotation_vector(result.dcm @ prev.dcm.T) / dt
+                measured = _rotation_vector_rad(result.dcm @ prev.dcm.T) / dt
                 cov_m = (cov_att + prev.P[:3, :3]) / dt ** 2
                 if self.sign_ambiguous and np.dot(measured, rate) < 0:
                     self.filter.rate = -rate

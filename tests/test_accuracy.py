@@ -12,7 +12,7 @@ from startrack.accuracy import (
 )
 from startrack.attitude import covariance, estimate_attitude
 from startrack.camera import Camera
-from startrack.rotations import quaternion_to_dcm, random_quaternions, rotation_vector
+from startrack.rotations import _rotation_vector_rad, quaternion_to_dcm, random_quaternions
 
 
 def test_centroid_bound_limits():
@@ -56,7 +56,7 @@ def test_an_efficient_estimator_reaches_the_bound():
         bound = attitude_crb(cam, cam.pixels_to_vectors(x, y), covs)
         sig = np.sqrt(0.5 * (covs[:, 0, 0] + covs[:, 1, 1])) / cam.focal_length_px
         res = estimate_attitude(cam.pixels_to_vectors(x + noise[:, 0], y + noise[:, 1]), r, sig, gate=1e9)
-        phi = rotation_vector(res.dcm @ a.T)
+        phi = _rotation_vector_rad(res.dcm @ a.T)
         z.append(phi / np.sqrt(np.diag(bound.cov_rad2)))
     rms = np.sqrt(np.mean(np.square(z), axis=0))
     # 400 frames: the RMS of unit normals is 1 +- 0.035 (1 sigma)

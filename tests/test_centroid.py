@@ -42,10 +42,10 @@ def _star_catalog(camera, positions, mags):
 
 
 def test_rendered_frame_all_bright_stars_found_accurately(catalog):
-    from startrack.rotations import radec_roll_to_dcm
+    from startrack.rotations import _radec_roll_to_dcm_rad
 
     cam = Camera.from_fov(20, 1024, 1024)
-    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.3)
+    a = _radec_roll_to_dcm_rad(math.radians(83.8), math.radians(-1.2), 0.3)
     sensor = Sensor(hot_pixels=30, psf_sigma_px=1.2)
     image, truth = render_image(catalog.filter_magnitude(None, 6.5), cam, a, sensor, Scene(),
                                 np.random.default_rng(2))
@@ -130,10 +130,10 @@ def test_trail_is_flagged_not_centroided():
 
 
 def test_windowed_mode(catalog):
-    from startrack.rotations import radec_roll_to_dcm
+    from startrack.rotations import _radec_roll_to_dcm_rad
 
     cam = Camera.from_fov(12, 1024, 768)
-    a = radec_roll_to_dcm(math.radians(200), math.radians(40), 0.1)
+    a = _radec_roll_to_dcm_rad(math.radians(200), math.radians(40), 0.1)
     image, truth = render_image(catalog.filter_magnitude(None, 6.0), cam, a, Sensor(), Scene(),
                                 np.random.default_rng(4))
     stars = [s for s in truth["stars"] if s["mag"] < 5.5 and 10 < s["x"] < 1010 and 10 < s["y"] < 758]

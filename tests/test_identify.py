@@ -56,15 +56,15 @@ def test_result_reports_confidence_and_attitude(setup20):
     cat, db, cam = setup20
     from startrack.formats.sections import to_section
     from startrack.render import Scene, Sensor, star_list
-    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+    from startrack.rotations import _attitude_error_rad, _radec_roll_to_dcm_rad, quaternion_to_dcm
 
-    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.4)
+    a = _radec_roll_to_dcm_rad(math.radians(83.8), math.radians(-1.2), 0.4)
     stars, truth = star_list(cat, cam, a, Sensor(), Scene(mag_limit=5.0), np.random.default_rng(1), sigma_px=0.2)
     res = identify_stars(stars, cam, db, "pyramid", IdentifyParams(sigma_px=0.2))
     assert res.status == "ok" and len(res.matches) >= 0.9 * len(stars)
     assert score(res, truth) == "success"
     assert 0 <= res.false_match_probability < 1e-10
-    total, cross, roll = attitude_error(quaternion_to_dcm(res.quaternion_estimate), a)
+    total, cross, roll = _attitude_error_rad(quaternion_to_dcm(res.quaternion_estimate), a)
     assert math.degrees(cross) * 3600 < 5
     sec = to_section(res)
     assert sec["algorithm"] == "pyramid" and sec["time_ms"] > 0 and len(sec["quaternion_estimate"]) == 4

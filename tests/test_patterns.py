@@ -7,7 +7,7 @@ import pytest
 from startrack.camera import Camera
 from startrack.patterns import BlindOptions, build_index, open_index, save_index, solve_blind
 from startrack.render import Scene, Sensor, star_list
-from startrack.rotations import attitude_error, quaternion_to_dcm, random_quaternions
+from startrack.rotations import _attitude_error_rad, quaternion_to_dcm, random_quaternions
 
 # A small index (stars to Hp 6, pattern sizes 4-23 deg) keeps the test fast; the default index
 # is the same code with more levels and a deeper catalog.
@@ -57,7 +57,7 @@ def test_blind_identification_measures_the_focal_length(index, catalog, fov):
                 a, b = vec[rows[m["id"]]], vec[rows[ids[m["star"]]]]
                 assert math.acos(min(1.0, float(a @ b))) * cam.focal_length_px < 2.0
         assert fitted.focal_length_px == pytest.approx(cam.focal_length_px, rel=1e-3 if fov < 25 else 3e-3)
-        _, cross, roll = attitude_error(res.dcm, dcm)
+        _, cross, roll = _attitude_error_rad(res.dcm, dcm)
         assert math.degrees(cross) * 3600 < 30 and abs(math.degrees(roll)) * 3600 < 300
     assert tried >= 5 and solved >= 0.8 * tried
 

@@ -48,7 +48,7 @@ def test_markers_are_where_the_stars_are_and_the_legend_explains_them(tmp_path):
     cam = Camera.from_fov(10.0, 640, 480)
     stars = [{"x": 100.3, "y": 200.7, "flux": 40000.0}, {"x": 400.0, "y": 300.0, "flux": 8000.0},
              {"x": 320.2, "y": 60.5, "flux": 2000.0}]
-    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), math.radians(30.0))
+    a = radec_roll_to_dcm(83.8, -1.2, 30.0)
     from startrack.rotations import dcm_to_quaternion
 
     doc = {"camera": cam.to_dict(), "stars": stars,

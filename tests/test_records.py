@@ -13,7 +13,7 @@ from startrack.formats.sections import (
     update_docs,
 )
 from startrack.records import Attitude, Identification, Match, ReasonCode, StarTable, Status, TrackState
-from startrack.rotations import radec_roll_to_dcm
+from startrack.rotations import _radec_roll_to_dcm_rad, radec_roll_to_dcm
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -26,7 +26,7 @@ def test_status_and_reason_code_are_the_file_strings():
 
 
 def test_attitude_section_round_trip_keeps_the_rotation():
-    dcm = radec_roll_to_dcm(np.radians(83.8), np.radians(-1.2), np.radians(30.0))
+    dcm = radec_roll_to_dcm(83.8, -1.2, 30.0)
     att = Attitude.from_dcm(dcm, "quest", n_stars=7, rms_residual_arcsec=1.5)
     assert att.ra == pytest.approx(83.8) and att.dec == pytest.approx(-1.2) and att.roll == pytest.approx(30.0)
     section = json.loads(json.dumps(to_section(att)))
@@ -40,7 +40,7 @@ def test_estimate_attitude_section_reads_as_an_attitude_record():
     from startrack.attitude import estimate_attitude
 
     rng = np.random.default_rng(3)
-    truth = radec_roll_to_dcm(1.0, 0.3, 0.2)
+    truth = _radec_roll_to_dcm_rad(1.0, 0.3, 0.2)
     ref = rng.normal(size=(6, 3))
     ref /= np.linalg.norm(ref, axis=1)[:, None]
     body = ref @ truth.T

@@ -13,7 +13,12 @@ from startrack.render import (
     render_image,
     star_list,
 )
-from startrack.rotations import propagate_attitude, quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
+from startrack.rotations import (
+    _propagate_attitude_rad,
+    quaternion_to_dcm,
+    radec_roll_to_dcm,
+    random_quaternions,
+)
 
 
 def one_star_catalog(dx_px, dy_px, camera, mag=3.0):
@@ -122,7 +127,7 @@ def test_smear_trail_length():
 
 def test_propagate_attitude_turns_at_the_rate():
     a = quaternion_to_dcm(random_quaternions(1, np.random.default_rng(1))[0])
-    b = propagate_attitude(a, np.radians([0.1, -0.2, 0.3]), 2.0)
+    b = _propagate_attitude_rad(a, np.radians([0.1, -0.2, 0.3]), 2.0)
     from startrack.render import attitude_rate_check
 
     np.testing.assert_allclose(attitude_rate_check(a, b, 2.0), np.radians([0.1, -0.2, 0.3]), atol=1e-12)
@@ -130,7 +135,7 @@ def test_propagate_attitude_turns_at_the_rate():
 
 def test_focal_error_moves_stars_radially(catalog):
     cam = Camera.from_fov(20, 1024, 1024)
-    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.0)
+    a = radec_roll_to_dcm(83.8, -1.2, 0.0)
     s0, t0 = star_list(catalog, cam, a, Sensor(), Scene(mag_limit=5), np.random.default_rng(0))
     s1, t1 = star_list(catalog, cam, a, Sensor(), Scene(mag_limit=5, focal_error_pct=1.0), np.random.default_rng(0))
     by_id = {s["id"]: s for s in t0["stars"]}
@@ -143,7 +148,7 @@ def test_focal_error_moves_stars_radially(catalog):
 
 def test_star_list_noise_false_stars_and_ids(catalog):
     cam = Camera.from_fov(20, 1024, 1024)
-    a = radec_roll_to_dcm(math.radians(83.8), math.radians(-1.2), 0.0)
+    a = radec_roll_to_dcm(83.8, -1.2, 0.0)
     stars, truth = star_list(catalog, cam, a, Sensor(), Scene(mag_limit=5, false_stars=3), np.random.default_rng(4),
                              sigma_px=0.5, max_stars=10)
     assert len(stars) == 10 == len(truth["star_ids"])

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -5,13 +7,71 @@ from hypothesis import strategies as st
 
 from startrack import rotations as rot
 
-angles = st.floats(-np.pi, np.pi, allow_nan=False)
-ras = st.one_of(st.floats(0, 2 * np.pi, allow_nan=False, exclude_max=True),
-                st.sampled_from([0.0, 1e-12, 2 * np.pi - 1e-12, np.pi]))
-decs = st.one_of(st.floats(-np.pi / 2, np.pi / 2, allow_nan=False),
-                 st.sampled_from([np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-9, -np.pi / 2 + 1e-9, 0.0]))
+# The public functions take and return degrees (README "Conventions": degrees at every public boundary).
+angles = st.floats(-180.0, 180.0, allow_nan=False)
+ras = st.one_of(st.floats(0, 360.0, allow_nan=False, exclude_max=True),
+                st.sampled_from([0.0, 1e-10, 360.0 - 1e-10, 180.0]))
+decs = st.one_of(st.floats(-90.0, 90.0, allow_nan=False),
+                 st.sampled_from([90.0, -90.0, 90.0 - 1e-7, -90.0 + 1e-7, 0.0]))
 quats = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
     lambda q: np.linalg.norm(q) > 1e-3)
+
+
+def _expected_dcm(ra_deg, dec_deg, roll_deg):
+    """README "Roll", written out from scratch: A = R3(-roll) A0, A0's rows (-east, -north, boresight)."""
+    a, d, r = (math.radians(v) for v in (ra_deg, dec_deg, roll_deg))
+    east = np.array([-math.sin(a), math.cos(a), 0.0])
+    north = np.array([-math.sin(d) * math.cos(a), -math.sin(d) * math.sin(a), math.cos(d)])
+    bore = np.array([math.cos(a) * math.cos(d), math.sin(a) * math.cos(d), math.sin(d)])
+    a0 = np.array([-east, -north, bore])
+    r3 = np.array([[math.cos(-r), math.sin(-r), 0.0], [-math.sin(-r), math.cos(-r), 0.0], [0.0, 0.0, 1.0]])
+    return r3 @ a0
+
+
+@settings(max_examples=300, deadline=None)
+@given(ras, decs, angles)
+def test_radec_roll_to_dcm_takes_degrees(ra, dec, roll):
+    """Degrees in -> the matrix of the documented convention (and the boresight row is (ra, dec))."""
+    a = rot.radec_roll_to_dcm(ra, dec, roll)
+    np.testing.assert_allclose(a, _expected_dcm(ra, dec, roll), atol=1e-12)
+    np.testing.assert_allclose(a[2], rot.radec_to_vector(ra, dec), atol=1e-15)
+    # the same numbers read as radians would be another attitude entirely
+    if abs(ra) > 1e-3 or abs(dec) > 1e-3 or abs(roll) > 1e-3:
+        assert not np.allclose(a, rot._radec_roll_to_dcm_rad(ra, dec, roll), atol=1e-6)
+
+
+def test_radec_roll_to_dcm_known_values():
+    # ra 90, dec 0, roll 0: boresight +Y; north (+Z) is image up (-y), east (-X) image left (-x).
+    np.testing.assert_allclose(rot.radec_roll_to_dcm(90.0, 0.0, 0.0), [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-15)
+    # roll 90 turns image up toward east: up (-y row) is east (-X), and north (+Z) is image right.
+    np.testing.assert_allclose(rot.radec_roll_to_dcm(90.0, 0.0, 90.0), [[0, 0, 1], [1, 0, 0], [0, 1, 0]],
+                               atol=1e-15)
+    # broadcasting: arrays of angles give a stack of matrices
+    stack = rot.radec_roll_to_dcm([0.0, 90.0], [0.0, 0.0], [0.0, 90.0])
+    assert stack.shape == (2, 3, 3)
+    np.testing.assert_allclose(stack[1], rot.radec_roll_to_dcm(90.0, 0.0, 90.0), atol=1e-15)
+
+
+def test_public_functions_are_degrees():
+    np.testing.assert_allclose(rot.elementary_rotation(3, 90.0), [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(rot.radec_to_vector(90.0, 0.0), [0, 1, 0], atol=1e-15)
+    ra, dec = rot.vector_to_radec([0.0, -1.0, 1.0])
+    assert (float(ra), float(dec)) == pytest.approx((270.0, 45.0))
+    east, north = rot.east_north(90.0, 0.0)
+    np.testing.assert_allclose(east, [-1, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(north, [0, 0, 1], atol=1e-15)
+    yaw, pitch, roll = rot.dcm_to_euler123(rot.euler123_to_dcm(10.0, -20.0, 30.0))
+    assert (float(yaw), float(pitch), float(roll)) == pytest.approx((10.0, -20.0, 30.0))
+    a = rot.radec_roll_to_dcm(40.0, 10.0, 5.0)
+    # 0.5 deg/s about the boresight for 2 s: a pure roll of 1 deg
+    b = rot.propagate_attitude(a, [0.0, 0.0, 0.5], 2.0)
+    total, cross, roll_err = rot.attitude_error(b, a)
+    assert float(total) == pytest.approx(1.0, rel=1e-9)
+    assert float(cross) == pytest.approx(0.0, abs=1e-9)
+    assert abs(float(roll_err)) == pytest.approx(1.0, rel=1e-9)
+    np.testing.assert_allclose(np.abs(rot.rotation_vector(b @ a.T)), [0, 0, 1.0], atol=1e-9)
+    # a positive turn of the camera about its boresight lowers the roll angle (A = R3(-roll) A0)
+    assert float(rot.dcm_to_radec_roll(b)[2]) == pytest.approx(4.0, abs=1e-9)
 
 
 @settings(max_examples=300, deadline=None)
@@ -33,7 +93,7 @@ def test_quaternion_formula_matches_formats_md():
     q = np.array([0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
     a = rot.quaternion_to_dcm(q)
     np.testing.assert_allclose(a @ [1, 0, 0], [0, -1, 0], atol=1e-15)
-    np.testing.assert_allclose(a, rot.elementary_rotation(3, np.pi / 2), atol=1e-15)
+    np.testing.assert_allclose(a, rot.elementary_rotation(3, 90.0), atol=1e-15)
 
 
 @settings(max_examples=300, deadline=None)
@@ -43,14 +103,15 @@ def test_radec_roll_round_trip(ra, dec, roll):
     np.testing.assert_allclose(a @ a.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(a) == pytest.approx(1.0, abs=1e-12)
     ra2, dec2, roll2 = rot.dcm_to_radec_roll(a)
+    assert 0.0 <= ra2 < 360.0 and -180.0 <= roll2 <= 180.0
     # The matrix is reproduced exactly, poles included (where ra is undefined).
     np.testing.assert_allclose(rot.radec_roll_to_dcm(ra2, dec2, roll2), a, atol=1e-9)
-    assert dec2 == pytest.approx(dec, abs=1e-9)
-    if abs(dec) < np.pi / 2 - 1e-6:
-        dra = (ra2 - ra + np.pi) % (2 * np.pi) - np.pi
-        assert abs(dra) < 1e-9
-        droll = (roll2 - roll + np.pi) % (2 * np.pi) - np.pi
-        assert abs(droll) < 1e-9
+    assert dec2 == pytest.approx(dec, abs=1e-7)
+    if abs(dec) < 90.0 - 1e-4:
+        dra = (ra2 - ra + 180.0) % 360.0 - 180.0
+        assert abs(dra) < 1e-7
+        droll = (roll2 - roll + 180.0) % 360.0 - 180.0
+        assert abs(droll) < 1e-7
 
 
 @settings(max_examples=200, deadline=None)
@@ -58,6 +119,7 @@ def test_radec_roll_round_trip(ra, dec, roll):
 def test_dcm_radec_roll_dcm(q):
     a = rot.quaternion_to_dcm(q)
     np.testing.assert_allclose(rot.radec_roll_to_dcm(*rot.dcm_to_radec_roll(a)), a, atol=1e-9)
+    np.testing.assert_allclose(rot._radec_roll_to_dcm_rad(*rot._dcm_to_radec_roll_rad(a)), a, atol=1e-9)
 
 
 @settings(max_examples=200, deadline=None)
@@ -68,7 +130,7 @@ def test_euler123_round_trip(q):
 
 
 def test_euler123_gimbal_lock():
-    a = rot.euler123_to_dcm(0.3, np.pi / 2, 0.2)
+    a = rot.euler123_to_dcm(17.0, 90.0, 11.0)
     np.testing.assert_allclose(rot.euler123_to_dcm(*rot.dcm_to_euler123(a)), a, atol=1e-12)
 
 
@@ -81,18 +143,18 @@ def test_composition_and_inverse(q, p):
 
 
 def test_roll_zero_is_north_up_east_left():
-    ra, dec = np.radians(83.8), np.radians(-1.2)
+    ra, dec = 83.8, -1.2
     a = rot.radec_roll_to_dcm(ra, dec, 0.0)
     bore = rot.radec_to_vector(ra, dec)
-    north_star = rot.radec_to_vector(ra, dec + 1e-3)
-    east_star = rot.radec_to_vector(ra + 1e-3, dec)
+    north_star = rot.radec_to_vector(ra, dec + 0.05)
+    east_star = rot.radec_to_vector(ra + 0.05, dec)
     n_cam = a @ north_star
     e_cam = a @ east_star
     np.testing.assert_allclose(a[2], bore)
     assert n_cam[1] < 0 and abs(n_cam[0]) < 1e-12      # north is up (-y)
     assert e_cam[0] < 0 and abs(e_cam[1]) < 1e-6       # east is left (-x)
     # roll = 90 deg turns image up toward east.
-    a90 = rot.radec_roll_to_dcm(ra, dec, np.pi / 2)
+    a90 = rot.radec_roll_to_dcm(ra, dec, 90.0)
     assert (a90 @ east_star)[1] < 0
 
 
@@ -108,23 +170,25 @@ def test_random_quaternions_uniform_and_seeded():
 
 
 def test_attitude_error_split():
-    a = rot.radec_roll_to_dcm(1.0, 0.5, 0.3)
-    roll_only = rot.elementary_rotation(3, 1e-4) @ a
+    a = rot.radec_roll_to_dcm(57.0, 28.0, 17.0)
+    roll_only = rot.elementary_rotation(3, 0.005) @ a
     total, cross, roll = rot.attitude_error(roll_only, a)
-    assert total == pytest.approx(1e-4, rel=1e-6)
-    assert cross == pytest.approx(0.0, abs=1e-12)
-    assert roll == pytest.approx(1e-4, rel=1e-6)
-    tilt = rot.elementary_rotation(1, 2e-5) @ a
+    assert total == pytest.approx(0.005, rel=1e-6)
+    assert cross == pytest.approx(0.0, abs=1e-10)
+    assert roll == pytest.approx(0.005, rel=1e-6)
+    tilt = rot.elementary_rotation(1, 0.001) @ a
     total, cross, roll = rot.attitude_error(tilt, a)
-    assert cross == pytest.approx(2e-5, rel=1e-6)
-    assert abs(roll) < 1e-12
+    assert cross == pytest.approx(0.001, rel=1e-6)
+    assert abs(roll) < 1e-10
+    # the radian form the library uses internally agrees
+    np.testing.assert_allclose(np.degrees(rot._attitude_error_rad(tilt, a)), (total, cross, roll), atol=1e-12)
 
 
 def test_readme_roll_example(catalog):
     # README: boresight (83.8, -1.2), roll 30 deg -> Betelgeuse straight above the centre.
     from startrack.camera import Camera
 
-    a = rot.radec_roll_to_dcm(np.radians(83.8), np.radians(-1.2), np.radians(30.0))
+    a = rot.radec_roll_to_dcm(83.8, -1.2, 30.0)
     cam = Camera.from_fov(30, 1024, 1024)
     betel = catalog.subset(catalog.id == 27989).vectors()[0]
     x, y = cam.vectors_to_pixels(a @ betel)

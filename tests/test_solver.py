@@ -14,7 +14,7 @@ from startrack.camera import Camera
 from startrack.errors import BadInputError, ParameterError
 from startrack.kvector import build_kvector, max_separation_deg
 from startrack.render import RenderRun, Scene, Sensor
-from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+from startrack.rotations import _attitude_error_rad, quaternion_to_dcm, radec_roll_to_dcm
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -40,13 +40,13 @@ def world(catalog):
 
 
 def _frames(catalog, cam, n, seed, rate=(0.0, 0.0, 0.0)):
-    a0 = radec_roll_to_dcm(*np.radians((100.0, 20.0, 10.0)))
+    a0 = radec_roll_to_dcm(100.0, 20.0, 10.0)
     run = RenderRun(catalog.filter_magnitude(None, 7.0), cam, Sensor(), Scene(rate_deg_s=rate), seed, a0, 1, n, 0.1)
     return list(run.frames_iter())
 
 
 def _error_arcsec(attitude, truth_quaternion):
-    _, cross, roll = attitude_error(attitude.dcm, quaternion_to_dcm(truth_quaternion))
+    _, cross, roll = _attitude_error_rad(attitude.dcm, quaternion_to_dcm(truth_quaternion))
     return math.degrees(cross) * 3600, abs(math.degrees(roll)) * 3600
 
 

@@ -7,7 +7,7 @@ from startrack.camera import Camera
 from startrack.errors import BadInputError
 from startrack.kvector import build_kvector, max_separation_deg
 from startrack.render import RenderRun, Scene, Sensor
-from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
+from startrack.rotations import _attitude_error_rad, _radec_roll_to_dcm_rad, quaternion_to_dcm, radec_roll_to_dcm
 from startrack.track import (
     Tracker,
     TrackerConfig,
@@ -35,18 +35,18 @@ def test_paper_001_case_2():
 
 def test_single_star_attitude_recovers_a_pure_shift():
     cam = Camera.from_fov(12, 1024, 768)
-    a = radec_roll_to_dcm(1.0, 0.4, 0.2)
+    a = _radec_roll_to_dcm_rad(1.0, 0.4, 0.2)
     rng = np.random.default_rng(0)
     cam_dirs = cam.pixels_to_vectors(rng.uniform(100, 900, 4), rng.uniform(100, 700, 4))
     ref = cam_dirs @ a
     # The camera turned slightly about its x and y axes: all stars shift about alike.
-    from startrack.rotations import propagate_attitude
+    from startrack.rotations import _propagate_attitude_rad
 
-    a2 = propagate_attitude(a, np.radians([0.01, -0.02, 0.0]), 1.0)
+    a2 = _propagate_attitude_rad(a, np.radians([0.01, -0.02, 0.0]), 1.0)
     x2, y2 = cam.vectors_to_pixels(ref @ a2.T)
     x1, y1 = cam.vectors_to_pixels(ref @ a.T)
     est = single_star_attitude(cam, (x2[0], y2[0]), (x1[0], y1[0]), ref[0], np.column_stack([x1[1:], y1[1:]]), ref[1:])
-    _, cross, _ = attitude_error(est, a2)
+    _, cross, _ = _attitude_error_rad(est, a2)
     assert math.degrees(cross) * 3600 < 5
 
 
@@ -58,14 +58,14 @@ def world(catalog):
 
 
 def _sequence(catalog, cam, n, rate, seed, start=(100.0, 20.0, 10.0), blackout=(), exposure_ms=100.0):
-    a0 = radec_roll_to_dcm(*np.radians(start))
+    a0 = radec_roll_to_dcm(*start)
     run = RenderRun(catalog.filter_magnitude(None, 7.0), cam, Sensor(exposure_ms=exposure_ms), Scene(rate_deg_s=rate),
                     seed, a0, 1, n, 0.1, blackout=blackout)
     return list(run.frames_iter())
 
 
 def _errors(doc, out):
-    _, cross, roll = attitude_error(quaternion_to_dcm(out["attitude"]["quaternion"]),
+    _, cross, roll = _attitude_error_rad(quaternion_to_dcm(out["attitude"]["quaternion"]),
                                     quaternion_to_dcm(doc["truth"]["quaternion"]))
     return math.degrees(cross) * 3600, abs(math.degrees(roll)) * 3600
 
@@ -117,18 +117,18 @@ def test_few_stars_keep_lock(world, keep, mode):
 
 def test_rate_filter_converges_on_noisy_attitudes():
     """The Kalman filter's rate from 20 noisy attitudes (10 arcsec, 0.1 s apart) beats the per-frame difference."""
-    from startrack.rotations import propagate_attitude
+    from startrack.rotations import _propagate_attitude_rad
     from startrack.track import AttitudeRateFilter
 
     rng = np.random.default_rng(4)
     w = np.radians([0.5, -1.0, 2.0])
-    a = radec_roll_to_dcm(0.4, -0.3, 1.0)
+    a = _radec_roll_to_dcm_rad(0.4, -0.3, 1.0)
     s = math.radians(10 / 3600)
     f = AttitudeRateFilter(a, np.zeros(3), np.diag([s ** 2] * 3 + [math.radians(3.0) ** 2] * 3), 1e-8)
     errs = []
     for k in range(1, 21):
-        truth = propagate_attitude(a, w, 0.1 * k)
-        meas = propagate_attitude(truth, rng.normal(0, s, 3), 1.0)
+        truth = _propagate_attitude_rad(a, w, 0.1 * k)
+        meas = _propagate_attitude_rad(truth, rng.normal(0, s, 3), 1.0)
         f.predict(0.1)
         f.update_attitude(meas, np.eye(3) * s ** 2)
         errs.append(np.degrees(f.rate - w))

@@ -213,7 +213,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             raise BadInputError("--ra" if ra is None else "--dec", None, "--ra and --dec go together")
         if not (math.isfinite(ra) and math.isfinite(dec) and -90 <= dec <= 90 and math.isfinite(roll)):
             raise BadInputError("--dec", None, f"need finite --ra, --roll and -90 <= --dec <= 90, got {ra}, {dec}, {roll}")
-        attitude = radec_roll_to_dcm(math.radians(ra), math.radians(dec), math.radians(roll))
+        attitude = radec_roll_to_dcm(ra, dec, roll)
     if attitude is not None and count > 1:
         raise BadInputError("--count", None, "random attitudes (--count) cannot be combined with a given attitude")
 

@@ -217,8 +217,7 @@ def from_section(cls, doc, source: str = "<frame>", section: str | None = None):
             from startrack.rotations import dcm_to_radec_roll
 
             ra, dec, roll = dcm_to_radec_roll(record.dcm)
-            record.ra, record.dec, record.roll = (float(np.degrees(ra)) % 360.0, float(np.degrees(dec)),
-                                                  float(np.degrees(roll)))
+            record.ra, record.dec, record.roll = float(ra), float(dec), float(roll)
     return record
 
 

@@ -61,14 +61,14 @@ def test_methods_and_rendered_truth(tmp_path):
     frames = run_cli("render", "--stars-only", "--count", "5", "--fov-deg", "20", "--size", "1024x1024",
                      "--mag-max", "5.5", "--sigma-px", "0.1", "--seed", "9", check=True).stdout
     ident = run_cli("identify", "-d", db, "--sigma-px", "0.1", input=frames, check=True).stdout
-    from startrack.rotations import attitude_error, quaternion_to_dcm
+    from startrack.rotations import _attitude_error_rad, quaternion_to_dcm
 
     for method in ("quest", "q-method", "svd", "foam", "esoq2", "triad"):
         out = run_cli("attitude", "--method", method, "--sigma-px", "0.1", input=ident, check=True).stdout
         for line in out.splitlines():
             d = json.loads(line)
             assert d["attitude"]["status"] == "ok" and d["attitude"]["method"] == method
-            _, cross, _ = attitude_error(quaternion_to_dcm(d["attitude"]["quaternion"]),
+            _, cross, _ = _attitude_error_rad(quaternion_to_dcm(d["attitude"]["quaternion"]),
                                          quaternion_to_dcm(d["truth"]["quaternion"]))
             limit = 60 if method == "triad" else 5
             assert math.degrees(cross) * 3600 < limit, method

@@ -48,7 +48,7 @@ def test_pipe_render_identify(db20):
 
 def test_real_esa_images_identified(esa_db):
     """centroid -> identify on the 8 real images: all identified, boresight within 0.05 deg of the reference."""
-    from startrack.rotations import dcm_to_radec_roll, quaternion_to_dcm, radec_to_vector
+    from startrack.rotations import _dcm_to_radec_roll_rad, _radec_to_vector_rad, quaternion_to_dcm
 
     cent = run_cli("centroid", *REAL, "--camera", ESA_CAMERA, check=True).stdout
     proc = run_cli("identify", "-d", esa_db, input=cent, check=True)
@@ -59,9 +59,9 @@ def test_real_esa_images_identified(esa_db):
         ident = d["identification"]
         assert ident["status"] == "ok", ident
         assert len(ident["matches"]) >= 6
-        ra, dec, _ = dcm_to_radec_roll(quaternion_to_dcm(ident["quaternion_estimate"]))
+        ra, dec, _ = _dcm_to_radec_roll_rad(quaternion_to_dcm(ident["quaternion_estimate"]))
         r = ref[os.path.basename(d["image"]["path"])]
-        sep = math.degrees(math.acos(np.clip(radec_to_vector(ra, dec) @ radec_to_vector(
+        sep = math.degrees(math.acos(np.clip(_radec_to_vector_rad(ra, dec) @ _radec_to_vector_rad(
             math.radians(float(r["ra_deg"])), math.radians(float(r["dec_deg"]))), -1, 1)))
         assert sep < 0.05, (d["image"]["path"], sep)
 

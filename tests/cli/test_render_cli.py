@@ -73,11 +73,11 @@ def test_sequence_numbered_images(tmp_path):
     assert [d["image"]["path"] for d in docs] == [str(tmp_path / "seq" / f"frame-{i:04d}.png") for i in range(3)]
     assert all(os.path.exists(d["image"]["path"]) for d in docs)
     assert docs[1]["image"]["time"] == "2026-11-21T22:10:00.500Z"
-    from startrack.rotations import attitude_error, quaternion_to_dcm
+    from startrack.rotations import _attitude_error_rad, quaternion_to_dcm
 
     a0 = quaternion_to_dcm(docs[0]["truth"]["quaternion"])
     a2 = quaternion_to_dcm(docs[2]["truth"]["quaternion"])
-    total, _, _ = attitude_error(a2, a0)
+    total, _, _ = _attitude_error_rad(a2, a0)
     assert math.degrees(total) == pytest.approx(0.5, rel=1e-9)
 
 
