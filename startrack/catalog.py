@@ -13,8 +13,10 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import logging
 import math
 import os
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -35,6 +37,8 @@ __all__ = [
     "FieldStatistics",
     "field_statistics",
 ]
+
+log = logging.getLogger(__name__)
 
 CATALOG_FORMAT = "startrack.catalog/1"
 MAS_TO_RAD = math.pi / (180.0 * 3600.0 * 1000.0)
@@ -103,7 +107,7 @@ class Catalog:
         """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14)."""
         from startrack.rotations import radec_to_vector
 
-        return radec_to_vector(np.radians(self.ra), np.radians(self.dec))
+        return radec_to_vector(self.ra, self.dec)
 
     def checksum(self) -> str:
         """SHA-256 of the star table (ids, positions, magnitudes and epoch).
@@ -140,7 +144,7 @@ class Catalog:
         back returns the same catalog.  Parallax and radial velocity are neglected
         (well under 1 mas per century for all but a handful of nearby stars).
         """
-        from startrack.rotations import east_north, radec_to_vector, vector_to_radec
+        from startrack.rotations import _east_north_rad, _radec_to_vector_rad, _vector_to_radec_rad
 
         if not math.isfinite(epoch):
             raise ParameterError("epoch", f"must be a finite decimal year, got {epoch}")
@@ -148,8 +152,8 @@ class Catalog:
 
         ra = np.radians(self.ra)
         dec = np.radians(self.dec)
-        u = radec_to_vector(ra, dec)
-        east, north = east_north(ra, dec)
+        u = _radec_to_vector_rad(ra, dec)
+        east, north = _east_north_rad(ra, dec)
         pm_ra = np.nan_to_num(self.pm_ra) * MAS_TO_RAD
         pm_dec = np.nan_to_num(self.pm_dec) * MAS_TO_RAD
         velocity = pm_ra[:, None] * east + pm_dec[:, None] * north
@@ -159,8 +163,8 @@ class Catalog:
         u_new = u * np.cos(angle) + direction * np.sin(angle)
         v_new = (-u * np.sin(angle) + direction * np.cos(angle)) * mu[:, None]
         u_new /= np.linalg.norm(u_new, axis=1, keepdims=True)
-        new_ra, new_dec = vector_to_radec(u_new)
-        east2, north2 = east_north(new_ra, new_dec)
+        new_ra, new_dec = _vector_to_radec_rad(u_new)
+        east2, north2 = _east_north_rad(new_ra, new_dec)
         out = replace(self, ra=np.degrees(new_ra), dec=np.degrees(new_dec), epoch=float(epoch),
                       pm_ra=np.where(np.isfinite(self.pm_ra), np.sum(v_new * east2, axis=1) / MAS_TO_RAD, np.nan),
                       pm_dec=np.where(np.isfinite(self.pm_dec), np.sum(v_new * north2, axis=1) / MAS_TO_RAD, np.nan),
@@ -186,7 +190,7 @@ class Catalog:
             Separation (arcsec) below which stars are unresolved, e.g. about
             2 pixels of the sensor (:func:`merge_radius_arcsec`).
         """
-        from startrack.rotations import vector_to_radec
+        from startrack.rotations import _vector_to_radec_rad
 
         if not radius_arcsec > 0:
             raise ParameterError("radius_arcsec", f"must be positive, got {radius_arcsec:g}")
@@ -225,7 +229,7 @@ class Catalog:
             brightest = members[0]
             w = flux[members]
             mean = (vec[members] * w[:, None]).sum(axis=0)
-            a, d = vector_to_radec(mean / np.linalg.norm(mean))
+            a, d = _vector_to_radec_rad(mean / np.linalg.norm(mean))
             keep[members[1:]] = False
             ra[brightest], dec[brightest] = math.degrees(a), math.degrees(d)
             mag[brightest] = -2.5 * math.log10(w.sum())
@@ -371,6 +375,7 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
 
     from startrack.formats.hdf5 import read_hdf5
 
+    t0 = time.perf_counter()
     path = path or default_catalog_path()
     f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
     mag = np.asarray(f["mag"])
@@ -406,6 +411,8 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     if merged:
         kept = set(cat.id.tolist())
         cat.merged = {k: v for k, v in merged.items() if k in kept}
+    log.info("catalog %s: %d stars%s, epoch %g, read in %.0f ms", path, len(cat),
+             f" to Hp {mag_max:g}" if mag_max is not None else "", epoch, (time.perf_counter() - t0) * 1000)
     return cat
 
 

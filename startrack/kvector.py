@@ -17,6 +17,7 @@ The file records the catalog checksum and the parameters, and
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,8 @@ from startrack.errors import BadInputError, DatabaseMismatchError, ParameterErro
 
 __all__ = ["KVECTOR_FORMAT", "KVectorDatabase", "build_kvector", "load_kvector", "check_database",
            "max_separation_deg", "choose_database_stars", "DEFAULT_MAX_PAIRS", "DEFAULT_STARS_PER_FIELD"]
+
+log = logging.getLogger(__name__)
 
 KVECTOR_FORMAT = "startrack.kvector/1"
 
@@ -295,12 +298,13 @@ def load_kvector(path: str) -> KVectorDatabase:
     """Read a ``startrack.kvector/1`` file (one-line errors for anything else)."""
     from startrack.formats.hdf5 import read_hdf5
 
+    t0 = time.perf_counter()
     f = read_hdf5(path, KVECTOR_FORMAT)
     for attr in ("catalog_sha256", "max_angle_deg", "kvector_line", "quadratic"):
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
     get = lambda name, dtype: np.ascontiguousarray(f[name], dtype=dtype)  # noqa: E731
-    return KVectorDatabase(
+    db = KVectorDatabase(
         get("star_id", np.int64), get("star_vector", np.float64), get("star_mag", np.float64),
         get("pair_i", np.int32), get("pair_j", np.int32), get("pair_cos", np.float64),
         get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]), get("kquad", np.int64),
@@ -308,6 +312,9 @@ def load_kvector(path: str) -> KVectorDatabase:
         float(f.attrs["max_angle_deg"]), str(f.attrs["catalog_sha256"]), f.params, path,
         get("merged_into", np.int64) if "merged_into" in f else np.zeros(0, dtype=np.int64),
         get("merged_id", np.int64) if "merged_id" in f else np.zeros(0, dtype=np.int64))
+    log.info("k-vector database %s: %d stars, %d pairs up to %g deg, read in %.0f ms", path, db.n_stars, db.n_pairs,
+             db.max_angle_deg, (time.perf_counter() - t0) * 1000)
+    return db
 
 
 def check_database(db, camera=None, catalog=None, tolerance: float = 0.5) -> None:

@@ -26,6 +26,7 @@ focal-length error (paper 004 Fig. 7).
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -36,6 +37,8 @@ from startrack.errors import BadInputError, DatabaseMismatchError, ParameterErro
 
 __all__ = ["LABELS_FORMAT", "LabelDatabase", "build_labels", "load_labels", "save_labels", "label_from_distances",
            "sweep_boresights"]
+
+log = logging.getLogger(__name__)
 
 LABELS_FORMAT = "startrack.labels/1"
 
@@ -202,17 +205,21 @@ def save_labels(db: LabelDatabase, path: str) -> None:
 def load_labels(path: str) -> LabelDatabase:
     from startrack.formats.hdf5 import read_hdf5
 
+    t0 = time.perf_counter()
     f = read_hdf5(path, LABELS_FORMAT)
     for attr in ("catalog_sha256", "trend", "trend_scale", "trend_radius", "fov_deg", "scale_digits", "group_size",
                  "stars_per_field"):
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
     a = f.attrs
-    return LabelDatabase(np.ascontiguousarray(f["label"], dtype=np.int64), np.ascontiguousarray(f["members"], np.int32),
+    db = LabelDatabase(np.ascontiguousarray(f["label"], dtype=np.int64), np.ascontiguousarray(f["members"], np.int32),
                          np.asarray(f["star_id"], np.int64), np.ascontiguousarray(f["star_vector"], np.float64),
                          np.asarray(f["star_mag"], np.float64), np.asarray(a["trend"], np.float64),
                          float(a["trend_scale"]), int(a["trend_radius"]), float(a["fov_deg"]), int(a["scale_digits"]),
                          int(a["group_size"]), int(a["stars_per_field"]), str(a["catalog_sha256"]), f.params, path)
+    log.info("label database %s: %d labels of %d stars, %g deg fields, read in %.0f ms", path, len(db.label),
+             len(db.star_id), db.fov_deg, (time.perf_counter() - t0) * 1000)
+    return db
 
 
 def check_labels(db: LabelDatabase, camera=None, catalog=None, tolerance: float = 0.1) -> None:

@@ -36,6 +36,7 @@ identification algorithms.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import time
@@ -47,6 +48,8 @@ from startrack.errors import BadInputError
 
 __all__ = ["INDEX_FORMAT", "LEVELS_DEG", "PatternIndex", "build_index", "save_index", "open_index",
            "default_index_path", "default_index", "BlindOptions", "solve_blind", "cache_dir"]
+
+log = logging.getLogger(__name__)
 
 INDEX_FORMAT = "startrack.patterns/1"
 _MAGIC = b"STPATIDX"
@@ -193,7 +196,9 @@ def open_index(path: str) -> PatternIndex:
             out[name] = np.zeros(shape, dtype=dt)
         else:
             out[name] = np.asarray(np.memmap(path, dtype=dt, mode="r", offset=head_len + spec["offset"], shape=shape))
-    return PatternIndex(**out, params=header["params"], path=path)
+    index = PatternIndex(**out, params=header["params"], path=path)
+    log.info("pattern index %s: %.0f MB, memory-mapped", path, size / 1e6)
+    return index
 
 
 def default_index_path(catalog=None) -> str:
@@ -223,8 +228,8 @@ def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
     if os.path.exists(path):
         try:
             return open_index(path)
-        except BadInputError:
-            pass
+        except BadInputError as exc:
+            log.warning("pattern index %s: %s: rebuilding it", path, exc)
     if notice is not None:
         notice(f"building the star index once, ~{estimated_build_s():.0f} s, into {os.path.dirname(path)}")
     index = build_index(catalog, progress=progress)
@@ -370,6 +375,8 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     params = IdentifyParams(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability)
     sigma = centroid_sigma_px(stars[:m], params)
     combos = _combos(n_pat)
+    log.debug("pattern search: %d stars (%d in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all, n_pat,
+              len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
     xy_pat = np.ascontiguousarray(xy_all[:n_pat])
     seen = set()
     chunk = 6
@@ -404,9 +411,12 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],
                          "verified": info["verified"]}
+                log.info("pattern search: field %.3f deg wide, %d stars matched after %d patterns and %d candidates "
+                         "verified, %.0f ms", cam.fov_deg[0], len(matches), info["patterns"], info["verified"], elapsed)
                 return cam, IdentifyResult("ok", "patterns", matches, elapsed, None, p_false, dcm, extra), info
     elapsed = (time.perf_counter() - t0) * 1000
     reason = f"{reason} ({info['patterns']} patterns, {info['verified']} candidates verified)"
+    log.info("pattern search: %s, %.0f ms", reason, elapsed)
     return None, IdentifyResult("failed", "patterns", [], elapsed, reason, extra=dict(info)), info
 
 

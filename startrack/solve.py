@@ -19,6 +19,7 @@ catalog builds new ones.
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
 import time
@@ -29,6 +30,8 @@ import numpy as np
 from startrack.errors import ParameterError
 
 __all__ = ["FOV_BANDS", "SolveOptions", "band_database", "cache_dir", "fov_hypotheses", "solve_image"]
+
+log = logging.getLogger(__name__)
 
 # (smallest FOV, largest FOV, faintest magnitude of the k-vector database, of the label databases,
 #  field sizes of the label databases).  Which stars are "the 8 brightest of a field" depends on the
@@ -281,6 +284,7 @@ def _identify_in_band(stars, camera, band, databases, algorithm, params, clock, 
     n = databases.n_band_databases(band)
     for which in range(n):
         db = clock.setup(databases.band_database, band, which)
+        log.debug("%s with k-vector database %d of FOV band %d (%s)", algorithm, which, band, getattr(db, "path", ""))
         res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params, config)
         if res.status == "ok":
             return (camera, db, res), which + 1
@@ -444,6 +448,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
                            saturation=saturation)
     stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
     centroid = cres.section()
+    log.info("%dx%d image: %d stars detected (%.0f ms)", w, h, len(cres.stars), (time.perf_counter() - t0) * 1000)
     if len(cres.stars) < 4:
         return _failed(cres.reason or f"only {len(cres.stars)} stars detected",
                        ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
@@ -453,10 +458,14 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
                             max_false_probability=opts.max_false_probability)
     if camera is not None:
+        log.info("camera given (%.3f deg wide): %s with the k-vector databases of its band", camera.fov_deg[0],
+                 opts.algorithm)
         result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), databases, opts.algorithm,
                                       params, clock, id_config)
         tried += n
     elif opts.algorithm == "patterns" or opts.blind == "patterns":
+        log.info("field of view %s: scale-invariant pattern search",
+                 "unknown" if opts.fov_deg is None else f"{opts.fov_deg:g} deg +-{opts.fov_tolerance:.0%}")
         result, n = _solve_with_patterns(cres.stars, w, h, opts, index, clock)
         tried += n
     else:
@@ -472,6 +481,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             if clock.expired():
                 break
             lo, hi = FOV_BANDS[band][:2]
+            log.info("FOV band %g-%g deg: label database %d", lo, hi, which)
             labels = clock.setup(databases.band_labels, band, which)
             guess = opts.fov_deg if opts.fov_deg is not None else labels.fov_deg
             cam = Camera.from_fov(guess, w, h)
@@ -488,11 +498,15 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
                 if abs(scale - 1.0) < 1e-4:
                     break
             if _label_scale(lab) is None:
+                log.info("FOV band %g-%g deg: labels measured no focal length (%s)", lo, hi, lab.reason)
                 continue
             if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
+                log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the hint", lo, hi, cam.fov_deg[0])
                 continue
             if not 0.7 * lo <= cam.fov_deg[0] <= 1.4 * hi:
+                log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the band", lo, hi, cam.fov_deg[0])
                 continue
+            log.info("FOV band %g-%g deg: labels measured %.3f deg; %s", lo, hi, cam.fov_deg[0], opts.algorithm)
             b = _band_of(cam.fov_deg[0])
             params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
             result, n = _identify_in_band(cres.stars, cam, b, databases, opts.algorithm, params, clock, id_config)
@@ -516,6 +530,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             reason, code = f"no star pattern identified ({tried} attempts)", ReasonCode.NO_PATTERN
         if camera is None and opts.fov_deg is None:
             reason += "; a field-of-view hint may help"
+        log.info("not solved: %s", reason)
         return _failed(reason, code, t0, stars, centroid, hypotheses=tried,
                        identification=Identification.failed(opts.algorithm, reason, code))
     cam, db, res = result
@@ -542,6 +557,11 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         out.center_ra, out.center_dec = where["center_ra"], where["center_dec"]
         out.details["principal_point"] = where["principal_point"]
     out.time_ms = (time.perf_counter() - t0) * 1000
+    if att.status == Status.OK:
+        log.info("solved: RA %.4f, Dec %+.4f, roll %.3f deg, field %.3f deg, %d stars, %d hypotheses, %.0f ms",
+                 att.ra, att.dec, att.roll, cam.fov_deg[0], len(ident.matches), tried, out.time_ms)
+    else:
+        log.info("identified but no attitude: %s", att.reason)
     return out
 
 

@@ -22,6 +22,7 @@ looked up.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,6 +33,8 @@ from startrack.errors import BadInputError, DatabaseMismatchError
 
 __all__ = ["TRIANGLES_FORMAT", "TriangleDatabase", "build_triangles", "save_triangles", "load_triangles",
            "check_triangles", "search_intervals"]
+
+log = logging.getLogger(__name__)
 
 TRIANGLES_FORMAT = "startrack.triangles/1"
 
@@ -153,6 +156,7 @@ def load_triangles(path: str) -> TriangleDatabase:
     """Read a ``startrack.triangles/1`` file (one-line errors for anything else)."""
     from startrack.formats.hdf5 import read_hdf5
 
+    t0 = time.perf_counter()
     f = read_hdf5(path, TRIANGLES_FORMAT)
     for attr in ("catalog_sha256", "max_separation_deg", "kvector_line", "quadratic"):
         if attr not in f.attrs:
@@ -161,12 +165,15 @@ def load_triangles(path: str) -> TriangleDatabase:
     def get(name, dtype):
         return np.ascontiguousarray(f[name], dtype=dtype)
 
-    return TriangleDatabase(
+    db = TriangleDatabase(
         get("star_id", np.int64), get("star_vector", np.float64), get("star_mag", np.float64),
         get("tri_stars", np.int32), get("tri_angles", np.float32), get("tri_key", np.float64),
         get("tri_hand", np.int8), get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]),
         get("kquad", np.int64), tuple(float(v) for v in f.attrs["quadratic"]), float(f.attrs["max_separation_deg"]),
         str(f.attrs["catalog_sha256"]), f.params, path)
+    log.info("triangle database %s: %d stars, %d triangles, read in %.0f ms", path, db.n_stars, db.n_triangles,
+             (time.perf_counter() - t0) * 1000)
+    return db
 
 
 def check_triangles(db: TriangleDatabase, camera=None, catalog=None) -> None:

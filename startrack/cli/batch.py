@@ -11,7 +11,8 @@
   ``"status": "failed"`` and the reason (nothing is dropped), a line goes to
   stderr (also with ``-q``), the batch goes on.
 * **Exit status** (:class:`BatchTally`): 0 when every frame succeeded, 1 when any
-  frame failed (status failed with a reason), 2 when any input was bad.  The
+  frame failed (status failed with a reason), 2 when any input was bad.  A failed
+  frame gets one line on stderr (its source and reason), also with ``-q``.  The
   summary line counts ok / failed / bad input; ``-q`` hides it only when all is well.
 * **Journal and resume**: a file output gets each frame's line as it finishes;
   ``--resume`` skips the frames already there (:class:`~startrack.formats.frame.FrameWriter`).
@@ -19,6 +20,7 @@
 from __future__ import annotations
 
 import collections
+import logging
 import os
 import queue
 import threading
@@ -29,6 +31,8 @@ import click
 from startrack.errors import BadInputError
 
 __all__ = ["BatchTally", "StreamNames", "resolve_image_path", "run_frames", "section_status"]
+
+log = logging.getLogger(__name__)
 
 
 def section_status(doc, section: str) -> str | None:
@@ -274,7 +278,14 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
                 _write_bad(writer, tally, rec, out, exc)
             else:
                 writer.write(out)
-                tally.add(status(out) if status is not None else section_status(out, section))
+                st = status(out) if status is not None else section_status(out, section)
+                tally.add(st)
+                sec = out.get(section) if isinstance(out, dict) else None
+                why = sec.get("reason") if isinstance(sec, dict) and st == "failed" else None
+                log.info("%s %d (%s): %s%s", unit, n_seen, rec.source, st or "ok", f": {why}" if why else "")
+                if st == "failed":
+                    # one line per failed frame, also with -q: -q hides progress, never a failure
+                    tally.error(f"{rec.source}: {section} failed: {why or 'no reason given'}")
             bar(tally.total, tally.total + 1)
         if held is not None:
             if n_seen == 1 and tally.skipped == 0:

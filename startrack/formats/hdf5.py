@@ -18,6 +18,7 @@ import contextlib
 import json
 import logging
 import os
+import time
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from startrack.formats.frame import check_format_tag
 
 __all__ = ["HDF5File", "build_lock", "cached_database", "read_format_tag", "read_hdf5", "write_hdf5"]
 
-log = logging.getLogger("startrack")
+log = logging.getLogger(__name__)
 
 
 def write_hdf5(path: str, format_tag: str, params: dict, datasets: dict, attrs: dict | None = None,
@@ -168,7 +169,7 @@ def build_lock(path: str):
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            log.warning("startrack: waiting for another process building %s", path)
+            log.warning("waiting for another process building %s", path)
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
         try:
             yield
@@ -192,7 +193,7 @@ def cached_database(path: str, load, save, build, valid=lambda db: True):  # noq
         ``valid(db) -> bool``: False for a file built from another catalog.
 
     Holds :func:`build_lock` so two processes never build the same file at once;
-    a corrupt file gets a one-line notice on stderr (logger ``startrack``) and is rebuilt.
+    a corrupt file gets a one-line warning (logger ``startrack.formats.hdf5``) and is rebuilt.
     """
     with build_lock(path):
         db = None
@@ -200,15 +201,19 @@ def cached_database(path: str, load, save, build, valid=lambda db: True):  # noq
             try:
                 db = load(path)
                 if not valid(db):
+                    log.info("cached database %s was built from another catalog: rebuilding it", path)
                     db = None
             except BadInputError as exc:
-                log.warning("startrack: cached database %s: %s%s: rebuilding it", path,
+                log.warning("cached database %s: %s%s: rebuilding it", path,
                             f"{exc.field}: " if exc.field else "", exc.problem)
                 db = None
         if db is None:
+            log.info("building the cached database %s", path)
+            t0 = time.perf_counter()
             db = build()
             save(db, path)
             db.path = path
+            log.info("built %s in %.1f s", path, time.perf_counter() - t0)
     return db
 
 

@@ -90,13 +90,11 @@ def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
     ``time_ms`` holds identification only.  The frame: the database's stars
     around its first star, seen by a 10 deg camera.
     """
-    import numpy as np
-
     from startrack.camera import Camera
-    from startrack.rotations import radec_roll_to_dcm
+    from startrack.rotations import radec_roll_to_dcm, vector_to_radec
 
-    v = db.star_vector[0]
-    dcm = radec_roll_to_dcm(float(np.arctan2(v[1], v[0])), float(np.arcsin(np.clip(v[2], -1, 1))), 0.3)
+    ra, dec = vector_to_radec(db.star_vector[0])
+    dcm = radec_roll_to_dcm(ra, dec, 17.0)
     widest = getattr(db, "max_angle_deg", None) or getattr(db, "fov_deg", 20.0)
     cam = Camera.from_fov(min(10.0, 0.5 * float(widest)), 512, 512)
     body = db.star_vector @ dcm.T
@@ -106,8 +104,14 @@ def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
     stars = [{"x": float(a), "y": float(b), "flux": 1.0e4 * 10 ** (-0.4 * float(m))}
              for a, b, m in zip(x[inside], y[inside], db.star_mag[front][inside])]
     stars.sort(key=lambda s: -s["flux"])
-    identify_stars(stars[:12] if len(stars) >= 3 else stars + [{"x": 1.0, "y": 1.0}] * 3, cam, db, algorithm,
-                   params)
+    from startrack.identify.base import WARMING_UP
+
+    token = WARMING_UP.set(True)
+    try:
+        identify_stars(stars[:12] if len(stars) >= 3 else stars + [{"x": 1.0, "y": 1.0}] * 3, cam, db, algorithm,
+                       params)
+    finally:
+        WARMING_UP.reset(token)
 
 
 def database_kind(name: str) -> str:

@@ -29,6 +29,8 @@ Because every proposal passes the same gate, an algorithm that proposes more
 """
 from __future__ import annotations
 
+import contextvars
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -40,6 +42,12 @@ from startrack.records import Identification, Match, ReasonCode, Status
 
 __all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability",
            "CatalogStars", "match_catalog", "run", "tolerance_rad"]
+
+log = logging.getLogger(__name__)
+_LOGGED_PROPOSALS = 20      # rejected proposals logged one by one (debug) before going quiet
+#: True while :func:`startrack.identify.warm_up` runs its made-up frame: nothing of it is logged.
+WARMING_UP = contextvars.ContextVar("startrack_identify_warming_up", default=False)
+log.addFilter(lambda _record: not WARMING_UP.get())
 
 
 @dataclass
@@ -713,6 +721,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
                         flux[:use] if has_flux else None)
     use_mags = has_flux and not algorithm.uses_brightness
+    log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
+              name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
+              getattr(db, "path", None) or type(db).__name__)
     deadline = t0 + params.max_time_ms / 1000.0
     geom = _geometry(camera)
     tried = 0
@@ -740,6 +751,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             accepted = v
             details = dict(proposal.details)
             break
+        if tried <= _LOGGED_PROPOSALS:
+            log.debug("%s: proposal %d (stars %s = catalog %s) rejected: %s", name, tried, list(proposal.image),
+                      list(proposal.catalog), v.reason)
         if best is None or (v.p_false is not None and (best.p_false is None or v.p_false < best.p_false)):
             best = v
             best_details = dict(proposal.details)
@@ -756,6 +770,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             reason, code = best.reason, best.code
         elif best is not None:
             reason = f"{reason}; best: {best.reason}"
+        log.info("%s: not identified after %d proposal(s), %d pattern(s), %.0f ms: %s", name, tried, patterns, elapsed,
+                 reason)
         return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
                                      false_match_probability=best.p_false if best is not None else None,
                                      details={**best_details, "patterns": int(patterns)})
@@ -782,6 +798,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             quaternion = q
             details["matched_beyond_database"] = len(matches) - n_db
         elapsed = (time.perf_counter() - t0) * 1000
+    log.info("%s: %d of %d stars identified at proposal %d (%d pattern(s)), false-match probability %.2g, %.0f ms",
+             name, len(matches), n_all, tried, patterns, float(accepted.p_false), elapsed)
     return Identification(Status.OK, name, matches, time_ms=elapsed,
                           false_match_probability=float(accepted.p_false), trials=tried,
                           tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
