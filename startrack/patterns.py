@@ -141,6 +141,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
         if progress:
             progress(i + 1, len(rhos))
     p.update(catalog_sha256=cat.checksum(), catalog_source=os.path.basename(cat.source or ""),
+             catalog_epoch=float(cat.epoch),
              n_stars=int(len(cat)), patterns_per_level=[int(c) for c in counts])
     return PatternIndex(cat.id.astype(np.int64), vec, cat.mag.astype(np.float32), np.array(rhos),
                         np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64),

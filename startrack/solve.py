@@ -548,7 +548,14 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     from startrack.records import SolveResult, Status
 
     ident = identification_record(res)
-    att = identified_attitude(stars, ident, cam, rows, vec, opts.method, epoch=opts.epoch)
+    # The epoch of the positions the attitude was solved against: the one asked for, else the catalog's
+    # (the pattern index records the epoch of the catalog it was built from).
+    epoch = opts.epoch
+    if epoch is None:
+        epoch = (getattr(db, "params", None) or {}).get("catalog_epoch") if hasattr(db, "star_vec") else None
+    if epoch is None:
+        epoch = float(databases.catalog.epoch)
+    att = identified_attitude(stars, ident, cam, rows, vec, opts.method, epoch=epoch)
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
                       database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
                       centroid=centroid, identification=ident, attitude=att)

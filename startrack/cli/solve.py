@@ -119,15 +119,19 @@ def _solve_one(args):
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if doc["solve"]["status"] == "ok":
         wcs_path, plot_path, fits_path, matches_path = outputs
+        import numpy as np
+
+        from startrack.attitude import wcs_header
+        from startrack.camera import Camera
+
+        hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]))
+        # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`)
+        doc["attitude"]["wcs"] = {k: v for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")}
         if wcs_path or fits_path:
-            import numpy as np
             from astropy.io import fits
 
-            from startrack.attitude import wcs_header
-            from startrack.camera import Camera
             from startrack.formats.atomic import atomic_path
 
-            hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]))
             if wcs_path:
                 with atomic_path(wcs_path, suffix=".fits") as tmp:
                     fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)

@@ -371,7 +371,7 @@ END_MARK = "<!-- END GENERATED FIELD TABLES -->"
 
 def generated_tables() -> str:
     """Every section's field table and the reason codes, as the Markdown of ``docs/formats.md``."""
-    parts = [f"#### `{name}`\n\n{field_table(cls)}\n" for name, cls in SECTIONS.items()]
+    parts = [f"#### `{name}`\n\n<!-- fields: {name} -->\n{field_table(cls)}\n" for name, cls in SECTIONS.items()]
     parts.append(f"#### Reason codes\n\n{reason_code_table()}\n")
     return "\n".join(parts)
 
