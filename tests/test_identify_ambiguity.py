@@ -8,7 +8,7 @@ from startrack.camera import Camera
 from startrack.identify import IdentifyParams, identify_stars
 from startrack.identify.base import Algorithm, NoConfig, Proposal, run
 from startrack.kvector import build_kvector, max_separation_deg
-from startrack.rotations import radec_roll_to_dcm
+from startrack.rotations import radec_roll_to_dcm, vector_to_radec
 
 SIGMA = 1.0
 
@@ -40,9 +40,9 @@ def _close_pairs(cat, cam, lo_px, hi_px, min_dmag):
 
 def _frame(cat, cam, centre_vec, with_flux=True):
     """Noise-free stars (Hp <= 5.5) of the field around ``centre_vec``, brightest first, with their ids."""
-    ra = math.atan2(centre_vec[1], centre_vec[0])
-    dec = math.asin(max(-1.0, min(1.0, centre_vec[2])))
-    dcm = radec_roll_to_dcm(ra, dec - math.radians(2.0), 0.4)   # the pair off the centre, stars around it
+    ra, dec = vector_to_radec(centre_vec)
+    # the pair off the centre, stars around it (degrees, as every public function of startrack.rotations)
+    dcm = radec_roll_to_dcm(ra, dec - 2.0, math.degrees(0.4))
     keep = np.flatnonzero(cat.mag <= 5.5)
     body = cat.vectors()[keep] @ dcm.T
     front = body[:, 2] > 0.5
