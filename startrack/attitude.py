@@ -366,6 +366,22 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         what = "; ".join(x for x in (f"star(s) {dup_s} matched more than once" if dup_s else "",
                                      f"catalog id(s) {dup_i} used more than once" if dup_i else "") if x)
         return _fail(method, ReasonCode.DUPLICATE_MATCH, f"the identification repeats itself: {what}", t0)
+    if method == "quest":
+        # The loop below in one numba kernel; a failure is replayed by the loop for its message.
+        from startrack._kernels.attitude import gated_quest
+
+        code, dcm, keep, nk, resid, factor2, w, rej, rej_resid, rej_chi2, n_rej = gated_quest(
+            b, r, sig, bool(weighted), float(gate), max(2, math.ceil(n / 2)))
+        if code == 0 and factor2 <= max_variance_factor**2:
+            keep = keep[:nk]
+            resid = resid[:nk]
+            w = w[:nk]
+            rejected = [{"star": labels[k][0], "id": labels[k][1],
+                         "residual_arcsec": round(float(np.degrees(rr) * 3600), 3),
+                         "reason": f"chi-square {c2:.1f} above the gate {gate:g}"}
+                        for k, rr, c2 in zip(rej[:n_rej].tolist(), rej_resid[:n_rej].tolist(),
+                                             rej_chi2[:n_rej].tolist(), strict=True)]
+            return _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0)
     keep = np.arange(n)
     rejected = []
     factor2 = 1.0
@@ -408,6 +424,10 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
                      f"the residuals are {math.sqrt(factor2):.3g} times the centroid sigmas (limit "
                      f"{max_variance_factor:g}; rms {math.degrees(float(np.sqrt(np.mean(resid**2)))) * 3600:.4g} "
                      "arcsec): a wrong identification, catalog or camera", t0, [labels[k] for k in keep], rejected)
+    return _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0)
+
+
+def _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0):
     used = [labels[k] for k in keep]
     loss = wahba_loss(dcm, b[keep], r[keep], w)
     cov = covariance(b[keep], sig[keep]) * factor2

@@ -6,13 +6,20 @@ Per frame at time ``t`` (seconds; exposure ``T``):
 1. **Predict** (when an attitude is known and the last one is at most
    ``max_gap_s`` old).  The filter (:class:`AttitudeRateFilter`) propagates
    the attitude with its rate estimate and grows its covariance; catalog stars
-   are projected with the predicted attitude.
+   are projected with the predicted attitude (from the catalog's neighbourhood
+   of the boresight, kept until the boresight has moved by
+   ``Tracker.NEIGHBOURHOOD_MARGIN_DEG``), each with the streak the rate draws
+   during the exposure (the chord between its positions half an exposure
+   before and after).
 2. **Windowed centroiding** around each prediction (half-size: a base
    ``window_px`` plus 3 sigma of the predicted position plus half the
-   expected smear), numba kernel :func:`startrack._kernels.centroid.window_centroids`;
-   when the expected smear is at least ``streak_min_px`` the found stars are
-   refined by the **line-segment PSF fit** (:mod:`startrack.streak`), giving the
-   mid-exposure position, its sigma, and the streak.  Right after an
+   expected smear), all predicted stars in one numba kernel
+   (:func:`startrack._kernels.track.track_windows`: projection, window
+   centroid and, for streaks, the capsule centroid along the expected streak).
+   When the expected smear is at least ``streak_min_px`` and the filter's rate
+   is still uncertain, the brightest found stars are instead measured by the
+   **line-segment PSF fit** (:mod:`startrack.streak`), giving the
+   mid-exposure position, its sigma, and the streak (a rate measurement).  Right after an
    acquisition whose rate came from streaks (known only up to its sign), both
    signs are tried and the one whose windows find more stars, closer to their
    predictions, is kept.
@@ -228,6 +235,20 @@ class AttitudeRateFilter:
         return self._update(z, h, r)
 
 
+def _significant(fit):
+    """A fitted streak whose length is clear of zero (twice its sigma, and more than 1 px)."""
+    return fit is not None and fit.length_px > 2.0 * max(fit.sigma_length_px, 0.5)
+
+
+def _sign_score(res):
+    """How well windows at one sign of the rate fit: stars found, then closeness to their predictions."""
+    ok = res[:, 11] > 0
+    if not ok.any():
+        return (0, -math.inf)
+    off = np.hypot(res[ok, 3] - res[ok, 1], res[ok, 4] - res[ok, 2])
+    return (int(ok.sum()), -float(np.median(off)))
+
+
 _STATE_FIELDS = ("mode", "t_s", "dt_s", "window_px", "predicted", "found", "used", "stars", "rate_deg_s",
                  "fallback_reason", "empirical_stars", "time_ms")
 
@@ -244,6 +265,9 @@ def track_state(track: dict):
 
 class Tracker:
     """Stateful tracker; :meth:`step` processes one frame (image in memory) at time ``t`` (seconds)."""
+
+    #: Margin (deg) of the catalog neighbourhood kept around the boresight (see :meth:`_neighbourhood`).
+    NEIGHBOURHOOD_MARGIN_DEG = 2.0
 
     def __init__(self, catalog, camera, database, config: TrackerConfig | None = None, initial_dcm=None,
                  initial_rate=None):
@@ -263,6 +287,16 @@ class Tracker:
         self.rate_prior = None if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
         self.r_max = math.hypot(camera.width, camera.height) / 2.0
         self._cos_limit = math.cos(math.radians(min(89.0, camera.max_off_axis_deg + 1.0)))
+        # The catalog's neighbourhood of the boresight: the field's cone plus a margin, kept until the
+        # boresight has moved by the margin.
+        margin = math.radians(self.NEIGHBOURHOOD_MARGIN_DEG)
+        self._cos_margin = math.cos(margin)
+        self._cos_near = math.cos(min(math.pi, math.acos(self._cos_limit) + margin))
+        self._near = None
+        self._max_r2 = camera.max_valid_r2
+        from startrack._kernels.track import N_COLUMNS
+
+        self._out = np.empty((self.config.max_predicted, N_COLUMNS))
         self.psf_sigma_px = 1.0       # updated from the streak fits of each acquisition
         if initial_dcm is not None:
             rate = np.zeros(3) if initial_rate is None else np.asarray(initial_rate, dtype=np.float64)
@@ -275,17 +309,28 @@ class Tracker:
         return math.radians(self.config.rate_noise_deg_s2) ** 2
 
     # ------------------------------------------------------------------ helpers
+    def _neighbourhood(self, dcm):
+        """Catalog rows (brightest first) and their unit vectors within ``max_off_axis + 1 + margin`` degrees
+        of the boresight, recomputed only when the boresight has moved more than the margin since (every star
+        the field can hold is in it)."""
+        bore = np.asarray(dcm)[2]
+        if self._near is None or float(bore @ self._near[0]) < self._cos_margin:
+            rows = np.flatnonzero(self.vectors @ bore > self._cos_near)
+            self._near = (bore.copy(), rows, np.ascontiguousarray(self.vectors[rows]))
+        return self._near[1], self._near[2]
+
     def predict_stars(self, dcm):
         """Predicted pixel positions and catalog rows of the stars in the field (brightest first).
 
         As :func:`startrack.render.project_stars` with a 2 px inner margin, its
         field-of-view cone computed once.
         """
-        cam_vec = self.vectors @ np.asarray(dcm).T
+        rows, vec = self._neighbourhood(dcm)
+        cam_vec = vec @ np.asarray(dcm).T
         front = np.flatnonzero(cam_vec[:, 2] > self._cos_limit)
         x, y = self.camera.vectors_to_pixels(cam_vec[front])
         inside = self.camera.in_image(x, y, margin=2.0) & np.isfinite(x)
-        rows = front[inside][: self.config.max_predicted]
+        rows = rows[front[inside][: self.config.max_predicted]]
         n = len(rows)
         return rows, x[inside][:n], y[inside][:n]
 
@@ -294,13 +339,23 @@ class Tracker:
         f = self.camera.focal_length_px
         return math.sqrt(f * f * max(p_theta[0, 0], p_theta[1, 1]) + self.r_max ** 2 * p_theta[2, 2])
 
-    def _windows(self, img, dcm, half, box):
-        from startrack._kernels.centroid import window_centroids
+    def _windows(self, img, dcm, rate, exposure_s, half, box, segment, max_shift):
+        """All predicted stars of the frame in one kernel (:func:`startrack._kernels.track.track_windows`):
+        the prediction at ``dcm``, the streak a body rate ``rate`` draws in ``exposure_s``, the window
+        centroids and, with ``segment``, the capsule centroids along the streaks.  Returns the catalog rows
+        and the kernel's output rows (columns :data:`startrack._kernels.track.COLUMNS`)."""
+        from startrack._kernels.track import track_windows
 
-        rows, px, py = self.predict_stars(dcm)
-        mx, my, flux, _peak, snr, found = window_centroids(img, px.astype(np.float64), py.astype(np.float64),
-                                                          half, self.config.k_sigma, 3, box)
-        return rows, px, py, mx, my, flux, snr, found
+        cam = self.camera
+        rows, vec = self._neighbourhood(dcm)
+        half_turn = _exp_minus(np.asarray(rate, dtype=np.float64) * (0.5 * exposure_s))
+        out = self._out
+        n = track_windows(img, vec, np.ascontiguousarray(dcm, dtype=np.float64), half_turn, cam.focal_length_px,
+                          cam.cx, cam.cy, cam.k1, cam.k2, self._max_r2, cam.width, cam.height, 2.0, self._cos_limit,
+                          self.config.max_predicted, half, self.config.k_sigma, 3, box, segment,
+                          3.0 * self.psf_sigma_px + 1.0, 3, max_shift, out)
+        res = out[:n]
+        return rows[res[:, 0].astype(np.int64)], res
 
     def _acquire(self, img, saturation, exposure_s):
         """Lost in space: detection, streak fits, rate from streaks, identify's search, QUEST."""
@@ -332,19 +387,21 @@ class Tracker:
         stars = [dict(s) for s in res.stars]
         rate_est = rate_from_streaks(self.camera, fits[: cfg.max_streaks], exposure_s) if fits else None
         if streaky and rate_est is not None and np.all(np.isfinite(rate_est.cov)):
-            # Faint streaks the moments could not start: start them from the streaks the rate predicts.
+            # Faint streaks the moments could not start (no fit, or no significant streak): start them from
+            # the streaks the rate predicts.
             from startrack.streak import predicted_streaks
 
-            redo = [j for j, ft in enumerate(fits) if ft is None]
+            redo = [j for j, ft in enumerate(fits) if not _significant(ft)]
             if redo:
                 xs = np.array([stars[j]["x"] for j in redo])
                 ys = np.array([stars[j]["y"] for j in redo])
                 length, angle = predicted_streaks(self.camera, xs, ys, rate_est.rate, exposure_s)
                 for j, ft in zip(redo, fit_streaks(img, xs, ys, lengths_px=length, angles_rad=angle), strict=True):
-                    if ft is not None and math.hypot(ft.x - stars[j]["x"], ft.y - stars[j]["y"]) < 0.5 * ft.length_px + 3:
+                    if _significant(ft) and math.hypot(ft.x - stars[j]["x"], ft.y - stars[j]["y"]) < \
+                            0.5 * ft.length_px + 3:
                         fits[j] = ft
         for s, ft in zip(stars[: len(fits)], fits, strict=True):
-            if ft is None or not ft.length_px > 2.0 * max(ft.sigma_length_px, 0.5):
+            if not _significant(ft):
                 continue
             # A significant streak: its mid-exposure position and sigma replace the point-source centroid.
             st = ft.as_star()
@@ -391,70 +448,54 @@ class Tracker:
         sig_pos = self._sigma_px(p_pred[:3, :3])
         half = int(min(cfg.max_window_px, math.ceil(cfg.window_px + 3.0 * sig_pos + smear / 2.0)))
         box = int(max(2, math.ceil(1.0 + smear / 2.0)))
-        candidates = [dcm_pred]
+        rate_sigma = math.sqrt(max(self.filter.P[3, 3], self.filter.P[4, 4], self.filter.P[5, 5]))
+        fit_rate = rate_sigma > math.radians(cfg.streak_rate_until_deg_s)
+        streaky = smear >= cfg.streak_min_px
+        # A box centroid of a long streak is not its mid-exposure position: the found stars are measured
+        # again knowing the streak's shape from the rate.  While the filter's rate is uncertain the
+        # brightest are fitted with the line-segment PSF (position, sigma, and a rate measurement);
+        # afterwards a capsule-aperture centroid along the predicted segment does (fast, in the kernel).
+        segment = streaky and not fit_rate
+        max_shift = smear / 2.0 + 3.0
+        rows, res = self._windows(img, dcm_pred, rate, exposure_s, half, box, segment, max_shift)
         if self.sign_ambiguous:
-            dt = track["dt_s"]
-            alt, _ = self.filter.predicted(dt, rate=-rate)
-            candidates.append(alt)
-        best = None
-        for c, dcm in enumerate(candidates):
-            rows, px, py, mx, my, flux, snr, found = self._windows(img, dcm, half, box)
-            score = None
-            if len(candidates) > 1:
-                ok = np.flatnonzero(found)
-                off = np.hypot(mx[ok] - px[ok], my[ok] - py[ok]) if len(ok) else np.array([np.inf])
-                score = (len(ok), -float(np.median(off)))
-            if best is None or score > best[0]:
-                best = (score, c, dcm, rows, px, py, mx, my, flux, snr, found)
-        _, choice, dcm_pred, rows, px, py, mx, my, flux, snr, found = best
-        if self.sign_ambiguous:
-            if choice == 1:
+            res = res.copy()       # the kernel's output buffer is reused by the other sign's windows
+            alt, _ = self.filter.predicted(track["dt_s"], rate=-rate)
+            rows2, res2 = self._windows(img, alt, -rate, exposure_s, half, box, segment, max_shift)
+            if _sign_score(res2) > _sign_score(res):
                 # The streaks' rate had the other sign: the filter's state and its prediction turn with it.
+                rows, res = rows2, res2
                 self.filter.rate = -self.filter.rate
                 self._pred = self.filter.predicted(track["dt_s"])
                 track["rate_sign"] = "flipped"
             self.sign_ambiguous = False
-        ok = np.flatnonzero(found)
+        px, py, mx, my = res[:, 1], res[:, 2], res[:, 3].copy(), res[:, 4].copy()
+        flux, snr = res[:, 5], res[:, 6]
+        found = res[:, 8] > 0
+        ok = np.flatnonzero(res[:, 11] > 0)
         sig = np.full(len(rows), max(cfg.sigma_px, cfg.sigma_floor_px))
         streaks = []
-        rate_sigma = float(np.sqrt(np.max(np.diag(self.filter.P)[3:])))
-        fit_rate = rate_sigma > math.radians(cfg.streak_rate_until_deg_s)
-        if smear >= cfg.streak_min_px and len(ok):
-            from startrack.streak import (
-                _streak,
-                fit_streaks_array,
-                predicted_streaks,
-                segment_centroids,
-            )
-
-            # A box centroid of a long streak is not its mid-exposure position: the found stars are measured
-            # again knowing the streak's shape from the rate.  While the filter's rate is uncertain the
-            # brightest are fitted with the line-segment PSF (position, sigma, and a rate measurement);
-            # afterwards a capsule-aperture centroid along the predicted segment does (fast).
+        if streaky and len(ok):
             if fit_rate:
+                from startrack.streak import _streak, fit_streaks_array
+
                 use = ok[np.argsort(-flux[ok], kind="stable")][: cfg.max_streaks]
-                length, angle = predicted_streaks(self.camera, mx[use], my[use], rate, exposure_s)
+                length = 2.0 * np.hypot(res[use, 9], res[use, 10])
+                angle = np.arctan2(res[use, 10], res[use, 9])
                 fits = fit_streaks_array(img, mx[use], my[use], max_half_px=math.ceil(smear + 12),
                                          lengths_px=length, angles_rad=angle)
                 fitted = []
                 for j, k in enumerate(use):
                     st = _streak(fits[j])
-                    if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < smear / 2.0 + 3.0:
+                    if st is not None and math.hypot(st.x - mx[k], st.y - my[k]) < max_shift:
                         mx[k], my[k] = st.x, st.y
                         sig[k] = max(math.sqrt(0.5 * (st.sigma_x ** 2 + st.sigma_y ** 2)), cfg.sigma_floor_px)
                         fitted.append(k)
                         streaks.append(st)
+                ok = np.array(sorted(fitted), dtype=np.int64)
             else:
-                length, angle = predicted_streaks(self.camera, mx[ok], my[ok], rate, exposure_s)
-                cen = segment_centroids(img, mx[ok], my[ok], length, angle, 3.0 * self.psf_sigma_px + 1.0)
-                fitted = []
-                for j, k in enumerate(ok):
-                    if cen[j, 4] > 0 and math.hypot(cen[j, 0] - mx[k], cen[j, 1] - my[k]) < smear / 2.0 + 3.0:
-                        mx[k], my[k] = cen[j, 0], cen[j, 1]
-                        sig[k] = max(float(cen[j, 3]), cfg.sigma_floor_px)
-                        fitted.append(k)
+                sig[ok] = np.maximum(res[ok, 7], cfg.sigma_floor_px)
                 track["centroid"] = "segment"
-            ok = np.array(sorted(fitted), dtype=np.int64)
         # Outliers: offsets far from the common offset (a false star or a neighbour in the window).
         if len(ok) >= 3:
             off = np.column_stack([mx[ok] - px[ok], my[ok] - py[ok]])

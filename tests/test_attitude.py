@@ -104,6 +104,35 @@ def test_outlier_is_rejected_and_reported():
     assert np.linalg.norm(_rotation_vector_rad(res.dcm @ a.T)) < 1e-5
 
 
+@pytest.mark.parametrize("seed, n_bad, k", [(5, 1, 1.0), (6, 2, 1.0), (7, 3, 1.0), (8, 0, 4.0), (9, 2, 4.0), (10, 4, 1.0), (11, 0, 40.0)])
+def test_quest_kernel_loop_matches_the_python_loop(seed, n_bad, k):
+    """QUEST's gate loop runs in a numba kernel; the Python loop (any other method) must decide alike:
+    the same stars dropped in the same order with the same residuals, the same variance factor."""
+    rng = np.random.default_rng(seed)
+    a = quaternion_to_dcm(random_quaternions(1, rng)[0])
+    n = 9
+    cam = np.column_stack([rng.uniform(-0.08, 0.08, (n, 2)), np.ones(n)])
+    cam /= np.linalg.norm(cam, axis=1, keepdims=True)
+    r = cam @ a
+    sig = rng.uniform(0.5e-5, 2e-5, n)
+    b = cam + rng.normal(size=cam.shape) * sig[:, None] * k     # k > 1: sigmas too small (variance factor)
+    for j in range(n_bad):
+        b[2 * j + 1] += np.array([0.0, (5 + 3 * j) * 1e-4, 0.0])
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    labels = [(i, 500 + i) for i in range(n)]
+    fast = estimate_attitude(b, r, sig, "quest", labels)
+    slow = estimate_attitude(b, r, sig, "q-method", labels)
+    assert fast.status == slow.status
+    assert fast.used == slow.used and [x["id"] for x in fast.rejected] == [x["id"] for x in slow.rejected]
+    if fast.status == "ok":
+        assert np.allclose(fast.residuals_arcsec, slow.residuals_arcsec, atol=1e-3)
+        assert fast.variance_factor == pytest.approx(slow.variance_factor, rel=1e-6)
+        assert np.allclose(fast.cov_rad2, slow.cov_rad2, rtol=1e-6)
+        assert np.linalg.norm(rotation_vector(fast.dcm @ slow.dcm.T)) < 1e-8
+    else:
+        assert fast.reason == slow.reason.replace("q-method", "quest")
+
+
 def test_too_few_stars_and_nan():
     assert estimate_attitude(np.zeros((1, 3)), np.zeros((1, 3))).status == "failed"
     b = np.array([[0, 0, 1.0], [np.nan, 0, 1]])

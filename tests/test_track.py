@@ -179,3 +179,46 @@ def test_out_of_order_time_is_refused(world):
     tr.step(frames[0][1], 1.0, 65535)
     with pytest.raises(BadInputError, match="out-of-order"):
         tr.step(frames[1][1], 0.5, 65535)
+
+
+@pytest.mark.parametrize("k1, rate", [(0.0, (0.1, 0.0, 0.0)), (-0.3, (1.5, -1.0, 0.5))])
+def test_window_kernel_matches_its_parts(catalog, k1, rate):
+    """The one-call kernel predicts as the camera model does and measures as the window and capsule
+    centroids do (lens distortion included)."""
+    from startrack._kernels.centroid import window_centroids
+    from startrack.streak import predicted_streaks, segment_centroids
+
+    cam = Camera.from_fov(12, 1024, 768, k1=k1)
+    cat = catalog.filter_magnitude(None, 6.5)
+    a0 = radec_roll_to_dcm(*np.radians((100.0, 20.0, 10.0)))
+    doc, img, _ = next(iter(RenderRun(cat, cam, Sensor(exposure_ms=100.0), Scene(rate_deg_s=rate), 3, a0, 1, 1,
+                                      0.1).frames_iter()))
+    img = img.astype(np.float32)
+    tr = Tracker(cat, cam, None, TrackerConfig(mag_limit=6.5))
+    dcm = quaternion_to_dcm(doc["truth"]["quaternion"])
+    w = np.radians(rate)
+    rows_py, px, py = tr.predict_stars(dcm)
+    half, box = 14, 6
+    smear = float(np.linalg.norm(w)) * cam.focal_length_px * 0.1
+    for segment in (False, True):
+        rows, res = tr._windows(img, dcm, w, 0.1, half, box, segment, smear / 2 + 3)
+        assert len(rows) >= 8 and np.array_equal(rows, rows_py)
+        assert np.allclose(res[:, 1], px, atol=1e-9) and np.allclose(res[:, 2], py, atol=1e-9)
+        mx, my, flux, _, _, found = window_centroids(img, px, py, half, tr.config.k_sigma, 3, box)
+        assert np.array_equal(res[:, 8] > 0, found) and np.allclose(res[found, 5], flux[found])
+        if not segment:
+            assert np.allclose(res[found, 3], mx[found]) and np.allclose(res[found, 4], my[found])
+            continue
+        # The expected streak: the chord between half an exposure before and after.
+        length = 2 * np.hypot(res[:, 9], res[:, 10])
+        lin, ang = predicted_streaks(cam, px, py, w, 0.1)      # the image motion to first order
+        assert np.allclose(length, lin, rtol=0.01)
+        d_ang = (np.arctan2(res[:, 10], res[:, 9]) - ang + np.pi / 2) % np.pi - np.pi / 2
+        assert np.abs(d_ang).max() < 0.01
+        seg = segment_centroids(img, mx[found], my[found], length[found], np.arctan2(res[found, 10], res[found, 9]),
+                                3.0 * tr.psf_sigma_px + 1.0)
+        near = np.hypot(seg[:, 0] - mx[found], seg[:, 1] - my[found]) < smear / 2 + 3
+        ok = np.flatnonzero(found)[(seg[:, 4] > 0) & near]
+        assert np.array_equal(np.flatnonzero(res[:, 11] > 0), ok)
+        assert np.allclose(res[ok, 3], seg[(seg[:, 4] > 0) & near, 0]) and np.allclose(res[ok, 7],
+                                                                                    seg[(seg[:, 4] > 0) & near, 3])

@@ -286,3 +286,87 @@ def leave_one_out(b, r, w):
             d += b[i, u] * (a[u, 0] * r[i, 0] + a[u, 1] * r[i, 1] + a[u, 2] * r[i, 2])
         out[i] = math.acos(min(1.0, max(-1.0, d)))
     return out
+
+
+@njit(cache=True)
+def gated_quest(b, r, sig, weighted, gate, min_keep):
+    """The loop of :func:`startrack.attitude.estimate_attitude` for QUEST: solve, chi-square gate, drop the
+    worst star, repeat.
+
+    ``b``, ``r`` (n, 3) unit vectors, ``sig`` (n,) 1-sigma (rad).  Each round: geometry check (the largest
+    angle between two kept stars, in the image and in the catalog, at least 20 median sigmas), weights
+    ``1 / sigma^2`` normalised (equal when not ``weighted``), QUEST, residual angles, ``chi^2 = (resid /
+    sigma)^2 / k^2`` with ``k^2 = median(chi^2) / 1.386`` when at least 5 stars are kept and that exceeds
+    2.5 (else 1); done when the largest ``chi^2`` is within ``gate``; else the worst is dropped while at
+    least ``min_keep`` remain.
+
+    Returns ``(code, dcm, keep, n_keep, resid, factor2, weights, rejected, rej_resid, rej_chi2, n_rej)``:
+    ``code`` 0 ok, 1 degenerate geometry, 2 a star beyond the gate that cannot be dropped; ``keep[:n_keep]``
+    the kept indices, ``resid[:n_keep]`` their residuals (rad), ``weights[:n_keep]`` the normalised weights;
+    ``rejected[:n_rej]`` the dropped indices in order with their residual (rad) and chi-square.
+    """
+    n = b.shape[0]
+    keep = np.arange(n)
+    nk = n
+    resid = np.zeros(n)
+    chi2 = np.zeros(n)
+    w = np.zeros(n)
+    rejected = np.empty(n, dtype=np.int64)
+    rej_resid = np.empty(n)
+    rej_chi2 = np.empty(n)
+    n_rej = 0
+    dcm = np.eye(3)
+    factor2 = 1.0
+    kb = np.empty((n, 3))
+    kr = np.empty((n, 3))
+    ks = np.empty(n)
+    while True:
+        for j in range(nk):
+            kb[j] = b[keep[j]]
+            kr[j] = r[keep[j]]
+            ks[j] = sig[keep[j]]
+        # Geometry: two directions at least 20 sigma apart (else the roll about them is unknown).
+        min_b = 2.0
+        min_r = 2.0
+        for i in range(nk):
+            for j in range(i, nk):
+                db = kb[i, 0] * kb[j, 0] + kb[i, 1] * kb[j, 1] + kb[i, 2] * kb[j, 2]
+                dr = kr[i, 0] * kr[j, 0] + kr[i, 1] * kr[j, 1] + kr[i, 2] * kr[j, 2]
+                min_b = min(min_b, db)
+                min_r = min(min_r, dr)
+        scale = 20.0 * np.median(ks[:nk])
+        if math.acos(min(1.0, max(-1.0, min_b))) < scale or math.acos(min(1.0, max(-1.0, min_r))) < scale:
+            return 1, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+        total = 0.0
+        for j in range(nk):
+            w[j] = 1.0 / (ks[j] * ks[j]) if weighted else 1.0
+            total += w[j]
+        for j in range(nk):
+            w[j] /= total
+        q, _ = quest(kb[:nk], kr[:nk], w[:nk])
+        dcm = quat_to_dcm(q)
+        for j in range(nk):
+            p0 = dcm[0, 0] * kr[j, 0] + dcm[0, 1] * kr[j, 1] + dcm[0, 2] * kr[j, 2]
+            p1 = dcm[1, 0] * kr[j, 0] + dcm[1, 1] * kr[j, 1] + dcm[1, 2] * kr[j, 2]
+            p2 = dcm[2, 0] * kr[j, 0] + dcm[2, 1] * kr[j, 1] + dcm[2, 2] * kr[j, 2]
+            d = kb[j, 0] * p0 + kb[j, 1] * p1 + kb[j, 2] * p2
+            resid[j] = math.acos(min(1.0, max(-1.0, d)))
+            chi2[j] = (resid[j] / ks[j]) ** 2
+        factor2 = np.median(chi2[:nk]) / 1.386 if nk >= 5 else 1.0
+        factor2 = factor2 if factor2 > 2.5 else 1.0   # only when the sigmas are clearly too small
+        worst = 0
+        for j in range(nk):
+            chi2[j] /= factor2
+            if chi2[j] > chi2[worst]:
+                worst = j
+        if chi2[worst] <= gate:
+            return 0, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+        if nk - 1 < min_keep:
+            return 2, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+        rejected[n_rej] = keep[worst]
+        rej_resid[n_rej] = resid[worst]
+        rej_chi2[n_rej] = chi2[worst]
+        n_rej += 1
+        for j in range(worst, nk - 1):
+            keep[j] = keep[j + 1]
+        nk -= 1

@@ -485,6 +485,77 @@ def aperture_flux(residual, x, y, radius):
 
 
 @njit(cache=True)
+def window_one(image, x_pred, y_pred, half, k_sigma, min_pixels, box):
+    """One window of :func:`window_centroids`: ``(x, y, flux, peak, snr, found)``."""
+    h, w = image.shape
+    if not (np.isfinite(x_pred) and np.isfinite(y_pred)):
+        return np.nan, np.nan, 0.0, 0.0, 0.0, False
+    xi = int(math.floor(x_pred + 0.5))
+    yi = int(math.floor(y_pred + 0.5))
+    x0 = max(0, xi - half)
+    x1 = min(w - 1, xi + half)
+    y0 = max(0, yi - half)
+    y1 = min(h - 1, yi + half)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return np.nan, np.nan, 0.0, 0.0, 0.0, False
+    nb = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1)
+    border = np.empty(nb)
+    t = 0
+    for x in range(x0, x1 + 1):
+        border[t] = image[y0, x]
+        border[t + 1] = image[y1, x]
+        t += 2
+    for y in range(y0 + 1, y1):
+        border[t] = image[y, x0]
+        border[t + 1] = image[y, x1]
+        t += 2
+    bg = np.median(border)
+    noise = 1.4826 * np.median(np.abs(border - bg))
+    if noise <= 0:
+        noise = 1.0
+    peak = -1e300
+    px = -1
+    py = -1
+    for y in range(y0, y1 + 1):
+        for x in range(x0, x1 + 1):
+            if image[y, x] > peak:
+                peak = image[y, x]
+                px = x
+                py = y
+    if peak - bg < k_sigma * noise:
+        return np.nan, np.nan, 0.0, 0.0, 0.0, False
+    count = 0
+    for y in range(max(0, py - 1), min(h, py + 2)):
+        for x in range(max(0, px - 1), min(w, px + 2)):
+            if image[y, x] - bg > 0.5 * k_sigma * noise:
+                count += 1
+    if count < min_pixels:
+        return np.nan, np.nan, 0.0, 0.0, 0.0, False
+    cx = float(px)
+    cy = float(py)
+    flux = 0.0
+    for _ in range(2):
+        sx = 0.0
+        sy = 0.0
+        s = 0.0
+        xc = int(math.floor(cx + 0.5))
+        yc = int(math.floor(cy + 0.5))
+        for y in range(max(0, yc - box), min(h, yc + box + 1)):
+            for x in range(max(0, xc - box), min(w, xc + box + 1)):
+                v = image[y, x] - bg
+                if v > 0:
+                    s += v
+                    sx += v * x
+                    sy += v * y
+        if s <= 0:
+            break
+        cx = sx / s
+        cy = sy / s
+        flux = s
+    return cx, cy, flux, peak - bg, flux / (noise * 5.0), flux > 0
+
+
+@njit(cache=True)
 def window_centroids(image, xs, ys, half, k_sigma, min_pixels, box):
     """Centroid the brightest star in a square window around each predicted position.
 
@@ -496,7 +567,6 @@ def window_centroids(image, xs, ys, half, k_sigma, min_pixels, box):
     ``(2 box + 1)^2`` box around the peak, iterated once on the new
     centre.  Returns ``(x, y, flux, peak, snr, found)``.
     """
-    h, w = image.shape
     n = xs.shape[0]
     out_x = np.full(n, np.nan)
     out_y = np.full(n, np.nan)
@@ -505,74 +575,13 @@ def window_centroids(image, xs, ys, half, k_sigma, min_pixels, box):
     out_s = np.zeros(n)
     found = np.zeros(n, dtype=np.bool_)
     for k in range(n):
-        if not (np.isfinite(xs[k]) and np.isfinite(ys[k])):
+        cx, cy, flux, peak, snr, ok = window_one(image, xs[k], ys[k], half, k_sigma, min_pixels, box)
+        if peak == 0.0 and not ok:
             continue
-        xi = int(math.floor(xs[k] + 0.5))
-        yi = int(math.floor(ys[k] + 0.5))
-        x0 = max(0, xi - half)
-        x1 = min(w - 1, xi + half)
-        y0 = max(0, yi - half)
-        y1 = min(h - 1, yi + half)
-        if x1 - x0 < 4 or y1 - y0 < 4:
-            continue
-        nb = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1)
-        border = np.empty(nb)
-        t = 0
-        for x in range(x0, x1 + 1):
-            border[t] = image[y0, x]
-            border[t + 1] = image[y1, x]
-            t += 2
-        for y in range(y0 + 1, y1):
-            border[t] = image[y, x0]
-            border[t + 1] = image[y, x1]
-            t += 2
-        bg = np.median(border)
-        noise = 1.4826 * np.median(np.abs(border - bg))
-        if noise <= 0:
-            noise = 1.0
-        peak = -1e300
-        px = -1
-        py = -1
-        for y in range(y0, y1 + 1):
-            for x in range(x0, x1 + 1):
-                if image[y, x] > peak:
-                    peak = image[y, x]
-                    px = x
-                    py = y
-        if peak - bg < k_sigma * noise:
-            continue
-        count = 0
-        for y in range(max(0, py - 1), min(h, py + 2)):
-            for x in range(max(0, px - 1), min(w, px + 2)):
-                if image[y, x] - bg > 0.5 * k_sigma * noise:
-                    count += 1
-        if count < min_pixels:
-            continue
-        cx = float(px)
-        cy = float(py)
-        flux = 0.0
-        for _ in range(2):
-            sx = 0.0
-            sy = 0.0
-            s = 0.0
-            xc = int(math.floor(cx + 0.5))
-            yc = int(math.floor(cy + 0.5))
-            for y in range(max(0, yc - box), min(h, yc + box + 1)):
-                for x in range(max(0, xc - box), min(w, xc + box + 1)):
-                    v = image[y, x] - bg
-                    if v > 0:
-                        s += v
-                        sx += v * x
-                        sy += v * y
-            if s <= 0:
-                break
-            cx = sx / s
-            cy = sy / s
-            flux = s
         out_x[k] = cx
         out_y[k] = cy
         out_f[k] = flux
-        out_p[k] = peak - bg
-        out_s[k] = flux / (noise * 5.0)
-        found[k] = flux > 0
+        out_p[k] = peak
+        out_s[k] = snr
+        found[k] = ok
     return out_x, out_y, out_f, out_p, out_s, found

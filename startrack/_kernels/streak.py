@@ -9,6 +9,8 @@ _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 N_PARAMS = 7     # cx, cy, l (half length), theta, flux, background, sigma
 STEP_TOL = 0.05  # converged: the last step in position, length and direction below this many sigma
+STEP_ABS_PX = 0.01  # ... and below 0.01 px in position and length
+STEP_ABS_ANGLE = 1e-3  # ... and 1 mrad in direction
 N_OUT = 14       # cx, cy, l, theta, flux, bg, sigma, sig_cx, sig_cy, sig_l, sig_theta, chi2_dof, n_pix, ok
 
 
@@ -37,9 +39,15 @@ def _edge(z):
 
 @njit(cache=True)
 def _small_step(jtj, step, cost, npx, tol):
-    """True when the last step in ``cx``, ``cy``, ``l`` and ``theta`` was below ``tol`` times their
-    1-sigma (``(J^T J)^-1 cost / dof``): converged to a small fraction of the parameters' own uncertainty."""
+    """True when the last step in ``cx``, ``cy``, ``l`` (px) and ``theta`` (rad) was below both ``tol``
+    times their 1-sigma (``(J^T J)^-1 cost / dof``) and an absolute ``STEP_ABS`` (0.01 px, 0.001 rad):
+    converged to a small fraction of the parameters' own uncertainty, and not merely slow on a
+    parameter the data hardly constrain (a short streak's length)."""
     s2 = cost / max(npx - N_PARAMS, 1)
+    for a_ in range(4):
+        lim = STEP_ABS_ANGLE if a_ == 3 else STEP_ABS_PX
+        if abs(step[a_]) > lim:
+            return False
     for a_ in range(4):
         e = np.zeros(N_PARAMS)
         e[a_] = 1.0
@@ -404,6 +412,114 @@ def fit_streaks(image, xs, ys, l0s, th0s, half0, max_half, psf_sigma, k_sigma, m
         out[k, 13] = 1.0
 
 
+@njit(cache=True, inline="always")
+def _interval(k, c, lim):
+    """``{x : |k x + c| <= lim}`` as ``(lo, hi)`` (empty when ``lo > hi``; all x when ``k`` is 0 and ``|c| <= lim``)."""
+    if abs(k) < 1e-12:
+        return (-1e300, 1e300) if abs(c) <= lim else (1.0, -1.0)
+    a = (-lim - c) / k
+    b = (lim - c) / k
+    return (a, b) if a <= b else (b, a)
+
+
+@njit(cache=True)
+def _capsule_row(y, cx, cy, ux, uy, l, r):
+    """The columns ``x`` of row ``y`` within ``r`` of the segment ``(cx, cy) +- l (ux, uy)``: an interval
+    (the capsule is convex), the hull of its two end discs and its slab; ``(lo, hi)``, empty when ``lo > hi``."""
+    lo = 1e300
+    hi = -1e300
+    for sgn in (-1.0, 1.0):
+        ex = cx + sgn * l * ux
+        ey = cy + sgn * l * uy
+        dy = y - ey
+        if dy * dy <= r * r:
+            h = math.sqrt(r * r - dy * dy)
+            lo = min(lo, ex - h)
+            hi = max(hi, ex + h)
+    # Slab: |d| <= r across, |a| <= l along, both linear in x on the row.
+    d_lo, d_hi = _interval(-uy, uy * cx + ux * (y - cy), r)
+    a_lo, a_hi = _interval(ux, -ux * cx + uy * (y - cy), l)
+    s_lo = max(d_lo, a_lo)
+    s_hi = min(d_hi, a_hi)
+    if s_lo <= s_hi:
+        lo = min(lo, s_lo)
+        hi = max(hi, s_hi)
+    return lo, hi
+
+
+@njit(cache=True)
+def segment_one(image, x_start, y_start, hx, hy, radius, iters):
+    """One streak of :func:`segment_centroids`: ``(x, y, flux, sigma_px, ok)``."""
+    h, w = image.shape
+    cx = x_start
+    cy = y_start
+    l = math.sqrt(hx * hx + hy * hy)
+    ux = hx / l if l > 1e-9 else 1.0
+    uy = hy / l if l > 1e-9 else 0.0
+    reach_x = abs(hx) + radius + 3.0
+    reach_y = abs(hy) + radius + 3.0
+    x0 = max(0, int(math.floor(cx - reach_x)))
+    x1 = min(w - 1, int(math.ceil(cx + reach_x)))
+    y0 = max(0, int(math.floor(cy - reach_y)))
+    y1 = min(h - 1, int(math.ceil(cy + reach_y)))
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return np.nan, np.nan, 0.0, np.nan, False
+    nb = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1)
+    border = np.empty(nb)
+    t = 0
+    for x in range(x0, x1 + 1):
+        border[t] = image[y0, x]
+        border[t + 1] = image[y1, x]
+        t += 2
+    for y in range(y0 + 1, y1):
+        border[t] = image[y, x0]
+        border[t + 1] = image[y, x1]
+        t += 2
+    bg = np.median(border)
+    noise = 1.4826 * np.median(np.abs(border - bg))
+    r2 = radius * radius
+    sw = 0.0
+    sx = 0.0
+    sy = 0.0
+    # Each pass visits only the columns of each row that the capsule can cover (its exact test decides).
+    s2 = 0.0
+    for it in range(iters + 1):
+        if it < iters:
+            sw = 0.0
+            sx = 0.0
+            sy = 0.0
+        for y in range(y0, y1 + 1):
+            lo, hi = _capsule_row(float(y), cx, cy, ux, uy, l, radius)
+            if lo > hi:
+                continue
+            xa = max(x0, int(math.floor(lo)) - 1)
+            xb = min(x1, int(math.ceil(hi)) + 1)
+            for x in range(xa, xb + 1):
+                rx = x - cx
+                ry = y - cy
+                a = rx * ux + ry * uy
+                a = max(-l, min(l, a))
+                dx = rx - a * ux
+                dy = ry - a * uy
+                if dx * dx + dy * dy <= r2:
+                    if it == iters:
+                        s2 += 0.5 * (rx * rx + ry * ry)
+                    else:
+                        v = image[y, x] - bg
+                        sw += v
+                        sx += v * x
+                        sy += v * y
+        if it == iters:
+            break
+        if sw <= 0.0:
+            return np.nan, np.nan, 0.0, np.nan, False
+        cx = sx / sw
+        cy = sy / sw
+    if sw <= 0.0:
+        return np.nan, np.nan, 0.0, np.nan, False
+    return cx, cy, sw, math.sqrt(s2) * noise / sw, True
+
+
 @njit(cache=True)
 def segment_centroids(image, xs, ys, hxs, hys, radius, iters, out):
     """Intensity-weighted centroid of each streak inside a capsule aperture (the tracking-mode fast path).
@@ -417,82 +533,10 @@ def segment_centroids(image, xs, ys, hxs, hys, radius, iters, out):
     centroid uncertainty ``sqrt(sum (x_i - x)^2) * noise / flux`` (per axis,
     averaged).
     """
-    h, w = image.shape
-    n = xs.shape[0]
-    for k in range(n):
-        out[k, 0] = np.nan
-        out[k, 1] = np.nan
-        out[k, 2] = 0.0
-        out[k, 3] = np.nan
-        out[k, 4] = 0.0
-        cx = xs[k]
-        cy = ys[k]
-        hx = hxs[k]
-        hy = hys[k]
-        l = math.sqrt(hx * hx + hy * hy)
-        ux = hx / l if l > 1e-9 else 1.0
-        uy = hy / l if l > 1e-9 else 0.0
-        reach_x = abs(hx) + radius + 3.0
-        reach_y = abs(hy) + radius + 3.0
-        x0 = max(0, int(math.floor(cx - reach_x)))
-        x1 = min(w - 1, int(math.ceil(cx + reach_x)))
-        y0 = max(0, int(math.floor(cy - reach_y)))
-        y1 = min(h - 1, int(math.ceil(cy + reach_y)))
-        if x1 - x0 < 4 or y1 - y0 < 4:
-            continue
-        nb = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1)
-        border = np.empty(nb)
-        t = 0
-        for x in range(x0, x1 + 1):
-            border[t] = image[y0, x]
-            border[t + 1] = image[y1, x]
-            t += 2
-        for y in range(y0 + 1, y1):
-            border[t] = image[y, x0]
-            border[t + 1] = image[y, x1]
-            t += 2
-        bg = np.median(border)
-        noise = 1.4826 * np.median(np.abs(border - bg))
-        r2 = radius * radius
-        good = True
-        sw = 0.0
-        for _ in range(iters):
-            sw = 0.0
-            sx = 0.0
-            sy = 0.0
-            for y in range(y0, y1 + 1):
-                for x in range(x0, x1 + 1):
-                    rx = x - cx
-                    ry = y - cy
-                    a = rx * ux + ry * uy
-                    a = max(-l, min(l, a))
-                    dx = rx - a * ux
-                    dy = ry - a * uy
-                    if dx * dx + dy * dy <= r2:
-                        v = image[y, x] - bg
-                        sw += v
-                        sx += v * x
-                        sy += v * y
-            if sw <= 0.0:
-                good = False
-                break
-            cx = sx / sw
-            cy = sy / sw
-        if not good:
-            continue
-        s2 = 0.0
-        for y in range(y0, y1 + 1):
-            for x in range(x0, x1 + 1):
-                rx = x - cx
-                ry = y - cy
-                a = rx * ux + ry * uy
-                a = max(-l, min(l, a))
-                dx = rx - a * ux
-                dy = ry - a * uy
-                if dx * dx + dy * dy <= r2:
-                    s2 += 0.5 * (rx * rx + ry * ry)
-        out[k, 0] = cx
-        out[k, 1] = cy
-        out[k, 2] = sw
-        out[k, 3] = math.sqrt(s2) * noise / sw
-        out[k, 4] = 1.0
+    for k in range(xs.shape[0]):
+        x, y, flux, sig, ok = segment_one(image, xs[k], ys[k], hxs[k], hys[k], radius, iters)
+        out[k, 0] = x
+        out[k, 1] = y
+        out[k, 2] = flux
+        out[k, 3] = sig
+        out[k, 4] = 1.0 if ok else 0.0
