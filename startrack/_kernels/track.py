@@ -5,8 +5,8 @@ See :mod:`startrack.track` (steps 1-2) for the method.
 import math
 
 import numpy as np
-from startrack._kernels._jit import njit
 
+from startrack._kernels._jit import njit
 from startrack._kernels.centroid import window_one
 from startrack._kernels.sphere import project_to_pixel
 from startrack._kernels.streak import segment_one
