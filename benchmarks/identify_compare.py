@@ -48,7 +48,7 @@ def main(argv=None):
     ap.add_argument("--size", default="1280x960")
     ap.add_argument("--db-mag", type=float, default=6.0)
     ap.add_argument("--star-mag", type=float, default=5.5)
-    ap.add_argument("--min-stars", type=int, default=4)
+    ap.add_argument("--min-stars", type=int, default=4, help="catalog stars per frame at least (false stars not counted)")
     ap.add_argument("--count", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10", help="sigma_px:false_stars, ...")
@@ -108,7 +108,7 @@ def main(argv=None):
     try:
         for spec in args.conditions.split(","):
             sigma, nfalse = spec.split(":")
-            cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_stars=args.min_stars)
+            cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_catalog_stars=args.min_stars)
             params = IdentifyParams(sigma_px=float(sigma))
             got = evaluate(algos, [cond], args.count, dbs, cam, star_cat, args.seed, args.jobs, params, args.star_mag)
             rows += [dict(r, condition=cond.label()) for r in got]
@@ -137,7 +137,7 @@ def main(argv=None):
         if "cedar-solve" in peers:
             peers["cedar-solve"].close()
     lines = [f"# Identification, {args.fov:g} deg {args.size}, stars to Hp {args.star_mag:g}, database Hp <= "
-             f"{args.db_mag:g}, >= {args.min_stars} stars a frame, {args.count} frames, seed {args.seed}", ""]
+             f"{args.db_mag:g}, >= {args.min_stars} catalog stars a frame, {args.count} frames, seed {args.seed}", ""]
     lines += [f"- {n}" for n in notes] + [""]
     lines += ["| condition | algorithm | success | failed | wrong | median ms | p95 ms |", "|---|---|---|---|---|---|---|"]
     for r in rows:

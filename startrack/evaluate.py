@@ -37,6 +37,7 @@ class Condition:
     drop_fraction: float = 0.0
     min_stars: int = 0
     max_stars: int | None = None
+    min_catalog_stars: int = 0
 
     def label(self) -> str:
         parts = [f"sigma {self.sigma_px:g}px"]
@@ -50,6 +51,8 @@ class Condition:
             parts.append(f"drop {self.drop_fraction:g}")
         if self.min_stars:
             parts.append(f">= {self.min_stars} stars")
+        if self.min_catalog_stars:
+            parts.append(f">= {self.min_catalog_stars} catalog stars")
         return ", ".join(parts)
 
 
@@ -63,7 +66,8 @@ def conditions_grid(**lists) -> list:
 def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor=None, mag_limit=None, vectors=None,
                 start: int = 0):
     """``n`` star-list frames for ``condition``; frame k uses attitude seed (seed, k), retried (seed, k, t)
-    until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star").
+    until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star") and
+    ``min_catalog_stars`` stars of the catalog (false stars not counted).
 
     ``start`` gives the frames ``start .. start + n - 1`` of the same sequence (chunks of a large set).
     """
@@ -82,7 +86,8 @@ def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor
             dcm = quaternion_to_dcm(random_quaternions(1, rng)[0])
             stars, truth = star_list(catalog, camera, dcm, sensor, scene, rng, condition.sigma_px,
                                      condition.max_stars, condition.drop_fraction, vectors)
-            if len(stars) >= condition.min_stars:
+            if len(stars) >= condition.min_stars and \
+                    sum(1 for i in truth["star_ids"] if i is not None) >= condition.min_catalog_stars:
                 break
         frames.append((stars, truth, frame_seed))
     return frames

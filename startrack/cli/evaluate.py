@@ -91,6 +91,8 @@ def _legacy_json_path(ctx, args):
 @click.option("--focal-error-pct", type=NumberList(-50, 50), default="0", show_default=True, help="Focal-length errors in percent.")
 @click.option("--drop-fraction", type=NumberList(0, 1, max_open=True), default="0", show_default=True, help="Fractions of stars dropped.")
 @click.option("--min-stars", type=Int(0, 100_000), default=0, show_default=True, help="Only frames with at least this many stars.")
+@click.option("--min-catalog-stars", type=Int(0, 100_000), default=0, show_default=True,
+              help="Only frames with at least this many catalog stars (false stars not counted).")
 @click.option("--max-stars", type=Int(1, 100_000), default=None, help="At most the N brightest stars per frame (paper 003: 10).")
 @click.option("--tolerance-arcsec", type=FiniteFloat(0, 600, min_open=True), default=None, help="Angle tolerance override for all algorithms.")
 @click.option("--sigma-hint-px", type=FiniteFloat(0, 100, min_open=True), default=None,
@@ -114,7 +116,7 @@ def _legacy_json_path(ctx, args):
 @handle_errors
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
             mag_max, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
-            min_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, as_json, output, plot,
+            min_stars, min_catalog_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, as_json, output, plot,
             accuracy, quiet, **settings):
     """Compare identification algorithms over random attitudes, as the papers do.
 
@@ -197,7 +199,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                             mag_noise=_floats(mag_noise, "--mag-noise"),
                             focal_error_pct=_floats(focal_error_pct, "--focal-error-pct"),
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
-                            max_stars=[max_stars])
+                            max_stars=[max_stars], min_catalog_stars=[min_catalog_stars])
     algos = list(algorithms)
     configs = algorithm_configs(settings, algos)
     lim = mag_max

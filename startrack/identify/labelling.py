@@ -1,7 +1,8 @@
 """Labelling identification (Kim & Cho 2019; paper 004).
 
 For groups of ``group_size`` of the brightest image stars (the 4 brightest
-first, then the other groups of the ``stars_per_field`` brightest in order),
+first, then the other groups of the ``stars_per_field`` brightest in order,
+then groups adding the next fainter star, and the next),
 the integer label of the group's distance ratios (Eqs. 1-3) is looked up in the
 sorted label database through its trend line (Fig. 3); every entry with an
 equal label is a candidate, and the angle error of Eq. 5,
@@ -25,6 +26,7 @@ are settled here and documented:
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -44,85 +46,68 @@ class LabellingConfig:
         "help": "Largest relative focal-length error a label match may imply."})
     max_entries: int = field(default=64, metadata={"help": "Database entries examined per label."})
     group_stars: int | None = field(default=None, metadata={
-        "help": "Brightest detections whose groups are tried (default: the database's stars per field, "
-                "paper 004's 8); more find groups past bright false stars, slowly."})
+        "help": "Brightest detections whose groups are tried: those of the database's stars per field (paper "
+                "004's 8) first, then groups adding each next star up to this (default: all search stars)."})
 
 
-def _pair_angles(vecs):
-    n = len(vecs)
-    return np.array([math.acos(min(1.0, max(-1.0, float(vecs[a] @ vecs[b]))))
-                     for a in range(n) for b in range(a + 1, n)])
-
-
-def _labels_with_variants(angles, digits, boundary, max_variants=8):
-    d = np.sort(angles)[::-1]
-    scale = 10 ** digits
-    x = scale * d[1:] / d[0]
-    base = np.floor(x + 0.5).astype(np.int64)
-    frac = x - np.floor(x)
-    uncertain = [i for i in range(len(x)) if abs(frac[i] - 0.5) < boundary]
-    uncertain = sorted(uncertain, key=lambda i: abs(frac[i] - 0.5))[: int(math.log2(max_variants))]
-    out = []
-    for flips in itertools.product((0, 1), repeat=len(uncertain)):
-        sub = base.copy()
-        for i, f in zip(uncertain, flips):
-            if f:
-                sub[i] = int(math.floor(x[i])) if base[i] > x[i] else int(math.floor(x[i])) + 1
-        label = 0
-        for v in sub:
-            label = label * scale + int(v)
-        out.append(label)
+@functools.lru_cache(maxsize=64)
+def _group_order(n_first: int, n: int, group: int) -> np.ndarray:
+    """Image groups in search order: every group of the ``n_first`` brightest stars, then those
+    adding star ``n_first`` (with ``group - 1`` brighter ones), then star ``n_first + 1``, ..."""
+    rows = [c for c in itertools.combinations(range(n_first), group)]
+    for new in range(n_first, n):
+        rows += [c + (new,) for c in itertools.combinations(range(new), group - 1)]
+    out = np.array(rows, dtype=np.int64).reshape(-1, group)
+    out.setflags(write=False)
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _perm_tables(group: int):
+    perms = np.array(list(itertools.permutations(range(group))), dtype=np.int64)
+    pairs = [(a, c) for a in range(group) for c in range(a + 1, group)]
+    return perms, np.array([a for a, _ in pairs], dtype=np.int64), np.array([c for _, c in pairs], dtype=np.int64)
 
 
 def search_labelling(ctx, config: LabellingConfig):
     """Groups of the brightest stars in paper 004's order; each group's label matches, best Eq. 5 error first.
 
-    The paper stops at the first group that matches; here the matches of a
-    group the verification rejects are followed by the next group's.
+    The paper takes the groups of the ``stars_per_field`` brightest stars (8)
+    and stops at the first that matches.  Here the matches of a group the
+    verification rejects are followed by the next group's, and when the
+    groups of the brightest stars are exhausted -- false stars among them
+    hide the true ones -- the search goes on with groups that add the next
+    star, and the next (``group_stars`` caps how far), within the driver's
+    budget.  The scan itself is one kernel
+    (:func:`startrack._kernels.identify.labelling_scan`).
     """
+    from startrack._kernels.identify import labelling_scan
+
     b, db, eps = ctx.b, ctx.db, ctx.eps
     group = db.group_size
-    # The paper's groups come from the stars_per_field brightest; false stars among them push
-    # true ones further down: group_stars widens the set (groups brightest first).
-    n_use = min(len(b), db.stars_per_field if config.group_stars is None else int(config.group_stars))
+    n_first = min(len(b), db.stars_per_field)
+    n_use = len(b) if config.group_stars is None else min(len(b), int(config.group_stars))
     if n_use < group:
         return
+    combos = _group_order(min(n_first, n_use), n_use, group)
+    perms, pa, pc = _perm_tables(group)
     boundary = float(config.label_boundary)
-    max_scale = float(config.max_focal_error)
-    perms = list(itertools.permutations(range(group)))
-    pair_index = [(a, c) for a in range(group) for c in range(a + 1, group)]
-    tried = 0
-    for combo in itertools.combinations(range(n_use), group):
-        tried += 1
-        vecs = b[list(combo)]
-        mea = _pair_angles(vecs)
-        found = {}
-        for label in _labels_with_variants(mea, db.scale_digits, boundary):
-            start, end = db.lookup(label)
-            for entry in range(start, min(end, start + config.max_entries)):
-                members = db.members[entry]
-                cvec = db.star_vector[members]
-                best = None
-                for perm in perms:
-                    cat_angles = np.array([math.acos(min(1.0, max(-1.0, float(cvec[perm[a]] @ cvec[perm[c]]))))
-                                           for a, c in pair_index])
-                    s = float(cat_angles @ mea / (mea @ mea))
-                    if abs(s - 1.0) > max_scale:
-                        continue
-                    err = float(np.sum(np.abs(s * mea - cat_angles)))     # Eq. 5 after the scale
-                    if best is None or err < best[0]:
-                        best = (err, tuple(int(members[perm[a]]) for a in range(group)), s)
-                if best is None:
-                    continue
-                # Accept when the residual is what centroid noise explains (eps per angle) plus, when the
-                # focal length is far off, the departure of the gnomonic angles from one common scale.
-                allowance = len(mea) * (eps + 0.5 * abs(best[2] - 1.0) * float(np.max(mea)) ** 3)
-                if best[0] <= allowance and (best[1] not in found or best[0] < found[best[1]][0]):
-                    found[best[1]] = best
-        for err, cat, s in sorted(found.values()):
-            yield Proposal(list(combo), list(cat), tried, {"label_error_arcsec": round(math.degrees(err) * 3600, 3),
-                                                          "label_focal_scale": round(s, 6)})
+    max_flips = int(math.log2(8))
+    t = 0
+    scale = float(10 ** db.scale_digits)
+    trend = np.ascontiguousarray(db.trend, dtype=np.float64)
+    while t < len(combos):
+        t, mem, err, sc, n = labelling_scan(
+            b, combos, t, db.label, db.members, db.star_vector, trend, float(db.trend_scale), int(db.trend_radius),
+            scale, boundary, max_flips, float(config.max_focal_error), float(eps), int(config.max_entries), perms, pa,
+            pc, 64)
+        if t < 0:
+            return
+        combo = combos[t].tolist()
+        t += 1
+        for k in range(n):
+            yield Proposal(combo, mem[k].tolist(), t, {"label_error_arcsec": round(math.degrees(err[k]) * 3600, 3),
+                                                        "label_focal_scale": round(float(sc[k]), 6)})
 
 
 LABELLING = Algorithm("labelling", search_labelling, LabellingConfig, "labels",

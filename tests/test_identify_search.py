@@ -1,0 +1,45 @@
+"""The searches keep looking past false stars (issue 14): groups and candidates beyond the first ones."""
+import pytest
+
+from startrack.camera import Camera
+from startrack.evaluate import Condition, make_frames, score
+from startrack.identify import IdentifyParams, identify_stars, make_config
+
+
+@pytest.fixture(scope="module")
+def sensor16(catalog):
+    """A 16 deg 1024x1024 sensor the other tests do not use; database Hp <= 5.8 merged for it."""
+    from startrack.catalog import merge_radius_arcsec
+
+    cam = Camera.from_fov(16, 1024, 1024)
+    cat = catalog.filter_magnitude(None, 5.8).merge_close(merge_radius_arcsec(cam))
+    return cam, cat, catalog.filter_magnitude(None, 5.4)
+
+
+def test_min_catalog_stars_counts_catalog_stars_only(sensor16):
+    cam, _, stars = sensor16
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=6), 30, 4,
+                         mag_limit=5.4)
+    assert all(sum(1 for i in t["star_ids"] if i is not None) >= 6 for _, t, _ in frames)
+    # min_stars counts every detection, false stars too.
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_stars=6), 30, 4, mag_limit=5.4)
+    assert all(len(s) >= 6 for s, _, _ in frames)
+    assert any(sum(1 for i in t["star_ids"] if i is not None) < 6 for _, t, _ in frames)
+
+
+def test_labelling_goes_past_the_brightest_groups(sensor16):
+    """Ten false stars among the detections: the groups of the 8 brightest rarely hold four true stars; the
+    search continues with groups adding fainter stars (paper 004 stops at the 8 brightest)."""
+    from startrack.labels import build_labels
+
+    cam, cat, stars = sensor16
+    db = build_labels(cat, max(cam.fov_deg))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=5), 60, 9,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=0.3)
+    wide = [score(identify_stars(s, cam, db, "labelling", params), t) for s, t, _ in frames]
+    first8 = [score(identify_stars(s, cam, db, "labelling", params, make_config("labelling", {"group_stars": 8})), t)
+              for s, t, _ in frames]
+    assert wide.count("bad") == 0 and first8.count("bad") == 0
+    assert wide.count("success") >= 0.9 * len(frames)
+    assert wide.count("success") > first8.count("success") + 10
