@@ -190,7 +190,9 @@ def first_use(image):
     """Whole `startrack solve IMAGE` with an empty cache and an empty numba cache (kernels compiled)."""
     tmp = tempfile.mkdtemp(prefix="st-cold-")
     try:
-        env = {"STARTRACK_CACHE": os.path.join(tmp, "cache"), "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
+        # Everything empty: the index, numba's cache and the ahead-of-time kernels.
+        env = {"STARTRACK_CACHE": os.path.join(tmp, "cache"), "NUMBA_CACHE_DIR": os.path.join(tmp, "numba"),
+               "STARTRACK_KERNELS": os.path.join(tmp, "kernels")}
         proc, wall = run_st(["solve", image], env)
         cpu = CPU["last"]
         notice = [line for line in proc.stderr.splitlines() if "once" in line]
