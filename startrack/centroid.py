@@ -198,6 +198,29 @@ def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_rat
     return [(left + px, top + py) for (py, px) in kept]
 
 
+def _flag_misfits(stars, p_value, min_stars=5):
+    """``misfit: true`` on the stars whose weighted fit's chi-square fails, beyond the frame's own PSF mismatch.
+
+    A single pixel-integrated Gaussian star leaves ``chi2 ~ chi-square(dof)``.
+    Real optics are not Gaussian: every star leaves an excess ``chi2 - dof``
+    that grows as its ``SNR^2`` (the profile error, a fixed fraction of its
+    signal, as in DAOPHOT's noise model).  The frame's typical fraction
+    ``c = median((chi2 - dof) / SNR^2)`` over its fitted stars (when there are
+    ``min_stars``; else 0) is taken as the PSF's own, and a star is a misfit when
+    ``chi2 - c SNR^2`` still exceeds the ``1 - p_value`` point of chi-square:
+    a neighbour in its window, a cosmic ray, a cut or distorted image.  On a
+    rendered (Gaussian) frame ``c`` is ~0 and this is the plain chi-square test.
+    """
+    if not p_value > 0:
+        return
+    fitted = [s_ for s_ in stars if "fit_chi2" in s_ and s_.get("snr", 0) > 0 and math.isfinite(s_["snr"])]
+    excess = [(s_["fit_chi2"] - s_["fit_dof"]) / s_["snr"] ** 2 for s_ in fitted]
+    c = max(0.0, float(np.median(excess))) if len(fitted) >= min_stars else 0.0
+    for s_ in fitted:
+        if _chi2_p_value(s_["fit_chi2"] - c * s_["snr"] ** 2, s_["fit_dof"]) < p_value:
+            s_["misfit"] = True
+
+
 def _chi2_p_value(chi2, dof):
     """Upper tail ``P(X >= chi2)`` of chi-square with ``dof`` degrees of freedom (Wilson-Hilferty)."""
     if dof <= 0 or not math.isfinite(chi2):
@@ -269,9 +292,11 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         fit's own 2 x 2 position covariance, the inverse of its information
         over the fitted pixels; ``sigma_px`` is then its per-axis RMS),
         ``fit_chi2`` and ``fit_dof`` (its weighted residual sum and degrees of
-        freedom), and ``misfit: true`` when that chi-square's p-value is below
-        ``options.misfit_p`` (a neighbour in the window, a cut or distorted
-        image: the position may be biased beyond ``cov_px2``).  An image where
+        freedom), and, when the gain is known, ``misfit: true`` when that
+        chi-square's p-value is below ``options.misfit_p`` beyond the frame's
+        own PSF mismatch (:func:`_flag_misfits`: a neighbour in the window, a
+        cosmic ray, a distorted image; the position may be biased beyond
+        ``cov_px2``).  An image where
         nothing can be found gives an empty list and a ``reason``.
     """
     import cv2
@@ -441,9 +466,10 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
             star["sigma_px"] = math.sqrt(0.5 * (fit["cov_px2"][0][0] + fit["cov_px2"][1][1]))
             star.update(fit)
-            if _chi2_p_value(fit["fit_chi2"], fit["fit_dof"]) < options.misfit_p:
-                star["misfit"] = True
         stars.append(star)
+    if options.gain_e_per_dn:
+        # Without the gain the weights lack the stars' shot noise and chi-square cannot test the model.
+        _flag_misfits(stars, options.misfit_p)
     stars.sort(key=lambda s: -s["flux"])
     stars = _unique(stars)
     if options.max_fwhm_ratio is not None:

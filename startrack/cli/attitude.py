@@ -50,8 +50,11 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
     residuals in arcsec, and the QUEST covariance as 1-sigma cross-boresight
     and roll errors in arcsec, beside the frame's Cramér-Rao bound
     (crb_cross_boresight_arcsec, crb_roll_arcsec) from each star's flux, PSF
-    width and noise.  Each star is weighted by its own centroid bound.
-    Stars failing the chi-square gate are dropped and listed.  The
+    width and noise.  Each star is weighted by its own centroid covariance
+    (the one centroid's fit reports, cov_px2, else its bound); stars whose
+    fit failed its chi-square test (misfit; while 2 and half the stars
+    remain) and stars failing the attitude's chi-square gate are dropped and
+    listed.  The
     identification is checked, and the frame is "failed" with a reason_code
     when it does not hold up: fewer than 2 stars, a star or id used twice,
     stars too close together to fix the roll, or residuals too large for the
@@ -67,7 +70,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
 
     import numpy as np
 
-    from startrack.accuracy import attitude_crb, stars_crb_from_frame
+    from startrack.accuracy import attitude_crb, misfits_to_drop, star_covariance, stars_crb_from_frame
     from startrack.attitude import estimate_attitude, wcs_header
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
@@ -120,8 +123,9 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         gain = _frame_gain(doc)
         noise_frame = (doc.get("centroid") or {}).get("noise_dn")
         body, ref, sig, labels, bounds = [], [], [], [], []
-        missing = []
-        for m in matches:
+        missing, misfits = [], []
+        drop = misfits_to_drop([stars[m["star"]].get("misfit") is True and not sigma_px for m in matches])
+        for m, dropped in zip(matches, drop):
             row = rows.get(int(m["id"]))
             if row is None:
                 missing.append(m["id"])
@@ -131,14 +135,24 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             if not (isinstance(x, (int, float)) and isinstance(y, (int, float)) and math.isfinite(x)
                     and math.isfinite(y)):
                 raise BadInputError(source, f"stars[{m['star']}].x", "must be a finite number")
+            if dropped:
+                # Its fit failed the chi-square test: a neighbour or a distorted image may bias it beyond its sigma.
+                misfits.append({"star": int(m["star"]), "id": int(m["id"]),
+                                "reason": "centroid fit chi-square "
+                                          f"{s.get('fit_chi2', float('nan')):.1f} for {s.get('fit_dof', '?')} dof: "
+                                          "not a single star's image"})
+                continue
             body.append(cam.pixels_to_vectors(x, y))
             ref.append(vectors[row])
-            # Each star's own sigma: its centroid Cramér-Rao bound from its flux, PSF and noise
-            # (startrack.accuracy), else the sigma_px centroid wrote, else --sigma-px.
-            bound = stars_crb_from_frame([s], gain, noise_frame if isinstance(noise_frame, (int, float)) else None)[0]
+            # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
+            # bound from its flux, PSF and noise (startrack.accuracy), else the sigma_px centroid wrote,
+            # else --sigma-px.  The bound alone goes into the crb_* fields.
+            nd = noise_frame if isinstance(noise_frame, (int, float)) else None
+            bound = stars_crb_from_frame([s], gain, nd)[0]
             bounds.append(bound)
-            if bound is not None and not sigma_px:
-                sp = math.sqrt(0.5 * (bound[0, 0] + bound[1, 1]))
+            own = star_covariance(s, gain, nd)
+            if own is not None and not sigma_px:
+                sp = math.sqrt(0.5 * (own[0, 0] + own[1, 1]))
             else:
                 sp = s.get("sigma_px")
                 sp = sp if isinstance(sp, (int, float)) and sp > 0 else (sigma_px if sigma_px else 0.5)
@@ -155,6 +169,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                 except BadInputError:
                     pass
         section = result.section()
+        if misfits:
+            section["rejected"] = misfits + section.get("rejected", [])
         section["epoch"] = float(ep)
         if missing:
             section["not_in_catalog"] = missing[:20]

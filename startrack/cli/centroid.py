@@ -1,4 +1,6 @@
 """startrack centroid: detect stars in images and measure their sub-pixel positions."""
+import math
+
 import click
 
 from startrack.cli.options import (
@@ -41,7 +43,9 @@ from startrack.cli.options import (
 @click.option("--no-deblend", is_flag=True, help="Do not split touching stars.")
 @click.option("--max-stars", type=Int(1, 100_000), default=None, help="Keep the N brightest (paper 000's adaptive selection).")
 @click.option("--psf-sigma-px", type=FiniteFloat(0, 50, min_open=True), default=None, help="PSF sigma (default: measured per star).")
-@click.option("--gain-e-per-dn", type=FiniteFloat(0, min_open=True), default=None, help="Gain, for photon noise in SNR and uncertainties.")
+@click.option("--gain-e-per-dn", type=FiniteFloat(0, min_open=True), default=None,
+              help="Gain, for photon noise in the fit's weights, SNR and uncertainties (default: the render "
+                   "section's sensor gain when the input is a rendered frame's document).")
 @click.option("--saturation-dn", type=FiniteFloat(0, min_open=True), default=None, help="Saturation level (default: the file type's maximum).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON to attach to every frame.")
@@ -119,15 +123,15 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
             prior = (doc.get("truth") or {}).get("stars", []) if windows_from == "truth" else doc.get("stars", [])
             if not prior:
                 raise BadInputError(source, windows_from, "has no positions for --windows-from")
-            found = centroid_windows(image, [(p["x"], p["y"]) for p in prior], window_px, options,
-                                     saturation=meta["saturation"])
+            found = centroid_windows(image, [(p["x"], p["y"]) for p in prior], window_px,
+                                     _with_render_gain(options, doc), saturation=meta["saturation"])
             stars = [dict(f, prior=i) for i, f in enumerate(found) if f is not None]
             stars.sort(key=lambda s: -s["flux"])
             out["stars"] = stars[:max_stars] if max_stars else stars
             out["centroid"] = {"method": method, "mode": "windows", "windows": len(prior),
                                "found": len(stars), "window_px": window_px}
         else:
-            result = find_stars(image, options, saturation=meta["saturation"], source=path)
+            result = find_stars(image, _with_render_gain(options, doc), saturation=meta["saturation"], source=path)
             out["stars"] = result.stars
             out["centroid"] = result.section()
         n_stars[0] += len(out["stars"])
@@ -141,3 +145,23 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
     run_frames(names[0] if len(names) == 1 else "-", output, "centroid", process, quiet, "centroid",
                jobs=jobs, resume=resume, records=records(), unit="image",
                note=lambda: f"{n_stars[0]} stars")
+
+
+def _with_render_gain(options, doc):
+    """The options with the gain of the document's ``render`` section when --gain-e-per-dn was not given.
+
+    A rendered frame says which sensor made it; with its gain each star's shot
+    noise enters the weighted fit, its covariance and its SNR.  The read noise
+    needs no reading: it is part of the background noise centroid measures.
+    """
+    from dataclasses import replace
+
+    if options.gain_e_per_dn is not None:
+        return options
+    render = doc.get("render") if isinstance(doc.get("render"), dict) else {}
+    params = render.get("params") if isinstance(render.get("params"), dict) else {}
+    sensor = params.get("sensor") if isinstance(params.get("sensor"), dict) else {}
+    gain = sensor.get("gain_e_per_dn")
+    if isinstance(gain, (int, float)) and not isinstance(gain, bool) and math.isfinite(gain) and gain > 0:
+        return replace(options, gain_e_per_dn=float(gain))
+    return options

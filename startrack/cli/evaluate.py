@@ -301,7 +301,8 @@ def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars
     if not s.get("frames"):
         click.echo(f"no frame solved ({s['failed']} failed, {s['wrong']} wrong, {s['no_bound']} without 2 stars)")
         return
-    click.echo(f"{s['frames']} frames solved, {s['failed']} failed, {s['wrong']} wrong, {s['no_bound']} with < 2 stars")
+    click.echo(f"{s['frames']} frames solved, {s['failed']} failed, {s['far']} over 0.1 deg but within 5 sigma, "
+               f"{s['wrong']} wrong, {s['no_bound']} with < 2 stars")
     click.echo(f"cross-boresight: RMS {s['rms_cross_arcsec']:.3f}\" / RMS bound {s['crb_cross_arcsec']:.3f}\" = "
                f"{s['ratio_cross']:.2f}  (normalised RMS {s['z_cross']:.2f})")
     click.echo(f"roll:            RMS {s['rms_roll_arcsec']:.2f}\" / RMS bound {s['crb_roll_arcsec']:.2f}\" = "
