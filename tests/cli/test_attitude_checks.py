@@ -115,12 +115,20 @@ def test_crb_beside_the_covariance(tmp_path):
         d["identification"] = {"status": "ok", "algorithm": "truth", "matches": matches}
         docs.append(json.dumps(d))
     out = run_cli("attitude", "--sigma-floor-px", "0", "-q", input="\n".join(docs) + "\n", check=True).stdout
+    # A star marked misfit by centroid (its fit's chi-square failed) is left out and listed.
+    first = json.loads(docs[0])
+    k = first["identification"]["matches"][0]["star"]
+    first["stars"][k]["misfit"] = True
+    lone = json.loads(run_cli("attitude", "--sigma-floor-px", "0", "-q", input=json.dumps(first) + "\n",
+                              check=True).stdout)["attitude"]
+    assert lone["status"] == "ok" and lone["n_stars"] == len(first["identification"]["matches"]) - 1
+    assert lone["rejected"][0]["star"] == k and "chi-square" in lone["rejected"][0]["reason"]
     for line in out.splitlines():
         d = json.loads(line)
         att = d["attitude"]
         assert att["status"] == "ok"
         assert 0 < att["crb_cross_boresight_arcsec"] < att["crb_roll_arcsec"]
-        # each star weighted by its own bound: the reported sigma is that bound's covariance (k = 1 here)
+        # each star weighted by its fit's own covariance, close to its bound (k = 1 here)
         assert att["sigma_cross_boresight_arcsec"] >= 0.9 * att["crb_cross_boresight_arcsec"]
         e = error_vector(quaternion_to_dcm(att["quaternion"]), quaternion_to_dcm(d["truth"]["quaternion"]))
         arcsec = math.degrees(1) * 3600

@@ -28,6 +28,12 @@ def test_pipeline_from_render(tmp_path):
     proc = run_cli("centroid", "--max-stars", "15", input=render.stdout, check=True)
     doc = json.loads(proc.stdout)
     assert doc["truth"] == json.loads(render.stdout)["truth"]          # sections pass through
+    # The render section's gain is used (shot noise in the fit's weights), and the fit reports its covariance.
+    gain = json.loads(render.stdout)["render"]["params"]["sensor"]["gain_e_per_dn"]
+    assert doc["centroid"]["params"]["gain_e_per_dn"] == gain
+    assert all("cov_px2" in s and s["fit_dof"] > 0 for s in doc["stars"] if not s["saturated"])
+    given = json.loads(run_cli("centroid", "--gain-e-per-dn", "2.5", input=render.stdout, check=True).stdout)
+    assert given["centroid"]["params"]["gain_e_per_dn"] == 2.5
     assert len(doc["stars"]) == 15
     truth = np.array([(s["x"], s["y"]) for s in doc["truth"]["stars"]])
     for s in doc["stars"]:
