@@ -43,3 +43,21 @@ def test_labelling_goes_past_the_brightest_groups(sensor16):
     assert wide.count("bad") == 0 and first8.count("bad") == 0
     assert wide.count("success") >= 0.9 * len(frames)
     assert wide.count("success") > first8.count("success") + 10
+
+
+def test_brightness_search_covers_every_group_of_the_search_stars(sensor16):
+    """Ten false stars: the four-star loops must reach the groups whose brightest star is true (the
+    first 2000 loops hold only those of the two brightest detections)."""
+    cam, cat, stars = sensor16
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=5), 40, 12,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=0.3)
+    full = [score(identify_stars(s, cam, db, "brightness", params), t) for s, t, _ in frames]
+    short = [score(identify_stars(s, cam, db, "brightness", params, make_config("brightness", {"max_loops": 2000})), t)
+             for s, t, _ in frames]
+    assert full.count("bad") == 0 and short.count("bad") == 0
+    assert full.count("success") >= 0.85 * len(frames)
+    assert full.count("success") > short.count("success")

@@ -198,14 +198,24 @@ def brightness_search(b, inst_mag, est_mag, ref_ok, star_vec, star_mag, ent_x, e
                     idx[2] = k
                     return 1, idx, cat, loops
                 cat[:] = -1
-    # Four-star mode.
+    # Four-star mode.  The look-ups of s_i's pairs are made once per i (each is used by many
+    # loops) and their scope counted at every use, as if made again.
     res = np.full(4, -1, dtype=np.int64)
+    memo = [np.empty((0, 2), dtype=np.int64) for _ in range(n)]
+    have = np.zeros(n, dtype=np.bool_)
+    cost = np.zeros((n, 2), dtype=np.int64)
+    tmp = np.zeros(2, dtype=np.int64)
+    tri = np.empty((64, 3), dtype=np.int64)
+    nt = 0
+    tri_key = -1
     for i in range(0, n - 3):
         lo_i = -inf
         hi_i = inf
         if mag_window > 0 and not math.isnan(est_mag[i]):
             lo_i = est_mag[i] - mag_window
             hi_i = est_mag[i] + mag_window
+        have[:] = False
+        tri_key = -1
         for j in range(n - 1, i + 2, -1):
             for k in range(j - 1, i + 1, -1):
                 for l in range(k - 1, i, -1):
@@ -214,52 +224,87 @@ def brightness_search(b, inst_mag, est_mag, ref_ok, star_vec, star_mag, ent_x, e
                         return 0, idx, cat, loops
                     if loops <= skip:
                         continue
-                    c0 = lookup(_angle(b[i], b[j]), eps, inst_mag[i] - inst_mag[j], gamma, lo_i, hi_i, star_mag,
-                                ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo, band_hi,
-                                full_kvector, full_line, scope)
+                    if not have[j]:
+                        tmp[:] = 0
+                        memo[j] = lookup(_angle(b[i], b[j]), eps, inst_mag[i] - inst_mag[j], gamma, lo_i, hi_i,
+                                         star_mag, ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo,
+                                         band_hi, full_kvector, full_line, tmp)
+                        cost[j, 0] = tmp[0]
+                        cost[j, 1] = tmp[1]
+                        have[j] = True
+                    scope[0] += cost[j, 0]
+                    scope[1] += cost[j, 1]
+                    c0 = memo[j]
                     if c0.shape[0] == 0:
                         continue
-                    c1 = lookup(_angle(b[i], b[k]), eps, inst_mag[i] - inst_mag[k], gamma, lo_i, hi_i, star_mag,
-                                ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo, band_hi,
-                                full_kvector, full_line, scope)
+                    if not have[k]:
+                        tmp[:] = 0
+                        memo[k] = lookup(_angle(b[i], b[k]), eps, inst_mag[i] - inst_mag[k], gamma, lo_i, hi_i,
+                                         star_mag, ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo,
+                                         band_hi, full_kvector, full_line, tmp)
+                        cost[k, 0] = tmp[0]
+                        cost[k, 1] = tmp[1]
+                        have[k] = True
+                    scope[0] += cost[k, 0]
+                    scope[1] += cost[k, 1]
+                    c1 = memo[k]
                     if c1.shape[0] == 0:
                         continue
-                    c2 = lookup(_angle(b[i], b[l]), eps, inst_mag[i] - inst_mag[l], gamma, lo_i, hi_i, star_mag,
-                                ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo, band_hi,
-                                full_kvector, full_line, scope)
+                    if not have[l]:
+                        tmp[:] = 0
+                        memo[l] = lookup(_angle(b[i], b[l]), eps, inst_mag[i] - inst_mag[l], gamma, lo_i, hi_i,
+                                         star_mag, ent_x, ent_y, ent_cos, seg_ptr, kv_ptr, kv_all, seg_line, band_lo,
+                                         band_hi, full_kvector, full_line, tmp)
+                        cost[l, 0] = tmp[0]
+                        cost[l, 1] = tmp[1]
+                        have[l] = True
+                    scope[0] += cost[l, 0]
+                    scope[1] += cost[l, 1]
+                    c2 = memo[l]
                     if c2.shape[0] == 0:
                         continue
-                    th_jk = _angle(b[j], b[k])
+                    # The triangles (I, J, K) of (i, j, k) serve every l of the innermost loop.
+                    if tri_key != j * n + k:
+                        tri_key = j * n + k
+                        nt = 0
+                        th_jk = _angle(b[j], b[k])
+                        p = 0
+                        while p < c0.shape[0]:
+                            I = c0[p, 0]
+                            js = _partners(c0, I)
+                            p += js.shape[0]
+                            ks = _partners(c1, I)
+                            for J in js:
+                                for K in ks:
+                                    if K == J or abs(_angle(star_vec[J], star_vec[K]) - th_jk) > eps:
+                                        continue
+                                    if nt == tri.shape[0]:
+                                        grown = np.empty((2 * nt, 3), dtype=np.int64)
+                                        grown[:nt] = tri
+                                        tri = grown
+                                    tri[nt, 0] = I
+                                    tri[nt, 1] = J
+                                    tri[nt, 2] = K
+                                    nt += 1
                     th_jl = _angle(b[j], b[l])
                     th_kl = _angle(b[k], b[l])
                     found = 0
-                    p = 0
-                    while p < c0.shape[0]:
-                        I = c0[p, 0]
-                        js = _partners(c0, I)
-                        p += js.shape[0]
-                        ks = _partners(c1, I)
-                        if ks.shape[0] == 0:
-                            continue
-                        ls = _partners(c2, I)
-                        if ls.shape[0] == 0:
-                            continue
-                        for J in js:
-                            for K in ks:
-                                if K == J or abs(_angle(star_vec[J], star_vec[K]) - th_jk) > eps:
-                                    continue
-                                for L in ls:
-                                    if L == J or L == K:
-                                        continue
-                                    if abs(_angle(star_vec[J], star_vec[L]) - th_jl) > eps:
-                                        continue
-                                    if abs(_angle(star_vec[K], star_vec[L]) - th_kl) > eps:
-                                        continue
-                                    found += 1
-                                    res[0] = I
-                                    res[1] = J
-                                    res[2] = K
-                                    res[3] = L
+                    for t in range(nt):
+                        I = tri[t, 0]
+                        J = tri[t, 1]
+                        K = tri[t, 2]
+                        for L in _partners(c2, I):
+                            if L == J or L == K:
+                                continue
+                            if abs(_angle(star_vec[J], star_vec[L]) - th_jl) > eps:
+                                continue
+                            if abs(_angle(star_vec[K], star_vec[L]) - th_kl) > eps:
+                                continue
+                            found += 1
+                            res[0] = I
+                            res[1] = J
+                            res[2] = K
+                            res[3] = L
                         if found > 1:
                             break
                     if found == 1:

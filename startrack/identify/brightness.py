@@ -46,7 +46,9 @@ class BrightnessConfig:
     mag_window: float = field(default=0.0, metadata={
         "help": "Four-star mode: limit the brightest star's candidates to its calibrated magnitude +- this "
                 "(0: the paper's brightness order only)."})
-    max_loops: int = field(default=2000, metadata={"help": "Loops of the Fig. 5 search before giving up."})
+    max_loops: int = field(default=10000, metadata={
+        "help": "Loops of the Fig. 5-6 search before giving up (10000 covers every four-star group of 20 stars; "
+                "the driver's budget still applies)."})
 
 
 def parse_calibration(text: str):
