@@ -370,7 +370,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         # The loop below in one numba kernel; a failure is replayed by the loop for its message.
         from startrack._kernels.attitude import gated_quest
 
-        code, dcm, keep, nk, resid, factor2, w, rej, rej_resid, rej_chi2, n_rej = gated_quest(
+        code, dcm, keep, nk, resid, factor2, w, rej, rej_resid, rej_chi2, n_rej, cov, loss = gated_quest(
             b, r, sig, bool(weighted), float(gate), max(2, math.ceil(n / 2)))
         if code == 0 and factor2 <= max_variance_factor**2:
             keep = keep[:nk]
@@ -381,7 +381,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
                          "reason": f"chi-square {c2:.1f} above the gate {gate:g}"}
                         for k, rr, c2 in zip(rej[:n_rej].tolist(), rej_resid[:n_rej].tolist(),
                                              rej_chi2[:n_rej].tolist(), strict=True)]
-            return _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0)
+            return _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, float(loss), t0)
     keep = np.arange(n)
     rejected = []
     factor2 = 1.0
@@ -424,13 +424,12 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
                      f"the residuals are {math.sqrt(factor2):.3g} times the centroid sigmas (limit "
                      f"{max_variance_factor:g}; rms {math.degrees(float(np.sqrt(np.mean(resid**2)))) * 3600:.4g} "
                      "arcsec): a wrong identification, catalog or camera", t0, [labels[k] for k in keep], rejected)
-    return _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0)
+    return _ok(method, dcm, labels, keep, rejected, resid, factor2, covariance(b[keep], sig[keep]) * factor2,
+               wahba_loss(dcm, b[keep], r[keep], w), t0)
 
 
-def _ok(method, dcm, b, r, sig, labels, keep, rejected, resid, w, factor2, t0):
-    used = [labels[k] for k in keep]
-    loss = wahba_loss(dcm, b[keep], r[keep], w)
-    cov = covariance(b[keep], sig[keep]) * factor2
+def _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, loss, t0):
+    used = [labels[k] for k in keep.tolist()]
     out = AttitudeResult("ok", method, dcm, None, used, rejected, list(np.degrees(resid) * 3600), loss, cov,
                          (time.perf_counter() - t0) * 1000)
     out.variance_factor = math.sqrt(factor2)

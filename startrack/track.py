@@ -146,23 +146,16 @@ def _cross(v):
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _log_minus(r):
-    """``phi`` with ``exp(-[phi x]) = r`` (the inverse of :func:`_exp_minus`, angles below pi)."""
-    v = 0.5 * np.array([r[1, 2] - r[2, 1], r[2, 0] - r[0, 2], r[0, 1] - r[1, 0]])
-    s = math.sqrt(float(v @ v))
-    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
-    angle = math.atan2(s, c)
-    return v if s < 1e-12 else v * (angle / s)
-
-
 def _exp_minus(phi):
     """``exp(-[phi x])`` (Rodrigues): the passive rotation by ``|phi|`` about ``phi`` (as
-    :func:`startrack.rotations._propagate_attitude_rad`)."""
-    angle = math.sqrt(float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]))
-    if angle < 1e-12:
-        return _I3 - _cross(phi)
-    k = _cross(np.asarray(phi) / angle)
-    return _I3 - math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    :func:`startrack.rotations.propagate_attitude`); numba kernel :func:`startrack._kernels.track.exp_minus`."""
+    from startrack._kernels.track import exp_minus
+
+    return exp_minus(np.asarray(phi, dtype=np.float64))
+
+
+_H_ATT = np.hstack([np.eye(3), np.zeros((3, 3))])
+_H_RATE = np.hstack([np.zeros((3, 3)), np.eye(3)])
 
 
 class AttitudeRateFilter:
@@ -181,50 +174,38 @@ class AttitudeRateFilter:
     """
 
     def __init__(self, dcm, rate, cov, q):
-        self.dcm = np.asarray(dcm, dtype=np.float64)
-        self.rate = np.asarray(rate, dtype=np.float64).copy()
-        self.P = np.asarray(cov, dtype=np.float64).copy()
+        self.dcm = np.ascontiguousarray(dcm, dtype=np.float64)
+        self.rate = np.array(rate, dtype=np.float64)
+        self.P = np.array(cov, dtype=np.float64)
         self.q = float(q)
 
     def predicted(self, dt, rate=None):
         """``(A^-, P^-)`` after ``dt`` seconds, without changing the state (optionally with another rate)."""
-        w = self.rate if rate is None else rate
-        a = _exp_minus(np.asarray(w, dtype=np.float64) * dt) @ self.dcm
-        p = self.P
-        # F P F^T + Q with F = [[I, dt I], [0, I]], written out by blocks.
-        paa, pab, pbb = p[:3, :3], p[:3, 3:], p[3:, 3:]
-        out = np.empty((6, 6))
-        q = self.q
-        out[:3, :3] = paa + dt * (pab + pab.T) + dt * dt * pbb + (q * dt ** 3 / 3) * _I3
-        out[:3, 3:] = pab + dt * pbb + (q * dt ** 2 / 2) * _I3
-        out[3:, :3] = out[:3, 3:].T
-        out[3:, 3:] = pbb + (q * dt) * _I3
-        return a, out
+        from startrack._kernels.track import filter_predict
+
+        w = self.rate if rate is None else np.asarray(rate, dtype=np.float64)
+        return filter_predict(self.dcm, self.P, w, float(dt), self.q)
 
     def predict(self, dt):
         self.dcm, self.P = self.predicted(dt)
 
     def _update(self, z, h, r):
-        s = h @ self.P @ h.T + r
-        k = np.linalg.solve(s.T, (self.P @ h.T).T).T
-        dx = k @ z
-        self.P = (np.eye(6) - k @ h) @ self.P
-        self.P = 0.5 * (self.P + self.P.T)
-        self.dcm = _exp_minus(dx[:3]) @ self.dcm
-        self.rate = self.rate + dx[3:]
-        return float(z @ np.linalg.solve(s, z))
+        from startrack._kernels.track import filter_update
+
+        self.dcm, self.P, self.rate, nis = filter_update(self.dcm, self.P, self.rate, z, h, r)
+        return float(nis)
 
     def update_attitude(self, dcm_meas, cov):
         """Update with a measured attitude and its covariance (rad^2, camera frame); returns the NIS."""
-        z = _log_minus(np.asarray(dcm_meas) @ self.dcm.T)
-        h = np.hstack([np.eye(3), np.zeros((3, 3))])
-        return self._update(z, h, np.asarray(cov, dtype=np.float64))
+        from startrack._kernels.track import attitude_residual
+
+        z = attitude_residual(np.ascontiguousarray(dcm_meas, dtype=np.float64), self.dcm)
+        return self._update(z, _H_ATT, np.ascontiguousarray(cov, dtype=np.float64))
 
     def update_rate(self, rate_meas, cov):
         """Update with a measured body rate (rad/s) and its covariance."""
         z = np.asarray(rate_meas, dtype=np.float64) - self.rate
-        h = np.hstack([np.zeros((3, 3)), np.eye(3)])
-        return self._update(z, h, np.asarray(cov, dtype=np.float64))
+        return self._update(z, _H_RATE, np.ascontiguousarray(cov, dtype=np.float64))
 
     def update_star(self, body, ref, sigma_rad):
         """Update with one star: measured camera-frame unit vector ``body``, catalog vector ``ref``."""
@@ -443,7 +424,7 @@ class Tracker:
         cfg = self.config
         f = self.camera.focal_length_px
         rate = self.filter.rate
-        speed = float(np.linalg.norm(rate)) * f
+        speed = math.sqrt(float(rate @ rate)) * f
         smear = speed * exposure_s
         sig_pos = self._sigma_px(p_pred[:3, :3])
         half = int(min(cfg.max_window_px, math.ceil(cfg.window_px + 3.0 * sig_pos + smear / 2.0)))
@@ -498,10 +479,9 @@ class Tracker:
                 track["centroid"] = "segment"
         # Outliers: offsets far from the common offset (a false star or a neighbour in the window).
         if len(ok) >= 3:
-            off = np.column_stack([mx[ok] - px[ok], my[ok] - py[ok]])
-            med = np.median(off, axis=0)
-            dist = np.hypot(*(off - med).T)
-            ok = ok[dist <= max(cfg.outlier_px, 3 * cfg.sigma_px)]
+            from startrack._kernels.track import offset_inliers
+
+            ok = offset_inliers(mx, my, px, py, ok.astype(np.int64), float(max(cfg.outlier_px, 3 * cfg.sigma_px)))
         track.update(window_px=half, predicted=len(rows), found=int(found.sum()), used=len(ok))
         stars = []
         if details:
@@ -529,7 +509,7 @@ class Tracker:
             att = estimate_attitude(body, ref, sig[ok] / f, "quest", labels)
             if att.status != "ok":
                 return None, stars, att.reason or "attitude failed"
-            rms = float(np.sqrt(np.mean(np.square(att.residuals_arcsec))))
+            rms = math.sqrt(math.fsum(x * x for x in att.residuals_arcsec) / len(att.residuals_arcsec))
             scale = self.camera.pixel_scale_arcsec
             limit = cfg.max_rms_arcsec if cfg.max_rms_arcsec is not None else \
                 max(10.0, 5.0 * float(np.max(sig[ok])) * scale + 0.1 * smear * scale)

@@ -289,6 +289,23 @@ def leave_one_out(b, r, w):
 
 
 @njit(cache=True)
+def _inv3(s):
+    """Inverse of a 3 x 3 matrix (adjugate over determinant)."""
+    inv = np.empty((3, 3))
+    inv[0, 0] = s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1]
+    inv[0, 1] = s[0, 2] * s[2, 1] - s[0, 1] * s[2, 2]
+    inv[0, 2] = s[0, 1] * s[1, 2] - s[0, 2] * s[1, 1]
+    inv[1, 0] = s[1, 2] * s[2, 0] - s[1, 0] * s[2, 2]
+    inv[1, 1] = s[0, 0] * s[2, 2] - s[0, 2] * s[2, 0]
+    inv[1, 2] = s[0, 2] * s[1, 0] - s[0, 0] * s[1, 2]
+    inv[2, 0] = s[1, 0] * s[2, 1] - s[1, 1] * s[2, 0]
+    inv[2, 1] = s[0, 1] * s[2, 0] - s[0, 0] * s[2, 1]
+    inv[2, 2] = s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0]
+    det = s[0, 0] * inv[0, 0] + s[0, 1] * inv[1, 0] + s[0, 2] * inv[2, 0]
+    return inv / det
+
+
+@njit(cache=True)
 def gated_quest(b, r, sig, weighted, gate, min_keep):
     """The loop of :func:`startrack.attitude.estimate_attitude` for QUEST: solve, chi-square gate, drop the
     worst star, repeat.
@@ -300,10 +317,13 @@ def gated_quest(b, r, sig, weighted, gate, min_keep):
     2.5 (else 1); done when the largest ``chi^2`` is within ``gate``; else the worst is dropped while at
     least ``min_keep`` remain.
 
-    Returns ``(code, dcm, keep, n_keep, resid, factor2, weights, rejected, rej_resid, rej_chi2, n_rej)``:
+    Returns ``(code, dcm, keep, n_keep, resid, factor2, weights, rejected, rej_resid, rej_chi2, n_rej, cov,
+    loss)``:
     ``code`` 0 ok, 1 degenerate geometry, 2 a star beyond the gate that cannot be dropped; ``keep[:n_keep]``
     the kept indices, ``resid[:n_keep]`` their residuals (rad), ``weights[:n_keep]`` the normalised weights;
-    ``rejected[:n_rej]`` the dropped indices in order with their residual (rad) and chi-square.
+    ``rejected[:n_rej]`` the dropped indices in order with their residual (rad) and chi-square; ``cov``
+    the QUEST covariance ``[sum (I - b b^T) / sigma^2]^-1 k^2`` (rad^2) and ``loss`` Wahba's loss of the
+    kept stars (when ``code`` is 0).
     """
     n = b.shape[0]
     keep = np.arange(n)
@@ -336,7 +356,7 @@ def gated_quest(b, r, sig, weighted, gate, min_keep):
                 min_r = min(min_r, dr)
         scale = 20.0 * np.median(ks[:nk])
         if math.acos(min(1.0, max(-1.0, min_b))) < scale or math.acos(min(1.0, max(-1.0, min_r))) < scale:
-            return 1, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+            return 1, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej, np.full((3, 3), np.nan), 0.0
         total = 0.0
         for j in range(nk):
             w[j] = 1.0 / (ks[j] * ks[j]) if weighted else 1.0
@@ -360,9 +380,22 @@ def gated_quest(b, r, sig, weighted, gate, min_keep):
             if chi2[j] > chi2[worst]:
                 worst = j
         if chi2[worst] <= gate:
-            return 0, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+            # Covariance P = [sum (I - b b^T) / sigma^2]^-1 k^2 and Wahba's loss 1/2 sum w |b - A r|^2.
+            info = np.zeros((3, 3))
+            loss = 0.0
+            for j in range(nk):
+                iw = 1.0 / (ks[j] * ks[j])
+                for p in range(3):
+                    info[p, p] += iw
+                    for q in range(3):
+                        info[p, q] -= iw * kb[j, p] * kb[j, q]
+                for p in range(3):
+                    d = kb[j, p] - (dcm[p, 0] * kr[j, 0] + dcm[p, 1] * kr[j, 1] + dcm[p, 2] * kr[j, 2])
+                    loss += 0.5 * w[j] * d * d
+            cov = _inv3(info) * factor2
+            return 0, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej, cov, loss
         if nk - 1 < min_keep:
-            return 2, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej
+            return 2, dcm, keep, nk, resid, factor2, w, rejected, rej_resid, rej_chi2, n_rej, np.full((3, 3), np.nan), 0.0
         rejected[n_rej] = keep[worst]
         rej_resid[n_rej] = resid[worst]
         rej_chi2[n_rej] = chi2[worst]
