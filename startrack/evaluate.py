@@ -38,9 +38,11 @@ class Condition:
     min_stars: int = 0
     max_stars: int | None = None
     min_catalog_stars: int = 0
+    #: the same noise as the user gave it, in arcseconds (``--sigma-arcsec``); labels then speak arcseconds
+    sigma_arcsec: float | None = None
 
     def label(self) -> str:
-        parts = [f"sigma {self.sigma_px:g}px"]
+        parts = [f"sigma {self.sigma_arcsec:g} arcsec" if self.sigma_arcsec is not None else f"sigma {self.sigma_px:g}px"]
         if self.false_stars:
             parts.append(f"{self.false_stars} false")
         if self.mag_noise:

@@ -186,8 +186,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
             raise BadInputError(path, "format", f"{tag!r} is not an identification database")
         loaded[kind] = db
     noise = _floats(sigma_px, "--sigma-px")
+    in_arcsec = {}
     if sigma_arcsec is not None:
         noise = [v / cam.pixel_scale_arcsec for v in _floats(sigma_arcsec, "--sigma-arcsec")]
+        in_arcsec = dict(zip(noise, _floats(sigma_arcsec, "--sigma-arcsec"), strict=True))
     if any(not v >= 0 for v in noise):
         raise BadInputError("--sigma-px", None, "must be >= 0")
     from startrack.render import MAX_FALSE_STARS
@@ -200,6 +202,10 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                             focal_error_pct=_floats(focal_error_pct, "--focal-error-pct"),
                             drop_fraction=_floats(drop_fraction, "--drop-fraction"), min_stars=[min_stars],
                             max_stars=[max_stars], min_catalog_stars=[min_catalog_stars])
+    if in_arcsec:
+        import dataclasses
+
+        conds = [dataclasses.replace(c, sigma_arcsec=in_arcsec[c.sigma_px]) for c in conds]
     algos = list(algorithms)
     configs = algorithm_configs(settings, algos)
     lim = mag_max
@@ -252,7 +258,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
             w.writeheader()
             w.writerows(rows)
     if plot:
-        plot_results(rows, plot)
+        # the conditions every point shares, in the title (the swept one is the x axis)
+        plot_results(rows, plot, title=f"{cam.fov_deg[0]:.1f} x {cam.fov_deg[1]:.1f} deg field, {cam.width}x{cam.height} px, "
+                                       f"stars to Hp {lim:g}")
         info(quiet, f"evaluate: chart -> {plot}")
 
 

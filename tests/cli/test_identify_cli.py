@@ -114,3 +114,18 @@ def test_evaluate_table_csv_json_plot(db20, tmp_path):
     assert len(rows) == 4 and all(r["success"] + r["failure"] + r["bad"] == 60 for r in rows)
     assert_chart_draws(tmp_path / "e.png", CHART_COLOURS[:2])         # pyramid and voting
     assert open(tmp_path / "e.csv").readline().startswith("# startrack")
+
+
+def test_evaluate_speaks_the_users_unit_of_noise(db20, tmp_path):
+    """--sigma-arcsec 1.667: the conditions say 1.667 arcsec (not 0.0235 px); the rows keep both."""
+    proc = run_cli("evaluate", "-d", db20, "-a", "pyramid", "--fov-deg", "20", "--size", "1024x1024",
+                   "--mag-max", "5", "--sigma-arcsec", "1.667", "--count", "10", "--seed", "3",
+                   "--json", "-o", tmp_path / "e.json", check=True)
+    assert "sigma 1.667 arcsec" in proc.stdout and "px" not in proc.stdout.split("sigma", 1)[1].split("\n")[0]
+    (row,) = json.load(open(tmp_path / "e.json"))["rows"]
+    assert row["condition"] == "sigma 1.667 arcsec" and row["sigma_arcsec"] == 1.667
+    assert abs(row["sigma_px"] - 1.667 / (20 * 3600 / 1024)) < 1e-3        # about 0.0237 px at 70 arcsec/px
+    px = json.loads(run_cli("evaluate", "-d", db20, "-a", "pyramid", "--fov-deg", "20", "--size", "1024x1024",
+                            "--mag-max", "5", "--sigma-px", "0.2", "--count", "10", "--seed", "3", "--json",
+                            check=True).stdout)["rows"][0]
+    assert px["condition"] == "sigma 0.2px" and px["sigma_arcsec"] is None
