@@ -109,8 +109,10 @@ class _Picture:
             for x0, y0 in ((cx + d, cy - d + th // 2), (cx + d, cy + d + th // 2), (cx - d - tw, cy - d + th // 2),
                            (cx - d - tw, cy + d + th // 2), (cx - tw // 2, cy - d), (cx - tw // 2, cy + d + th),
                            (cx + d, cy + th // 2), (cx - d - tw, cy + th // 2)):
-                x0 = int(min(max(x0, 0), max(0, self.w - tw)))
-                y0 = int(min(max(y0, th), self.h - 1))
+                # whole glyphs and their dark outline inside the image (drawn 3 px above y0)
+                m = self.thick + 2
+                x0 = int(min(max(x0, m), max(m, self.w - tw - m)))
+                y0 = int(min(max(y0, th + 4 + m), self.h - 1))
                 box = (x0, y0 - th, x0 + tw, y0)
                 cost = sum(_overlap(box, o) for o in self.occupied if o != own) + _overlap(box, own)
                 cost += ring * 0.5
@@ -184,7 +186,8 @@ class _Picture:
 
         self.draw_labels()
         with atomic_path(path, suffix=".png") as tmp:
-            if not self.cv2.imwrite(tmp, self.canvas):
+            # zlib's best level: a third smaller than the default for a noisy sky, and still lossless
+            if not self.cv2.imwrite(tmp, self.canvas, [self.cv2.IMWRITE_PNG_COMPRESSION, 9]):
                 raise BadInputError(path, None, "could not write the PNG")
 
 
@@ -270,7 +273,7 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     """
     import math
 
-    from matplotlib.ticker import MaxNLocator
+    from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullLocator
 
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
@@ -301,15 +304,19 @@ def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
     ax1.set_ylabel("cross-boresight error (arcsec)")
     ax2.set_ylabel("|roll error| (arcsec)")
     ax2.set_xlabel("frame")
-    ax1.set_yscale("symlog", linthresh=1)
-    ax2.set_yscale("symlog", linthresh=10)
-    for ax in (ax1, ax2):
+    # Linear near zero, logarithmic above; plain numbers on the ticks (0, 1, 3, 10, 30, ...), not 10^k.
+    for ax, linthresh, ticks in ((ax1, 1, (0, 0.5, 1, 3, 10, 30, 100, 300, 1000, 3000, 10000, 30000, 100000)),
+                                 (ax2, 10, (0, 5, 10, 30, 100, 300, 1000, 3000, 10000, 30000, 100000, 300000))):
+        ax.set_yscale("symlog", linthresh=linthresh)
+        ax.yaxis.set_major_locator(FixedLocator(ticks))
+        ax.yaxis.set_minor_locator(NullLocator())
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.tick_params(labelleft=True)
         ax.set_ylim(bottom=0)
-    ax1.grid(alpha=0.3)
-    ax2.grid(alpha=0.3)
-    ax1.legend(fontsize=8, loc="upper right")
+        ax.grid(alpha=0.3)
+    # the legend above the panels, where it hides no point
+    ax1.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=5, frameon=False, borderaxespad=0.2)
     fig.suptitle(title or "tracking errors per frame")
     fig.tight_layout()
     _save(fig, path)
@@ -364,9 +371,15 @@ def plot_residuals(doc: dict, path: str, scale: float = 200.0) -> None:
         vs.append(s["y"] - py)
     fig = _figure(figsize=(8, 8 * cam.height / cam.width + 0.5), dpi=110)
     ax = fig.subplots()
-    ax.quiver(xs, ys, np.array(us) * scale, np.array(vs) * scale, angles="xy", scale_units="xy", scale=1,
-              color="tab:blue", width=0.003)
-    ax.scatter(xs, ys, s=6, c="k")
+    arrows = ax.quiver(xs, ys, np.array(us) * scale, np.array(vs) * scale, angles="xy", scale_units="xy", scale=1,
+                       color="tab:blue", width=0.003)
+    ax.scatter(xs, ys, s=6, c="k", label="catalog star, projected with the attitude")
+    # the key: an arrow of a round number of arcseconds at this magnification
+    key_arcsec = next((v for v in (1, 2, 5, 10, 20, 50, 100) if v / cam.pixel_scale_arcsec * scale >= 0.06 * cam.width),
+                      100)
+    ax.quiverkey(arrows, 0.55, -0.10, key_arcsec / cam.pixel_scale_arcsec * scale,
+                 f'{key_arcsec:g}" to the measured centroid', labelpos="E", coordinates="axes", fontproperties={"size": 8})
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.06), fontsize=8, frameon=False)
     ax.set_xlim(-0.5, cam.width - 0.5)
     ax.set_ylim(cam.height - 0.5, -0.5)
     ax.set_aspect("equal")
@@ -472,11 +485,13 @@ def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -
     x_field : str, optional
         The swept condition (default: the first that varies).
     """
-    fields = ["false_stars", "focal_error_pct", "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
+    fields = ["false_stars", "focal_error_pct", "sigma_arcsec" if rows and rows[0].get("sigma_arcsec") is not None
+              else "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
     if x_field is None:
         x_field = next((f for f in fields if len({r[f] for r in rows}) > 1), "false_stars")
     names = {"false_stars": "false stars per frame", "focal_error_pct": "focal-length error (%)",
-             "sigma_px": "centroid noise (px, 1 sigma)", "mag_noise": "magnitude noise (mag)",
+             "sigma_px": "centroid noise (px, 1 sigma)", "sigma_arcsec": "centroid noise (arcsec, 1 sigma)",
+             "mag_noise": "magnitude noise (mag)",
              "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
     from matplotlib.ticker import MaxNLocator, NullFormatter, ScalarFormatter
 

@@ -36,3 +36,23 @@ def test_shell_pipeline(tmp_path):
     assert doc["attitude"]["status"] == "ok" and doc["identification"]["status"] == "ok"
     assert_identified_star_marked(tmp_path / "sky-solved.png", doc)
     assert (tmp_path / "sky.wcs.fits").exists()
+
+
+def test_pictures_script_draws_one_picture_of_each_kind(tmp_path):
+    """examples/pictures.sh, the documented way the committed pictures are made, runs; each picture is a PNG under
+    300 KB, and so is each committed one."""
+    import cv2
+
+    proc = subprocess.run(["bash", os.path.join(ROOT, "examples", "pictures.sh"), str(tmp_path)], capture_output=True,
+                          text=True, env=_env(), timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    kinds = ["sky-solved.png", "picture-centroid.png", "picture-identify.png", "picture-residuals.png",
+             "picture-track.png", "picture-evaluate.png"]
+    for name in kinds:
+        for path in (tmp_path / name, os.path.join(ROOT, "examples", name)):
+            assert os.path.getsize(path) < 300_000, (path, os.path.getsize(path))
+            img = cv2.imread(str(path))
+            assert img is not None and img.shape[0] > 300 and img.shape[1] > 600, path
+    doc = json.loads(subprocess.run([_env()["ST"], "solve", os.path.join(ROOT, "examples", "data", "sky.tiff"), "-q"],
+                                    capture_output=True, text=True, env=_env(), timeout=600, check=True).stdout)
+    assert_identified_star_marked(tmp_path / "sky-solved.png", doc)

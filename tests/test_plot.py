@@ -86,6 +86,18 @@ def test_labels_stay_inside_the_frame_and_do_not_overlap():
     assert len(overlaps) <= 1, overlaps
 
 
+def test_drawn_labels_are_whole_at_the_edges():
+    """The glyphs themselves (drawn above their box's baseline, with an outline) stay inside the image."""
+    pic = _Picture(np.zeros((300, 400), dtype=np.float32))
+    for p in [(0, 0), (399, 0), (0, 299), (399, 299), (200, 0)]:
+        pic.label("HIP 95067 Albireo", p, 6)
+    pic.draw_labels()
+    lit = np.argwhere(pic.canvas[:pic.h, :pic.w].max(axis=2) > 60)
+    assert len(lit) > 200
+    assert lit[:, 0].min() >= 1 and lit[:, 1].min() >= 1, lit.min(axis=0)
+    assert lit[:, 0].max() <= pic.h - 2 and lit[:, 1].max() <= pic.w - 2, lit.max(axis=0)
+
+
 def test_centroid_picture_numbers_the_detections_and_marks_rejections(tmp_path):
     import cv2
 
