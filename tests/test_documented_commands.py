@@ -96,7 +96,13 @@ def _workdir(tmp_path):
     bindir = tmp_path / "bin"
     bindir.mkdir()
     wrapper = bindir / "startrack"
-    wrapper.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m startrack "$@"\n')
+    times = os.environ.get("STARTRACK_DOC_TIMES")
+    if times and shutil.which("time") == "/usr/bin/time":
+        # Each command's wall and CPU seconds appended to that file (GNU time), to see where the time goes.
+        wrapper.write_text(f'#!/bin/sh\nexec /usr/bin/time -a -o "{times}" -f "%e s wall %U+%S s cpu: %C" '
+                           f'"{sys.executable}" -m startrack "$@"\n')
+    else:
+        wrapper.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m startrack "$@"\n')
     wrapper.chmod(0o755)
     work = tmp_path / "work"
     (work / "photos").mkdir(parents=True)
