@@ -190,7 +190,7 @@ def test_window_kernel_matches_its_parts(catalog, k1, rate):
 
     cam = Camera.from_fov(12, 1024, 768, k1=k1)
     cat = catalog.filter_magnitude(None, 6.5)
-    a0 = radec_roll_to_dcm(*np.radians((100.0, 20.0, 10.0)))
+    a0 = radec_roll_to_dcm(100.0, 20.0, 10.0)
     doc, img, _ = next(iter(RenderRun(cat, cam, Sensor(exposure_ms=100.0), Scene(rate_deg_s=rate), 3, a0, 1, 1,
                                       0.1).frames_iter()))
     img = img.astype(np.float32)
