@@ -4,6 +4,7 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
+from startrack._kernels.attitude import leave_one_out, quat_to_dcm, refine
 from startrack._kernels.database import kvector_range, label_search, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 
@@ -1058,3 +1059,231 @@ def labelling_scan(b, combos, start, labels, members, star_vec, trend, trend_sca
             order = np.argsort(out_e[:n])
             return t, out_m[order], out_e[order], out_s[order], n
     return -1, out_m[:0], out_e[:0], out_s[:0], 0
+
+
+@njit(cache=True)
+def pixels_to_unit(xs, ys, focal, cx, cy):
+    """Unit vectors of pixel positions through a distortion-free pinhole (paper 000 Eq. 13)."""
+    n = xs.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        u = (xs[i] - cx) / focal
+        v = (ys[i] - cy) / focal
+        s = 1.0 / math.sqrt(u * u + v * v + 1.0)
+        out[i, 0] = u * s
+        out[i, 1] = v * s
+        out[i, 2] = s
+    return out
+
+
+@njit(cache=True)
+def focal_scale(b, img, star_vec, cat):
+    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the pairs of ``img``/``cat`` (NaN if < 3 or degenerate)."""
+    n = img.shape[0]
+    if n < 3:
+        return np.nan
+    num = 0.0
+    den = 0.0
+    for u in range(n):
+        for v in range(u + 1, n):
+            m = _angle(b[img[u]], b[img[v]])
+            r = _angle(star_vec[cat[u]], star_vec[cat[v]])
+            num += r * m
+            den += m * m
+    if den <= 0.0:
+        return np.nan
+    return num / den
+
+
+@njit(cache=True)
+def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err):
+    """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
+
+    See :func:`startrack.identify.base._field_scale`: each detection takes the one
+    catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
+    distance from the core's centre (none when two are; each star once, the first
+    detection keeps it); the scale is the median of catalog over measured angle over
+    the pairs at least 0.3 of the longest.
+    """
+    n = xs.shape[0]
+    m = star_vec.shape[0]
+    px = np.empty(m)
+    py = np.empty(m)
+    idx = np.empty(m, dtype=np.int64)
+    k = 0
+    for s in range(m):
+        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
+        if z <= cos_front:
+            continue
+        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
+        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
+        a, c = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+        if not (np.isfinite(a) and np.isfinite(c)):
+            continue
+        px[k] = a
+        py[k] = c
+        idx[k] = s
+        k += 1
+    if k < 4:
+        return np.nan
+    mx = 0.0
+    my = 0.0
+    for t in range(core.shape[0]):
+        mx += xs[core[t]]
+        my += ys[core[t]]
+    mx /= core.shape[0]
+    my /= core.shape[0]
+    img = np.empty(n, dtype=np.int64)
+    cat = np.empty(n, dtype=np.int64)
+    nm = 0
+    for i in range(n):
+        allowed = radius_px[i] + max_err * math.hypot(xs[i] - mx, ys[i] - my)
+        d1 = np.inf
+        d2 = np.inf
+        a1 = -1
+        for t in range(k):
+            d = math.hypot(xs[i] - px[t], ys[i] - py[t])
+            if d < d1:
+                d2 = d1
+                d1 = d
+                a1 = t
+            elif d < d2:
+                d2 = d
+        if d1 > allowed or d2 <= allowed:
+            continue
+        s = idx[a1]
+        dup = False
+        for u in range(nm):
+            if cat[u] == s:
+                dup = True
+                break
+        if dup:
+            continue
+        img[nm] = i
+        cat[nm] = s
+        nm += 1
+    if nm < 4:
+        return np.nan
+    npair = nm * (nm - 1) // 2
+    mea = np.empty(npair)
+    ratio = np.empty(npair)
+    t = 0
+    longest = 0.0
+    for u in range(nm):
+        for v in range(u + 1, nm):
+            mea[t] = _angle(b[img[u]], b[img[v]])
+            ratio[t] = _angle(star_vec[cat[u]], star_vec[cat[v]]) / mea[t] if mea[t] > 0 else np.nan
+            longest = max(longest, mea[t])
+            t += 1
+    keep = np.empty(npair)
+    nk = 0
+    for t in range(npair):
+        if mea[t] >= 0.3 * longest and np.isfinite(ratio[t]):
+            keep[nk] = ratio[t]
+            nk += 1
+    if nk < 3:
+        return np.nan
+    return np.median(keep[:nk])
+
+
+@njit(cache=True)
+def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy, width,
+                height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate):
+    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
+
+    Attitude from the proposal and two rounds of match-all (``refine``), the
+    bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
+    matches (:func:`resolve_conflicts`), the leave-one-out test, the proposal's
+    agreement, the bright stars missing, the matched count, and the numbers of the
+    false-match probability (the caller multiplies them out).
+
+    Returns ``(code, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
+    ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
+    leave-one-out, 2 = the proposal's stars do not agree with the refined attitude, 3 =
+    most bright predicted stars missing, 4 = too few matches.
+    """
+    n = b.shape[0]
+    rmax = 0.0
+    for i in range(n):
+        rmax = max(rmax, radius[i])
+    match, q, _ = refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, rmax, 2)
+    dcm = quat_to_dcm(q)
+    is_core = np.zeros(n, dtype=np.bool_)
+    nc = min(4, img.shape[0])
+    for t in range(nc):
+        is_core[img[t]] = True
+    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(
+        b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height, k1, k2)
+    if not use_mags:
+        p_mag = 1.0
+    inst = np.empty(n)
+    for i in range(n):
+        inst[i] = -2.5 * math.log10(flux[i]) if (np.isfinite(flux[i]) and flux[i] > 0) else np.nan
+    match, _, _ = resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sig_rad, inst, is_core, cos_fov,
+                                    max_chi2, mag_floor, mag_gate)
+    nm = 0
+    for i in range(n):
+        if match[i] >= 0:
+            nm += 1
+    if nm >= 4:
+        mi = np.empty(nm, dtype=np.int64)
+        t = 0
+        for i in range(n):
+            if match[i] >= 0:
+                mi[t] = i
+                t += 1
+        bb = np.empty((nm, 3))
+        rr = np.empty((nm, 3))
+        w = np.empty(nm)
+        ws = 0.0
+        for t in range(nm):
+            bb[t] = b[mi[t]]
+            rr[t] = star_vec[match[mi[t]]]
+            w[t] = 1.0 / sig_rad[mi[t]] ** 2
+            ws += w[t]
+        for t in range(nm):
+            w[t] /= ws
+        loo = leave_one_out(bb, rr, w)
+        widen = math.sqrt(1.0 + 4.0 / (nm - 1))
+        for t in range(nm):
+            if loo[t] > radius[mi[t]] * widen:
+                if is_core[mi[t]]:
+                    return (1, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+                match[mi[t]] = -1
+                nm -= 1
+    agree = 0
+    for t in range(img.shape[0]):
+        s = cat[t]
+        d = 0.0
+        for u in range(3):
+            d += b[img[t], u] * (dcm[u, 0] * star_vec[s, 0] + dcm[u, 1] * star_vec[s, 1] + dcm[u, 2] * star_vec[s, 2])
+        if d >= math.cos(radius[img[t]]):
+            agree += 1
+    if agree < min(img.shape[0], min_matches):
+        return (2, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+    if bright_pred >= 3 and missing > bright_pred // 2:
+        return (3, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+    if nm < min_matches and not (n == 3 and nm == 3):
+        return (4, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+    # The core's pattern chance with the window of its actual residual.
+    bc = np.empty((nc, 3))
+    rc = np.empty((nc, 3))
+    smax = 0.0
+    for t in range(nc):
+        bc[t] = b[img[t]]
+        rc[t] = star_vec[cat[t]]
+        smax = max(smax, sig_rad[img[t]])
+    window = core_window(bc, rc, math.sqrt(2.0) * smax, eps)
+    e_core = pattern_chance(star_vec.shape[0], window, bc)
+    if scale_offset > 0.0:
+        gmin = 1.0
+        for u in range(nc):
+            for v in range(nc):
+                gmin = min(gmin, _dot(bc[u], bc[v]))
+        e_core *= 1.0 + scale_offset * math.acos(max(-1.0, min(1.0, gmin))) / window
+    rs = 0.0
+    for i in range(n):
+        rs += radius[i] * focal
+    mean_r = rs / n
+    p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
+    return (0, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)

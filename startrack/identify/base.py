@@ -329,11 +329,37 @@ def false_match_probability(e_core: float, trials: int, n_others_matched: int, n
     return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_mags
 
 
+_GEOMETRY: dict = {}
+
+
 def _geometry(camera):
-    """``cos`` of the largest off-axis angle (plus 0.5 deg) and the projection numbers of ``camera``."""
-    return (math.cos(math.radians(camera.max_off_axis_deg + 0.5)),
-            (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
-             float(camera.height), float(camera.k1), float(camera.k2)))
+    """``cos`` of the largest off-axis angle (plus 0.5 deg) and the projection numbers of ``camera``
+    (cached per camera model: the off-axis angle costs a projection of the corners)."""
+    key = (float(camera.focal_length_px), float(camera.cx), float(camera.cy), int(camera.width), int(camera.height),
+           float(camera.k1), float(camera.k2))
+    got = _GEOMETRY.get(key)
+    if got is None:
+        if len(_GEOMETRY) > 256:
+            _GEOMETRY.clear()
+        if camera.k1 or camera.k2:
+            off_axis = camera.max_off_axis_deg
+        else:       # a pinhole: the farthest corner's angle, without projecting the corners
+            dx = max(abs(-0.5 - camera.cx), abs(camera.width - 0.5 - camera.cx))
+            dy = max(abs(-0.5 - camera.cy), abs(camera.height - 0.5 - camera.cy))
+            off_axis = math.degrees(math.atan(math.hypot(dx, dy) / camera.focal_length_px))
+        got = _GEOMETRY[key] = (math.cos(math.radians(off_axis + 0.5)),
+                                (float(camera.focal_length_px), float(camera.cx), float(camera.cy),
+                                 float(camera.width), float(camera.height), float(camera.k1), float(camera.k2)))
+    return got
+
+
+def _pixels_to_vectors(camera, xs, ys):
+    """``camera.pixels_to_vectors`` (one kernel call without distortion)."""
+    if camera.k1 or camera.k2:
+        return camera.pixels_to_vectors(xs, ys)
+    from startrack._kernels.identify import pixels_to_unit
+
+    return pixels_to_unit(xs, ys, float(camera.focal_length_px), float(camera.cx), float(camera.cy))
 
 
 def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.ndarray, camera, db, eps: float,
@@ -346,8 +372,8 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     nominal, which multiplies the chance of a coincidence by ``1 + |s - 1| theta_max / window``
     (``theta_max`` the core's largest angle; see :func:`_verify_with_focal`).
     """
-    from startrack._kernels.attitude import leave_one_out, quat_to_dcm, refine
-    from startrack._kernels.identify import check_matches, core_window, resolve_conflicts
+    from startrack._kernels.attitude import quat_to_dcm
+    from startrack._kernels.identify import verify_core
 
     star_vec = db.star_vector
     img = np.asarray(proposal.image, dtype=np.int64)
@@ -362,75 +388,36 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
         radius_px = np.maximum(1.0, params.match_sigma * sig_px + margin_px)
     radius = radius_px / f
     cos_fov, geometry = geom if geom is not None else _geometry(camera)
-    match, q, _ = refine(b_all, star_vec, img, cat, cos_fov, *geometry, float(radius.max()), 2)
-    dcm = quat_to_dcm(q)
     n_all = len(b_all)
-    core = img[:4]
-    is_core = np.zeros(n_all, dtype=np.bool_)
-    is_core[core] = True
     # Fluxes serve the consistency checks (bright stars missing, close pairs, magnitudes of the
     # matches) for every algorithm; only the confidence leaves out the core's magnitude
     # agreement when the search itself chose by brightness (``use_magnitudes`` False).
+    # One kernel: attitude and match-all, unambiguous and magnitude-consistent matches,
+    # leave-one-out, the proposal's agreement, bright stars missing, the count of matches
+    # (reasons below), and the numbers of the false-match probability.
     fl = flux if flux is not None else np.full(n_all, np.nan)
-    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(
-        b_all, star_vec, db.star_mag, dcm, match, radius, is_core, fl, cos_fov, *geometry)
-    if not use_magnitudes:
-        p_mag = 1.0
-    # Every match unambiguous within its tolerance: a close pair of catalog stars with two
-    # detections is named by position and magnitude only when the alternative is clearly
-    # worse, else refused; a non-core match of the wrong magnitude is dropped.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inst = np.where(np.isfinite(fl) & (fl > 0), -2.5 * np.log10(fl), np.nan)
-    match, _, _ = resolve_conflicts(b_all, star_vec, db.star_mag, dcm, match, radius, sig_px / f, inst, is_core,
-                                    cos_fov, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
-    matched = np.flatnonzero(match >= 0)
-    # Each match must agree with the attitude the *other* matches give (leave one out):
-    # a fit can bend to take one wrong star within its radius (a false star in the core,
-    # a swapped neighbour), the rest then points elsewhere.  The window widens with the
-    # attitude's own error from few stars.
-    if len(matched) >= 4:
-        w = 1.0 / sig_px[matched] ** 2
-        loo = leave_one_out(b_all[matched], star_vec[match[matched]], w / w.sum())
-        off = loo > radius[matched] * math.sqrt(1.0 + 4.0 / (len(matched) - 1))
-        if off.any():
-            if is_core[matched[off]].any():
-                return _Verdict(None, None, None, dcm, None,
-                                "a star of the proposal disagrees with the attitude of the others",
-                                ReasonCode.VERIFICATION_FAILED)
-            match[matched[off]] = -1
-            matched = matched[~off]
-    n_matched = len(matched)
-    # The proposal's stars must sit on their catalog stars with the refined attitude.
-    agree = int(np.count_nonzero(np.einsum("ij,ij->i", b_all[img], star_vec[cat] @ dcm.T) >= np.cos(radius[img])))
-    if agree < min(len(img), params.min_matches):
+    code, match, q, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
+        b_all, star_vec, db.star_mag, img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
+        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
+    dcm = quat_to_dcm(q)
+    if code == 1:
+        return _Verdict(None, None, None, dcm, None, "a star of the proposal disagrees with the attitude of the others",
+                        ReasonCode.VERIFICATION_FAILED)
+    if code == 2:
         return _Verdict(None, None, None, dcm, None, "the proposal's stars do not agree with the refined attitude",
                         ReasonCode.VERIFICATION_FAILED)
-    # Consistency: the attitude must explain the bright part of the field.  Catalog stars it
-    # predicts clearly brighter than the faintest detection should be there; when most of
-    # them are not, the attitude is wrong however well its few stars fit.
-    if bright_pred >= 3 and missing > bright_pred // 2:
+    if code == 3:
         return _Verdict(None, None, None, dcm, None,
                         f"{missing} of {bright_pred} bright catalog stars predicted in the image are not detected",
                         ReasonCode.VERIFICATION_FAILED)
-    if n_matched < params.min_matches and not (n_all == 3 and n_matched == 3):
+    matched = np.flatnonzero(match >= 0)
+    n_matched = len(matched)
+    if code == 4:
         return _Verdict(None, None, None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})",
                         ReasonCode.TOO_FEW_STARS)
-    # The other detections test the core pattern (tetra3's binomial test): the chance of
-    # landing on a predicted star is the local density of predicted stars around each
-    # one (ten match radii) -- clusters make coincidences likelier -- with the image
-    # average as the floor.
-    n_others = n_all - int(np.count_nonzero(is_core))
-    mean_r = float(radius_px.mean())
-    p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (camera.width * camera.height)), p_local)
+    core = img[:4]
+    n_others = n_all - len(set(core.tolist()))
     core_agree = int(np.count_nonzero(match[core] >= 0))
-    # The chance that a catalog pattern matches the core as well as this one does: the
-    # angle window is the core's largest actual angle residual (at least one sigma of
-    # an angle), not the search tolerance -- a p-value of the fit, at most E(eps).
-    window = core_window(b_all[core], star_vec[cat[:4]], math.sqrt(2.0) * float(sig_px[core].max()) / f, eps)
-    e_core = pattern_chance(len(star_vec), window, b_all[core])
-    if scale_offset > 0.0:
-        g = b_all[core] @ b_all[core].T
-        e_core *= 1.0 + scale_offset * math.acos(max(-1.0, min(1.0, float(g.min())))) / window
     # Bright catalog stars predicted in the image but not detected (magnitudes).
     p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
     p_missing *= p_mag
@@ -451,13 +438,10 @@ def _focal_scale(b_all, img, cat, star_vec):
     """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the given pairs (None if < 3 stars)."""
     if len(img) < 3:
         return None
-    b = b_all[np.asarray(img)]
-    r = star_vec[np.asarray(cat)]
-    iu = np.triu_indices(len(b), 1)
-    mea = np.arccos(np.minimum((b @ b.T)[iu], 1.0))
-    ref = np.arccos(np.minimum((r @ r.T)[iu], 1.0))
-    denom = float(mea @ mea)
-    return float(ref @ mea) / denom if denom > 0 else None
+    from startrack._kernels.identify import focal_scale
+
+    s = focal_scale(b_all, np.asarray(img, dtype=np.int64), star_vec, np.asarray(cat, dtype=np.int64))
+    return None if math.isnan(s) else float(s)
 
 
 def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err):
@@ -472,6 +456,14 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err)
     measured angle over the long pairs of these tentative matches (robust to the odd
     wrong one).
     """
+    if not (camera.k1 or camera.k2):
+        from startrack._kernels.identify import field_scale
+
+        cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
+        got = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px), float(camera.cx),
+                          float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
+                          np.asarray(radius_px, dtype=np.float64), float(max_err))
+        return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
         return None
@@ -526,7 +518,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     cam = camera
     if scale is not None:
         cam = camera.with_focal_length(camera.focal_length_px / scale)
-        b_all = cam.pixels_to_vectors(xs, ys)
+        b_all = _pixels_to_vectors(cam, xs, ys)
     v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags,
                geom if scale is None else None, abs(scale - 1.0) if scale is not None else 0.0)
     if v.matches is None or v.dcm is None:
@@ -540,7 +532,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
-        b_all = cam.pixels_to_vectors(xs, ys)
+        b_all = _pixels_to_vectors(cam, xs, ys)
         v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
     for _ in range(4):
         if v.matches is None or len(v.matches) < 3:
@@ -550,7 +542,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
             break
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
-        b_all = cam.pixels_to_vectors(xs, ys)
+        b_all = _pixels_to_vectors(cam, xs, ys)
         v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
     return v, (None if total == 1.0 else total)
 
@@ -707,7 +699,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     flux = np.array([s.get("flux") if isinstance(s.get("flux"), (int, float)) else np.nan for s in frame_stars],
                     dtype=np.float64)
     has_flux = bool(np.isfinite(flux).sum() >= 3)
-    b_all = camera.pixels_to_vectors(xs, ys)
+    b_all = _pixels_to_vectors(camera, xs, ys)
     sig_px = star_sigmas_px(frame_stars, params)
     f = camera.focal_length_px
     margin = math.radians(params.margin_arcsec / 3600.0)
@@ -782,7 +774,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         if not isinstance(catalog, CatalogStars):
             catalog = CatalogStars.from_catalog(catalog)
         cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
-        b = b_all if scale is None else cam.pixels_to_vectors(xs, ys)
+        b = b_all if scale is None else _pixels_to_vectors(cam, xs, ys)
         margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
         radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
             np.maximum(1.0, params.match_sigma * sig_px + margin_px)
