@@ -9,8 +9,9 @@ scaled to 0.1 ... 3 deg/s.  Every sequence starts at a random attitude (seeded) 
 is tracked from its first frame with no prior: lost in space, then tracking.
 Errors against the renderer's truth: boresight (cross-boresight) and roll in
 arcsec; the filter's rate against the true rate per camera axis (deg/s) over the
-frames after the 5th; the rate from the first frame's streaks alone (its sign
-taken from the truth, since one frame cannot tell w from -w).  Times: wall time
+frames after the 5th; the rate from one frame's streaks alone, every 4th frame
+acquired by a tracker with no past (its sign taken from the truth, since one
+frame cannot tell w from -w), with the estimate's own sigmas.  Times: wall time
 of ``Tracker.step(..., details=False)`` (the tracking loop: no frame-document sections) on
 images held in memory, by mode, in this one process, and its CPU time (``time.process_time``:
 on a shared machine the wall time also counts other processes' turns).
@@ -83,12 +84,30 @@ def _pct(values, q):
     return float(np.percentile(v, q)) if v else math.nan
 
 
-def rates_table(cam, cat, db, n_frames, starts):
-    out = []
+def single_frame_rates(cat, cam, db, frames, w, every):
+    """The rate from one frame's streaks alone (a tracker with no past: lost in space), every ``every``-th
+    frame: errors (deg/s, sign from the truth: one frame cannot tell w from -w) and the estimate's sigmas."""
+    from startrack.track import Tracker, TrackerConfig
+
+    errs, sigs = [], []
+    for k in range(0, len(frames), every):
+        tr = Tracker(cat, cam, db, TrackerConfig(mag_limit=6.5))
+        out = tr.step(frames[k][1], 0.0, 65535.0, 0.1, details=False)
+        d = out["track"].details
+        if d.get("streak_rate_deg_s") is None or d.get("streak_rate_sigma_deg_s") is None:
+            continue
+        v = np.array(d["streak_rate_deg_s"])
+        errs.append((v if np.dot(v, w) >= 0 else -v) - w)
+        sigs.append(np.array(d["streak_rate_sigma_deg_s"]))
+    return errs, sigs
+
+
+def rates_table(cam, cat, db, n_frames, starts, every=4):
+    out, single = [], []
     timings = []
     for rate in RATES:
         w = rate * AXIS
-        rows_all, rate_err, single_err, n_ok, n_all = [], [], [], 0, 0
+        rows_all, rate_err, single_err, single_sig, n_ok, n_all = [], [], [], [], 0, 0
         for s in range(starts):
             frames = render(cat, cam, w, n_frames, 1000 + s, random_start(1000 + s))
             rows = track(cat, cam, db, frames)
@@ -97,19 +116,24 @@ def rates_table(cam, cat, db, n_frames, starts):
             n_ok += sum(not math.isnan(r["cross"]) for r in rows)
             n_all += len(rows)
             rate_err.extend([r["rate"] - w for r in rows[5:] if not math.isnan(r["cross"])])
-            first = rows[0]["streak_rate"]
-            if first is not None:
-                v = np.array(first)
-                v = v if np.dot(v, w) >= 0 else -v
-                single_err.append(v - w)
+            e, sg = single_frame_rates(cat, cam, db, frames, w, every)
+            single_err.extend(e)
+            single_sig.extend(sg)
         re = np.sqrt(np.mean(np.square(rate_err), axis=0)) if rate_err else [math.nan] * 3
-        se = np.sqrt(np.mean(np.square(single_err), axis=0)) if single_err else [math.nan] * 3
         out.append([f"{rate:g}", f"{n_ok}/{n_all}",
                     f"{_pct([r['cross'] for r in rows_all], 50):.1f} / {_pct([r['cross'] for r in rows_all], 95):.1f}",
                     f"{_pct([r['roll'] for r in rows_all], 50):.1f} / {_pct([r['roll'] for r in rows_all], 95):.1f}",
-                    " ".join(f"{v:.4f}" for v in re),
-                    (" ".join(f"{v:.3f}" for v in se) + f" ({len(single_err)}/{starts})") if single_err else "none"])
-    return out, timings
+                    " ".join(f"{v:.4f}" for v in re)])
+        if single_err:
+            e, sg = np.array(single_err), np.array(single_sig)
+            single.append([f"{rate:g}", str(len(e)), " ".join(f"{v:.3f}" for v in np.sqrt(np.mean(e ** 2, axis=0))),
+                           " ".join(f"{v:.3f}" for v in np.median(np.abs(e), axis=0)),
+                           " ".join(f"{v:.3f}" for v in np.median(sg, axis=0)),
+                           " ".join(f"{v:.2f}" for v in np.sqrt(np.mean((e / sg) ** 2, axis=0))),
+                           f"{np.median(sg[:, 2] / np.hypot(sg[:, 0], sg[:, 1]) * math.sqrt(2)):.1f}"])
+        else:
+            single.append([f"{rate:g}", "0", "-", "-", "-", "-", "-"])
+    return out, single, timings
 
 
 def few_stars_and_blackout(cam, cat, db, seed=7):
@@ -217,7 +241,8 @@ def report(n_frames=40, starts=3):
     cam, cat, db = setup()
     # Warm the kernels (numba compilation is set-up, not tracking).
     track(cat, cam, db, render(cat, cam, 1.0 * AXIS, 3, 1, random_start(1)))
-    rates, timings = rates_table(cam, cat, db, n_frames, starts)
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    rates, single, timings = rates_table(cam, cat, db, n_frames, starts)
     stretch, modes, rows = few_stars_and_blackout(cam, cat, db)
     fit_ms, n_fit = streak_fit_speed(cam, cat)
     by_rate = speed_by_rate(cam, cat, db)
@@ -226,14 +251,21 @@ def report(n_frames=40, starts=3):
         f"Rates table: {starts} sequences of {n_frames} frames per rate from random attitudes, axis (1.5, -1, 0.5), "
         "100 ms exposures, 12 deg 1024 x 768, Hp <= 6.5; errors median / 95th percentile.\n\n"
         + table(["rate deg/s", "frames with attitude", "boresight err \" (med / p95)", "roll err \" (med / p95)",
-                 "filter rate RMS err after 5 frames x y z (deg/s)", "single-frame streak rate RMS err x y z (deg/s)"],
-                rates)
+                 "filter rate RMS err after 5 frames x y z (deg/s)"], rates)
+        + f"\n\nRate from one frame's streaks alone (every 4th frame of the sequences above, each acquired with no "
+          f"past; sign from the truth): error RMS and median |error|, the estimate's own median sigma, the RMS of "
+          f"error / sigma (1 = honest sigmas), and sigma_z / sigma_xy (the roll lever arm: f / r_rms = "
+          f"{cam.focal_length_px:.0f} / {math.sqrt((cam.width ** 2 + cam.height ** 2) / 12):.0f} = "
+          f"{cam.focal_length_px / math.sqrt((cam.width ** 2 + cam.height ** 2) / 12):.1f} for stars spread "
+          "evenly over the sensor).\n\n"
+        + table(["rate deg/s", "frames", "RMS err x y z (deg/s)", "median abs err x y z", "median sigma x y z",
+                 "RMS err/sigma x y z", "sigma_z / sigma_xy"], single)
         + "\n\nBlackout and few stars: 100 frames at 0.5 deg/s, frames 30-39 black (1 s), 60-69 with only 2 stars, "
           "70-79 with only 1 star.\n\n"
         + table(["stretch", "modes", "boresight err \" (med / p95)", "roll err \" (med / p95)"], stretch)
         + "\n\n" + table(["mode", "frames", "boresight err \" (med / p95)", "roll err \" (med / p95)"], modes)
         + "\n\nSpeed (Tracker.step on 1024 x 768 images in memory, one process, all sequences above; "
-          f"load average {load:.1f} on {os.cpu_count()} cores):\n\n"
+          f"load average {load0:.1f} at the start, {load:.1f} at the end, on {os.cpu_count()} cores):\n\n"
         + table(["mode", "frames", "median wall ms", "p95 wall ms", "frames/s (wall)", "median CPU ms",
                  "frames/s (CPU)"], speed_rows(timings + rows))
         + "\n\nSpeed by rate, best of 3 passes over the same 40 frames (median per frame):\n\n"

@@ -51,6 +51,24 @@ sweeps stars around the centre; near the centre it moves them little, so the
 roll rate is the least well determined).  A single frame cannot tell ``w``
 from ``-w`` (a streak has no arrow of time): the result is ``+-w``; the
 tracker resolves the sign with the next frame.
+
+**Why the roll rate is weak.**  A cross-boresight rate moves every star by
+``f w T`` pixels; a roll rate moves a star at distance ``r`` from the
+principal point by ``r w_z T``, tangentially.  With the same streak-vector
+noise on every star, the least squares above (which already weighs each
+streak by its fitted length and direction sigmas, and whose covariance is
+reported) gives ``sigma_z / sigma_xy ~ f / r_rms``; stars spread evenly over
+a ``W x H`` sensor have ``r_rms = sqrt((W^2 + H^2) / 12)``, so for a 12 deg,
+1024 x 768 camera ``f / r_rms = 4871 / 370 = 13``: roughly ``1 / tan(FOV/2)``.
+No model of one frame's streaks escapes this lever arm; the attitude
+differences of consecutive frames (the tracker's filter) measure the roll
+rate with the full roll accuracy of the attitude instead.
+
+**Partial streaks.**  A faint streak's thresholded moments may see only a
+piece of it, and the fit started there converges on that piece: a streak
+off the common motion.  :func:`refit_off_motion` fits such streaks (and
+missing or insignificant ones) again from the streak the frame's rate
+predicts, and the rate is estimated again.
 """
 from __future__ import annotations
 
@@ -60,7 +78,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RateEstimate", "Streak", "fit_streaks", "fit_streaks_array", "predicted_streaks", "rate_from_streaks",
-           "segment_centroids", "streak_jacobians"]
+           "refit_off_motion", "segment_centroids", "streak_jacobians", "streak_residuals"]
 
 
 @dataclass
@@ -285,3 +303,65 @@ def rate_from_streaks(camera, streaks, exposure_s: float, min_streaks: int = 2, 
     if chi2 / dof > 1.0:
         cov = cov * (chi2 / dof)      # the fit's own scatter when the sigmas are too small
     return RateEstimate(w, cov, int(keep.sum()), rms)
+
+
+def streak_residuals(camera, streaks, rate, exposure_s: float, floor_px: float = 0.05):
+    """How far each streak is from the motion a body rate ``rate`` (rad/s) draws, in its own sigmas.
+
+    The streak vector (signed to agree with the prediction ``M_i w T``) minus
+    the prediction, along and across the streak over the streak's length and
+    direction sigmas (with ``floor_px`` in quadrature, as
+    :func:`rate_from_streaks`): ``sqrt(r_along^2 + r_across^2)``; NaN for a
+    missing fit.
+    """
+    out = np.full(len(streaks), np.nan)
+    idx = [j for j, st in enumerate(streaks) if st is not None]
+    if not idx:
+        return out
+    good = [streaks[j] for j in idx]
+    m = streak_jacobians(camera, [st.x for st in good], [st.y for st in good]) * exposure_s
+    pred = np.einsum("ijk,k->ij", m, np.asarray(rate, dtype=np.float64))
+    for j, st, p in zip(idx, good, pred, strict=True):
+        e = np.array([math.cos(st.angle_rad), math.sin(st.angle_rad)])
+        n = np.array([-e[1], e[0]])
+        sign = 1.0 if float(p @ e) >= 0 else -1.0
+        v = sign * st.length_px * e
+        r_along = float((v - p) @ e) / math.hypot(st.sigma_length_px, floor_px)
+        r_across = float((v - p) @ n) / math.hypot(st.length_px * st.sigma_angle_rad, floor_px)
+        out[j] = math.hypot(r_along, r_across)
+    return out
+
+
+def refit_off_motion(image, camera, streaks, xs, ys, rate, exposure_s: float, k_sigma: float = 3.0,
+                     significant=None):
+    """Fit again, started from the streak ``rate`` predicts, every streak that is missing, not significant
+    (``significant(fit)`` false) or more than ``k_sigma`` off that motion (:func:`streak_residuals`).
+
+    All stars of a frame move with one body rate, so a faint streak whose fit
+    found only part of it (its moments saw a piece above the threshold) is
+    off the common motion; started from the predicted length and direction
+    the fit finds the whole streak.  A refit replaces the old fit when it
+    converges within half its length plus 3 px of the start ``(xs, ys)``, is
+    significant, and is closer to the motion than the old one (in its own
+    sigmas).  Returns ``(streaks, n_replaced)`` (a new list).
+    """
+    significant = significant or (lambda ft: ft is not None)
+    out = list(streaks)
+    res = streak_residuals(camera, out, rate, exposure_s)
+    redo = [j for j, ft in enumerate(out) if not significant(ft) or not res[j] <= k_sigma]
+    if not redo:
+        return out, 0
+    x = np.array([xs[j] for j in redo], dtype=np.float64)
+    y = np.array([ys[j] for j in redo], dtype=np.float64)
+    length, angle = predicted_streaks(camera, x, y, rate, exposure_s)
+    new = fit_streaks(image, x, y, lengths_px=length, angles_rad=angle)
+    new_res = streak_residuals(camera, new, rate, exposure_s)
+    n = 0
+    for t, (j, ft) in enumerate(zip(redo, new, strict=True)):
+        if not significant(ft) or math.hypot(ft.x - x[t], ft.y - y[t]) >= 0.5 * ft.length_px + 3:
+            continue
+        if significant(out[j]) and not new_res[t] < res[j]:
+            continue
+        out[j] = ft
+        n += 1
+    return out, n

@@ -368,19 +368,22 @@ class Tracker:
         stars = [dict(s) for s in res.stars]
         rate_est = rate_from_streaks(self.camera, fits[: cfg.max_streaks], exposure_s) if fits else None
         if streaky and rate_est is not None and np.all(np.isfinite(rate_est.cov)):
-            # Faint streaks the moments could not start (no fit, or no significant streak): start them from
-            # the streaks the rate predicts.
-            from startrack.streak import predicted_streaks
+            # All stars move with one body rate: streaks the moments could not start (no fit, no significant
+            # length) or found only in part (off the common motion) are fitted again from the streak the rate
+            # predicts, and the rate is estimated again from the result (twice).
+            from startrack.streak import refit_off_motion
 
-            redo = [j for j, ft in enumerate(fits) if not _significant(ft)]
-            if redo:
-                xs = np.array([stars[j]["x"] for j in redo])
-                ys = np.array([stars[j]["y"] for j in redo])
-                length, angle = predicted_streaks(self.camera, xs, ys, rate_est.rate, exposure_s)
-                for j, ft in zip(redo, fit_streaks(img, xs, ys, lengths_px=length, angles_rad=angle), strict=True):
-                    if _significant(ft) and math.hypot(ft.x - stars[j]["x"], ft.y - stars[j]["y"]) < \
-                            0.5 * ft.length_px + 3:
-                        fits[j] = ft
+            xs = [s["x"] for s in stars[: len(fits)]]
+            ys = [s["y"] for s in stars[: len(fits)]]
+            for _ in range(2):
+                fits, n_new = refit_off_motion(img, self.camera, fits, xs, ys, rate_est.rate, exposure_s,
+                                               significant=_significant)
+                info["streaks_refitted"] = info.get("streaks_refitted", 0) + n_new
+                again = rate_from_streaks(self.camera, [ft if _significant(ft) else None for ft in fits][
+                    : cfg.max_streaks], exposure_s)
+                if n_new == 0 or again is None or not np.all(np.isfinite(again.cov)):
+                    break
+                rate_est = again
         for s, ft in zip(stars[: len(fits)], fits, strict=True):
             if not _significant(ft):
                 continue
@@ -649,6 +652,7 @@ class Tracker:
                 sig = np.sqrt(np.diag(cov_rate))
                 self.sign_ambiguous = bool(np.linalg.norm(rate) > 3.0 * np.linalg.norm(sig))
                 track["streak_rate_deg_s"] = [round(float(v), 5) for v in np.degrees(rate)]
+                track["streak_rate_sigma_deg_s"] = [round(float(v), 5) for v in np.degrees(np.sqrt(np.diag(rate_est.cov)))]
                 if not self.sign_ambiguous:
                     cov_rate = cov_rate + np.outer(rate, rate)     # a rate not clear of zero: either sign
             elif self.filter is not None and dt is not None and self.last_fix_t is not None:
