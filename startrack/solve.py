@@ -367,8 +367,9 @@ def _warm(index):
 
 
 def warm_for_build(index=None) -> None:
-    """Run the solver end to end on a rendered 12 degree frame (8- and 16-bit), so that every kernel a real
-    image needs is compiled in this process (before an ahead-of-time build of them)."""
+    """Run the solver end to end on a rendered 12 degree frame (8- and 16-bit), and `identify`'s default
+    algorithm on a small k-vector database, so that every kernel a real image needs is compiled in this
+    process (before an ahead-of-time build of them)."""
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.render import Scene, Sensor, render_image
@@ -382,6 +383,11 @@ def warm_for_build(index=None) -> None:
         image, _ = render_image(catalog, camera, quaternion_to_dcm(q), Sensor(bit_depth=bits), Scene(),
                                 np.random.default_rng(3))
         solve_image(image, index=index)
+    # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too).
+    from startrack.identify import warm_up
+    from startrack.kvector import build_kvector
+
+    warm_up("pyramid", build_kvector(catalog.filter_magnitude(mag_max=5.0), 17.0))
 
 
 def _notice(text: str) -> None:

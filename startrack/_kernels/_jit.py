@@ -16,11 +16,12 @@ dispatcher.  A call goes to
    ``float`` is ``float64``, an ``int`` ``int64``); such a process never
    imports numba; else
 2. numba's just-in-time dispatcher, as before (``cache=True``): on the first
-   such call every kernel module's lazy kernels are replaced by real numba
-   dispatchers, so that kernels calling kernels compile as ordinary numba code.
+   such call numba is imported and every lazy kernel gets its dispatcher; numba
+   types a lazy kernel met as a global inside another kernel as that dispatcher,
+   so kernels calling kernels compile as ordinary numba code.
 
-The AOT build is made with :mod:`numba.pycc` from the signatures the process
-that builds it has compiled (the warm-up of the solver and the identification
+The AOT build is made with :mod:`numba.pycc` from the signatures of the kernels
+called from Python (entry points) that the process building it has compiled (the warm-up of the solver and the identification
 algorithms), into ``kernels-<tag>.so`` in the cache directory beside the
 pattern index's (see :func:`kernels_dir`); ``<tag>`` hashes the kernels' source, numba's, numpy's and
 Python's versions, so an edited kernel or an upgrade simply misses the build
@@ -69,12 +70,9 @@ def njit(*args, **options):
         kernel = LazyKernel(py_func, options)
         _KERNELS.append(kernel)
         if _MATERIALISED:
-            # numba is here already: the module gets the dispatcher itself (kernels
-            # defined later call it as numba code), the record stays for the AOT build.
             import numba
 
             kernel._dispatcher = numba.njit(**options)(py_func)
-            return kernel._dispatcher
         return kernel
 
     return wrap
@@ -136,9 +134,11 @@ class LazyKernel:
         self.qualname = _qualname(py_func)
         self._dispatcher = None
         self._aot = None
+        self.entry = False
         functools.update_wrapper(self, py_func)
 
     def __call__(self, *args):
+        self.entry = True          # called from Python: an entry point of the AOT build
         aot = self._aot
         if aot is None:
             aot = self._aot = _aot_table().get(self.qualname, {})
@@ -173,9 +173,20 @@ class LazyKernel:
 
 
 def _materialise() -> None:
-    """Import numba; bind every lazy kernel to a dispatcher and put the dispatchers in the modules."""
+    """Import numba and bind every lazy kernel to a dispatcher.
+
+    Kernels calling kernels see lazy kernels as globals: numba types one as its
+    dispatcher (registered here), so they compile as ordinary numba calls.  The
+    ``prange`` stand-ins become ``numba.prange``.
+    """
     global _MATERIALISED, prange
     import numba
+    from numba.core.typing.typeof import typeof_impl
+
+    if not _MATERIALISED:
+        @typeof_impl.register(LazyKernel)
+        def _typeof_lazy(val, c):
+            return typeof_impl(val.dispatcher, c)
 
     for k in _KERNELS:
         if k._dispatcher is None:
@@ -183,14 +194,11 @@ def _materialise() -> None:
     _MATERIALISED = True
     prange = numba.prange
     for name, mod in list(sys.modules.items()):
-        if not name.startswith("startrack._kernels") or mod is None:
-            continue
-        space = vars(mod)
-        for attr, value in list(space.items()):
-            if isinstance(value, LazyKernel):
-                space[attr] = value._dispatcher
-            elif isinstance(value, _PRange):
-                space[attr] = numba.prange
+        if name.startswith("startrack._kernels") and mod is not None:
+            space = vars(mod)
+            for attr, value in list(space.items()):
+                if isinstance(value, _PRange):
+                    space[attr] = numba.prange
 
 
 # ---------------------------------------------------------------- the AOT build
@@ -281,6 +289,7 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
     -------
     (path, entries) : the ``.so`` written and its number of entry points.
     """
+    import re
     import tempfile
     import warnings
 
@@ -290,30 +299,45 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
     path = aot_path(directory)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     module = f"_startrack_kernels_{_tag()}"
-    cc = CC(module)
-    manifest: dict = {"module": module, "versions": _versions(), "kernels": {}}
-    n = 0
+    entries = []
     for k in (list(kernels) if kernels is not None else _KERNELS):
-        if k.options.get("parallel") or k.options.get("inline") == "always" or k._dispatcher is None:
+        # Entry points only (kernels called from Python): the others are compiled into them.
+        if not k.entry or k.options.get("parallel") or k.options.get("inline") == "always" or k._dispatcher is None:
             continue
         for args in list(k._dispatcher.signatures):
             key = tuple(_numba_key(t) for t in args)
-            if None in key:
-                continue
+            if None not in key:
+                entries.append((k, args, key))
+    skipped: list = []
+    while entries:
+        cc = CC(module)
+        manifest: dict = {"module": module, "versions": _versions(), "kernels": {}, "skipped": skipped}
+        for n, (k, args, key) in enumerate(entries):
             symbol = f"k{n}_{k.py_func.__name__}"
             cc.export(symbol, k._dispatcher.overloads[args].signature)(k.py_func)
             manifest["kernels"].setdefault(k.qualname, []).append([symbol, key])
-            n += 1
-    if n == 0:
-        return path, 0
-    with tempfile.TemporaryDirectory(dir=os.path.dirname(path)) as tmp:
-        cc.output_dir = tmp
-        cc.output_file = os.path.basename(path)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            cc.compile()
-        os.replace(os.path.join(tmp, os.path.basename(path)), path)
-    with open(path[:-3] + ".json.tmp", "w") as f:
-        json.dump(manifest, f)
-    os.replace(path[:-3] + ".json.tmp", path[:-3] + ".json")
-    return path, n
+        try:
+            with tempfile.TemporaryDirectory(dir=os.path.dirname(path)) as tmp:
+                cc.output_dir = tmp
+                cc.output_file = os.path.basename(path)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    cc.compile()
+                os.replace(os.path.join(tmp, os.path.basename(path)), path)
+        except Exception as exc:  # noqa: BLE001 - a kernel numba cannot compile ahead of time stays JIT
+            # numba.pycc types with slightly different rules (e.g. a variable reused with
+            # another type); leave the kernel it names to the JIT and build the rest.
+            names = set(re.findall(r"def (\w+)\(", str(exc)))
+            keep = [e for e in entries if e[0].py_func.__name__ not in names]
+            if not names or len(keep) == len(entries):
+                raise
+            reason = " ".join(str(exc).split())[:300]
+            skipped.extend({"kernel": q, "reason": reason} for q in sorted({e[0].qualname for e in entries
+                                                                            if e not in keep}))
+            entries = keep
+            continue
+        with open(path[:-3] + ".json.tmp", "w") as f:
+            json.dump(manifest, f)
+        os.replace(path[:-3] + ".json.tmp", path[:-3] + ".json")
+        return path, len(entries)
+    return path, 0

@@ -15,8 +15,8 @@ each pair) are counted: the scope of Sec. 4.3.
 import math
 
 import numpy as np
-from numba import njit
 
+from startrack._kernels._jit import njit
 from startrack._kernels.database import kvector_range
 
 

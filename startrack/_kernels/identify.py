@@ -808,11 +808,11 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
             a = first
             while parent[a] != a:
                 a = parent[a]
-            z = i
-            while parent[z] != z:
-                z = parent[z]
-            if a != z:
-                parent[max(a, z)] = min(a, z)
+            root_i = i
+            while parent[root_i] != root_i:
+                root_i = parent[root_i]
+            if a != root_i:
+                parent[max(a, root_i)] = min(a, root_i)
     for i in range(n):
         a = i
         while parent[a] != a:
@@ -876,14 +876,14 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
                         if digits[v] < ncand[members[v]] and cand[members[v], digits[v]] == s:
                             ok = False
                 if ok:
-                    c = 0.0
+                    total_cost = 0.0
                     for t in range(k):
-                        c += cost[t, digits[t]]
+                        total_cost += cost[t, digits[t]]
                     if rnd == 0:
-                        if c < best:
-                            best = c
+                        if total_cost < best:
+                            best = total_cost
                             best_digits[:] = digits
-                    elif c < best + max_chi2:
+                    elif total_cost < best + max_chi2:
                         for t in range(k):
                             if digits[t] != best_digits[t]:
                                 unsure[t] = True
