@@ -4,7 +4,7 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.attitude import leave_one_out, quat_to_dcm, refine
+from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest, refine
 from startrack._kernels.database import kvector_range, label_search, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 
@@ -440,7 +440,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
 
 @njit(cache=True)
 def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height,
-                  k1, k2):
+                  k1, k2, mag_sorted):
     """The verification's bookkeeping after the attitude, in one pass.
 
     * catalog stars predicted in the image with ``dcm``;
@@ -461,6 +461,9 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     * the magnitude agreement of the core (``is_core``): the chance that random
       catalog stars agree with the core's fluxes as well (``p_mag``, 1 without
       fluxes).
+
+    ``star_vec``/``star_mag`` may be the part of the database near the field; the
+    database-wide counts come from ``mag_sorted``, every database magnitude sorted.
 
     Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag, n_bright_pred)``,
     ``n_bright_pred`` the predicted stars brighter than ``cut``.
@@ -557,11 +560,8 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
         want = -2.5 * math.log10(flux[i]) + z0
         if abs(star_mag[out[i]] - want) > delta:
             continue
-        k = 0
-        for s in range(m):
-            if abs(star_mag[s] - want) <= delta:
-                k += 1
-        frac = k / m
+        k = np.searchsorted(mag_sorted, want + delta, side="right") - np.searchsorted(mag_sorted, want - delta)
+        frac = k / mag_sorted.shape[0]
         p_mag *= frac
         worst = max(worst, frac)
     if worst > 0.0:
@@ -580,10 +580,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
                 break
         if not found:
             missing += 1
-    n_bright = 0
-    for s in range(m):
-        if star_mag[s] <= cut:
-            n_bright += 1
+    n_bright = np.searchsorted(mag_sorted, cut, side="right")
     return out, npred, p_local, missing, n_bright, cut, p_mag, bright
 
 
@@ -1187,8 +1184,17 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
 
 
 @njit(cache=True)
-def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy, width,
-                height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate):
+def _to_global(match, sub):
+    out = np.full(match.shape[0], -1, dtype=np.int64)
+    for i in range(match.shape[0]):
+        if match[i] >= 0:
+            out[i] = sub[match[i]]
+    return out
+
+
+@njit(cache=True)
+def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
+                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate):
     """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine``), the
@@ -1203,6 +1209,33 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
     most bright predicted stars missing, 4 = too few matches.
     """
     n = b.shape[0]
+    m_all = star_vec_all.shape[0]
+    # The database stars near the field (the proposal's attitude, 2 deg of margin beyond the
+    # corners): every later pass works on them only; the proposal's stars are always in.
+    q0, _ = quest(b[img], star_vec_all[cat_all], np.ones(img.shape[0]))
+    a0 = quat_to_dcm(q0)
+    cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
+    sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
+    ns = 0
+    for s in range(m_all):
+        if a0[2, 0] * star_vec_all[s, 0] + a0[2, 1] * star_vec_all[s, 1] + a0[2, 2] * star_vec_all[s, 2] > cos_sub:
+            sub[ns] = s
+            ns += 1
+    cat = np.empty(cat_all.shape[0], dtype=np.int64)
+    for t in range(cat_all.shape[0]):
+        pos = np.searchsorted(sub[:ns], cat_all[t])
+        if pos < ns and sub[pos] == cat_all[t]:
+            cat[t] = pos
+        else:
+            sub[ns] = cat_all[t]
+            cat[t] = ns
+            ns += 1
+    sub = sub[:ns]
+    star_vec = np.empty((ns, 3))
+    star_mag = np.empty(ns)
+    for t in range(ns):
+        star_vec[t] = star_vec_all[sub[t]]
+        star_mag[t] = star_mag_all[sub[t]]
     rmax = 0.0
     for i in range(n):
         rmax = max(rmax, radius[i])
@@ -1213,7 +1246,8 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
     for t in range(nc):
         is_core[img[t]] = True
     match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(
-        b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height, k1, k2)
+        b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height, k1, k2,
+        mag_sorted)
     if not use_mags:
         p_mag = 1.0
     inst = np.empty(n)
@@ -1248,7 +1282,7 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
         for t in range(nm):
             if loo[t] > radius[mi[t]] * widen:
                 if is_core[mi[t]]:
-                    return (1, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+                    return (1, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
                 match[mi[t]] = -1
                 nm -= 1
     agree = 0
@@ -1260,11 +1294,11 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
         if d >= math.cos(radius[img[t]]):
             agree += 1
     if agree < min(img.shape[0], min_matches):
-        return (2, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (2, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     if bright_pred >= 3 and missing > bright_pred // 2:
-        return (3, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (3, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     if nm < min_matches and not (n == 3 and nm == 3):
-        return (4, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (4, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     # The core's pattern chance with the window of its actual residual.
     bc = np.empty((nc, 3))
     rc = np.empty((nc, 3))
@@ -1274,7 +1308,7 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
         rc[t] = star_vec[cat[t]]
         smax = max(smax, sig_rad[img[t]])
     window = core_window(bc, rc, math.sqrt(2.0) * smax, eps)
-    e_core = pattern_chance(star_vec.shape[0], window, bc)
+    e_core = pattern_chance(m_all, window, bc)
     if scale_offset > 0.0:
         gmin = 1.0
         for u in range(nc):
@@ -1286,4 +1320,4 @@ def verify_core(b, star_vec, star_mag, img, cat, radius, sig_rad, flux, use_mags
         rs += radius[i] * focal
     mean_r = rs / n
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
-    return (0, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)
+    return (0, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)

@@ -353,6 +353,14 @@ def _geometry(camera):
     return got
 
 
+def _sorted_mags(db):
+    """Every database magnitude, sorted (cached on the database): the verification's counts."""
+    got = db.__dict__.get("_mags_sorted")
+    if got is None or len(got) != len(db.star_mag):
+        got = db.__dict__["_mags_sorted"] = np.sort(np.asarray(db.star_mag, dtype=np.float64))
+    return got
+
+
 def _pixels_to_vectors(camera, xs, ys):
     """``camera.pixels_to_vectors`` (one kernel call without distortion)."""
     if camera.k1 or camera.k2:
@@ -397,7 +405,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     # (reasons below), and the numbers of the false-match probability.
     fl = flux if flux is not None else np.full(n_all, np.nan)
     code, match, q, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
-        b_all, star_vec, db.star_mag, img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
+        b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
         int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
     dcm = quat_to_dcm(q)
     if code == 1:
@@ -539,6 +547,11 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
             break
         step = _focal_scale(b_all, v.star_index, v.cat_index, star_vec)
         if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
+            break
+        # A step that moves the farthest matched star by less than a tenth of the smallest
+        # match radius cannot change a match: the matches cannot tell it from 1 (noise).
+        far = float(np.max(np.hypot(xs[v.star_index] - cam.cx, ys[v.star_index] - cam.cy)))
+        if abs(step - 1.0) * far < 0.1 * float(radius_px.min()):
             break
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
