@@ -29,6 +29,9 @@ from startrack.cli.options import (
 @click.option("--sigma-floor-px", type=FiniteFloat(0, 100), default=0.05, show_default=True,
               help="Smallest per-star centroid sigma (px): calibration and optics limit real images.")
 @click.option("--unweighted", is_flag=True, help="Equal weights instead of 1 / sigma^2.")
+@click.option("--merge-px", type=FiniteFloat(0, 100), default=2.0, show_default=True,
+              help="A star's reference direction is the photocentre of the catalog stars closer than this many "
+                   "pixels of the frame's camera (an unresolved double images as one; 0 = the star itself).")
 @click.option("--gate", type=FiniteFloat(0, min_open=True), default=13.8, show_default=True,
               help="Chi-square gate (2 dof) on a star's residual; the worst star beyond it is dropped.")
 @click.option("--wcs", "wcs_path", type=click.Path(dir_okay=False), default=None,
@@ -38,13 +41,16 @@ from startrack.cli.options import (
 @resume_option
 @quiet_option
 @handle_errors
-def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, gate, wcs_path, output, jobs, resume,
-            quiet):
+def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, merge_px, gate, wcs_path, output, jobs,
+            resume, quiet):
     """Solve each frame's attitude from its identified stars: adds an `attitude` section.
 
     Camera-frame vectors come from the star positions and the camera (paper 000
     Eq. 13, distortion removed); ICRS vectors from the catalog by HIP id
-    (Eq. 14), with proper motion applied to the frame's epoch.  Written:
+    (Eq. 14), with proper motion applied to the frame's epoch; a star with
+    catalog companions closer than --merge-px pixels (an unresolved double,
+    down to the catalog's faintest) is referred to their photocentre, where
+    its centroid lies.  Written:
     status, method, quaternion (scalar last, ICRS -> camera), dcm, ra, dec,
     roll, euler123_deg (yaw, pitch, roll), the Wahba loss (Eq. 15), per-star
     residuals in arcsec, and the QUEST covariance as 1-sigma cross-boresight
@@ -73,7 +79,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
     from startrack.accuracy import attitude_crb, misfits_to_drop, star_covariance, stars_crb_from_frame
     from startrack.attitude import estimate_attitude, wcs_header
     from startrack.camera import Camera
-    from startrack.catalog import load_catalog
+    from startrack.catalog import load_catalog, merge_radius_arcsec
     from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
     from startrack.timeutil import julian_year, parse_time
@@ -94,6 +100,25 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             found = (cat, cat.rows_by_id(), cat.vectors())
             propagated.clear()
             propagated[key] = found
+        return found
+
+    blended = {}
+
+    def photocentres_at(ep, cam):
+        """``{id: unit vector}`` of the entries that absorbed unresolved companions at this camera's scale."""
+        if not merge_px:
+            return {}
+        radius = merge_radius_arcsec(cam, merge_px)
+        key = (round(ep, 6), round(radius, 6))
+        found = blended.get(key)
+        if found is None:
+            cat = catalog_at(ep)[0]
+            merged = cat.merge_close(radius)
+            mrows = merged.rows_by_id()
+            mvec = merged.vectors()
+            found = {int(i): mvec[mrows[int(i)]] for i in merged.merged}
+            blended.clear()
+            blended[key] = found
         return found
 
     def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
@@ -120,6 +145,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         if ep is None:
             ep = base.epoch
         _, rows, vectors = catalog_at(ep)
+        centres = photocentres_at(ep, cam)
         gain = _frame_gain(doc)
         noise_frame = (doc.get("centroid") or {}).get("noise_dn")
         body, ref, sig, labels, bounds = [], [], [], [], []
@@ -143,7 +169,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                                           "not a single star's image"})
                 continue
             body.append(cam.pixels_to_vectors(x, y))
-            ref.append(vectors[row])
+            ref.append(centres.get(int(m["id"]), vectors[row]))
             # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
             # bound from its flux, PSF and noise (startrack.accuracy), else the sigma_px centroid wrote,
             # else --sigma-px.  The bound alone goes into the crb_* fields.

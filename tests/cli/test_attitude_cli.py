@@ -39,10 +39,14 @@ def test_real_image_end_to_end_with_wcs(esa_db, tmp_path):
     # astropy's pixel -> sky on the written header puts each identified star within
     # its residual of the catalog position.
     w = WCS(fits.getheader(wcs_path))
-    from startrack.catalog import load_catalog
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog, merge_radius_arcsec
 
     cat = load_catalog()
     pos = {int(i): (ra, dec) for i, ra, dec in zip(cat.id, cat.ra, cat.dec)}
+    # A star with companions closer than 2 px is referred to their photocentre (attitude --merge-px).
+    merged = cat.merge_close(merge_radius_arcsec(Camera.from_dict(doc["camera"]), 2.0))
+    pos.update({int(i): (ra, dec) for i, ra, dec in zip(merged.id, merged.ra, merged.dec) if int(i) in merged.merged})
     resid = {x["id"]: x["residual_arcsec"] for x in att["residuals"]}
     for m in doc["identification"]["matches"]:
         if m["id"] not in resid:
