@@ -1203,7 +1203,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     agreement, the bright stars missing, the matched count, and the numbers of the
     false-match probability (the caller multiplies them out).
 
-    Returns ``(code, match, q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
+    Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
     ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
     leave-one-out, 2 = the proposal's stars do not agree with the refined attitude, 3 =
     most bright predicted stars missing, 4 = too few matches.
@@ -1282,7 +1282,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         for t in range(nm):
             if loo[t] > radius[mi[t]] * widen:
                 if is_core[mi[t]]:
-                    return (1, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+                    return (1, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
                 match[mi[t]] = -1
                 nm -= 1
     agree = 0
@@ -1294,11 +1294,11 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         if d >= math.cos(radius[img[t]]):
             agree += 1
     if agree < min(img.shape[0], min_matches):
-        return (2, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (2, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     if bright_pred >= 3 and missing > bright_pred // 2:
-        return (3, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (3, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     if nm < min_matches and not (n == 3 and nm == 3):
-        return (4, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (4, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
     # The core's pattern chance with the window of its actual residual.
     bc = np.empty((nc, 3))
     rc = np.empty((nc, 3))
@@ -1320,4 +1320,4 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         rs += radius[i] * focal
     mean_r = rs / n
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
-    return (0, _to_global(match, sub), q, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)
+    return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)

@@ -380,7 +380,6 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     nominal, which multiplies the chance of a coincidence by ``1 + |s - 1| theta_max / window``
     (``theta_max`` the core's largest angle; see :func:`_verify_with_focal`).
     """
-    from startrack._kernels.attitude import quat_to_dcm
     from startrack._kernels.identify import verify_core
 
     star_vec = db.star_vector
@@ -404,10 +403,9 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     # leave-one-out, the proposal's agreement, bright stars missing, the count of matches
     # (reasons below), and the numbers of the false-match probability.
     fl = flux if flux is not None else np.full(n_all, np.nan)
-    code, match, q, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
+    code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
         b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
         int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
-    dcm = quat_to_dcm(q)
     if code == 1:
         return _Verdict(None, None, None, dcm, None, "a star of the proposal disagrees with the attitude of the others",
                         ReasonCode.VERIFICATION_FAILED)

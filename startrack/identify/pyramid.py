@@ -16,6 +16,7 @@ range.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,17 +33,27 @@ class PyramidConfig:
         "help": "Catalog triangles of one triad beyond which the triad is skipped as uninformative."})
 
 
+_TRIADS: dict = {}      # smart index sequence per number of search stars
+
+
 def _search(ctx, config, quadratic):
     from startrack._kernels.identify import pyramid_candidates, smart_triads
 
     db = ctx.db
     n = len(ctx.b)
-    line = np.asarray(db.line, dtype=np.float64)
-    quad = np.asarray(db.quad, dtype=np.float64)
+    arrays = db.__dict__.get("_pyramid_arrays")
+    if arrays is None:
+        arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
+                                                   np.asarray(db.quad, dtype=np.float64))
+    line, quad = arrays
     tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
-    triads = smart_triads(n)
+    triads = _TRIADS.get(n)
+    if triads is None:
+        if len(_TRIADS) > 64:
+            _TRIADS.clear()
+        triads = _TRIADS[n] = [tuple(r) for r in smart_triads(n).tolist()]
     seen = set()
-    for t, (i, j, k) in enumerate(triads[: config.max_triads].tolist(), start=1):
+    for t, (i, j, k) in enumerate(itertools.islice(triads, config.max_triads), start=1):
         out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                         db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
                                         config.max_triangles, 256)
