@@ -513,7 +513,10 @@ def summarise(errors, bounds, covariances=None):
     -------
     dict
         ``ratio_cross``, ``ratio_roll``: RMS error over the RMS of the per-frame
-        bound (cross-boresight pools x and y); ``z_cross``, ``z_roll``: RMS of
+        bound (cross-boresight pools x and y), with ``ratio_*_band`` the 95 %
+        band of an efficient estimator's ratio over these bounds (normal
+        approximation, ``n_eff = (sum b)^2 / sum b^2`` effective frames in
+        ``ratio_*_n_eff``); ``z_cross``, ``z_roll``: RMS of
         the per-frame normalised errors ``phi / sqrt(bound)`` (1 for an
         efficient estimator; less sensitive to the few frames with a huge
         bound); ``nees_mean`` and its 95 % band ``nees_band`` (mean of n
@@ -533,6 +536,14 @@ def summarise(errors, bounds, covariances=None):
     out["crb_roll_arcsec"] = math.sqrt(float(np.mean(b[:, 2]))) * _ARCSEC
     out["ratio_cross"] = out["rms_cross_arcsec"] / out["crb_cross_arcsec"]
     out["ratio_roll"] = out["rms_roll_arcsec"] / out["crb_roll_arcsec"]
+    # An efficient estimator's ratio^2 is sum(b_i chi2_i) / sum(b_i) (chi2_i of one degree of freedom):
+    # mean 1, variance 2 sum(b_i^2) / sum(b_i)^2 = 2 / n_eff.  Frames' bounds differ by orders of
+    # magnitude (two close stars leave the roll loose), so a few frames carry the ratio and n_eff is small.
+    for axis, bb in (("cross", b[:, :2].ravel()), ("roll", b[:, 2])):
+        n_eff = float(np.sum(bb)) ** 2 / float(np.sum(bb * bb))
+        half = 1.96 * math.sqrt(2.0 / n_eff)
+        out[f"ratio_{axis}_n_eff"] = n_eff
+        out[f"ratio_{axis}_band"] = (math.sqrt(max(0.0, 1.0 - half)), math.sqrt(1.0 + half))
     z = e / np.sqrt(b)
     out["z_cross"] = math.sqrt(float(np.mean(z[:, :2] ** 2)))
     out["z_roll"] = math.sqrt(float(np.mean(z[:, 2] ** 2)))

@@ -9,6 +9,7 @@ from startrack.accuracy import (
     centroid_crb,
     centroid_crb_px,
     stars_crb_from_frame,
+    summarise,
 )
 from startrack.attitude import covariance, estimate_attitude
 from startrack.camera import Camera
@@ -44,7 +45,7 @@ def test_an_efficient_estimator_reaches_the_bound():
     """Truth + noise drawn from each star's centroid bound: the errors match the per-frame bound (normalised RMS 1)."""
     cam = Camera.from_fov(15.0, 1024, 1024)
     rng = np.random.default_rng(7)
-    z = []
+    z, phis, bounds = [], [], []
     for _ in range(400):
         a = quaternion_to_dcm(random_quaternions(1, rng)[0])
         n = int(rng.integers(4, 20))
@@ -58,7 +59,13 @@ def test_an_efficient_estimator_reaches_the_bound():
         res = estimate_attitude(cam.pixels_to_vectors(x + noise[:, 0], y + noise[:, 1]), r, sig, gate=1e9)
         phi = _rotation_vector_rad(res.dcm @ a.T)
         z.append(phi / np.sqrt(np.diag(bound.cov_rad2)))
+        phis.append(phi)
+        bounds.append(np.diag(bound.cov_rad2))
     rms = np.sqrt(np.mean(np.square(z), axis=0))
+    s = summarise(phis, bounds)
+    for axis in ("cross", "roll"):
+        lo, hi = s[f"ratio_{axis}_band"]
+        assert lo <= s[f"ratio_{axis}"] <= hi and 1 < s[f"ratio_{axis}_n_eff"] < 800
     # 400 frames: the RMS of unit normals is 1 +- 0.035 (1 sigma)
     assert np.all(np.abs(rms - 1.0) < 0.12), rms
 
