@@ -444,9 +444,10 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
     Returns
     -------
     dict
-        :func:`summarise` of the frames solved within 0.1 degree, with the
-        counts ``failed`` (no attitude), ``far`` (farther off, but within 5
-        sigma of the covariance reported: NEES <= 25), ``wrong`` (beyond) and
+        :func:`summarise` of the frames solved and not wrong, with the
+        counts ``failed`` (no attitude), ``far`` (more than 0.1 deg off, but
+        within 5 sigma of the covariance reported: NEES <= 25; scored, as
+        leaving them out would bias the RMS low), ``wrong`` (beyond) and
         ``no_bound`` (fewer than 2 usable stars in view).
     """
     from startrack.render import Scene, Sensor, render_image
@@ -474,12 +475,13 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
                 counts["failed"] += 1
             else:
                 e = error_vector(att.dcm, dcms[k])
+                far = False
                 if np.linalg.norm(e) > math.radians(0.1):
                     # Off by more than 0.1 deg: wrong when also beyond 5 sigma of its own covariance,
                     # else "far" (two close stars leave the roll loose: off, but as it says).
                     far = float(e @ np.linalg.solve(att.cov_rad2, e)) <= 25.0
                     counts["far" if far else "wrong"] += 1
-                else:
+                if np.linalg.norm(e) <= math.radians(0.1) or far:
                     errs.append(e)
                     crbs.append(np.diag(bound.cov_rad2))
                     covs.append(att.cov_rad2)
