@@ -504,6 +504,7 @@ class Tracker:
             if est is not None and np.all(np.isfinite(est.cov)):
                 w = est.resolved(self.filter.rate)
                 track["streak_rate_deg_s"] = [round(float(v), 5) for v in np.degrees(w)]
+                track["streak_rate_sigma_deg_s"] = [round(float(v), 5) for v in np.degrees(np.sqrt(np.diag(est.cov)))]
                 self._streak_rate = (w, est.cov)
         if len(ok) >= max(cfg.min_stars, 2):
             body = self.camera.pixels_to_vectors(mx[ok], my[ok])
