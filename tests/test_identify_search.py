@@ -78,3 +78,20 @@ def test_voting_keeps_voting_when_its_clusters_fail(sensor16):
             for s, t, _ in frames]
     assert more.count("bad") == 0 and once.count("bad") == 0
     assert more.count("success") >= once.count("success") + 5
+
+
+def test_grid_tries_further_orientations(sensor16):
+    """A false star nearer a reference than its true nearest neighbour turns the grid pattern; the search
+    goes on with patterns oriented by the next neighbours."""
+    cam, cat, stars = sensor16
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=5, min_catalog_stars=6), 60, 17,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=0.3)
+    more = [score(identify_stars(s, cam, db, "grid", params), t) for s, t, _ in frames]
+    once = [score(identify_stars(s, cam, db, "grid", params, make_config("grid", {"orientations": 1})), t)
+            for s, t, _ in frames]
+    assert more.count("bad") == 0 and once.count("bad") == 0
+    assert more.count("success") > once.count("success")

@@ -46,6 +46,8 @@ class GridConfig:
     buffer_px: float = field(default=6.0, metadata={"help": "Buffer radius br (px; at least 3 tolerances)."})
     min_overlap: int = field(default=3, metadata={"help": "On-cells a catalog pattern must share."})
     references: int = field(default=12, metadata={"help": "Reference stars (nearest the centre) matched."})
+    orientations: int = field(default=3, metadata={
+        "help": "Orientation neighbours tried per reference when the search goes on (1: the paper's nearest)."})
 
 
 def _tangent_basis(v):
@@ -56,8 +58,9 @@ def _tangent_basis(v):
     return e1, e2
 
 
-def _pattern(centre, neighbours, pr, br, g):
-    """On-cell indices of one pattern and the index (into ``neighbours``) of the orientation star."""
+def _pattern(centre, neighbours, pr, br, g, which=0):
+    """On-cell indices of one pattern and the index (into ``neighbours``) of the orientation star
+    (the nearest neighbour outside ``br``; ``which`` > 0: the next nearest instead)."""
     if len(neighbours) == 0:
         return None, -1
     cosang = neighbours @ centre
@@ -69,7 +72,9 @@ def _pattern(centre, neighbours, pr, br, g):
     e1, e2 = _tangent_basis(centre)
     x = (neighbours[idx] @ e1) / cosang[idx]
     y = (neighbours[idx] @ e2) / cosang[idx]
-    nearest = int(np.argmin(ang[idx]))
+    if which >= len(idx):
+        return None, -1
+    nearest = int(np.argsort(ang[idx], kind="stable")[which]) if which else int(np.argmin(ang[idx]))
     phi = math.atan2(y[nearest], x[nearest])
     c, s = math.cos(-phi), math.sin(-phi)
     xr = c * x - s * y
@@ -140,6 +145,34 @@ def search_grid(ctx, config: GridConfig):
         if votes[best] < min_overlap or (second >= 0 and votes[second] == votes[best]):
             continue
         refs.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
+    yield from _confirmed(ctx, b, db, refs, 1)
+    # The search goes on (Padgett & Kreutz-Delgado orient by the nearest neighbour; a false
+    # star nearer than the true one turns the whole pattern): each reference's pattern
+    # oriented by its next nearest neighbours, the new matches added to the references.
+    for which in range(1, int(config.orientations)):
+        more = list(refs)
+        for r in order[:n_refs]:
+            others = np.delete(np.arange(len(b)), r)
+            cells, k = _pattern(b[r], b[others], pr, br, g, which)
+            if cells is None or len(cells) < min_overlap:
+                continue
+            votes = np.zeros(db.n_stars, dtype=np.int64)
+            for c in cells:
+                votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
+            top = np.argsort(-votes)[:2]
+            best, second = int(top[0]), int(top[1]) if len(top) > 1 else -1
+            if votes[best] < min_overlap or (second >= 0 and votes[second] == votes[best]):
+                continue
+            if any(x[0] == int(r) and x[1] == best for x in more):
+                continue
+            more.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
+        if len(more) > len(refs):
+            refs = more
+            yield from _confirmed(ctx, b, db, refs, which + 1)
+
+
+def _confirmed(ctx, b, db, refs, rounds):
+    """Groups of references whose catalog angles agree with the image, largest first, as proposals."""
     if not refs:
         return
     # Confirmation: groups of references whose catalog angles agree with the image, largest first.
@@ -166,8 +199,10 @@ def search_grid(ctx, config: GridConfig):
     # catalog's -- a missing or extra star changes it -- and one wrong pair in
     # the proposal can pull the attitude onto the wrong member of a close pair.)
     for _, group in sorted(groups, key=lambda kg: -len(kg[1])):
+        if any(r == r2 for i, (r, *_) in enumerate(group) for (r2, *_) in group[i + 1:]):
+            continue    # one image star proposed as two catalog stars (two orientations)
         yield Proposal([r for r, *_ in group], [c for _, c, *_ in group], len(refs),
-                       {"grid_votes": [v for *_, v in group]})
+                       {"grid_votes": [v for *_, v in group], "grid_orientations": rounds})
 
 
 GRID = Algorithm("grid", search_grid, GridConfig, "kvector",
