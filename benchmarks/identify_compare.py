@@ -65,6 +65,7 @@ def main(argv=None):
     from startrack.kvector import build_kvector, max_separation_deg
     from startrack.labels import build_labels
 
+    load_start = " ".join(f"{v:.2f}" for v in os.getloadavg())
     w, h = (int(v) for v in args.size.split("x"))
     cam = Camera.from_fov(args.fov, w, h)
     full = load_catalog()
@@ -139,10 +140,15 @@ def main(argv=None):
     lines = [f"# Identification, {args.fov:g} deg {args.size}, stars to Hp {args.star_mag:g}, database Hp <= "
              f"{args.db_mag:g}, >= {args.min_stars} catalog stars a frame, {args.count} frames, seed {args.seed}", ""]
     lines += [f"- {n}" for n in notes] + [""]
-    lines += ["| condition | algorithm | success | failed | wrong | median ms | p95 ms |", "|---|---|---|---|---|---|---|"]
+    lines += ["| condition | algorithm | success | failed | wrong | median ms | p95 ms | frames with a double: ok / wrong |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        dbl = f"{r['double_success']} of {r['double_frames']} / {r['double_bad']}" if "double_frames" in r else "-"
         lines.append(f"| {r['condition']} | {r['algorithm']} | {100 * r['success'] / r['frames']:.1f} % "
-                     f"({r['success']}) | {r['failure']} | {r['bad']} | {r['median_ms']:.3f} | {r['p95_ms']:.3f} |")
+                     f"({r['success']}) | {r['failure']} | {r['bad']} | {r['median_ms']:.3f} | {r['p95_ms']:.3f} "
+                     f"| {dbl} |")
+    lines += ["", f"Load average (1, 5, 15 min) at the start: {load_start}; at the end: "
+              + " ".join(f"{v:.2f}" for v in os.getloadavg()) + f" ({os.cpu_count()} cores)"]
     if bad:
         lines += ["", "Wrong answers (frame seed, star, reported id, true id):", ""] + [f"- {b}" for b in bad]
     text = "\n".join(lines) + "\n"
