@@ -42,8 +42,9 @@ sign: ``+-(2 l cos theta, 2 l sin theta)``.  :func:`rate_from_streaks`
    least squares ``min sum_i |s_i v_i - M_i w T|^2_{C_i^{-1}}`` for ``w``
    (``C_i`` the streak vector's covariance, from the fit), repeating the sign
    choice until it no longer changes; the streak farthest off the fit
-   (more than 4 sigma, the sigmas scaled by the fit's own scatter) is dropped
-   and the fit repeated, while more than 3 remain.
+   (more than 4 sigma, the sigmas scaled by the fit's own scatter measured
+   robustly: the median chi-square) is dropped and the fit repeated, while
+   more than 3 remain.
 
 Cross-boresight rates come from the common motion of the streaks, the rate
 about the boresight from how their directions turn across the field (a roll
@@ -284,8 +285,9 @@ def rate_from_streaks(camera, streaks, exposure_s: float, min_streaks: int = 2, 
         # Robust: a streak far off the common motion (a blend, a bad fit) is dropped and the fit repeated.
         resid_w = (a @ w - bvec).reshape(2, -1)
         r2 = np.sum(resid_w ** 2, axis=0)
-        dof0 = max(1, 2 * int(keep.sum()) - 3)
-        scale2 = max(1.0, float(np.sum(r2[keep])) / dof0)
+        # The fit's own scatter, robustly: the median chi-square of the kept streaks (2 dof: median 1.386),
+        # which one far-off streak cannot inflate (a mean would hide the outlier behind its own scatter).
+        scale2 = max(1.0, float(np.median(r2[keep])) / 1.386)
         worst = int(np.argmax(np.where(keep, r2, -1.0)))
         if keep.sum() > 3 and r2[worst] / scale2 > 16.0 and r2[worst] > 25.0:
             keep[worst] = False
