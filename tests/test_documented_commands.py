@@ -18,7 +18,14 @@ the texts name, prepared here: ``sky.tiff``/``cam.json`` (the ESA image and its
 camera), ``a.tiff``/``b.tiff``, ``photos/`` and ``tests/data/real/`` (two ESA images, to keep the run
 short), ``examples/data/``.  `jq` is needed by the examples that use it; without
 it those blocks are skipped (and the reason says how many).
+
+solve's cached databases and pattern index are shared by the tests (built once, or linked from the
+user's cache): each test has its own ``STARTRACK_CACHE`` of links, so ``startrack cache clear``
+never touches the user's cache.  ``STARTRACK_DOC_TIMES=FILE`` records each command's wall and CPU
+seconds.
 """
+import contextlib
+import functools
 import os
 import re
 import shutil
@@ -37,6 +44,7 @@ NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 # Extraction
 # ---------------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=None)
 def help_text(*args):
     env = dict(os.environ, PYTHONPATH=ROOT, COLUMNS="100")
     return subprocess.run([sys.executable, "-m", "startrack", *args, "--help"], capture_output=True, text=True,
@@ -91,7 +99,42 @@ def commands_in(block):
 # Running
 # ---------------------------------------------------------------------------------------------
 
-def _workdir(tmp_path):
+@pytest.fixture(scope="session")
+def cache_seed(tmp_path_factory):
+    """solve's cached databases and pattern index, shared by the tests of this module.
+
+    Seeded with links to the files of the user's cache when there are any (else the first test that
+    solves builds them, and the next ones reuse them); each test gets its own directory of links
+    (:func:`_test_cache`), so `startrack cache clear` clears that, never the user's cache.
+    """
+    seed = tmp_path_factory.mktemp("cache-seed")
+    from startrack.solve import cache_dir
+
+    user = cache_dir()
+    for name in os.listdir(user):
+        src = os.path.join(user, name)
+        if os.path.isfile(src) and not name.endswith(".lock") and ".part" not in name:
+            os.symlink(src, seed / name)
+    return seed
+
+
+@contextlib.contextmanager
+def _test_cache(seed, tmp_path):
+    """A cache directory for one test: links to the seed's files; what the test builds goes to the seed after it."""
+    d = tmp_path / "cache"
+    d.mkdir()
+    for name in os.listdir(seed):
+        os.symlink(os.path.realpath(seed / name), d / name)
+    try:
+        yield d
+    finally:
+        for name in os.listdir(d):
+            p = d / name
+            if p.is_file() and not p.is_symlink() and not name.endswith(".lock") and not (seed / name).exists():
+                shutil.move(str(p), seed / name)
+
+
+def _workdir(tmp_path, cache=None):
     """A directory with the files the texts name, and a PATH whose `startrack` is this checkout."""
     bindir = tmp_path / "bin"
     bindir.mkdir()
@@ -120,6 +163,8 @@ def _workdir(tmp_path):
     shutil.copy(os.path.join(real, "camera.json"), work / "tests" / "data" / "real" / "camera.json")
     env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}", PYTHONPATH=ROOT)
     env.pop("STARTRACK_DEBUG", None)
+    if cache is not None:
+        env["STARTRACK_CACHE"] = str(cache)
     return work, env
 
 
@@ -165,36 +210,38 @@ def _runnable(block):
 
 
 @pytest.mark.parametrize("name", _commands())
-def test_help_examples_run(name, tmp_path):
+def test_help_examples_run(name, tmp_path, cache_seed):
     """`startrack NAME --help`: each example runs as written (exit status 0, printed claims hold)."""
     text = help_text(*([name] if name else []))
     blocks = help_examples(text)
     assert blocks, f"startrack {name} --help has no example"
     assert all(commands_in(b) for b in blocks), blocks
-    work, env = _workdir(tmp_path)
     skipped = 0
-    for block in blocks:
-        if not _runnable(block):
-            skipped += 1
-            continue
-        run_block(block, work, env)
+    with _test_cache(cache_seed, tmp_path) as cache:
+        work, env = _workdir(tmp_path, cache)
+        for block in blocks:
+            if not _runnable(block):
+                skipped += 1
+                continue
+            run_block(block, work, env)
     if skipped:
         pytest.skip(f"{skipped} example(s) of `startrack {name} --help` need jq, which is not installed")
 
 
-def test_readme_commands_run(tmp_path):
+def test_readme_commands_run(tmp_path, cache_seed):
     with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as fh:
         blocks = readme_blocks(fh.read())
     runnable = [(lang, code) for lang, code, skip in blocks if skip is None and lang in ("sh", "bash", "python")]
     skipped = [(lang, skip) for lang, code, skip in blocks if skip is not None]
     assert len(runnable) >= 4 and all(reason for _, reason in skipped)
-    work, env = _workdir(tmp_path)
     no_jq = 0
-    for lang, code in runnable:
-        if not _runnable(code):
-            no_jq += 1
-            continue
-        run_block(code, work, env, "python" if lang == "python" else "sh")
+    with _test_cache(cache_seed, tmp_path) as cache:
+        work, env = _workdir(tmp_path, cache)
+        for lang, code in runnable:
+            if not _runnable(code):
+                no_jq += 1
+                continue
+            run_block(code, work, env, "python" if lang == "python" else "sh")
     if no_jq:
         pytest.skip(f"{no_jq} README block(s) need jq, which is not installed")
 

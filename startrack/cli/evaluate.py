@@ -127,12 +127,12 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     reproduces them.
 
     \b
-    Example (paper 003 Table 3's conditions, at 500 rather than the paper's 10,000 attitudes):
+    Example (paper 003 Table 3's conditions, at 200 rather than the paper's 10,000 attitudes):
       startrack build-kvector --fov-deg 20 --mag-max 5.0 -o p003.h5
       startrack evaluate -d p003.h5 -a pyramid,voting --fov-deg 20 --size 1024x1024 --mag-max 5 \\
-          --sigma-arcsec 1.667 --mag-noise 0.2 --max-stars 10 --false-stars 0,1 --count 500 --seed 1 -j 2
+          --sigma-arcsec 1.667 --mag-noise 0.2 --max-stars 10 --false-stars 0,1 --count 200 --seed 1 -j 2
     \b
-    Example (accuracy: error / Cramér-Rao bound per axis on paper 000's sensor, 1000 rendered frames):
+    Example (accuracy: error / Cramér-Rao bound per axis on paper 000's sensor, 100 rendered frames):
       startrack build-kvector --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --mag-min 2.5 \\
           --mag-max 6.59 -o p000.h5
       startrack evaluate -d p000.h5 --focal-length-mm 41.1 --pixel-pitch-um 6 --size 752x480 --accuracy -n 100

@@ -65,7 +65,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     \b
     Example (a rendered sequence, then tracking):
       startrack build-kvector --fov-deg 12 --size 1024x768 --mag-max 6.5 -o db12.h5
-      startrack render --fov-deg 12 --size 1024x768 --frames 60 --rate-deg-s 0.3,-0.2,0.5 \\
+      startrack render --fov-deg 12 --size 1024x768 --frames 30 --rate-deg-s 0.3,-0.2,0.5 \\
           --frame-interval-s 0.1 --seed 1 -o seq/frame.png > seq.jsonl
       startrack track --database db12.h5 < seq.jsonl | jq -c '[.track.mode, .attitude.ra, .attitude.dec]'
     """
