@@ -69,6 +69,44 @@ def background_mesh(image, cell, step):
 
 
 @njit(cache=True)
+def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, out):
+    """Per-tile noise (DN): standard deviation of the residual pixels within ``kappa`` sigma of zero.
+
+    ``sigma`` starts at the tile's ``sigma_mesh`` and is re-estimated ``n_iter``
+    times from every pixel of the tile, each time divided by
+    ``truncated_std`` (the standard deviation of a unit normal truncated to
+    +-kappa).  ``out`` (same shape as ``sigma_mesh``) receives it; a tile with
+    fewer than 50 pixels kept keeps ``sigma_mesh``.
+    """
+    h, w = residual.shape
+    ny, nx = sigma_mesh.shape
+    for j in range(ny):
+        for i in range(nx):
+            s = sigma_mesh[j, i]
+            out[j, i] = s
+            for _ in range(n_iter):
+                lim = kappa * s
+                n = 0
+                s1 = 0.0
+                s2 = 0.0
+                for y in range(j * cell, min(h, (j + 1) * cell)):
+                    for x in range(i * cell, min(w, (i + 1) * cell)):
+                        v = residual[y, x]
+                        if abs(v) <= lim:
+                            n += 1
+                            s1 += v
+                            s2 += v * v
+                if n < 50:
+                    break
+                var = (s2 - s1 * s1 / n) / (n - 1)
+                if not var > 0.0:
+                    break
+                s = math.sqrt(var) / truncated_std
+                out[j, i] = s
+    return out
+
+
+@njit(cache=True)
 def windowed_centroid(residual, x0, y0, sigma_w, half, n_iter):
     """Iterative intensity-weighted centroid with a Gaussian window (like XWIN).
 
