@@ -139,7 +139,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     \b
     Example (robustness to focal-length error, with a chart):
       startrack evaluate -d p003.h5 --fov-deg 20 --size 1024x1024 --mag-max 5 --focal-error-pct 0,0.5,1,2 \\
-          --count 200 --plot focal.png
+          --count 50 --plot focal.png
     """
     from startrack.cli.options import require_stdout
 
