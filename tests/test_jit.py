@@ -100,3 +100,20 @@ def test_every_kernel_module_declares_lazy_kernels():
         if name.endswith(".py") and name != "_jit.py":
             text = open(os.path.join(here, name)).read()
             assert "from numba import" not in text and "import numba" not in text, name
+
+
+def test_clearing_another_cache_keeps_the_compiled_kernels(tmp_path):
+    from conftest import run_cli
+
+    kernels = tmp_path / "kernels"
+    kernels.mkdir()
+    (kernels / "kernels-abc.so").write_bytes(b"x")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "patterns-old.idx").write_bytes(b"x")
+    env = {"STARTRACK_CACHE": str(other), "STARTRACK_KERNELS": str(kernels)}
+    run_cli("cache", "clear", env=env, check=True)
+    assert not list(other.iterdir()) and (kernels / "kernels-abc.so").exists()
+    inside = {"STARTRACK_CACHE": str(tmp_path), "STARTRACK_KERNELS": str(kernels)}
+    run_cli("cache", "clear", env=inside, check=True)
+    assert not (kernels / "kernels-abc.so").exists()

@@ -14,9 +14,11 @@ def command(action, quiet):
     The blind solver's star pattern index (one memory-mapped file, built from
     the shipped catalog) and the k-vector and label databases of the older
     solvers are cached in $STARTRACK_CACHE, else $XDG_CACHE_HOME/startrack,
-    else ~/.cache/startrack.  `build` makes the default pattern index now (and
-    compiles the solver's kernels), so that the first `solve` does not wait;
-    `clear` deletes every cached file.
+    else ~/.cache/startrack.  `build` makes the default pattern index now and
+    compiles the solver's kernels ahead of time (into $STARTRACK_KERNELS, else
+    the default cache's kernels/ folder: one build serves every cache), so
+    that `solve` neither waits nor loads numba; `clear` deletes every cached
+    file (the compiled kernels too when they are inside the cache cleared).
 
     \b
     Example (what is cached, and its size):
@@ -58,12 +60,16 @@ def command(action, quiet):
     else:
         from startrack._kernels._jit import kernels_dir
 
-        kernels = sorted(glob.glob(os.path.join(kernels_dir(), "kernels-*")))
+        # The compiled kernels go with the cache only where they live inside it (the
+        # default layout): clearing another $STARTRACK_CACHE leaves them alone.
+        kdir = os.path.realpath(kernels_dir())
+        inside = os.path.commonpath([kdir, os.path.realpath(root)]) == os.path.realpath(root)
+        kernels = sorted(glob.glob(os.path.join(kdir, "kernels-*"))) if inside else []
         for p in files + kernels:
             os.remove(p)
         if not quiet:
             click.echo(f"cache: removed {len(files) + len(kernels)} file(s) from {root}"
-                       + (f" and {kernels_dir()}" if kernels else ""), err=True)
+                       + (f" and {kdir}" if kernels else ""), err=True)
 
 
 def _build_kernels(quiet: bool, index) -> None:
