@@ -362,8 +362,8 @@ def _p003_scope(results):
         if ratio >= 4:
             lines[-1] += "The paper's 4-5x speed-up is reproduced."
         else:
-            lines[-1] += ("The paper's 4-5x speed-up is **not reproduced**: both searches take tens of "
-                          "microseconds, most of it fixed per-frame cost (Python around a compiled kernel, sorting "
+            lines[-1] += ("The paper's 4-5x speed-up is **not reproduced**: both searches take a few tens of "
+                          "microseconds at most, most of it fixed per-frame cost (Python around a compiled kernel, sorting "
                           "the stars, the calibration) rather than entries examined; a MATLAB search whose cost "
                           "grows with the entries it examines gains from the narrower scope, a compiled one that "
                           "examines a few dozen does not. The identification time is dominated by the shared "
@@ -453,7 +453,10 @@ def _headline_004(results):
         if all(a in by for a in ("labelling", "pyramid", "grid")):
             rows.append([f"Fig. 10 at {top} false stars: labelling / pyramid / grid success", "> 95 % / > 95 % / 85 %",
                          f"{_pct(by['labelling']['success_rate'])} / {_pct(by['pyramid']['success_rate'])} / "
-                         f"{_pct(by['grid']['success_rate'])}", "false-star brightness not given; see Figs. 9-10"])
+                         f"{_pct(by['grid']['success_rate'])}",
+                         "labelling and pyramid reproduced; grid keeps looking (see Figs. 9-10)"
+                         if min(by["labelling"]["success_rate"], by["pyramid"]["success_rate"]) >= 0.95 else
+                         "false-star brightness not given; see Figs. 9-10"])
     return ["## Headline", "", _table(["", "paper", "ours", "why they differ"], rows), ""] if rows else []
 
 
@@ -516,12 +519,17 @@ def report_004(results):
                       f"{_pct(min((r['success_rate'] for r in pyr), default=float('nan')))}, grid "
                       f"{_pct(min((r['success_rate'] for r in grid), default=float('nan')))}; wrong identifications "
                       f"in all: labelling {sum(r['bad'] for r in lab)}, pyramid {sum(r['bad'] for r in pyr)}, "
-                      f"grid {sum(r['bad'] for r in grid)}. Why labelling differs: the paper does not say how "
-                      "bright its false stars are; ours are uniform in magnitude over the 5 magnitudes above the "
-                      "limit, so they are often among the 8 brightest stars whose groups the labelling tries (the "
-                      "paper's 8; `--group-stars` widens it, slowly), and a 4-star group that contains one has a "
-                      "label no sky gives. The pyramid tries triads of all the stars and keeps looking, so a false star "
-                      "costs it time rather than success.", ""]
+                      f"grid {sum(r['bad'] for r in grid)}. "
+                      + ("Why labelling differs: the paper does not say how bright its false stars are; ours are "
+                         "uniform in magnitude over the 5 magnitudes above the limit, so they are often among the 8 "
+                         "brightest stars whose groups the labelling tries first, and a 4-star group that contains "
+                         "one has a label no sky gives. " if worst < 0.95 else
+                         "Labelling and pyramid keep > 95 % as in the paper: both keep looking past groups or "
+                         "triads that contain a false star (the false stars here are uniform in magnitude over the "
+                         "5 magnitudes above the limit; the paper does not say how bright its are). ")
+                      + ("Our grid degrades less than the paper's: it keeps looking after a rejected pattern "
+                         "(each reference's pattern also oriented by its 2nd and 3rd neighbours)."
+                         if min((r["success_rate"] for r in grid), default=0.0) > 0.9 else ""), ""]
         else:
             by = {(r["algorithm"], r[key]): r for r in doc["rows"]}
             lab = [by[("labelling", v)]["success_rate"] for v in values if ("labelling", v) in by]
