@@ -161,3 +161,22 @@ def test_thin_for_field_gives_every_field_about_the_same_stars(catalog):
     assert p5 >= 20
     # ... and thinning evens out the Milky Way: the spread is far below the unthinned catalog's.
     assert p95 / p5 < 2.0 and np.percentile(full, 95) / np.percentile(full, 5) > 2.0
+
+
+def test_photocentres_around_stars_agree_with_the_merged_catalog():
+    """The local photocentre of a star and its companions is merge_close's entry for that group (pairs)."""
+    from startrack.catalog import load_catalog
+
+    cat = load_catalog().filter_magnitude(mag_max=8.0)
+    radius = 60.0
+    merged = cat.merge_close(radius)
+    rows = cat.rows_by_id()
+    pairs = [i for i, others in merged.merged.items() if len(others) == 1]
+    assert len(pairs) > 20
+    local = cat.photocentres([rows[i] for i in pairs], radius)
+    mrows, mvec = merged.rows_by_id(), merged.vectors()
+    worst = max(float(np.degrees(np.arccos(min(1.0, local[i] @ mvec[mrows[i]])))) * 3600 for i in pairs)
+    assert worst < 0.01, worst        # arcsec (merge_close averages in float32 magnitudes)
+    grouped = set(merged.merged) | {int(j) for others in merged.merged.values() for j in others}
+    lonely = [r for r in range(len(cat)) if int(cat.id[r]) not in grouped][:200]
+    assert cat.photocentres(lonely, radius) == {}

@@ -102,24 +102,12 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             propagated[key] = found
         return found
 
-    blended = {}
-
-    def photocentres_at(ep, cam):
-        """``{id: unit vector}`` of the entries that absorbed unresolved companions at this camera's scale."""
+    def photocentres_at(ep, cam, ids):
+        """``{id: unit vector}`` of the matched stars that have unresolved companions at this camera's scale."""
         if not merge_px:
             return {}
-        radius = merge_radius_arcsec(cam, merge_px)
-        key = (round(ep, 6), round(radius, 6))
-        found = blended.get(key)
-        if found is None:
-            cat = catalog_at(ep)[0]
-            merged = cat.merge_close(radius)
-            mrows = merged.rows_by_id()
-            mvec = merged.vectors()
-            found = {int(i): mvec[mrows[int(i)]] for i in merged.merged}
-            blended.clear()
-            blended[key] = found
-        return found
+        cat, rows, vectors = catalog_at(ep)
+        return cat.photocentres([rows[i] for i in ids if i in rows], merge_radius_arcsec(cam, merge_px), vectors)
 
     def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         ident = doc.get("identification")
@@ -145,7 +133,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         if ep is None:
             ep = base.epoch
         _, rows, vectors = catalog_at(ep)
-        centres = photocentres_at(ep, cam)
+        centres = photocentres_at(ep, cam, [int(m["id"]) for m in matches])
         gain = _frame_gain(doc)
         noise_frame = (doc.get("centroid") or {}).get("noise_dn")
         body, ref, sig, labels, bounds = [], [], [], [], []
