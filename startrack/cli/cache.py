@@ -96,7 +96,13 @@ def _build_kernels(quiet: bool, index) -> None:
         from startrack.solve import warm_for_build
 
         warm_for_build(index)
-        path, n = build_aot()
+        try:
+            path, n = build_aot()
+        except Exception as exc:  # noqa: BLE001 - no C compiler, an unsupported platform: numba's JIT remains
+            sys.stderr.write(f"startrack: kernels not compiled ahead of time ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); commands use numba's "
+                             f"just-in-time kernels instead\n")
+            return
         if not quiet:
             click.echo(f"cache: built {path} ({n} kernel entry points) in {time.perf_counter() - t0:.1f} s",
                        err=True)
