@@ -387,8 +387,8 @@ def gated_quest(b, r, sig, weighted, gate, min_keep):
                 iw = 1.0 / (ks[j] * ks[j])
                 for p in range(3):
                     info[p, p] += iw
-                    for p2 in range(3):
-                        info[p, p2] -= iw * kb[j, p] * kb[j, p2]
+                    for col in range(3):
+                        info[p, col] -= iw * kb[j, p] * kb[j, col]
                 for p in range(3):
                     d = kb[j, p] - (dcm[p, 0] * kr[j, 0] + dcm[p, 1] * kr[j, 1] + dcm[p, 2] * kr[j, 2])
                     loss += 0.5 * w[j] * d * d
