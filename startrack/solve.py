@@ -383,6 +383,13 @@ def warm_for_build(index=None) -> None:
         image, _ = render_image(catalog, camera, quaternion_to_dcm(q), Sensor(bit_depth=bits), Scene(),
                                 np.random.default_rng(3))
         solve_image(image, index=index)
+        # Every centroid method (the Gaussian fit falls back to the windowed centroid for some stars).
+        from dataclasses import replace
+
+        from startrack.centroid import METHODS, CentroidOptions, find_stars
+
+        for method in METHODS:
+            find_stars(image, replace(CentroidOptions(), method=method))
     # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too).
     from startrack.identify import warm_up
     from startrack.kvector import build_kvector
