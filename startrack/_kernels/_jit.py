@@ -23,7 +23,8 @@ dispatcher.  A call goes to
 The AOT build is made with :mod:`numba.pycc` from the signatures of the kernels
 called from Python (entry points) that the process building it has compiled (the warm-up of the solver and the identification
 algorithms), into ``kernels-<tag>.so`` in the cache directory beside the
-pattern index's (see :func:`kernels_dir`); ``<tag>`` hashes the kernels' source, numba's, numpy's and
+pattern index's (see :func:`kernels_dir`); ``<tag>`` hashes the kernels' source (and
+``solve.py``, whose warm-up chooses the signatures), numba's, numpy's and
 Python's versions, so an edited kernel or an upgrade simply misses the build
 (and falls back to numba) until the next ``startrack cache build``.  Parallel
 kernels (``parallel=True``) and kernels that are only inlined into others are
@@ -214,10 +215,12 @@ def _tag() -> str:
     """Hash of the kernels' source and the versions that compile and run them."""
     here = os.path.dirname(os.path.abspath(__file__))
     h = hashlib.sha1(_versions().encode())
-    for name in sorted(os.listdir(here)):
-        if name.endswith(".py"):
-            with open(os.path.join(here, name), "rb") as f:
-                h.update(name.encode() + b"\0" + f.read())
+    files = [os.path.join(here, n) for n in sorted(os.listdir(here)) if n.endswith(".py")]
+    # solve.py holds the warm-up that decides which signatures the build holds.
+    files.append(os.path.join(os.path.dirname(here), "solve.py"))
+    for path in files:
+        with open(path, "rb") as f:
+            h.update(os.path.basename(path).encode() + b"\0" + f.read())
     return h.hexdigest()[:12]
 
 
