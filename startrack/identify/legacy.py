@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import IdentifyParams, tolerance_rad
+from startrack.identify.base import IdentifyParams, _binomial_sf, tolerance_rad
 from startrack.records import Identification, ReasonCode, Status
 
 __all__ = ["IdentifyParams", "IdentifyResult", "Proposal", "centroid_sigma_px", "tolerance_rad", "verify"]
@@ -89,18 +89,6 @@ def centroid_sigma_px(stars: list, params: IdentifyParams) -> float:
     if reported:
         return float(max(0.05, min(2.0, np.median(reported) * 1.5)))
     return 0.5
-
-
-def _binomial_sf(m: int, n: int, p: float) -> float:
-    """P(X >= m) for X ~ Binomial(n, p)."""
-    if m <= 0:
-        return 1.0
-    if m > n:
-        return 0.0
-    total = 0.0
-    for k in range(m, n + 1):
-        total += math.comb(n, k) * p**k * (1 - p) ** (n - k)
-    return min(1.0, total)
 
 
 def _pyramid_chance(n_cat: int, eps: float, vecs) -> float:
