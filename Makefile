@@ -36,10 +36,10 @@ demo: install
 	$(ST) build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.5 -o $(OUT)/db20.h5
 	$(ST) render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --roll 30 --seed 1 -o $(OUT)/orion.png -q \
 	  | $(ST) centroid -q | $(ST) identify -d $(OUT)/db20.h5 -q | $(ST) attitude -q > $(OUT)/orion.json
-	@$(PY) -c "import json, math; from startrack.rotations import attitude_error, quaternion_to_dcm as A; \
+	@$(PY) -c "import json; from startrack.rotations import attitude_error, quaternion_to_dcm as A; \
 	d = json.load(open('$(OUT)/orion.json')); t, c, r = attitude_error(A(d['attitude']['quaternion']), A(d['truth']['quaternion'])); \
 	print(f\"   truth RA 83.8 Dec -1.2 roll 30 -> solved RA {d['attitude']['ra']:.4f} Dec {d['attitude']['dec']:+.4f} \
-	roll {d['attitude']['roll']:.3f}; error {math.degrees(c)*3600:.2f}\\\" cross-boresight, {math.degrees(r)*3600:.1f}\\\" roll\")"
+	roll {d['attitude']['roll']:.3f}; error {c*3600:.2f}\\\" cross-boresight, {r*3600:.1f}\\\" roll\")"
 	@echo
 	@echo "Outputs are in $(OUT)/.  Next: startrack --help"
 
