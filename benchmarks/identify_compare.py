@@ -8,6 +8,7 @@ and its roll within 1 deg of the truth, wrong otherwise (peers report an attitud
 star ids).  Database loading is outside every timing.
 
     .venv/bin/python benchmarks/identify_compare.py --count 1000            # the issue-14 table
+    .venv/bin/python benchmarks/identify_compare.py --triangles tri15.h5    # modified-pyramid on build-triangles' file
     .venv/bin/python benchmarks/identify_compare.py --fov 12 --size 1024x768 --count 300
 """
 from __future__ import annotations
@@ -23,7 +24,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "peers"))
 OUT = os.path.join(os.path.dirname(HERE), "bench-output")
 
-ALGORITHMS = ["pyramid", "pyramid-quadratic", "voting", "brightness", "labelling", "grid"]
+ALGORITHMS = ["pyramid", "modified-pyramid", "voting", "brightness", "labelling", "grid"]
 
 
 def _peer_correct(r, truth):
@@ -53,6 +54,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10", help="sigma_px:false_stars, ...")
     ap.add_argument("--algorithms", default=",".join(ALGORITHMS))
+    ap.add_argument("--triangles", default=None,
+                    help="build-triangles database for modified-pyramid (default: built here from the same stars)")
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", default=os.path.join(OUT, "identify_compare.md"))
@@ -64,6 +67,7 @@ def main(argv=None):
     from startrack.identify import IdentifyParams
     from startrack.kvector import build_kvector, max_separation_deg
     from startrack.labels import build_labels
+    from startrack.triangles import build_triangles, load_triangles
 
     load_start = " ".join(f"{v:.2f}" for v in os.getloadavg())
     w, h = (int(v) for v in args.size.split("x"))
@@ -83,10 +87,23 @@ def main(argv=None):
         t0 = time.perf_counter()
         dbs["labels"] = build_labels(db_cat, max(cam.fov_deg))
         t_lab = time.perf_counter() - t0
+    tri_note = None
+    if "modified-pyramid" in algos:
+        if args.triangles:
+            dbs["triangles"] = load_triangles(args.triangles)
+            tri_note = f"triangle database {args.triangles}"
+        else:
+            dbs["triangles"] = build_triangles(db_cat, min(cam.fov_deg))
+            tri_note = "triangle database built here"
+        tri = dbs["triangles"]
+        tri_note += (f": {tri.n_stars} stars, {tri.n_triangles} triangles, sides up to {tri.max_separation_deg:.2f} deg, "
+                     f"built in {tri.params['build_seconds']:.1f} s")
     peers = {}
     notes = [f"startrack k-vector database: {kv.n_stars} stars (Hp <= {args.db_mag:g}, pairs closer than "
              f"{merge_arcsec:.0f}\" merged as build-kvector --size does), {kv.n_pairs} pairs, "
              f"built in {t_kv:.1f} s" + (f"; label database built in {t_lab:.1f} s" if t_lab else "")]
+    if tri_note:
+        notes.append(tri_note)
     if not args.no_peers:
         try:
             import tetra3rs_peer

@@ -125,7 +125,7 @@ def report_000(results):
                            f"{ln.get('median_ms', float('nan')) / max(q.get('median_ms', float('nan')), 1e-9):.2f}"]]),
                   "", "The paper's 14x follows from its 3x shorter interval (and, we suspect, from a linear scan of "
                   "the whole table as its 'k-vector'); with equal intervals the two searches cost the same. "
-                  f"Times: {HARDWARE}.", ""]
+                  f"Times: {HARDWARE}.", "", RETIRED_QUADRATIC, ""]
     lines += _p000_pipeline(results)
     real = d.get("real_image")
     lines += ["## Sec. 4 — the real-image experiment (Eqs. 27-29)", ""]
@@ -149,6 +149,15 @@ def report_000(results):
                   "stars are often saturated, and a saturated centroid is no better than a faint one: the "
                   "paper's camera (threshold 60 of 255) may not have saturated its four."]
     return "\n".join(lines) + "\n"
+
+
+# History: the algorithm startrack had under paper 000's name before modified-pyramid (measured at commit 51376af).
+RETIRED_QUADRATIC = (
+    "Before the triangle database, startrack's stand-in for this search was `pyramid-quadratic`: paper 000's "
+    "quadratic applied to Mortari's pair cosines and clipped to the k-vector range. Run beside `pyramid` on the same "
+    "1,000 frames (15 x 15 deg, 1024 x 1024, Hp <= 6.0; sigma 0.3 and 1 px, 3 and 10 false stars, 3-4 stars; commit "
+    "51376af) it returned the same status and the same star ids on every frame, so it was retired: "
+    "`--algorithm pyramid-quadratic` now exits 2 saying to use pyramid or modified-pyramid.")
 
 
 P000_DESIGN = {"cross": 20.0, "roll": 100.0, "identify_ms": 25.0}

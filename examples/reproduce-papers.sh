@@ -13,7 +13,7 @@ NT=${3:-100000}
 W=${WORK:-examples/results/work}
 R=examples/results
 mkdir -p "$W" "$R"
-ALL=pyramid,pyramid-quadratic,voting,brightness,labelling,grid
+ALL=pyramid,voting,brightness,labelling,grid
 
 # Paper 003: 20 x 20 deg, 1024 x 1024, catalog to magnitude 5.0, 5" (3 sigma), 0.2 mag, 10 brightest.
 $ST build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.0 -o "$W/p003-kvector.h5" -q

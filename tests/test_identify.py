@@ -29,7 +29,7 @@ def test_smart_triads_cover_every_triad_once():
     assert [tuple(r) for r in smart_triads(6)[:5].tolist()] == [(0, 1, 2), (1, 2, 3), (2, 3, 4), (3, 4, 5), (0, 1, 3)]
 
 
-@pytest.mark.parametrize("algorithm", ["pyramid", "pyramid-quadratic", "voting"])
+@pytest.mark.parametrize("algorithm", ["pyramid", "voting"])
 def test_identifies_clean_frames_without_bad_matches(setup20, algorithm):
     cat, db, cam = setup20
     sigma = (5 / 3) / cam.pixel_scale_arcsec       # paper 003: 5" (3 sigma)

@@ -149,3 +149,22 @@ def test_match_everything_against_a_deeper_catalog(catalog):
             assert len(res.matches) >= 0.8 * true_stars, seed
     # A frame may hold fewer than four database stars (the database is shallow on purpose).
     assert ok >= 13 and beyond > 100
+
+
+def test_retired_pyramid_quadratic_is_refused_with_its_reason(tmp_path):
+    """pyramid-quadratic returned exactly pyramid's answers and was retired: the library and every command that takes
+    an algorithm refuse it with the reason and what to use (exit 2), not as an unknown name; it is no choice."""
+    from startrack.errors import BadInputError
+    from startrack.identify import get_algorithm
+
+    reason = "retired: it returned exactly pyramid's answers; use pyramid or modified-pyramid (paper 000)"
+    assert "pyramid-quadratic" not in algorithm_names()
+    with pytest.raises(BadInputError, match="use pyramid or modified-pyramid"):
+        get_algorithm("pyramid-quadratic")
+    db = tmp_path / "db.h5"
+    db.write_bytes(b"")
+    assert_refused(run_cli("identify", "-d", db, "-a", "pyramid-quadratic", input=""), reason)
+    assert_refused(run_cli("track", "-d", db, "-a", "pyramid-quadratic", tmp_path / "x.jsonl"), reason)
+    assert_refused(run_cli("evaluate", "-d", db, "-a", "pyramid,pyramid-quadratic"), reason)
+    help_text = run_cli("identify", "--help").stdout
+    assert "modified-pyramid" in help_text and "pyramid-quadratic" not in help_text

@@ -18,6 +18,7 @@ from startrack.cli.options import (
     mag_options,
     output_option,
     quiet_option,
+    retired_algorithms,
     seed_option,
 )
 
@@ -78,8 +79,8 @@ def _legacy_json_path(ctx, args):
                short_help="Monte Carlo comparison of identification algorithms (papers' tables).")
 @click.option("--database", "-d", "databases", multiple=True, required=True, type=click.Path(dir_okay=False),
               help="Databases (kvector, labels, ...), repeat as needed; each algorithm takes its kind.")
-@click.option("--algorithm", "-a", "algorithms", type=NameList(identify_algorithms), default="pyramid,voting",
-              show_default=True, help="Algorithms compared, comma-separated.")
+@click.option("--algorithm", "-a", "algorithms", type=NameList(identify_algorithms, retired=retired_algorithms),
+              default="pyramid,voting", show_default=True, help="Algorithms compared, comma-separated.")
 @catalog_option
 @camera_options
 @mag_options(max_help="Faintest star in the simulated star lists (default: the databases').", with_min=False)

@@ -15,6 +15,7 @@ from startrack.cli.options import (
     output_option,
     quiet_option,
     resume_option,
+    retired_algorithms,
     sigma_px_option,
 )
 
@@ -63,7 +64,8 @@ def _algorithm_choice():
 @input_argument
 @click.option("--database", "-d", required=True, type=click.Path(dir_okay=False),
               help="Database from build-kvector (or build-labels for --algorithm labelling).")
-@click.option("--algorithm", "-a", type=RegistryChoice(identify_algorithms), default="pyramid", show_default=True,
+@click.option("--algorithm", "-a", type=RegistryChoice(identify_algorithms, retired=retired_algorithms),
+              default="pyramid", show_default=True,
               help="Identification algorithm (a registered name; labelling takes a build-labels database, "
                    "modified-pyramid a build-triangles one, the others build-kvector's).")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,

@@ -134,13 +134,26 @@ class RegistryChoice(click.Choice):
 
     ``loader`` returns the names (e.g. :func:`startrack.identify.algorithm_names`);
     it runs only when the option is parsed or its help is shown, so ``startrack --help``
-    imports no numerical library.
+    imports no numerical library.  ``retired`` returns names that are no longer
+    choices, each with its message (why it went, what to use instead): such a
+    name is refused with that message rather than as unknown.
     """
 
-    def __init__(self, loader, case_sensitive=True):
+    def __init__(self, loader, case_sensitive=True, retired=None):
         self._loader = loader
         self._names = None
         self.case_sensitive = case_sensitive
+        self._retired = retired
+
+    def retired_message(self, value):
+        """The message of a retired name, or None."""
+        return (self._retired() if self._retired else {}).get(value)
+
+    def convert(self, value, param, ctx):
+        message = self.retired_message(value)
+        if message is not None:
+            self.fail(f"{value!r} is {message}", param, ctx)
+        return super().convert(value, param, ctx)
 
     @property
     def choices(self):
@@ -158,8 +171,8 @@ class NameList(click.ParamType):
 
     name = "names"
 
-    def __init__(self, loader, as_text=False):
-        self.registry = RegistryChoice(loader)
+    def __init__(self, loader, as_text=False, retired=None):
+        self.registry = RegistryChoice(loader, retired=retired)
         self.as_text = as_text
 
     def get_metavar(self, param, ctx=None):
@@ -172,6 +185,9 @@ class NameList(click.ParamType):
         if any(p == "" for p in parts):
             self.fail(f"empty item in {value!r}: expected comma-separated names", param, ctx)
         for p in parts:
+            message = self.registry.retired_message(p)
+            if message is not None:
+                self.fail(f"{p!r} is {message}", param, ctx)
             if p not in self.registry.choices:
                 self.fail(f"unknown name {p!r}; choose from {', '.join(self.registry.choices)}", param, ctx)
         return ",".join(parts) if self.as_text else tuple(parts)
@@ -182,6 +198,13 @@ def identify_algorithms(kind=None):
     from startrack.identify import algorithm_names, database_kind
 
     return [name for name in algorithm_names() if kind is None or database_kind(name) == kind]
+
+
+def retired_algorithms():
+    """Former identification algorithms, each with the message that refuses it."""
+    from startrack.identify import RETIRED
+
+    return RETIRED
 
 
 def attitude_methods():

@@ -14,6 +14,7 @@ from startrack.cli.options import (
     mag_options,
     output_option,
     quiet_option,
+    retired_algorithms,
 )
 
 
@@ -40,8 +41,8 @@ from startrack.cli.options import (
               help="Exposure for frames without image.exposure_ms (default 100).")
 @click.option("--max-gap-s", type=FiniteFloat(0, min_open=True), default=0.5, show_default=True,
               help="Longer without an attitude (a gap or a blackout) restarts from lost in space.")
-@click.option("--algorithm", "-a", type=RegistryChoice(lambda: identify_algorithms("kvector")), default="pyramid",
-              show_default=True, help="Lost-in-space algorithm.")
+@click.option("--algorithm", "-a", type=RegistryChoice(lambda: identify_algorithms("kvector"), retired=retired_algorithms),
+              default="pyramid", show_default=True, help="Lost-in-space algorithm.")
 @output_option()
 @quiet_option
 @handle_errors

@@ -20,13 +20,12 @@ from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposa
 from startrack.records import Identification, Match
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
-           "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars", "make_config",
-           "register", "warm_up"]
+           "RETIRED", "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars",
+           "make_config", "register", "warm_up"]
 
 # The built-in algorithms, ``module:ATTRIBUTE`` of an Algorithm each (one line per algorithm).
 BUILTIN = (
     "startrack.identify.pyramid:PYRAMID",
-    "startrack.identify.pyramid:PYRAMID_QUADRATIC",
     "startrack.identify.voting:VOTING",
     "startrack.identify.brightness:BRIGHTNESS",
     "startrack.identify.labelling:LABELLING",
@@ -34,6 +33,11 @@ BUILTIN = (
     "startrack.identify.modified_pyramid:MODIFIED_PYRAMID",
 )
 ENTRY_POINT_GROUP = "startrack.identify"
+
+# Names that were algorithms once, with why they went and what to use instead (a clear refusal, not "unknown").
+RETIRED = {
+    "pyramid-quadratic": "retired: it returned exactly pyramid's answers; use pyramid or modified-pyramid (paper 000)",
+}
 
 _registered: dict = {}
 
@@ -79,6 +83,8 @@ def get_algorithm(name: str) -> Algorithm:
     if name not in reg:
         from startrack.errors import BadInputError
 
+        if name in RETIRED:
+            raise BadInputError("algorithm", None, f"{name!r} is {RETIRED[name]}")
         raise BadInputError("algorithm", None, f"unknown algorithm {name!r}; choose from {', '.join(reg)}")
     return reg[name]
 

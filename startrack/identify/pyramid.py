@@ -1,4 +1,4 @@
-"""Pyramid identification (Mortari, Samaan, Bruccoleri & Junkins 2004) and paper 000's quadratic variant.
+"""Pyramid identification (Mortari, Samaan, Bruccoleri & Junkins 2004).
 
 Triads of image stars are taken in Mortari's smart index sequence (every
 triad once, bright stars early, spikes spread out); for each, the kernel
@@ -10,9 +10,8 @@ Every confirmed pyramid is a proposal, the triad's in the order found: where
 Mortari's pyramid stops at the first triad with a *unique* triangle, this
 search also proposes the pyramids of ambiguous triads and goes on after a
 rejected one (the shared verification decides), which is what a sparse field
-of four or five stars needs.  ``pyramid-quadratic`` replaces the k-vector
-range by paper 000's quadratic search (Eqs. 10-12), clipped to the k-vector
-range.
+of four or five stars needs.  Paper 000's quadratic search on its triangle
+database is :mod:`startrack.identify.modified_pyramid`.
 """
 from __future__ import annotations
 
@@ -73,12 +72,5 @@ def search_pyramid(ctx, config: PyramidConfig):
     return _search(ctx, config, False)
 
 
-def search_pyramid_quadratic(ctx, config: PyramidConfig):
-    """Pyramid proposals with paper 000's quadratic range search."""
-    return _search(ctx, config, True)
-
-
 PYRAMID = Algorithm("pyramid", search_pyramid, PyramidConfig, "kvector",
                     "Mortari's pyramid on the k-vector pair database.")
-PYRAMID_QUADRATIC = Algorithm("pyramid-quadratic", search_pyramid_quadratic, PyramidConfig, "kvector",
-                              "The pyramid with paper 000's quadratic k-vector search.")
