@@ -85,6 +85,10 @@ def _algorithm_choice():
 @click.option("--match-all/--database-only", default=True, show_default=True,
               help="After the attitude, match the detections the database lacks to the catalog (--catalog).")
 @_algorithm_options
+@click.option("--calibration-frames", type=Int(0, 100000), default=10, show_default=True,
+              help="brightness: each identified frame's brightest star measures Eq. 9's In_k; the next frames are "
+                   "searched with the mean of the last N such frames (--brightness-calibration is the start; "
+                   "0: every frame uses only --brightness-calibration). Frames then run in order (no --jobs).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
 @output_option()
@@ -93,7 +97,8 @@ def _algorithm_choice():
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            max_proposals, max_time_ms, catalog, match_all, plot, output, jobs, resume, quiet, **settings):
+            max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output, jobs, resume, quiet,
+            **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
@@ -136,6 +141,16 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     )
 
     config = algorithm_settings(settings, algorithm)
+    from startrack.identify.calibration import CalibrationCarry, carries_calibration
+
+    carry = None
+    if calibration_frames > 0 and carries_calibration(config):
+        carry = CalibrationCarry(config.brightness_calibration, calibration_frames)
+        if jobs > 1:
+            # Each frame's calibration comes from the frames before it: they are identified in order.
+            info(quiet, f"identify: {algorithm} carries its calibration frame to frame: frames run in order "
+                        "(--jobs ignored; --calibration-frames 0 to run them in parallel)")
+            jobs = 1
     if max_stars < 3:
         raise BadInputError("--max-stars", None, f"must be at least 3, got {max_stars}")
     if max_proposals < 1:
@@ -180,7 +195,13 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
         from startrack.formats.frame import validate_stars
 
         validate_stars(doc, source)
-        result = identify_stars(doc["stars"], cam, db, algorithm, params, config, deep)
+        if carry is None:
+            result = identify_stars(doc["stars"], cam, db, algorithm, params, config, deep)
+        else:
+            frame_config, used = carry.config_for(config)
+            result = identify_stars(doc["stars"], cam, db, algorithm, params, frame_config, deep)
+            result.details.update(used)
+            carry.update(result, index)
         doc["identification"] = to_section(result)
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
             _plot(plot_names(index), doc, db, cam, result)
