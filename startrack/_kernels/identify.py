@@ -1321,3 +1321,174 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     mean_r = rs / n
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
     return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)
+
+
+@njit(cache=True)
+def binomial_sf(m, n, p):
+    """``P(X >= m)`` for ``X ~ Binomial(n, p)`` (:func:`startrack.identify.base._binomial_sf`: exact
+    binomial coefficients up to ``n = 60``, then their floating-point product)."""
+    if m <= 0:
+        return 1.0
+    if m > n:
+        return 0.0
+    total = 0.0
+    for k in range(m, n + 1):
+        if n <= 60:
+            c = 1
+            for t in range(min(k, n - k)):
+                c = c * (n - t) // (t + 1)
+            cf = float(c)
+        else:
+            cf = 1.0
+            for t in range(min(k, n - k)):
+                cf = cf * (n - t) / (t + 1)
+        total += cf * math.pow(p, float(k)) * math.pow(1.0 - p, float(n - k))
+    return min(1.0, total)
+
+
+@njit(cache=True)
+def missing_probability(missing, n_bright, area_frac):
+    """:func:`startrack.identify.base._missing_probability`: ``P(K <= missing)``, Poisson of mean
+    ``0.5 n_bright area_frac``."""
+    lam = 0.5 * n_bright * area_frac
+    if lam <= 0:
+        return 1.0
+    term = math.exp(-lam)
+    total = term
+    for k in range(1, missing + 1):
+        term *= lam / k
+        total += term
+    return min(1.0, total)
+
+
+@njit(cache=True)
+def pinhole_cos_fov(focal, cx, cy, width, height):
+    """``cos`` of the farthest corner's off-axis angle plus 0.5 deg (:func:`startrack.identify.base._geometry`)."""
+    dx = max(abs(-0.5 - cx), abs(width - 0.5 - cx))
+    dy = max(abs(-0.5 - cy), abs(height - 0.5 - cy))
+    off_axis = math.degrees(math.atan(math.hypot(dx, dy) / focal))
+    return math.cos(math.radians(off_axis + 0.5))
+
+
+@njit(cache=True)
+def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
+                    width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset, max_chi2,
+                    mag_floor, mag_gate, trials, max_false):
+    """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
+
+    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched)``: ``code`` 0 =
+    accepted, 1-4 as :func:`verify_core`, 5 = false-match probability above ``max_false``.
+    """
+    n = b.shape[0]
+    radius = np.empty(n)
+    sig_rad = np.empty(n)
+    margin_px = margin_rad * focal
+    for i in range(n):
+        r = fixed_radius_px if fixed_radius_px > 0 else max(1.0, match_sigma * sig_px[i] + margin_px)
+        radius[i] = r / focal
+        sig_rad[i] = sig_px[i] / focal
+    cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
+    code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
+        b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
+        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate)
+    nm = 0
+    for i in range(n):
+        if match[i] >= 0:
+            nm += 1
+    if code != 0:
+        return code, match, q, dcm, np.nan, missing, bright_pred, nm
+    nc = min(4, img.shape[0])
+    distinct = 0
+    agree = 0
+    for t in range(nc):
+        first = True
+        for u in range(t):
+            if img[u] == img[t]:
+                first = False
+        if first:
+            distinct += 1
+        if match[img[t]] >= 0:
+            agree += 1
+    p_missing = missing_probability(missing, n_bright, width * height / focal ** 2 / (4 * math.pi)) * p_mag
+    p_false = min(1.0, e_core * max(trials, 1)) * binomial_sf(nm - agree, n - distinct, p_hit) * p_missing
+    if p_false > max_false:
+        return 5, match, q, dcm, p_false, missing, bright_pred, nm
+    return 0, match, q, dcm, p_false, missing, bright_pred, nm
+
+
+@njit(cache=True)
+def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal0, cx, cy, width,
+                 height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, max_chi2, mag_floor, mag_gate,
+                 trials, max_false, max_focal_error):
+    """:func:`startrack.identify.base._verify_with_focal` in one call, for a distortion-free camera.
+
+    The same steps as the Python driver (focal scale of the proposal, verification, the
+    field's scale, re-estimates from the matches), on the same kernels, without a
+    Python round trip between them.  ``fixed_radius_px`` <= 0: radii from the sigmas.
+
+    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, scale, b)``:
+    ``code`` 0 = accepted, 1-5 as :func:`_verify_pinhole`; ``scale`` the focal-length scale
+    used (1.0: none); ``b`` the unit vectors of the detections at that scale.
+    """
+    n = xs.shape[0]
+    scale = focal_scale(b0, img, star_vec, cat)
+    if not math.isnan(scale) and (abs(scale - 1.0) > max_focal_error or abs(scale - 1.0) < 5e-4):
+        scale = np.nan
+    focal = focal0
+    b = b0
+    offset = 0.0
+    if not math.isnan(scale):
+        focal = focal0 / scale
+        b = pixels_to_unit(xs, ys, focal, cx, cy)
+        offset = abs(scale - 1.0)
+    code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+        b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width, height,
+        fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_chi2, mag_floor, mag_gate, trials,
+        max_false)
+    total = 1.0 if math.isnan(scale) else scale
+    if code != 0:
+        return code, match, q, dcm, p_false, missing, bright_pred, nm, total, b
+    margin_px = margin_rad * focal
+    radius_px = np.empty(n)
+    rmin = np.inf
+    for i in range(n):
+        radius_px[i] = fixed_radius_px if fixed_radius_px > 0 else max(1.0, match_sigma * sig_px[i] + margin_px)
+        rmin = min(rmin, radius_px[i])
+    cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
+    core = img[:min(4, img.shape[0])].copy()
+    step = field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
+                       max_focal_error)
+    if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
+        total *= step
+        focal = focal0 / total
+        b = pixels_to_unit(xs, ys, focal, cx, cy)
+        code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+            b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
+            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
+            mag_floor, mag_gate, trials, max_false)
+    for _ in range(4):
+        if code != 0 or nm < 3:
+            break
+        mi = np.empty(nm, dtype=np.int64)
+        mc = np.empty(nm, dtype=np.int64)
+        t = 0
+        far = 0.0
+        for i in range(n):
+            if match[i] >= 0:
+                mi[t] = i
+                mc[t] = match[i]
+                far = max(far, math.hypot(xs[i] - cx, ys[i] - cy))
+                t += 1
+        step = focal_scale(b, mi, star_vec, mc)
+        if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
+            break
+        if abs(step - 1.0) * far < 0.1 * rmin:
+            break
+        total *= step
+        focal = focal0 / total
+        b = pixels_to_unit(xs, ys, focal, cx, cy)
+        code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+            b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
+            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
+            mag_floor, mag_gate, trials, max_false)
+    return code, match, q, dcm, p_false, missing, bright_pred, nm, total, b

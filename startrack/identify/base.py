@@ -504,6 +504,55 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err)
     return float(np.median(ref[long] / mea[long]))
 
 
+#: Verify pinhole-camera proposals with one kernel call (:func:`_verify_fused`); False: the
+#: step-by-step Python path (:func:`_verify_with_focal`), which the tests compare it with.
+FUSED_VERIFY = True
+
+_REASONS = {1: ("a star of the proposal disagrees with the attitude of the others", ReasonCode.VERIFICATION_FAILED),
+            2: ("the proposal's stars do not agree with the refined attitude", ReasonCode.VERIFICATION_FAILED)}
+
+
+def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags):
+    """:func:`_verify_with_focal` for a distortion-free camera in one kernel call
+    (:func:`startrack._kernels.identify.verify_focal`): the same steps and checks on the same
+    kernels, the same verdict.  Returns ``(verdict, focal scale or None)``."""
+    from startrack._kernels.identify import verify_focal
+
+    img = np.asarray(proposal.image, dtype=np.int64)
+    cat = np.asarray(proposal.catalog, dtype=np.int64)
+    n_all = len(xs)
+    fl = flux if flux is not None else np.full(n_all, np.nan)
+    code, match, q, dcm, p_false, missing, bright_pred, n_matched, total, b = verify_focal(
+        xs, ys, b_all, db.star_vector, db.star_mag, _sorted_mags(db), img, cat, sig_px, fl, bool(use_mags),
+        float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
+        float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
+        float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
+        float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
+        float(params.max_focal_error))
+    scale = None if total == 1.0 else float(total)
+    if code != 0:
+        if code in _REASONS:
+            reason, rc = _REASONS[code]
+        elif code == 3:
+            reason, rc = (f"{missing} of {bright_pred} bright catalog stars predicted in the image are not detected",
+                          ReasonCode.VERIFICATION_FAILED)
+        elif code == 4:
+            reason, rc = f"only {n_matched} stars matched (need {params.min_matches})", ReasonCode.TOO_FEW_STARS
+        else:
+            return _Verdict(None, None, None, dcm, float(p_false),
+                            (f"false-match probability {p_false:.2g} above the limit "
+                             f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY), scale
+        return _Verdict(None, None, None, dcm, None, reason, rc), scale
+    matched = np.flatnonzero(match >= 0)
+    cat_index = match[matched]
+    star_vec = db.star_vector
+    resid = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b[matched], star_vec[cat_index] @ dcm.T),
+                                         -1, 1))) * 3600
+    out = list(map(Match, matched.tolist(), db.star_id[cat_index].tolist()))
+    q = q / math.sqrt(float(q @ q))
+    return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, resid, -q if q[3] < 0 else q), scale
+
+
 def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
     """:func:`verify`, measuring and correcting the focal-length scale the proposal implies.
 
@@ -729,6 +778,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
               getattr(db, "path", None) or type(db).__name__)
     deadline = t0 + params.max_time_ms / 1000.0
     geom = _geometry(camera)
+    fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
+                                                               params.match_radius_px > 0)
     tried = 0
     best = None
     reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
@@ -748,8 +799,12 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         seen.add(key)
         tried += 1
         patterns = max(patterns, proposal.patterns)
-        v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
-                                      params, max(tried, proposal.patterns), use_mags, geom)
+        if fused and len(proposal.image) >= 2:
+            v, scale = _verify_fused(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
+                                     params, max(tried, proposal.patterns), use_mags)
+        else:
+            v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db,
+                                          eps, params, max(tried, proposal.patterns), use_mags, geom)
         if v.matches is not None:
             accepted = v
             details = dict(proposal.details)

@@ -1,0 +1,86 @@
+"""The one-kernel verification (``base._verify_fused``) decides exactly as the step-by-step Python path.
+
+Both paths run on the same frames (centroid noise, false stars, magnitude noise, a focal-length
+error so that every scale branch is taken); every result -- status, reason, trials, matched ids,
+focal scale, false-match probability, attitude -- must be the same.
+"""
+import numpy as np
+import pytest
+
+from startrack.camera import Camera
+from startrack.evaluate import Condition, make_frames
+from startrack.identify import IdentifyParams, base, identify_stars
+
+
+@pytest.fixture(scope="module")
+def sensor(catalog):
+    """A 14 deg 1200x900 sensor; database Hp <= 5.8 merged for it."""
+    from startrack.catalog import merge_radius_arcsec
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam = Camera.from_fov(14, 1200, 900)
+    db = build_kvector(catalog.filter_magnitude(None, 5.8).merge_close(merge_radius_arcsec(cam)),
+                       max_separation_deg(camera=cam))
+    return cam, db, catalog.filter_magnitude(None, 5.4)
+
+
+def _result(res):
+    return (res.status, res.reason, str(res.reason_code), res.trials, [(m.star, m.id) for m in res.matches],
+            res.focal_scale, res.false_match_probability)
+
+
+CONDITIONS = [Condition(sigma_px=0.3, min_catalog_stars=4),
+              Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4),
+              Condition(sigma_px=0.3, false_stars=10, mag_noise=0.2, min_catalog_stars=4),
+              Condition(sigma_px=0.5, focal_error_pct=2.0, false_stars=1, min_catalog_stars=4)]
+
+
+@pytest.mark.parametrize("algorithm", ["pyramid", "brightness"])
+def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypatch):
+    from startrack._kernels import identify as kernels
+
+    cam, db, stars = sensor
+    calls = []
+    fused = kernels.verify_focal
+
+    def counted(*args):
+        calls.append(1)
+        return fused(*args)
+
+    monkeypatch.setattr(kernels, "verify_focal", counted)
+    outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0}
+    for k, cond in enumerate(CONDITIONS):
+        params = IdentifyParams(sigma_px=max(cond.sigma_px, 0.3))
+        for frame, _, _ in make_frames(stars, cam, cond, 25, 40 + k, mag_limit=5.4):
+            monkeypatch.setattr(base, "FUSED_VERIFY", True)
+            before = len(calls)
+            a = identify_stars(frame, cam, db, algorithm, params)
+            assert len(calls) - before == a.trials       # every proposal went through the kernel
+            monkeypatch.setattr(base, "FUSED_VERIFY", False)
+            b = identify_stars(frame, cam, db, algorithm, params)
+            assert len(calls) - before == a.trials       # ... and none of the Python path's
+            assert _result(a) == _result(b)
+            if a.quaternion_estimate is not None:
+                np.testing.assert_allclose(a.quaternion_estimate, b.quaternion_estimate, rtol=0, atol=1e-12)
+            outcomes["ok" if a.status == "ok" else "failed"] += 1
+            outcomes["scaled"] += a.focal_scale is not None
+            outcomes["retried"] += a.trials > 1
+    # The comparison covered accepted and refused frames, fitted scales and rejected proposals.
+    assert outcomes["ok"] >= 60 and outcomes["scaled"] >= 10 and outcomes["retried"] >= 3, outcomes
+
+
+def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch):
+    """A distorted camera takes the Python path (the kernel projects through a pinhole)."""
+    from startrack._kernels import identify as kernels
+
+    cam, db, stars = sensor
+    frame = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=5), 1, 3, mag_limit=5.4)[0][0]
+
+    def refuse(*_args):
+        raise AssertionError("the fused kernel was called")
+
+    monkeypatch.setattr(kernels, "verify_focal", refuse)
+    distorted = Camera(cam.width, cam.height, cam.focal_length_px, cam.cx, cam.cy, 1e-9, 0.0)
+    assert identify_stars(frame, distorted, db, "pyramid", IdentifyParams(sigma_px=0.3)).status == "ok"
+    with pytest.raises(AssertionError, match="fused kernel"):
+        identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=0.3))
