@@ -95,3 +95,26 @@ def test_grid_tries_further_orientations(sensor16):
             for s, t, _ in frames]
     assert more.count("bad") == 0 and once.count("bad") == 0
     assert more.count("success") > once.count("success")
+
+
+def test_brightness_counts_magnitude_agreement_in_its_confidence(sensor16):
+    """Four-star frames at 1 px: the geometric pattern chance alone (~1e-5) is above the 1e-6 limit; the
+    brightness order only filtered geometric candidates, so the magnitude agreement is evidence of its own.
+    Leaving it out (``uses_brightness``) refused every one of these frames."""
+    import dataclasses
+
+    from startrack.identify.base import run
+    from startrack.identify.brightness import BRIGHTNESS
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam, cat, stars = sensor16
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=1.0, max_stars=4, min_catalog_stars=4), 60, 21,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=1.0)
+    old = dataclasses.replace(BRIGHTNESS, uses_brightness=True)
+    now = [score(run(BRIGHTNESS, BRIGHTNESS.config(), s, cam, db, params), t) for s, t, _ in frames]
+    before = [score(run(old, old.config(), s, cam, db, params), t) for s, t, _ in frames]
+    assert now.count("bad") == 0 and before.count("bad") == 0
+    assert now.count("success") >= 0.6 * len(frames)
+    assert now.count("success") >= before.count("success") + 0.5 * len(frames)

@@ -194,8 +194,13 @@ class Algorithm:
     summary : str
         One line for ``--help``.
     uses_brightness : bool
-        True when the search itself selects candidates by brightness (the
-        confidence then does not count magnitude agreement again).
+        True when the search's own pattern statistics already include the
+        magnitudes (the confidence then does not count magnitude agreement
+        again).  A search that only *filters* geometric candidates by
+        brightness (paper 003's brightness order) leaves it False: the
+        pattern chance ``E_core`` counts every geometric chance match, and a
+        chance match must then also agree in magnitude, so multiplying by the
+        magnitude agreement's probability counts nothing twice.
     """
 
     name: str
