@@ -64,20 +64,40 @@ def test_brightness_search_covers_every_group_of_the_search_stars(sensor16):
 
 
 def test_voting_keeps_voting_when_its_clusters_fail(sensor16):
-    """Three false stars and few catalog stars: the paper's single vote rarely ranks the true identities
-    among each star's eight; wider lists and votes without the least supported star find them."""
+    """Ten false stars and few catalog stars: the true identities rank far below chance ones in the first
+    vote (the paper's single winner, or each star's eight most voted, miss them); the clusters of every
+    candidate, by triangle votes, find them."""
     cam, cat, stars = sensor16
     from startrack.kvector import build_kvector, max_separation_deg
 
     db = build_kvector(cat, max_separation_deg(camera=cam))
-    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=3, min_catalog_stars=4), 60, 13,
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=4), 40, 13,
                          mag_limit=5.4)
     params = IdentifyParams(sigma_px=0.3)
     more = [score(identify_stars(s, cam, db, "voting", params), t) for s, t, _ in frames]
-    once = [score(identify_stars(s, cam, db, "voting", params, make_config("voting", {"revote": False})), t)
+    once = [score(identify_stars(s, cam, db, "voting", params, make_config("voting", {"every_candidate": False})), t)
             for s, t, _ in frames]
     assert more.count("bad") == 0 and once.count("bad") == 0
-    assert more.count("success") >= once.count("success") + 5
+    assert more.count("success") >= 0.9 * len(frames)
+    assert more.count("success") >= once.count("success") + 8
+
+
+def test_voting_four_star_frames_at_one_pixel(sensor16):
+    """Four stars at 1 px: ~700 catalog stars share the true identity's maximal 3 votes; every candidate's
+    clusters hold the true one, the eight most voted rarely do."""
+    cam, cat, stars = sensor16
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=1.0, max_stars=4, min_catalog_stars=4), 40, 21,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=1.0)
+    every = [score(identify_stars(s, cam, db, "voting", params), t) for s, t, _ in frames]
+    top8 = [score(identify_stars(s, cam, db, "voting", params, make_config("voting", {"every_candidate": False})), t)
+            for s, t, _ in frames]
+    assert every.count("bad") == 0 and top8.count("bad") == 0
+    assert every.count("success") >= 0.6 * len(frames)
+    assert every.count("success") >= top8.count("success") + 0.4 * len(frames)
 
 
 def test_grid_tries_further_orientations(sensor16):
