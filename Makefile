@@ -62,6 +62,7 @@ bench-blind: bench-peers
 reproduce: install
 	bash examples/reproduce-papers.sh
 	bash examples/tracking.sh
+	bash examples/paper001_single_star.sh
 	$(PY) examples/paper000.py
 	bash examples/paper000_pipeline.sh 300
 	$(PY) examples/p003_fig1.py

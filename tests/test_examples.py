@@ -56,3 +56,24 @@ def test_pictures_script_draws_one_picture_of_each_kind(tmp_path):
     doc = json.loads(subprocess.run([_env()["ST"], "solve", os.path.join(ROOT, "examples", "data", "sky.tiff"), "-q"],
                                     capture_output=True, text=True, env=_env(), timeout=600, check=True).stdout)
     assert_identified_star_marked(tmp_path / "sky-solved.png", doc)
+
+
+def test_paper001_single_star_example(tmp_path):
+    """examples/paper001_single_star.sh: the frames with one star found in the windows run paper 001's single-star
+    mode (Case 2) and keep an attitude near the truth; the frames around them track with every star."""
+    env = dict(_env(), PY=sys.executable, WORK=str(tmp_path / "work"))
+    proc = subprocess.run(["bash", os.path.join(ROOT, "examples", "paper001_single_star.sh"), "4", str(tmp_path)],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    doc = json.load(open(tmp_path / "track-single-star.json"))
+    rows = doc["rows"]
+    assert len(rows) == 12 and doc["one_star_frames"] == doc["single_star_frames"] == [4, 5, 6, 7]
+    assert "single-star" in proc.stdout.splitlines()[5]
+    for r in rows:
+        assert r["cross_arcsec"] is not None and r["cross_arcsec"] < 20, r       # 12 deg field: 42"/px
+        if r["frame"] in (4, 5, 6, 7):
+            assert r["found"] == 1 and r["empirical_stars"] >= 1 and r["exposure_ms"] == 0.2
+        elif r["frame"] > 0:
+            assert r["mode"] == "tracking" and r["found"] > 10
+    assert doc["modes"]["single-star"] == 4 / 12
+    assert (tmp_path / "track-single-star.png").stat().st_size > 10_000
