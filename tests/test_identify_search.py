@@ -138,3 +138,22 @@ def test_brightness_counts_magnitude_agreement_in_its_confidence(sensor16):
     assert now.count("bad") == 0 and before.count("bad") == 0
     assert now.count("success") >= 0.6 * len(frames)
     assert now.count("success") >= before.count("success") + 0.5 * len(frames)
+
+
+def test_grid_catalog_patterns_for_a_database_deeper_than_the_frame(sensor16):
+    """The six brightest stars of each frame against a database to Hp 5.8: a catalog star's nearest
+    neighbour is often one the frame does not hold, which turns the paper's pattern; the catalog patterns
+    oriented by the 2nd and 3rd nearest neighbours too match it."""
+    cam, cat, stars = sensor16
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, max_stars=6, min_catalog_stars=4), 60, 23,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=0.3)
+    three = [score(identify_stars(s, cam, db, "grid", params), t) for s, t, _ in frames]
+    one = [score(identify_stars(s, cam, db, "grid", params, make_config("grid", {"catalog_orientations": 1})), t)
+           for s, t, _ in frames]
+    assert three.count("bad") == 0 and one.count("bad") == 0
+    assert three.count("success") >= 0.65 * len(frames)
+    assert three.count("success") >= one.count("success") + 0.3 * len(frames)

@@ -19,12 +19,28 @@ neighbour lists the first time they are needed (milliseconds) and cached, so
 that the grid needs no database of its own and always matches the sensor's
 ``g``, ``pr`` and ``br``.
 
-Defaults (tuned on the 24 deg / magnitude 5.2 sensor of paper 004; the
-paper's own values are not in our sources): ``g = 40``, ``pr`` = 0.6 of the
-narrower field, ``br`` = 6 px (at least 3 eps), 12 reference stars, an
-overlap of at least 3 cells.  With only ~20 stars per field the patterns are
-sparse, which limits the method (Padgett & Kreutz-Delgado simulated an 8 deg
-field with a much deeper catalog).
+Extensions (not in the paper), each for a reason any sensor shares:
+
+* the catalog patterns are stored oriented by each star's 1st, 2nd and 3rd nearest
+  neighbour (``catalog_orientations``): the database is deeper than what the sensor
+  detects (here Hp <= 6 against stars to 5.5), so a catalog star's nearest neighbour
+  is often undetected and the paper's single orientation turns the pattern;
+* the image patterns are oriented by the 2nd and 3rd nearest neighbours too
+  (``orientations``): a false star nearer than the true one;
+* each reference keeps its ``matches_per_reference`` best catalog patterns instead of
+  the unique best, and the confirmation between references (catalog angles agreeing
+  with the image) chooses: false stars add cells that chance patterns share, so the
+  true pattern is often not the unique best;
+* the pattern radius defaults to the field's half-diagonal, the farthest a neighbour
+  of a reference at the centre can be seen (was 0.6 of the narrower field: a sparse
+  field then left a reference with fewer than ``min_overlap`` neighbours).
+
+Other defaults (from the 24 deg / magnitude 5.2 sensor of paper 004; the paper's own
+values are not in our sources): ``g = 40``, ``br`` = 6 px (at least 3 eps), 12
+reference stars, an overlap of at least 3 cells.  The method needs two reference
+stars with three neighbours each in the field: on the 15 deg 1280x960 sensor (stars
+to Hp 5.5, >= 4 a frame) 2.3 % of frames have fewer (7 of 300 measured,
+``benchmarks/identify_failures.py``), which bounds its success there.
 """
 from __future__ import annotations
 
@@ -42,12 +58,18 @@ class GridConfig:
 
     grid_size: int = field(default=40, metadata={"help": "Cells per side of the pattern grid (g)."})
     pattern_radius_deg: float | None = field(default=None, metadata={
-        "help": "Pattern radius pr (deg); default 0.6 of the narrower field."})
+        "help": "Pattern radius pr (deg); default the field's half-diagonal."})
     buffer_px: float = field(default=6.0, metadata={"help": "Buffer radius br (px; at least 3 tolerances)."})
     min_overlap: int = field(default=3, metadata={"help": "On-cells a catalog pattern must share."})
     references: int = field(default=12, metadata={"help": "Reference stars (nearest the centre) matched."})
     orientations: int = field(default=3, metadata={
         "help": "Orientation neighbours tried per reference when the search goes on (1: the paper's nearest)."})
+    matches_per_reference: int = field(default=4, metadata={
+        "help": "Catalog patterns kept per reference star, most shared cells first (1: the paper's unique best); "
+                "the confirmation between references chooses."})
+    catalog_orientations: int = field(default=3, metadata={
+        "help": "Patterns stored per catalog star, oriented by its 1st, 2nd, ... nearest neighbour (1: the "
+                "paper's nearest; a database deeper than the sensor holds neighbours it does not detect)."})
 
 
 def _tangent_basis(v):
@@ -87,86 +109,94 @@ def _pattern(centre, neighbours, pr, br, g, which=0):
     return cells, int(idx[nearest])
 
 
-def catalog_patterns(db, pr, br, g):
-    """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> stars), orientation stars."""
-    key = (round(pr, 9), round(br, 9), g)
-    # Kept on the database object itself (dropped with it), keyed by (pr, br, g).
+def catalog_patterns(db, pr, br, g, orientations=1):
+    """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> patterns), orientation stars.
+
+    Pattern ``s * orientations + w`` is star ``s``'s oriented by its ``w``-th nearest
+    neighbour outside ``br`` (empty when it has fewer).
+    """
+    key = (round(pr, 9), round(br, 9), g, int(orientations))
+    # Kept on the database object itself (dropped with it), keyed by (pr, br, g, orientations).
     per_db = db.__dict__.setdefault("_grid_patterns", {})
     if key in per_db:
         return per_db[key]
     n = db.n_stars
-    ptr = np.zeros(n + 1, dtype=np.int64)
+    k_or = int(orientations)
+    ptr = np.zeros(n * k_or + 1, dtype=np.int64)
     cells_all = []
-    orient = np.full(n, -1, dtype=np.int64)
+    orient = np.full(n * k_or, -1, dtype=np.int64)
     for s in range(n):
         nb = db.neighbor_idx[db.neighbor_ptr[s]:db.neighbor_ptr[s + 1]]
-        cells, k = _pattern(db.star_vector[s], db.star_vector[nb], pr, br, g)
-        if cells is None:
-            ptr[s + 1] = ptr[s]
-            continue
-        cells_all.append(cells)
-        orient[s] = nb[k]
-        ptr[s + 1] = ptr[s] + len(cells)
+        for w in range(k_or):
+            t = s * k_or + w
+            cells, k = _pattern(db.star_vector[s], db.star_vector[nb], pr, br, g, w)
+            if cells is None:
+                ptr[t + 1] = ptr[t]
+                continue
+            cells_all.append(cells)
+            orient[t] = nb[k]
+            ptr[t + 1] = ptr[t] + len(cells)
     cells = np.concatenate(cells_all) if cells_all else np.zeros(0, dtype=np.int64)
-    owner = np.repeat(np.arange(n), np.diff(ptr))
+    owner = np.repeat(np.arange(n * k_or), np.diff(ptr))
     order = np.argsort(cells, kind="stable")
     inv_stars = owner[order]
     inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
-    per_db.clear()
+    if len(per_db) > 4:
+        per_db.clear()
     per_db[key] = (ptr, cells, inv_ptr, inv_stars, orient)
     return per_db[key]
+
+
+def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
+    """Catalog stars whose pattern (any of its orientations) shares the most on-cells, at least
+    ``min_overlap``: with ``keep`` = 1 the paper's unique best (none when the runner-up ties), else the
+    ``keep`` best, most shared cells first.  Returns a list of (star, shared cells)."""
+    votes = np.zeros(n_patterns, dtype=np.int64)
+    for c in cells:
+        votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
+    per_star = votes.reshape(-1, k_or).max(axis=1)
+    want = min(len(per_star), max(2, keep))
+    top = np.argpartition(-per_star, want - 1)[:want]
+    top = top[np.argsort(-per_star[top], kind="stable")]
+    if keep <= 1:
+        if per_star[top[0]] < min_overlap or (len(top) > 1 and per_star[top[1]] == per_star[top[0]]):
+            return []
+        return [(int(top[0]), int(per_star[top[0]]))]
+    return [(int(t), int(per_star[t])) for t in top[:keep] if per_star[t] >= min_overlap]
 
 
 def search_grid(ctx, config: GridConfig):
     """Grid matches of the reference stars; the confirmed groups, largest first."""
     b, db, eps, camera = ctx.b, ctx.db, ctx.eps, ctx.camera
     g = int(config.grid_size)
-    fov = math.radians(min(camera.fov_deg))
-    pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else 0.6 * fov
+    pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else \
+        math.radians(camera.max_off_axis_deg)
     pr = min(pr, math.radians(db.max_angle_deg))
     br = max(float(config.buffer_px) / camera.focal_length_px, 3 * eps)
     min_overlap = int(config.min_overlap)
     n_refs = int(config.references)
-    ptr, cells_db, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g)
+    k_or = max(1, int(config.catalog_orientations))
+    keep = max(1, int(config.matches_per_reference))
+    ptr, cells_db, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g, k_or)
+    n_patterns = len(ptr) - 1
     boresight = np.array([0.0, 0.0, 1.0])
     # Reference stars: nearest the image centre first.
     order = np.argsort(-(b @ boresight))
     refs = []
-    for r in order[:n_refs]:
-        others = np.delete(np.arange(len(b)), r)
-        cells, k = _pattern(b[r], b[others], pr, br, g)
-        if cells is None or len(cells) < min_overlap:
-            continue
-        votes = np.zeros(db.n_stars, dtype=np.int64)
-        for c in cells:
-            votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
-        top = np.argsort(-votes)[:2]
-        best, second = int(top[0]), int(top[1]) if len(top) > 1 else -1
-        if votes[best] < min_overlap or (second >= 0 and votes[second] == votes[best]):
-            continue
-        refs.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
-    yield from _confirmed(ctx, b, db, refs, 1)
-    # The search goes on (Padgett & Kreutz-Delgado orient by the nearest neighbour; a false
-    # star nearer than the true one turns the whole pattern): each reference's pattern
-    # oriented by its next nearest neighbours, the new matches added to the references.
-    for which in range(1, int(config.orientations)):
+    for which in range(int(config.orientations)):
+        # The search goes on (Padgett & Kreutz-Delgado orient by the nearest neighbour; a false
+        # star nearer than the true one turns the whole pattern): each reference's pattern
+        # oriented by its next nearest neighbours, the new matches added to the references.
         more = list(refs)
         for r in order[:n_refs]:
             others = np.delete(np.arange(len(b)), r)
             cells, k = _pattern(b[r], b[others], pr, br, g, which)
             if cells is None or len(cells) < min_overlap:
                 continue
-            votes = np.zeros(db.n_stars, dtype=np.int64)
-            for c in cells:
-                votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
-            top = np.argsort(-votes)[:2]
-            best, second = int(top[0]), int(top[1]) if len(top) > 1 else -1
-            if votes[best] < min_overlap or (second >= 0 and votes[second] == votes[best]):
-                continue
-            if any(x[0] == int(r) and x[1] == best for x in more):
-                continue
-            more.append((int(r), best, int(others[k]), int(orient[best]), int(votes[best])))
-        if len(more) > len(refs):
+            for best, votes in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
+                if not any(x[0] == int(r) and x[1] == best for x in more):
+                    more.append((int(r), best, int(others[k]), votes))
+        if which == 0 or len(more) > len(refs):
             refs = more
             yield from _confirmed(ctx, b, db, refs, which + 1)
 
@@ -175,32 +205,31 @@ def _confirmed(ctx, b, db, refs, rounds):
     """Groups of references whose catalog angles agree with the image, largest first, as proposals."""
     if not refs:
         return
-    # Confirmation: groups of references whose catalog angles agree with the image, largest first.
-    groups = []
+    # Confirmation: groups of references whose catalog angles agree with the image, largest first
+    # (one catalog star per image star and one image star per catalog star).
+    groups = {}
     for i in range(len(refs)):
         group = [refs[i]]
         for j in range(len(refs)):
-            if j == i:
+            if j == i or any(refs[j][0] == rr[0] or refs[j][1] == rr[1] for rr in group):
                 continue
             ok = True
             for rr in group:
                 th = math.acos(min(1.0, float(b[refs[j][0]] @ b[rr[0]])))
                 tc = math.acos(min(1.0, float(db.star_vector[refs[j][1]] @ db.star_vector[rr[1]])))
-                if abs(th - tc) > ctx.pair_eps(refs[j][0], rr[0]) or refs[j][1] == rr[1]:
+                if abs(th - tc) > ctx.pair_eps(refs[j][0], rr[0]):
                     ok = False
                     break
             if ok:
                 group.append(refs[j])
-        key = frozenset(r for r, *_ in group)
-        if len(group) >= 2 and key not in {k for k, _ in groups}:
-            groups.append((key, group))
+        key = frozenset((r, c) for r, c, *_ in group)
+        if len(group) >= 2 and key not in groups:
+            groups[key] = group
     # The confirmed reference stars are the proposal.  (Their orientation
     # neighbours are not added: the image's nearest neighbour need not be the
     # catalog's -- a missing or extra star changes it -- and one wrong pair in
     # the proposal can pull the attitude onto the wrong member of a close pair.)
-    for _, group in sorted(groups, key=lambda kg: -len(kg[1])):
-        if any(r == r2 for i, (r, *_) in enumerate(group) for (r2, *_) in group[i + 1:]):
-            continue    # one image star proposed as two catalog stars (two orientations)
+    for group in sorted(groups.values(), key=lambda g: (-len(g), -sum(v for *_, v in g))):
         yield Proposal([r for r, *_ in group], [c for _, c, *_ in group], len(refs),
                        {"grid_votes": [v for *_, v in group], "grid_orientations": rounds})
 
