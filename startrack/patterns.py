@@ -35,6 +35,7 @@ identification algorithms.
 """
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -260,8 +261,12 @@ class BlindOptions:
     rank: str = "peak"
 
 
+@functools.lru_cache(maxsize=8)
 def _combos(n: int):
-    """4-star combinations of the ``n`` brightest stars, those of the brightest stars first (tetra3's order)."""
+    """4-star combinations of the ``n`` brightest stars, those of the brightest stars first (tetra3's order).
+
+    Cached (the same few ``n`` serve every image): callers must not modify it.
+    """
     out = []
     for d in range(3, n):
         for c in range(2, d):
@@ -300,10 +305,26 @@ def _fit_camera(cam, dcm, xy, ref, fit_k1):
     return Camera(cam.width, cam.height, f, cam.cx, cam.cy, k1, 0.0, cam.pixel_pitch_um, dict(cam.extra))
 
 
+_WARMED: set = set()     # the array types of the indexes whose kernels this process has ready
+
+
+def _index_types(index: PatternIndex) -> tuple:
+    return tuple((a.dtype.str, a.ndim, a.flags.c_contiguous, a.flags.writeable)
+                 for a in (index.level_rho, index.level_start, index.level_prefix, index.keys, index.patterns,
+                           index.star_vec))
+
+
 def warm_kernels(index: PatternIndex) -> None:
-    """Compile (or load from numba's cache) the look-up and verification kernels: one-time set-up, not search."""
+    """Compile (or load from numba's cache) the look-up and verification kernels: one-time set-up, not search.
+
+    Once per process and kind of index arrays (a memory-mapped index is read-only, a built one is not).
+    """
     from startrack._kernels.attitude import refine
     from startrack._kernels.patterns import query_patterns, quick_check
+
+    types = _index_types(index)
+    if types in _WARMED:
+        return
 
     xy = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 12.0]])
     query_patterns(xy, 5.0, 5.0, np.zeros((0, 4), dtype=np.int64), index.level_rho, LEVEL_RATIO,
@@ -316,6 +337,7 @@ def warm_kernels(index: PatternIndex) -> None:
     rows = np.array([0, 1])
     refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
     quick_check(b, index.star_vec, rows, rows, 0.5, 0.01)
+    _WARMED.add(types)
 
 
 def solve_blind(stars: list, width: int, height: int, index: PatternIndex, options: BlindOptions | None = None,

@@ -69,6 +69,34 @@ def background_mesh(image, cell, step):
 
 
 @njit(cache=True)
+def median3(a):
+    """3 x 3 median filter of a small 2-D float64 mesh, edges replicated (as ``np.median`` of the 9 values,
+    NaN when one is NaN)."""
+    ny, nx = a.shape
+    out = np.empty((ny, nx))
+    buf = np.empty(9)
+    for j in range(ny):
+        for i in range(nx):
+            k = 0
+            nan = False
+            for dj in range(-1, 2):
+                jj = min(max(j + dj, 0), ny - 1)
+                for di in range(-1, 2):
+                    v = a[jj, min(max(i + di, 0), nx - 1)]
+                    if v != v:
+                        nan = True
+                    # insertion sort of the 9 values
+                    m = k
+                    while m > 0 and buf[m - 1] > v:
+                        buf[m] = buf[m - 1]
+                        m -= 1
+                    buf[m] = v
+                    k += 1
+            out[j, i] = math.nan if nan else buf[4]
+    return out
+
+
+@njit(cache=True)
 def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, out):
     """Per-tile noise (DN): standard deviation of the residual pixels within ``kappa`` sigma of zero.
 
