@@ -4,7 +4,9 @@ Batches (images to solve, chunks of Monte Carlo attitudes, frames to render) are
 lists of independent tasks.  :func:`ordered_map` runs one function over them
 
 * in this process (``jobs=1``, no scheduler),
-* in ``jobs`` worker processes of this machine (``multiprocessing``, spawned), or
+* in ``jobs`` worker processes of this machine (``multiprocessing``: forked when
+  that is safe, so that they inherit this process's imports, open index and
+  loaded kernels; else spawned), or
 * on a Dask distributed cluster (``scheduler="local"`` starts a ``LocalCluster``
   of ``jobs`` single-threaded worker processes; ``scheduler="tcp://host:8786"``
   connects to a running ``dask scheduler`` with its ``dask worker`` processes,
@@ -38,8 +40,8 @@ from dataclasses import dataclass
 
 from startrack.errors import BadInputError
 
-__all__ = ["BatchProgress", "TaskFailure", "check_readable_on_workers", "chunks", "default_chunk", "ordered_map",
-           "worker_cache"]
+__all__ = ["BatchProgress", "TaskFailure", "check_readable_on_workers", "chunks", "default_chunk", "fork_safe",
+           "idle_cpus", "ordered_map", "pool_workers", "usable_cpus", "worker_cache", "worker_startup_s"]
 
 
 @dataclass(frozen=True)
@@ -196,6 +198,101 @@ def _windowed(items, window, submit, collect, progress):
         next_out += 1
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the system has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def idle_cpus() -> int:
+    """CPUs left for this process's workers: the usable CPUs minus what other processes keep busy
+    (the 1-minute load average, less this process's own running task), at least 1."""
+    cpus = usable_cpus()
+    try:
+        others = max(0.0, os.getloadavg()[0] - 1.0)
+    except (AttributeError, OSError):
+        others = 0.0
+    return max(1, min(cpus, int(cpus - others + 0.5)))
+
+
+def fork_safe() -> bool:
+    """Whether worker processes may be forked from this one.
+
+    Forking copies this process's memory (imports, memory-mapped index, loaded
+    kernels) but only its calling thread: safe on Linux while this process runs a
+    single thread and numba has not started its parallel threading layer (whose
+    OpenMP/TBB threads do not survive a fork).  Elsewhere (macOS, Windows), spawn.
+    """
+    import threading
+
+    if not sys.platform.startswith("linux") or threading.active_count() != 1:
+        return False
+    if "numba" in sys.modules:
+        par = sys.modules.get("numba.np.ufunc.parallel")
+        if par is not None and getattr(par, "_is_initialized", True):
+            return False
+    return True
+
+
+def worker_startup_s(spawn_startup_s: float) -> float:
+    """Wall time until one worker of this machine's pool takes its first task.
+
+    Forked workers: measured here (a pool of one started, one empty task, closed).
+    Spawned workers redo this process's start-up (interpreter, imports, index,
+    kernels): ``spawn_startup_s``, the caller's measure of its own.
+    """
+    if not fork_safe():
+        return float(spawn_startup_s)
+    t0 = time.perf_counter()
+    with _fork_pool(1) as pool:
+        pool.apply(os.getpid)
+    return time.perf_counter() - t0
+
+
+def pool_workers(jobs: int, n_tasks: int, task_s: float, startup_s: float) -> int:
+    """How many worker processes a batch should use (1: none, run it in this process).
+
+    ``n_tasks`` tasks of ``task_s`` seconds each (measured on one of them) take
+    ``n_tasks task_s`` here, or about ``startup_s + n_tasks task_s / k`` with ``k``
+    workers (they start side by side); ``k`` is at most ``jobs``, the tasks and
+    the CPUs this process may use that other processes leave idle (the load
+    average beyond this process; more processes than idle CPUs only share them).
+    Workers are used only when that estimate is shorter.
+    """
+    k = min(int(jobs), int(n_tasks), idle_cpus())
+    serial = n_tasks * task_s
+    if k <= 1 or not startup_s + serial / k < serial:
+        return 1
+    return k
+
+
+def _forked_worker_init():
+    """A forked worker starts with the default signal handlers: the parent's (SIGTERM raising an exception to
+    clean up its temporary files) would turn the pool's terminate into a traceback and a hang."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _fork_pool(jobs):
+    import multiprocessing as mp
+
+    _flush_std()
+    return mp.get_context("fork").Pool(jobs, _forked_worker_init)
+
+
+def _flush_std():
+    """Flush this process's standard streams (a forked worker flushes its copy of their buffers on exit)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+
+
 def _pool_map(fn, items, jobs, window, progress):
     import multiprocessing as mp
 
@@ -205,8 +302,9 @@ def _pool_map(fn, items, jobs, window, progress):
         except Exception as exc:  # noqa: BLE001 - a task's failure is reported in its place
             return TaskFailure(index, _describe(exc))
 
-    # spawn, not fork: numba's threading layer and HDF5 must not be forked.
-    with mp.get_context("spawn").Pool(jobs) as pool:
+    # fork when safe (workers start in milliseconds with everything loaded), else spawn: numba's
+    # threading layer must not be forked.
+    with (_fork_pool(jobs) if fork_safe() else mp.get_context("spawn").Pool(jobs)) as pool:
         yield from _windowed(items, window, lambda _i, item: pool.apply_async(fn, (item,)), collect, progress)
 
 

@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map, worker_cache
+from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map, pool_workers, worker_cache
 
 
 def _slow_square(x):
@@ -37,6 +37,33 @@ def test_serial_keeps_order_and_reports_failures_in_place():
 def test_process_pool_keeps_input_order():
     out = list(ordered_map(_slow_square, range(12), jobs=2, window=3))
     assert out == [(i, i * i) for i in range(12)]
+
+
+def _inherited(_x):
+    return worker_cache().get("parent_marker")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers on Linux only")
+def test_forked_workers_inherit_what_the_parent_loaded():
+    worker_cache()["parent_marker"] = "loaded once"
+    try:
+        out = [r for _, r in ordered_map(_inherited, range(4), jobs=2)]
+    finally:
+        worker_cache().pop("parent_marker", None)
+    assert out == ["loaded once"] * 4
+
+
+def test_workers_only_when_they_pay_off(monkeypatch):
+    import startrack.cluster as cluster
+
+    monkeypatch.setattr(cluster, "idle_cpus", lambda: 2)
+    # 10 tasks of 10 ms: 0.1 s here; 2 workers need 0.05 s plus their start-up.
+    assert pool_workers(2, 10, 0.01, startup_s=0.02) == 2
+    assert pool_workers(2, 10, 0.01, startup_s=0.06) == 1
+    assert pool_workers(4, 10, 0.01, startup_s=0.0) == 2        # no more workers than idle CPUs
+    assert pool_workers(2, 1, 1.0, startup_s=0.0) == 1          # one task: nothing to share
+    monkeypatch.setattr(cluster, "idle_cpus", lambda: 1)
+    assert pool_workers(2, 100, 1.0, startup_s=0.0) == 1        # the other CPUs are busy
 
 
 def test_items_are_read_lazily_within_the_window():

@@ -90,6 +90,45 @@ def _databases():
     return cache["band_databases"]
 
 
+def _solved(run, jobs, scheduler, progress):
+    """``(index, frame document)`` of every task of ``run``, in order, with as many workers as pay off.
+
+    On this machine, the first two images are solved here (the second one timed:
+    the first pays this process's last first-use costs); workers then take the
+    rest only when the time they save exceeds what they take to start, on CPUs
+    other processes leave idle (:func:`startrack.cluster.pool_workers`; forked
+    workers' start-up is measured, a spawned worker redoes this process's own,
+    measured as its CPU time so far), so that ``-j N`` does not lose to ``-j 1``.
+    """
+    import logging
+    import resource
+    import time
+
+    from startrack.cluster import ordered_map, pool_workers, worker_startup_s
+
+    if scheduler is not None or jobs <= 1 or len(run) <= 1:
+        yield from ordered_map(_solve_one, run, jobs=max(1, min(jobs, len(run))), scheduler=scheduler,
+                               progress=progress)
+        return
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    startup = ru.ru_utime + ru.ru_stime
+    # The first image pays this process's remaining first-use costs (image readers' imports ...):
+    # the second one is timed.
+    head = min(2, len(run) - 1)
+    task_s = 0.0
+    t0 = time.perf_counter()
+    for i, doc in ordered_map(_solve_one, run[:head], progress=progress):
+        task_s = time.perf_counter() - t0
+        yield i, doc
+        t0 = time.perf_counter()
+    rest = run[head:]
+    workers = pool_workers(jobs, len(rest), task_s, worker_startup_s(startup))
+    logging.getLogger(__name__).debug("-j %d: %d images left, %.3f s each: %d worker(s)", jobs, len(rest), task_s,
+                                      workers)
+    for i, doc in ordered_map(_solve_one, rest, jobs=workers, progress=progress):
+        yield i + head, doc
+
+
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
     import time
@@ -217,7 +256,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     import os
 
     from startrack.cli.batch import BatchTally
-    from startrack.cluster import TaskFailure, ordered_map
+    from startrack.cluster import TaskFailure
     from startrack.errors import BadInputError
     from startrack.formats.atomic import check_writable
     from startrack.formats.frame import FRAME_FORMAT, FrameWriter
@@ -275,9 +314,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
                for p, o, c, outs in todo]
         progress = _cluster_progress(quiet)
     with writer:
-        # In input order; with -j N, spawned workers share the pattern index through the page cache.
-        for i, doc in ordered_map(_solve_one, run, jobs=max(1, min(jobs, len(todo))), scheduler=scheduler,
-                                  progress=progress):
+        # In input order; with -j N, workers share the pattern index through the page cache.
+        for i, doc in _solved(run, jobs, scheduler, progress):
             if isinstance(doc, dict) and run is not todo:
                 doc.setdefault("image", {})["path"] = todo[i][0]
             if isinstance(doc, TaskFailure):
