@@ -53,9 +53,20 @@ def score(path, max_side_deg=None):
     cross, roll, t_id, t_cen, n_stars = [], [], [], [], []
     reasons = {}
     causes = {}
+    errs, sigmas = [], []
     for line in open(path):
         d = json.loads(line)
         n += 1
+        # The centroids against the render's truth (the nearest true star within 1.5 px): error and sigma_px.
+        truth = (d.get("truth") or {}).get("stars") or []
+        if truth:
+            tx, ty = np.array([t["x"] for t in truth]), np.array([t["y"] for t in truth])
+            for st in d.get("stars", []):
+                dist = np.hypot(tx - st["x"], ty - st["y"])
+                j = int(np.argmin(dist))
+                if dist[j] < 1.5 and st.get("sigma_px") is not None:
+                    errs += [st["x"] - tx[j], st["y"] - ty[j]]
+                    sigmas += [st["sigma_px"], st["sigma_px"]]
         t_cen.append(float(d.get("centroid", {}).get("time_ms") or np.nan))
         ident = d.get("identification") or {}
         t_id.append(float(ident.get("time_ms") or np.nan))
@@ -82,7 +93,12 @@ def score(path, max_side_deg=None):
             "median_cross_boresight_arcsec": med(cross), "median_roll_arcsec": med(roll),
             "p95_cross_boresight_arcsec": float(np.percentile(cross, 95)) if cross else None,
             "p95_roll_arcsec": float(np.percentile(roll, 95)) if roll else None,
-            "median_identify_ms": med(t_id), "median_centroid_ms": med(t_cen), "median_stars": med(n_stars)}
+            "median_identify_ms": med(t_id), "median_centroid_ms": med(t_cen), "median_stars": med(n_stars),
+            "centroid_median_sigma_px": med(sigmas),
+            "centroid_error_robust_px": float(1.4826 * np.median(np.abs(errs))) if errs else None,
+            "centroid_error_p95_px": float(np.percentile(np.abs(errs), 95)) if errs else None,
+            "centroid_z_robust": float(1.4826 * np.median(np.abs(np.array(errs) / np.array(sigmas)))) if errs
+            else None}
 
 
 def main(argv=None):

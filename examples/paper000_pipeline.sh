@@ -16,9 +16,8 @@
 # magnitude 0, 100 ms, PSF sigma 1 px); the sky is rendered to the sensor's own limit, so
 # stars outside the catalog (brighter than 2.5, fainter than 6.59) are in the images too.
 # The paper's identification has a fixed angle tolerance, not per-star sigmas: --sigma-px 0.25 (the 95th
-# percentile of the COM error on these frames against the render's truth, saturated stars included).  COM's
-# own sigma (King's photon/background formula) is ~0.001 px on 8-bit frames whose background noise is below
-# one DN and says nothing of saturation; with it the tolerance is ~10" and a third of the frames fail.
+# percentile of the COM error on these frames against the render's truth, saturated stars included), as the
+# paper has one tolerance; COM's own sigma_px (its simulated error) is scored against the truth in the results.
 # A frame is a success when the attitude's boresight is within 60" of the truth, wrong when an
 # attitude is returned farther off, failed otherwise.  Results: examples/results/p000-pipeline.json
 set -euo pipefail

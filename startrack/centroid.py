@@ -26,6 +26,7 @@ centre of the top-left pixel.
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -275,6 +276,87 @@ def _uncertainty(flux, sigma_psf, noise, gain):
     return math.sqrt(shot + bg + 1e-6)
 
 
+#: Variance of rounding to whole DN (uniform over one DN): the floor of an integer image's pixel noise.
+_QUANT_VAR = 1.0 / 12.0
+_PHASES = (np.arange(6) + 0.5) / 6 - 0.5       # sub-pixel phases of the COM model, per axis
+
+
+def _is_integer_image(img) -> bool:
+    """True when the pixel values are whole numbers (8-, 12- or 16-bit data, whatever the array's dtype)."""
+    if np.issubdtype(img.dtype, np.integer):
+        return True
+    probe = img[:: max(1, img.shape[0] // 64), :: max(1, img.shape[1] // 64)]
+    return bool(np.all(probe == np.round(probe)))
+
+
+def _pixel_gaussian(flux, s, half):
+    """A pixel-integrated Gaussian star of ``flux`` and sigma ``s`` at every phase of :data:`_PHASES`:
+    ``(values (P, n, n), offsets (n,))``, phases in C order (y slow, x fast)."""
+    off = np.arange(-half, half + 1, dtype=np.float64)
+    edges = np.concatenate([off - 0.5, [off[-1] + 0.5]])
+    z = ((edges[None, :] - _PHASES[:, None]) / (math.sqrt(2.0) * s)).ravel().tolist()
+    c = 0.5 * (1.0 + np.array([math.erf(t) for t in z])).reshape(len(_PHASES), len(edges))
+    g = np.diff(c, axis=1)                                      # (phases, n)
+    vals = flux * g[:, None, :, None] * g[None, :, None, :]     # (py, px, y, x)
+    return vals.reshape(len(_PHASES) ** 2, len(off), len(off)), off
+
+
+@functools.lru_cache(maxsize=4096)
+def _com_sigma_model(flux, s, thresh, var_bg, inv_gain, integer, clip, draws=6):
+    """1-sigma per-axis error of the thresholded centre of mass of a Gaussian star, px (cached on rounded inputs).
+
+    The ``com`` method is the residual-weighted mean over the pixels above the detection
+    threshold.  Its error here is simulated, not assumed: a pixel-integrated Gaussian of
+    ``flux`` (DN) and sigma ``s`` (px) at a grid of sub-pixel phases, ``draws`` noise
+    realisations each (background variance ``var_bg`` less the rounding's, plus the shot
+    noise ``m / gain`` when the gain is known), rounded to whole DN when the image is
+    integer, clipped at ``clip`` (a saturated star), thresholded at ``thresh``; the RMS
+    of the COM's offset from the true centre.  It holds the pixel-phase error of the
+    truncation and of the rounding (systematic for one star, spread like noise over the
+    stars of a field), the propagated noise and the noise in which pixels pass the
+    threshold.  The draws come from a fixed seed: the same inputs, the same sigma.
+    """
+    half = int(max(2, math.ceil(4.0 * s)))
+    vals, off = _pixel_gaussian(flux, s, half)
+    v = np.repeat(np.repeat(_PHASES, len(_PHASES)), draws)      # y phase (slow)
+    u = np.repeat(np.tile(_PHASES, len(_PHASES)), draws)        # x phase (fast)
+    vals = np.repeat(vals, draws, axis=0)
+    var_an = max(var_bg - (_QUANT_VAR if integer else 0.0), 0.0) + inv_gain * vals
+    obs = vals + np.random.default_rng(20261202).standard_normal(vals.shape) * np.sqrt(var_an)
+    if integer:
+        obs = np.floor(obs + 0.5)
+    obs = np.minimum(obs, clip)
+    w = np.where(obs > thresh, obs, 0.0)
+    fw = w.sum(axis=(1, 2))
+    ok = fw > 0
+    if not np.any(ok):
+        return float("nan")
+    w, fw, u, v = w[ok], fw[ok], u[ok], v[ok]
+    cx = (w.sum(axis=1) * off).sum(axis=1) / fw
+    cy = (w.sum(axis=2) * off).sum(axis=1) / fw
+    return math.sqrt(0.5 * (np.mean((cx - u) ** 2) + np.mean((cy - v) ** 2)))
+
+
+def _com_uncertainty(flux, peak, sig_est, psf_sigma, thresh, noise, gain, integer, saturated):
+    """:func:`_com_sigma_model` for one detected star: its flux, the PSF sigma (given, else from the peak-to-flux
+    ratio of an unsaturated star, else the blob's moments), the local threshold and noise, on rounded inputs."""
+    if not (flux > 0 and math.isfinite(flux)):
+        return float("nan")
+    if psf_sigma:
+        s = psf_sigma
+    elif not saturated and peak > 0:
+        # A pixel-integrated Gaussian's peak pixel holds ~F / (2 pi s^2 + 1/6 ...) of its flux: s from the ratio.
+        s = math.sqrt(max(flux / (2.0 * math.pi * peak) - 1.0 / 12.0, 0.0))
+    else:
+        s = sig_est
+    s = min(max(s, 0.3), 5.0)
+    # Inputs on a grid (0.05 dex, 0.05 px) so that a field's stars share a few cached models: sigma moves by < 6 %.
+    r2 = lambda x: float(10 ** (round(20 * math.log10(x)) / 20)) if x > 0 else 0.0     # noqa: E731
+    clip = r2(float(peak)) if saturated else float("inf")
+    return _com_sigma_model(r2(flux), round(20 * s) / 20, r2(thresh), r2(noise**2), r2(1.0 / gain) if gain else 0.0,
+                            bool(integer), clip)
+
+
 _WORKSPACE = threading.local()
 
 
@@ -382,7 +464,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     try:
         noise_mesh = _pixel_noise_mesh(residual, sigma_mesh, cell) if options.method == "gauss" else sigma_mesh
         return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel, gsigma,
-                        result)
+                        result, thresh_mesh, _is_integer_image(img))
     finally:
         # Leave the reused label buffer zeroed for the next frame.
         if n_found > max_blobs:
@@ -391,13 +473,30 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
             clear_labels(labels, table, n_found)
 
 
-def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma, result):
-    """Classify the labelled blobs, centroid the stars and build the result (:func:`find_stars`'s second half)."""
+def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma, result,
+             thresh_mesh=None, integer=False):
+    """Classify the labelled blobs, centroid the stars and build the result (:func:`find_stars`'s second half).
+
+    ``integer``: the image holds whole DN, so every pixel's noise includes the rounding's
+    1/12 DN^2 (on an 8-bit frame whose analogue noise is below a DN, the measured
+    background noise is ~0 and the rounding is all the noise there is).
+    """
     from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, windowed_centroid
     from startrack._kernels.psf_fit import weighted_gaussian_fit
 
-    sigma_at = lambda x, y: float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1),  # noqa: E731
-                                             min(int(x) // cell, sigma_mesh.shape[1] - 1)])
+    quant = _QUANT_VAR if integer else 0.0
+
+    def sigma_at(x, y):
+        x, y = min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1)
+        n = float(sigma_mesh[min(int(y) // cell, sigma_mesh.shape[0] - 1), min(int(x) // cell, sigma_mesh.shape[1] - 1)])
+        return math.sqrt(n * n + quant)
+
+    def thresh_at(x, y):
+        if thresh_mesh is None:
+            return 0.0
+        x, y = min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1)
+        return float(thresh_mesh[min(int(y) // cell, thresh_mesh.shape[0] - 1),
+                                 min(int(x) // cell, thresh_mesh.shape[1] - 1)])
     if n_found == 0:
         return result([], [], glevel, gsigma, "no pixel above the detection threshold")
     if n_found > max_blobs:
@@ -469,7 +568,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             if ok:
                 sigma_psf = s_fit
                 # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).
-                n_var = sigma_at(min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1)) ** 2
+                n_var = sigma_at(x, y) ** 2
                 inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
                 wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
                     residual, x, y, s_fit, amp, max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
@@ -482,7 +581,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
         r = max(2.0, 3.0 * sigma_psf)
         flux, n_ap = aperture_flux(residual, x, y, r)
-        noise = sigma_at(min(max(x, 0), img.shape[1] - 1), min(max(y, 0), img.shape[0] - 1))
+        noise = sigma_at(x, y)
         if flux <= 0:
             continue
         var = n_ap * noise**2 + (flux / options.gain_e_per_dn if options.gain_e_per_dn else 0.0)
@@ -493,6 +592,10 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             "fwhm_px": 2.3548 * sigma_psf, "noise_dn": float(noise), "saturated": bool(nsat > 0),
             **({"deblended": True} if deblended else {}),
         }
+        if method == "com" and not deblended:
+            # The thresholded COM's own error model: pixel phase (truncation, rounding) and propagated noise.
+            star["sigma_px"] = _com_uncertainty(flux, peak, sig_est, options.psf_sigma_px, thresh_at(x, y), noise,
+                                                options.gain_e_per_dn, integer, nsat > 0)
         if fit is not None:
             # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
             star["sigma_px"] = math.sqrt(0.5 * (fit["cov_px2"][0][0] + fit["cov_px2"][1][1]))
