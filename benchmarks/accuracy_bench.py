@@ -147,12 +147,13 @@ def run(sensor_name, frames, seed=0, peers=False, psf_sigma=None, faint_snr=None
     dcms = quaternion_to_dcm(random_quaternions(frames, rng))
     peer = Peers(cam, mags) if peers else None
     tools = ["startrack"] + (["tetra3rs", "cedar-solve"] if peers else [])
-    rec = {t: {"err": [], "crb": [], "cov": [], "failed": 0, "wrong": 0, "far": []} for t in tools}
+    rec = {t: {"err": [], "crb": [], "cov": [], "frame": [], "stars": [], "failed": 0, "wrong": 0, "far": []}
+           for t in tools}
     n_nobound = 0
     t0 = time.time()
     for k in range(frames):
         img, truth = render_image(rcat, cam, dcms[k], sensor, Scene(), np.random.default_rng([seed, k]), vectors=rvec)
-        bound, _ = frame_bound(cam, reference_stars(cam, dcms[k], idcat, sensor, ivec, truth["focal_length_px"]),
+        bound, n_bound = frame_bound(cam, reference_stars(cam, dcms[k], idcat, sensor, ivec, truth["focal_length_px"]),
                                sensor, None, max_stars)
         if bound is None:
             n_nobound += 1
@@ -188,6 +189,8 @@ def run(sensor_name, frames, seed=0, peers=False, psf_sigma=None, faint_snr=None
                 # within its sigma: scored with the others (leaving it out would bias the RMS low)
             r["err"].append(e)
             r["crb"].append(crb)
+            r["frame"].append(k)
+            r["stars"].append(n_bound)
             if res[1] is not None:
                 r["cov"].append(res[1])
         if progress and (k + 1) % 100 == 0:
@@ -199,9 +202,39 @@ def run(sensor_name, frames, seed=0, peers=False, psf_sigma=None, faint_snr=None
         s = summarise(r["err"], r["crb"], r["cov"] if r["cov"] else None)
         s.update(failed=r["failed"], wrong=r["wrong"], far=r["far"])
         out[name] = s
+    out["_subsets"] = subsets(rec)
     out["_meta"] = {"sensor": sensor_name, "frames": frames, "no_bound": n_nobound, "seed": seed,
                     "psf_sigma_px": sensor.psf_sigma_px, "faint_snr": faint_snr, "max_stars": max_stars,
                     "pixel_arcsec": cam.pixel_scale_arcsec, "fov_deg": list(cam.fov_deg)}
+    return out
+
+
+def _pick(r, keep):
+    """The per-frame lists of one tool's record restricted to the frames where ``keep`` is true."""
+    from startrack.accuracy import summarise
+
+    idx = [i for i, k in enumerate(r["frame"]) if keep(i, k)]
+    cov = [r["cov"][i] for i in idx] if len(r["cov"]) == len(r["frame"]) and r["cov"] else None
+    return summarise([r["err"][i] for i in idx], [r["crb"][i] for i in idx], cov)
+
+
+def subsets(rec, min_stars=4):
+    """The same summaries over subsets of the frames, so that tools and regimes compare on equal frames.
+
+    ``>= 4 stars``: frames whose bound holds at least ``min_stars`` stars, the lost-in-space regime
+    (a frame of 2-3 stars cannot be identified without a prior attitude; the bound of such frames
+    is loose by orders of magnitude and a handful of them carry the RMS ratio over 1000 frames).
+    ``on <peer>'s frames``: startrack over exactly the frames that peer solved (and scored), beside
+    that peer's row, which covers the same frames.
+    """
+    out = {}
+    st = rec["startrack"]
+    out[f"startrack, >= {min_stars} stars"] = _pick(st, lambda i, _k: st["stars"][i] >= min_stars)
+    for name, r in rec.items():
+        if name == "startrack":
+            continue
+        frames = set(r["frame"])
+        out[f"startrack on {name}'s frames"] = _pick(st, lambda _i, k, f=frames: k in f)
     return out
 
 
@@ -215,13 +248,15 @@ def table(results):
         label = f"{meta['sensor']} (PSF {meta['psf_sigma_px']:g} px" + \
             (f", faint SNR {meta['faint_snr']:g}" if meta["faint_snr"] else "") + \
             (f", <= {meta['max_stars']} stars" if meta["max_stars"] else "") + ")"
-        for tool, s in res.items():
-            if tool == "_meta" or not s.get("frames"):
+        items = [(t, s) for t, s in res.items() if not t.startswith("_")] + list(res.get("_subsets", {}).items())
+        for tool, s in items:
+            if not s.get("frames"):
                 continue
             nees = (f"{s['nees_mean']:.3f} [{s['nees_band'][0]:.3f}, {s['nees_band'][1]:.3f}]"
                     if "nees_mean" in s else "—")
             far_ok = sum(1 for f in s.get("far", []) if not f["wrong"])
-            rows.append(f"| {label} | {tool} | {s['frames']} / {s['failed']} / {far_ok} / {s['wrong']} | "
+            counts = f"{s['frames']} / {s['failed']} / {far_ok} / {s['wrong']}" if "failed" in s else f"{s['frames']}"
+            rows.append(f"| {label} | {tool} | {counts} | "
                         f"{s['rms_cross_arcsec']:.3f} | {s['crb_cross_arcsec']:.3f} | {s['ratio_cross']:.2f} "
                         f"[{s['ratio_cross_band'][0]:.2f}, {s['ratio_cross_band'][1]:.2f}] | "
                         f"{s['rms_roll_arcsec']:.2f} | {s['crb_roll_arcsec']:.2f} | {s['ratio_roll']:.2f} "
@@ -229,7 +264,7 @@ def table(results):
                         f"{s['z_cross']:.2f} | {s['z_roll']:.2f} | {nees} |")
     for res in results:
         for tool, s in res.items():
-            if tool != "_meta" and s.get("far"):
+            if not tool.startswith("_") and s.get("far"):
                 rows.append(f"\n{res['_meta']['sensor']} {tool}: frames more than 0.1 deg off (error and reported "
                             "sigma, else the frame's bound, per axis x, y, roll in arcsec; NEES against that "
                             "covariance; wrong when NEES > 25 and left out, else 'far', within its sigma, and "
