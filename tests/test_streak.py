@@ -108,7 +108,7 @@ def test_partial_streaks_are_fitted_again_from_the_common_motion(catalog):
     cam = Camera.from_fov(12, 1024, 768)
     cat = catalog.filter_magnitude(None, 6.5)
     rate = np.array([1.5, -1.0, 0.5]) / np.linalg.norm([1.5, -1.0, 0.5]) * 3.0
-    dcm = radec_roll_to_dcm(6.1436, -0.5236, 0.6981)
+    dcm = radec_roll_to_dcm(6.1436, -0.5236, 0.6981)     # degrees (a field near RA 6 deg on the equator)
     img, _ = render_image(cat, cam, dcm, Sensor(), Scene(rate_deg_s=tuple(rate)), np.random.default_rng(11))
     res = find_stars(img, CentroidOptions(deblend=False, max_elongation=1e9, matched_filter=True, filter_sigma_px=2.0))
     xs, ys = [s["x"] for s in res.stars[:12]], [s["y"] for s in res.stars[:12]]
