@@ -12,7 +12,10 @@ the 10 brightest stars, at least 3 per frame), no false star: Table 3's first bl
    (examples/intensity_calibration.py).
 2. N other frames identified by ``brightness`` with that calibration (reference-star mode
    where a star brighter than magnitude 3 is seen), by ``brightness`` without one (the
-   four-star mode only) and by ``pyramid``.  Per frame: outcome, identification time
+   four-star mode only), by ``brightness`` with the calibration carried frame to frame as
+   ``startrack identify`` does over a stream (no start: each identified frame's brightest
+   star calibrates the next, the mean of the last 10; :mod:`startrack.identify.calibration`)
+   and by ``pyramid``.  Per frame: outcome, identification time
    (``time_ms``), mode and scope.  The scope is the number of oriented pair entries the
    look-ups examined (Eqs. 13-14 on the narrowed ranges) beside what the unnarrowed
    k-vector ranges of the same look-ups hold; for the pyramid, the entries of the k-vector
@@ -111,19 +114,30 @@ def main(argv=None):
 
     runs = {"brightness (calibrated)": ("brightness", make_config("brightness", {"brightness_calibration": calibration})),
             "brightness (no calibration)": ("brightness", make_config("brightness")),
+            "brightness (carried frame to frame)": ("brightness", "carried"),
             "pyramid": ("pyramid", make_config("pyramid"))}
     for name in ("brightness", "pyramid"):
         register(timed(get_algorithm(name)))
+    from startrack.identify.calibration import CalibrationCarry
+
     for name, cfg in runs.values():
-        identify_stars(frames[0][0], cam, db, name + "/timed", params, cfg)     # compile / load kernels
+        identify_stars(frames[0][0], cam, db, name + "/timed", params,
+                       make_config(name) if cfg == "carried" else cfg)         # compile / load kernels
     test = frames[1:]
     rows = {}
     for label, (name, cfg) in runs.items():
         per = []
+        carry = CalibrationCarry("", 10) if cfg == "carried" else None
         t0 = time.perf_counter()
-        for stars, truth, _ in test:
+        for n_frame, (stars, truth, _) in enumerate(test):
             SEARCH_S[0] = 0.0
-            res = identify_stars(stars, cam, db, name + "/timed", params, cfg)
+            if carry is not None:
+                frame_cfg, used = carry.config_for(make_config(name))
+                res = identify_stars(stars, cam, db, name + "/timed", params, frame_cfg)
+                res.details.update(used)
+                carry.update(res, n_frame)
+            else:
+                res = identify_stars(stars, cam, db, name + "/timed", params, cfg)
             search_ms = SEARCH_S[0] * 1000
             d = res.details or {}
             if name == "pyramid":
