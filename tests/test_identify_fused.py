@@ -60,6 +60,7 @@ def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypat
             b = identify_stars(frame, cam, db, algorithm, params)
             assert len(calls) - before == a.trials       # ... and none of the Python path's
             assert _result(a) == _result(b)
+            assert a.details.get("residual_arcsec_rms") == pytest.approx(b.details.get("residual_arcsec_rms"), abs=1e-3)
             if a.quaternion_estimate is not None:
                 np.testing.assert_allclose(a.quaternion_estimate, b.quaternion_estimate, rtol=0, atol=1e-12)
             outcomes["ok" if a.status == "ok" else "failed"] += 1
@@ -84,3 +85,59 @@ def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch
     assert identify_stars(frame, distorted, db, "pyramid", IdentifyParams(sigma_px=0.3)).status == "ok"
     with pytest.raises(AssertionError, match="fused kernel"):
         identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=0.3))
+
+
+def _clusters_python(ctx, b, keep, identity, votes2, top):
+    """Geometric voting's clusters as the Python loops grew them before the kernel (the reference)."""
+    n = len(b)
+    best = int(votes2.max(initial=0))
+    if best < 2:
+        return []
+    flat = [(int(votes2[i, a]), i, int(identity[i, a])) for i in range(n) for a in range(top)
+            if identity[i, a] >= 0 and votes2[i, a] >= 1]
+    flat.sort(key=lambda t: (-t[0], t[1]))
+    sv = ctx.db.star_vector
+    out, seen = [], set()
+    for v0, i0, c0 in flat:
+        if v0 < 2:
+            break
+        cluster = [(i0, c0)]
+        for _, i, c in flat:
+            if any(i == m for m, _ in cluster) or any(c == k for _, k in cluster):
+                continue
+            if all(abs(float(np.arccos(min(1.0, float(b[i] @ b[m])))) - float(np.arccos(min(1.0, float(sv[c] @ sv[k]))))
+                       ) <= ctx.pair_eps(int(keep[i]), int(keep[m])) for m, k in cluster):
+                cluster.append((i, c))
+        key = frozenset((int(keep[i]), c) for i, c in cluster)
+        if len(cluster) >= 3 and key not in seen:
+            seen.add(key)
+            out.append(([int(keep[i]) for i, _ in cluster], [c for _, c in cluster]))
+    return out
+
+
+def test_voting_clusters_kernel_grows_the_python_clusters(sensor, monkeypatch):
+    """Every vote of frames with false stars: the kernel's clusters are the Python loops' clusters, in the
+    same order."""
+    from startrack.identify import voting
+
+    cam, db, stars = sensor
+    rounds = []
+    original = voting._clusters
+
+    def spy(ctx, config, b, keep, identity, votes2, top, seen, patterns):
+        rounds.append((ctx, config, b.copy(), keep.copy(), identity.copy(), votes2.copy(), top))
+        yield from original(ctx, config, b, keep, identity, votes2, top, seen, patterns)
+
+    monkeypatch.setattr(voting, "_clusters", spy)
+    for k, cond in enumerate([Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=4),
+                              Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4)]):
+        params = IdentifyParams(sigma_px=cond.sigma_px)
+        for frame, _, _ in make_frames(stars, cam, cond, 20, 70 + k, mag_limit=5.4):
+            identify_stars(frame, cam, db, "voting", params)
+    proposals = 0
+    for ctx, config, b, keep, identity, votes2, top in rounds:
+        ctx.deadline = float("inf")         # replayed after the frame's time budget
+        got = [(p.image, p.catalog) for p in original(ctx, config, b, keep, identity, votes2, top, set(), 1)]
+        assert got == _clusters_python(ctx, b, keep, identity, votes2, top)
+        proposals += len(got)
+    assert len(rounds) >= 30 and proposals >= 20, (len(rounds), proposals)

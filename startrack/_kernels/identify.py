@@ -1135,18 +1135,21 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     nm = 0
     for i in range(n):
         allowed = radius_px[i] + max_err * math.hypot(xs[i] - mx, ys[i] - my)
+        # Squared distances (the nearest two; no square root per star).
         d1 = np.inf
         d2 = np.inf
         a1 = -1
         for t in range(k):
-            d = math.hypot(xs[i] - px[t], ys[i] - py[t])
+            dx = xs[i] - px[t]
+            dy = ys[i] - py[t]
+            d = dx * dx + dy * dy
             if d < d1:
                 d2 = d1
                 d1 = d
                 a1 = t
             elif d < d2:
                 d2 = d
-        if d1 > allowed or d2 <= allowed:
+        if d1 > allowed * allowed or d2 <= allowed * allowed:
             continue
         s = idx[a1]
         dup = False
@@ -1426,9 +1429,11 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     field's scale, re-estimates from the matches), on the same kernels, without a
     Python round trip between them.  ``fixed_radius_px`` <= 0: radii from the sigmas.
 
-    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, scale, b)``:
-    ``code`` 0 = accepted, 1-5 as :func:`_verify_pinhole`; ``scale`` the focal-length scale
-    used (1.0: none); ``b`` the unit vectors of the detections at that scale.
+    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, scale, matched, resid_rms)``:
+    ``code`` 0 = accepted, 1-5 as :func:`_verify_pinhole`; ``q`` normalised, scalar part
+    >= 0; ``scale`` the focal-length scale used (1.0: none); ``matched`` the matched
+    detections (ascending); ``resid_rms`` the rms angle (arcsec) between them and their
+    stars at the final attitude and scale.
     """
     n = xs.shape[0]
     scale = focal_scale(b0, img, star_vec, cat)
@@ -1447,7 +1452,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         max_false)
     total = 1.0 if math.isnan(scale) else scale
     if code != 0:
-        return code, match, q, dcm, p_false, missing, bright_pred, nm, total, b
+        return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
     margin_px = margin_rad * focal
     radius_px = np.empty(n)
     rmin = np.inf
@@ -1491,4 +1496,86 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
             mag_floor, mag_gate, trials, max_false)
-    return code, match, q, dcm, p_false, missing, bright_pred, nm, total, b
+    return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
+
+
+@njit(cache=True)
+def _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec):
+    """:func:`verify_focal`'s result: the quaternion normalised (scalar part >= 0), the matched
+    detections and their rms residual (arcsec)."""
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    sign = -1.0 if q[3] < 0 else 1.0
+    qn = np.empty(4)
+    for u in range(4):
+        qn[u] = sign * q[u] / norm
+    matched = np.empty(nm, dtype=np.int64)
+    t = 0
+    ss = 0.0
+    for i in range(match.shape[0]):
+        if match[i] >= 0 and t < nm:
+            matched[t] = i
+            t += 1
+            c = match[i]
+            d = 0.0
+            for u in range(3):
+                d += b[i, u] * (dcm[u, 0] * star_vec[c, 0] + dcm[u, 1] * star_vec[c, 1] + dcm[u, 2] * star_vec[c, 2])
+            r = math.degrees(math.acos(min(1.0, max(-1.0, d)))) * 3600.0
+            ss += r * r
+    rms = math.sqrt(ss / t) if t > 0 else np.nan
+    return code, match, qn, dcm, p_false, missing, bright_pred, nm, total, matched[:t], rms
+
+
+@njit(cache=True)
+def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, threshold):
+    """Geometric voting's clusters (:func:`startrack.identify.voting._clusters`) of seeds ``start`` to ``stop``.
+
+    ``fi``, ``fc``, ``fv``: the hypotheses (image star, catalog star, support), strongest
+    first.  Each seed with support >= ``threshold`` grows greedily through the list: a
+    hypothesis joins when neither its image star nor its catalog star is in the cluster
+    and its image angle to every member agrees with the catalog angle within the pair
+    tolerance ``hypot(tol[keep[i]], tol[keep[m]]) + margin``.
+
+    Returns ``(members, sizes, end)``: row ``s - start`` of ``members`` holds the flat
+    indices of seed ``s``'s cluster (its first ``sizes`` entries); ``end`` the first seed
+    not grown (below the threshold, or ``stop``).
+    """
+    nf = fi.shape[0]
+    n = b.shape[0]
+    stop = min(stop, nf)
+    members = np.full((max(stop - start, 0), n), -1, dtype=np.int64)
+    sizes = np.zeros(max(stop - start, 0), dtype=np.int64)
+    end = start
+    for s in range(start, stop):
+        if fv[s] < threshold:
+            break
+        end = s + 1
+        row = s - start
+        members[row, 0] = s
+        k = 1
+        for f in range(nf):
+            i = fi[f]
+            c = fc[f]
+            clash = False
+            for u in range(k):
+                g = members[row, u]
+                if fi[g] == i or fc[g] == c:
+                    clash = True
+                    break
+            if clash:
+                continue
+            ok = True
+            for u in range(k):
+                g = members[row, u]
+                m = fi[g]
+                th = math.acos(min(1.0, b[i, 0] * b[m, 0] + b[i, 1] * b[m, 1] + b[i, 2] * b[m, 2]))
+                d = fc[g]
+                tc = math.acos(min(1.0, star_vec[c, 0] * star_vec[d, 0] + star_vec[c, 1] * star_vec[d, 1]
+                                   + star_vec[c, 2] * star_vec[d, 2]))
+                if abs(th - tc) > math.hypot(tol[keep[i]], tol[keep[m]]) + margin:
+                    ok = False
+                    break
+            if ok and k < n:
+                members[row, k] = f
+                k += 1
+        sizes[row] = k
+    return members, sizes, end

@@ -159,6 +159,9 @@ class SearchContext:
     params : IdentifyParams
     flux : ndarray or None
         Fluxes of the search stars (``None`` when the frame has none).
+    deadline : float
+        ``time.perf_counter()`` value at which the driver's time budget ends: a search
+        with long steps between proposals stops there too (:meth:`expired`).
     """
 
     b: np.ndarray
@@ -170,6 +173,11 @@ class SearchContext:
     margin: float
     params: IdentifyParams
     flux: np.ndarray | None = None
+    deadline: float = math.inf
+
+    def expired(self) -> bool:
+        """True once the driver's time budget (``params.max_time_ms``) is spent."""
+        return time.perf_counter() > self.deadline
 
     def pair_eps(self, i: int, j: int) -> float:
         """Tolerance (rad) of the angle between search stars ``i`` and ``j``."""
@@ -313,6 +321,7 @@ class _Verdict:
     code: ReasonCode | None
     residual_arcsec: np.ndarray | None = None
     quaternion: np.ndarray | None = None
+    residual_rms: float | None = None       # arcsec; else from residual_arcsec
 
 
 def false_match_probability(e_core: float, trials: int, n_others_matched: int, n_others: int, p_hit: float,
@@ -527,7 +536,7 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
     cat = np.asarray(proposal.catalog, dtype=np.int64)
     n_all = len(xs)
     fl = flux if flux is not None else np.full(n_all, np.nan)
-    code, match, q, dcm, p_false, missing, bright_pred, n_matched, total, b = verify_focal(
+    code, match, q, dcm, p_false, missing, bright_pred, n_matched, total, matched, rms = verify_focal(
         xs, ys, b_all, db.star_vector, db.star_mag, _sorted_mags(db), img, cat, sig_px, fl, bool(use_mags),
         float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
         float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
@@ -548,14 +557,9 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
                             (f"false-match probability {p_false:.2g} above the limit "
                              f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY), scale
         return _Verdict(None, None, None, dcm, None, reason, rc), scale
-    matched = np.flatnonzero(match >= 0)
     cat_index = match[matched]
-    star_vec = db.star_vector
-    resid = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b[matched], star_vec[cat_index] @ dcm.T),
-                                         -1, 1))) * 3600
     out = list(map(Match, matched.tolist(), db.star_id[cat_index].tolist()))
-    q = q / math.sqrt(float(q @ q))
-    return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, resid, -q if q[3] < 0 else q), scale
+    return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms), scale
 
 
 def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
@@ -777,11 +781,12 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     eps = float(math.sqrt(2.0) * tol.max() + margin)
     ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
                         flux[:use] if has_flux else None)
+    ctx.deadline = t0 + params.max_time_ms / 1000.0
     use_mags = has_flux and not algorithm.uses_brightness
     log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
               name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
               getattr(db, "path", None) or type(db).__name__)
-    deadline = t0 + params.max_time_ms / 1000.0
+    deadline = ctx.deadline
     geom = _geometry(camera)
     fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
@@ -826,6 +831,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         if time.perf_counter() > deadline:
             reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
             break
+    if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
+        # The search itself stopped at the deadline (ctx.expired) between proposals.
+        reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
     elapsed = (time.perf_counter() - t0) * 1000
     tol_arcsec = round(math.degrees(eps) * 3600, 3)
     if accepted is None:
@@ -839,7 +847,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                                      false_match_probability=best.p_false if best is not None else None,
                                      details={**best_details, "patterns": int(patterns)})
     details["patterns"] = int(patterns)
-    details["residual_arcsec_rms"] = round(float(np.sqrt(np.mean(accepted.residual_arcsec**2))), 3)
+    rms = accepted.residual_rms if accepted.residual_rms is not None else \
+        float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
+    details["residual_arcsec_rms"] = round(rms, 3)
     matches, quaternion = accepted.matches, accepted.quaternion
     if catalog is not None:
         if not isinstance(catalog, CatalogStars):

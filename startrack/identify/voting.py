@@ -85,7 +85,7 @@ def search_voting(ctx, config: VotingConfig):
     identity, _, votes2 = geometric_voting_top(b, db.n_stars, db.pair_i, db.pair_j, db.pair_cos, db.kvector,
                                                line, ctx.eps, db.star_vector, top)
     yield from _clusters(ctx, config, b, keep, identity, votes2, top, seen, patterns)
-    if not config.every_candidate or n < 3:
+    if not config.every_candidate or n < 3 or ctx.expired():
         return
     from startrack._kernels.voting import voting_clusters
 
@@ -105,39 +105,42 @@ def search_voting(ctx, config: VotingConfig):
 
 
 def _clusters(ctx, config, b, keep, identity, votes2, top, seen, patterns):
-    """Proposals grown from the voted hypotheses, strongest first (indices mapped back through ``keep``)."""
+    """Proposals grown from the voted hypotheses, strongest first (indices mapped back through ``keep``).
+
+    The clusters grow in a kernel (:func:`startrack._kernels.identify.grow_clusters`), a
+    few seeds a call (the driver may accept the first), until the driver's deadline.
+    """
+    from startrack._kernels.identify import grow_clusters
+
     db = ctx.db
-    n = len(b)
     best = int(votes2.max(initial=0))
     if best < 2:
         return
     threshold = max(2, int(np.ceil(config.vote_fraction * best)))
-    flat = [(int(votes2[i, a]), i, int(identity[i, a])) for i in range(n) for a in range(top)
-            if identity[i, a] >= 0 and votes2[i, a] >= 1]
-    flat.sort(key=lambda t: (-t[0], t[1]))
-    sv = db.star_vector
-    for v0, i0, c0 in flat:
-        if v0 < threshold:
-            break
-        cluster = [(i0, c0)]
-        for _, i, c in flat:
-            if any(i == m for m, _ in cluster) or any(c == k for _, k in cluster):
+    # The hypotheses with support, strongest first (ties: image star, then rank): seeds and members.
+    ii, aa = np.nonzero((identity >= 0) & (votes2 >= 1))
+    fv = votes2[ii, aa].astype(np.int64)
+    order = np.lexsort((ii, -fv))
+    fi = np.ascontiguousarray(ii[order], dtype=np.int64)
+    fc = np.ascontiguousarray(identity[ii, aa][order], dtype=np.int64)
+    fv = np.ascontiguousarray(fv[order])
+    keep = np.ascontiguousarray(keep, dtype=np.int64)
+    tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
+    start = 0
+    while start < len(fi) and not ctx.expired():
+        members, sizes, end = grow_clusters(b, keep, tol, float(ctx.margin), db.star_vector, fi, fc, fv, start,
+                                            start + 16, threshold)
+        for row in range(end - start):
+            cluster = [(int(fi[r]), int(fc[r])) for r in members[row, :sizes[row]]]
+            key = frozenset((int(keep[i]), c) for i, c in cluster)
+            if len(cluster) < 3 or key in seen:
                 continue
-            ok = True
-            for m, k in cluster:
-                th = float(np.arccos(min(1.0, float(b[i] @ b[m]))))
-                tc = float(np.arccos(min(1.0, float(sv[c] @ sv[k]))))
-                if abs(th - tc) > ctx.pair_eps(int(keep[i]), int(keep[m])):
-                    ok = False
-                    break
-            if ok:
-                cluster.append((i, c))
-        key = frozenset((int(keep[i]), c) for i, c in cluster)
-        if len(cluster) < 3 or key in seen:
-            continue
-        seen.add(key)
-        yield Proposal([int(keep[i]) for i, _ in cluster], [c for _, c in cluster], patterns,
-                       {"votes": [int(votes2[i, list(identity[i]).index(c)]) for i, c in cluster]})
+            seen.add(key)
+            yield Proposal([int(keep[i]) for i, _ in cluster], [c for _, c in cluster], patterns,
+                           {"votes": [int(votes2[i, list(identity[i]).index(c)]) for i, c in cluster]})
+        if end < start + 16:
+            break
+        start = end
 
 
 VOTING = Algorithm("voting", search_voting, VotingConfig, "kvector",
