@@ -547,6 +547,9 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         candidates = candidates[:3 * options.max_stars + 20]
     stars = []
     method = options.method
+    if method == "gauss":
+        stars = _measure_gauss(residual, candidates, options, sigma_mesh, cell, quant)
+        candidates = []
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
@@ -613,6 +616,40 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         stars = stars[: options.max_stars]
     reason = None if stars else "no star-like detection (all rejected)"
     return result(stars, rejected, glevel, gsigma, reason)
+
+
+def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
+    """The stars of ``candidates`` with the ``gauss`` method: every fit in one kernel call
+    (:func:`startrack._kernels.psf_fit.measure_candidates`), then the records."""
+    from startrack._kernels.psf_fit import measure_candidates
+
+    if not candidates:
+        return []
+    cand = np.array([(c[0], c[1], c[5], 1.0 if c[6] else 0.0) for c in candidates], dtype=np.float64)
+    out = np.zeros((len(candidates), 12))
+    inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
+    measure_candidates(residual, cand, float(options.psf_sigma_px or 0.0),
+                       np.ascontiguousarray(noise_mesh, dtype=np.float64), int(cell), float(quant_var), inv_g, out)
+    gain = options.gain_e_per_dn
+    stars = []
+    for (_, _, peak, npix, nsat, _, deblended, _), row in zip(candidates, out.tolist(), strict=True):
+        x, y, sigma_psf, fitted, cxx, cxy, cyy, chi2, n_pix, flux, n_ap, noise = row
+        if flux <= 0:
+            continue
+        var = n_ap * noise**2 + (flux / gain if gain else 0.0)
+        snr = flux / math.sqrt(var) if var > 0 else float("inf")
+        star = {
+            "x": x, "y": y, "flux": flux, "peak": float(peak), "npix": int(npix),
+            "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, gain),
+            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": bool(nsat > 0),
+            **({"deblended": True} if deblended else {}),
+        }
+        if fitted:
+            # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
+            star["sigma_px"] = math.sqrt(0.5 * (cxx + cyy))
+            star.update({"cov_px2": [[cxx, cxy], [cxy, cyy]], "fit_chi2": chi2, "fit_dof": int(n_pix - 5)})
+        stars.append(star)
+    return stars
 
 
 def _unique(stars: list) -> list:

@@ -271,7 +271,8 @@ def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr):
     """Cost of the pixel-integrated Gaussian model at ``p`` and its normal equations.
 
     The model is separable, so the row and column factors are computed once
-    per axis, not once per pixel.
+    per axis, not once per pixel; the symmetric ``J^T J`` is accumulated once
+    per pair of parameters, in scalars.
     """
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
     gy = np.empty(ys.shape[0])
@@ -282,24 +283,74 @@ def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr):
     dgx_ds = np.empty(xs.shape[0])
     _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
     _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
-    jtj[:, :] = 0.0
-    jtr[:] = 0.0
     cost = 0.0
-    j = np.empty(5)
+    a00 = a01 = a02 = a03 = a04 = 0.0
+    a11 = a12 = a13 = a14 = 0.0
+    a22 = a23 = a24 = 0.0
+    a33 = a34 = 0.0
+    a44 = 0.0
+    b0 = b1 = b2 = b3 = b4 = 0.0
     for m in range(ys.shape[0]):
+        row = ys[m]
+        gym = gy[m]
+        dyc = dgy_dc[m]
+        dys = dgy_ds[m]
         for n in range(xs.shape[0]):
-            r = residual[ys[m], xs[n]] - (amp * gx[n] * gy[m] + bg)
+            r = residual[row, xs[n]] - (amp * gx[n] * gym + bg)
             cost += r * r
-            j[0] = amp * dgx_dc[n] * gy[m]
-            j[1] = amp * gx[n] * dgy_dc[m]
-            j[2] = amp * (dgx_ds[n] * gy[m] + gx[n] * dgy_ds[m])
-            j[3] = gx[n] * gy[m]
-            j[4] = 1.0
-            for a in range(5):
-                jtr[a] += j[a] * r
-                for b in range(5):
-                    jtj[a, b] += j[a] * j[b]
+            j0 = amp * dgx_dc[n] * gym
+            j1 = amp * gx[n] * dyc
+            j2 = amp * (dgx_ds[n] * gym + gx[n] * dys)
+            j3 = gx[n] * gym
+            b0 += j0 * r
+            b1 += j1 * r
+            b2 += j2 * r
+            b3 += j3 * r
+            b4 += r
+            a00 += j0 * j0
+            a01 += j0 * j1
+            a02 += j0 * j2
+            a03 += j0 * j3
+            a04 += j0
+            a11 += j1 * j1
+            a12 += j1 * j2
+            a13 += j1 * j3
+            a14 += j1
+            a22 += j2 * j2
+            a23 += j2 * j3
+            a24 += j2
+            a33 += j3 * j3
+            a34 += j3
+            a44 += 1.0
+    _store_normal(jtj, jtr, a00, a01, a02, a03, a04, a11, a12, a13, a14, a22, a23, a24, a33, a34, a44,
+                  b0, b1, b2, b3, b4)
     return cost
+
+
+@njit(cache=True, inline="always")
+def _store_normal(jtj, jtr, a00, a01, a02, a03, a04, a11, a12, a13, a14, a22, a23, a24, a33, a34, a44,
+                  b0, b1, b2, b3, b4):
+    """Write the 15 distinct sums of a symmetric 5 x 5 ``J^T J`` and the 5 of ``J^T r``."""
+    jtj[0, 0] = a00
+    jtj[0, 1] = jtj[1, 0] = a01
+    jtj[0, 2] = jtj[2, 0] = a02
+    jtj[0, 3] = jtj[3, 0] = a03
+    jtj[0, 4] = jtj[4, 0] = a04
+    jtj[1, 1] = a11
+    jtj[1, 2] = jtj[2, 1] = a12
+    jtj[1, 3] = jtj[3, 1] = a13
+    jtj[1, 4] = jtj[4, 1] = a14
+    jtj[2, 2] = a22
+    jtj[2, 3] = jtj[3, 2] = a23
+    jtj[2, 4] = jtj[4, 2] = a24
+    jtj[3, 3] = a33
+    jtj[3, 4] = jtj[4, 3] = a34
+    jtj[4, 4] = a44
+    jtr[0] = b0
+    jtr[1] = b1
+    jtr[2] = b2
+    jtr[3] = b3
+    jtr[4] = b4
 
 
 @njit(cache=True)

@@ -16,7 +16,14 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.centroid import _axis_factors, _solve_small
+from startrack._kernels.centroid import (
+    _axis_factors,
+    _solve_small,
+    _store_normal,
+    aperture_flux,
+    gaussian_fit,
+    windowed_centroid,
+)
 
 
 @njit(cache=True)
@@ -30,25 +37,54 @@ def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jt
     dgx_ds = np.empty(xs.shape[0])
     _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
     _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
-    jtj[:, :] = 0.0
-    jtr[:] = 0.0
     cost = 0.0
-    j = np.empty(5)
+    a00 = a01 = a02 = a03 = a04 = 0.0
+    a11 = a12 = a13 = a14 = 0.0
+    a22 = a23 = a24 = 0.0
+    a33 = a34 = 0.0
+    a44 = 0.0
+    b0 = b1 = b2 = b3 = b4 = 0.0
+    # The symmetric J^T W J accumulated once per pair of parameters, in scalars.
     for m in range(ys.shape[0]):
+        row = ys[m]
+        gym = gy[m]
+        dyc = dgy_dc[m]
+        dys = dgy_ds[m]
         for n in range(xs.shape[0]):
-            model = amp * gx[n] * gy[m]
+            model = amp * gx[n] * gym
             w = 1.0 / (max(model, 0.0) * inv_gain + noise_var)
-            r = residual[ys[m], xs[n]] - (model + bg)
+            r = residual[row, xs[n]] - (model + bg)
             cost += w * r * r
-            j[0] = amp * dgx_dc[n] * gy[m]
-            j[1] = amp * gx[n] * dgy_dc[m]
-            j[2] = amp * (dgx_ds[n] * gy[m] + gx[n] * dgy_ds[m])
-            j[3] = gx[n] * gy[m]
-            j[4] = 1.0
-            for a in range(5):
-                jtr[a] += w * j[a] * r
-                for b in range(5):
-                    jtj[a, b] += w * j[a] * j[b]
+            j0 = amp * dgx_dc[n] * gym
+            j1 = amp * gx[n] * dyc
+            j2 = amp * (dgx_ds[n] * gym + gx[n] * dys)
+            j3 = gx[n] * gym
+            w0 = w * j0
+            w1 = w * j1
+            w2 = w * j2
+            w3 = w * j3
+            b0 += w0 * r
+            b1 += w1 * r
+            b2 += w2 * r
+            b3 += w3 * r
+            b4 += w * r
+            a00 += w0 * j0
+            a01 += w0 * j1
+            a02 += w0 * j2
+            a03 += w0 * j3
+            a04 += w0
+            a11 += w1 * j1
+            a12 += w1 * j2
+            a13 += w1 * j3
+            a14 += w1
+            a22 += w2 * j2
+            a23 += w2 * j3
+            a24 += w2
+            a33 += w3 * j3
+            a34 += w3
+            a44 += w
+    _store_normal(jtj, jtr, a00, a01, a02, a03, a04, a11, a12, a13, a14, a22, a23, a24, a33, a34, a44,
+                  b0, b1, b2, b3, b4)
     return cost
 
 
@@ -144,3 +180,65 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
             return p[0], p[1], p[2], p[3], False, nan, nan, nan, nan, n_pix
         cov[:, c] = col
     return p[0], p[1], p[2], p[3], ok, cov[0, 0], 0.5 * (cov[0, 1] + cov[1, 0]), cov[1, 1], cost, n_pix
+
+
+@njit(cache=True)
+def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, inv_gain, out):
+    """Centroid and photometry of every candidate blob in one call (:func:`startrack.centroid.find_stars`,
+    method ``gauss``): per candidate, the unweighted Gaussian fit, then the inverse-variance weighted fit
+    started from it (or the windowed centroid for a deblended peak), then the aperture flux.
+
+    ``cand`` rows: ``x, y, PSF sigma estimate (px), deblended (0/1)``; ``psf_sigma`` > 0 overrides the
+    estimate; ``noise_mesh`` is the per-tile pixel noise (DN) on tiles of ``cell`` px, to which the
+    variance ``quant_var`` (DN^2: the rounding of an integer image) is added.  ``out`` rows
+    receive ``x, y, PSF sigma, weighted fit accepted (0/1), cov_xx, cov_xy, cov_yy, chi2, n_pix,
+    aperture flux, aperture pixels, noise (DN)``.
+    """
+    h, w = residual.shape
+    ny, nx = noise_mesh.shape
+    for k in range(cand.shape[0]):
+        cx = cand[k, 0]
+        cy = cand[k, 1]
+        sigma_psf = psf_sigma if psf_sigma > 0 else max(0.5, min(cand[k, 2], 5.0))
+        half = int(max(2, math.ceil(3 * sigma_psf)))
+        x = cx
+        y = cy
+        ok = True
+        out[k, 3] = 0.0
+        if cand[k, 3] != 0:
+            x, y, ok = windowed_centroid(residual, cx, cy, sigma_psf, half, 30)
+        else:
+            x, y, s_fit, amp, ok = gaussian_fit(residual, cx, cy, sigma_psf, half, 50)
+            if ok and math.isfinite(x) and math.isfinite(y):
+                sigma_psf = s_fit
+                xc = min(max(x, 0.0), w - 1.0)
+                yc = min(max(y, 0.0), h - 1.0)
+                nv = math.sqrt(noise_mesh[min(int(yc) // cell, ny - 1), min(int(xc) // cell, nx - 1)] ** 2
+                               + quant_var) ** 2
+                wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
+                    residual, x, y, s_fit, amp, max(half, int(math.ceil(3.5 * s_fit))), nv, inv_gain, 30)
+                if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
+                    x = wx
+                    y = wy
+                    sigma_psf = ws
+                    out[k, 3] = 1.0
+                    out[k, 4] = cxx
+                    out[k, 5] = cxy
+                    out[k, 6] = cyy
+                    out[k, 7] = chi2
+                    out[k, 8] = n_pix
+        if not ok or not (math.isfinite(x) and math.isfinite(y)):
+            x = cx
+            y = cy
+        r = max(2.0, 3.0 * sigma_psf)
+        flux, n_ap = aperture_flux(residual, x, y, r)
+        xc = min(max(x, 0.0), w - 1.0)
+        yc = min(max(y, 0.0), h - 1.0)
+        out[k, 0] = x
+        out[k, 1] = y
+        out[k, 2] = sigma_psf
+        out[k, 9] = flux
+        out[k, 10] = n_ap
+        out[k, 11] = math.sqrt(noise_mesh[min(int(yc) // cell, ny - 1), min(int(xc) // cell, nx - 1)] ** 2
+                               + quant_var)
+    return out
