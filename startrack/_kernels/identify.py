@@ -1093,25 +1093,27 @@ def focal_scale(b, img, star_vec, cat):
 
 
 @njit(cache=True)
-def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err):
+def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, z_order,
+                z_sorted):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
     distance from the core's centre (none when two are; each star once, the first
     detection keeps it); the scale is the median of catalog over measured angle over
-    the pairs at least 0.3 of the longest.
+    the pairs at least 0.3 of the longest.  ``z_order``/``z_sorted``: see :func:`cone_stars`.
     """
     n = xs.shape[0]
     m = star_vec.shape[0]
-    px = np.empty(m)
-    py = np.empty(m)
-    idx = np.empty(m, dtype=np.int64)
+    front = np.empty(m, dtype=np.int64)
+    nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, z_order, z_sorted, front)
+    px = np.empty(nf)
+    py = np.empty(nf)
+    idx = np.empty(nf, dtype=np.int64)
     k = 0
-    for s in range(m):
+    for t in range(nf):
+        s = front[t]
         z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
-        if z <= cos_front:
-            continue
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
         a, c = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
@@ -1187,6 +1189,37 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
 
 
 @njit(cache=True)
+def cone_stars(ax, ay, az, cos_r, star_vec, z_order, z_sorted, out):
+    """The stars ``s`` with ``(ax, ay, az) . star_vec[s] > cos_r``, ascending, into ``out``; returns their count.
+
+    ``z_order`` (the stars by their z component) and ``z_sorted`` (those components)
+    restrict the test to the declination band that can hold the cone (a small margin
+    beyond it); empty arrays: every star is tested.  Same stars, same order either way.
+    """
+    m = star_vec.shape[0]
+    k = 0
+    if z_order.shape[0] != m:
+        for s in range(m):
+            if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
+                out[k] = s
+                k += 1
+        return k
+    dec = math.asin(max(-1.0, min(1.0, az)))
+    rho = math.acos(max(-1.0, min(1.0, cos_r)))
+    zlo = -2.0 if dec - rho <= -0.5 * math.pi else math.sin(dec - rho) - 1e-9
+    zhi = 2.0 if dec + rho >= 0.5 * math.pi else math.sin(dec + rho) + 1e-9
+    lo = np.searchsorted(z_sorted, zlo)
+    hi = np.searchsorted(z_sorted, zhi, side="right")
+    for t in range(lo, hi):
+        s = z_order[t]
+        if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
+            out[k] = s
+            k += 1
+    out[:k].sort()
+    return k
+
+
+@njit(cache=True)
 def _to_global(match, sub):
     out = np.full(match.shape[0], -1, dtype=np.int64)
     for i in range(match.shape[0]):
@@ -1197,7 +1230,8 @@ def _to_global(match, sub):
 
 @njit(cache=True)
 def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
-                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate):
+                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, z_order,
+                z_sorted):
     """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine``), the
@@ -1205,6 +1239,8 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     matches (:func:`resolve_conflicts`), the leave-one-out test, the proposal's
     agreement, the bright stars missing, the matched count, and the numbers of the
     false-match probability (the caller multiplies them out).
+
+    ``z_order``/``z_sorted``: the database's declination index (:func:`cone_stars`; empty: none).
 
     Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
     ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
@@ -1219,11 +1255,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     a0 = quat_to_dcm(q0)
     cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
     sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
-    ns = 0
-    for s in range(m_all):
-        if a0[2, 0] * star_vec_all[s, 0] + a0[2, 1] * star_vec_all[s, 1] + a0[2, 2] * star_vec_all[s, 2] > cos_sub:
-            sub[ns] = s
-            ns += 1
+    ns = cone_stars(a0[2, 0], a0[2, 1], a0[2, 2], cos_sub, star_vec_all, z_order, z_sorted, sub)
     cat = np.empty(cat_all.shape[0], dtype=np.int64)
     for t in range(cat_all.shape[0]):
         pos = np.searchsorted(sub[:ns], cat_all[t])
@@ -1376,7 +1408,7 @@ def pinhole_cos_fov(focal, cx, cy, width, height):
 @njit(cache=True)
 def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
                     width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset, max_chi2,
-                    mag_floor, mag_gate, trials, max_false):
+                    mag_floor, mag_gate, trials, max_false, z_order, z_sorted):
     """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
 
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched)``: ``code`` 0 =
@@ -1393,7 +1425,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
     code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
-        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate)
+        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, z_order, z_sorted)
     nm = 0
     for i in range(n):
         if match[i] >= 0:
@@ -1422,7 +1454,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
 @njit(cache=True)
 def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal0, cx, cy, width,
                  height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, max_chi2, mag_floor, mag_gate,
-                 trials, max_false, max_focal_error):
+                 trials, max_false, max_focal_error, z_order, z_sorted):
     """:func:`startrack.identify.base._verify_with_focal` in one call, for a distortion-free camera.
 
     The same steps as the Python driver (focal scale of the proposal, verification, the
@@ -1449,7 +1481,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
         b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width, height,
         fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_chi2, mag_floor, mag_gate, trials,
-        max_false)
+        max_false, z_order, z_sorted)
     total = 1.0 if math.isnan(scale) else scale
     if code != 0:
         return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
@@ -1462,7 +1494,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
     step = field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                       max_focal_error)
+                       max_focal_error, z_order, z_sorted)
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         total *= step
         focal = focal0 / total
@@ -1470,7 +1502,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false)
+            mag_floor, mag_gate, trials, max_false, z_order, z_sorted)
     for _ in range(4):
         if code != 0 or nm < 3:
             break
@@ -1495,7 +1527,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false)
+            mag_floor, mag_gate, trials, max_false, z_order, z_sorted)
     return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
 
 

@@ -375,6 +375,21 @@ def _sorted_mags(db):
     return got
 
 
+_NO_INDEX = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64))
+
+
+def _z_index(db):
+    """The database stars by their z component (declination) and those components, cached on the
+    database: the verification looks at the band of the field only
+    (:func:`startrack._kernels.identify.cone_stars`)."""
+    got = db.__dict__.get("_z_index")
+    if got is None or len(got[0]) != len(db.star_vector):
+        z = np.ascontiguousarray(db.star_vector[:, 2], dtype=np.float64)
+        order = np.argsort(z, kind="stable").astype(np.int64)
+        got = db.__dict__["_z_index"] = (order, np.ascontiguousarray(z[order]))
+    return got
+
+
 def _pixels_to_vectors(camera, xs, ys):
     """``camera.pixels_to_vectors`` (one kernel call without distortion)."""
     if camera.k1 or camera.k2:
@@ -419,7 +434,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     fl = flux if flux is not None else np.full(n_all, np.nan)
     code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
         b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
-        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE)
+        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, *_z_index(db))
     if code == 1:
         return _Verdict(None, None, None, dcm, None, "a star of the proposal disagrees with the attitude of the others",
                         ReasonCode.VERIFICATION_FAILED)
@@ -464,7 +479,7 @@ def _focal_scale(b_all, img, cat, star_vec):
     return None if math.isnan(s) else float(s)
 
 
-def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err):
+def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
     """The focal-length scale the whole field implies (None with fewer than four tentative matches).
 
     With the attitude of a proposal solved at a wrong focal length, the other stars sit
@@ -482,7 +497,8 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err)
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
         got = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px), float(camera.cx),
                           float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
-                          np.asarray(radius_px, dtype=np.float64), float(max_err))
+                          np.asarray(radius_px, dtype=np.float64), float(max_err),
+                          *(zindex or _NO_INDEX))
         return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
@@ -542,7 +558,7 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
         float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
         float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
         float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
-        float(params.max_focal_error))
+        float(params.max_focal_error), *_z_index(db))
     scale = None if total == 1.0 else float(total)
     if code != 0:
         if code in _REASONS:
@@ -592,7 +608,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
     step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-                        params.max_focal_error)
+                        params.max_focal_error, _z_index(db))
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
