@@ -61,7 +61,9 @@ class GridConfig:
         "help": "Pattern radius pr (deg); default the field's half-diagonal."})
     buffer_px: float = field(default=6.0, metadata={"help": "Buffer radius br (px; at least 3 tolerances)."})
     min_overlap: int = field(default=3, metadata={"help": "On-cells a catalog pattern must share."})
-    references: int = field(default=12, metadata={"help": "Reference stars (nearest the centre) matched."})
+    references: int = field(default=12, metadata={
+        "help": "Reference stars (nearest the centre) matched first; every search star follows when their "
+                "groups are rejected."})
     orientations: int = field(default=3, metadata={
         "help": "Orientation neighbours tried per reference when the search goes on (1: the paper's nearest)."})
     matches_per_reference: int = field(default=4, metadata={
@@ -183,22 +185,29 @@ def search_grid(ctx, config: GridConfig):
     # Reference stars: nearest the image centre first.
     order = np.argsort(-(b @ boresight))
     refs = []
-    for which in range(int(config.orientations)):
-        # The search goes on (Padgett & Kreutz-Delgado orient by the nearest neighbour; a false
-        # star nearer than the true one turns the whole pattern): each reference's pattern
-        # oriented by its next nearest neighbours, the new matches added to the references.
-        more = list(refs)
-        for r in order[:n_refs]:
-            others = np.delete(np.arange(len(b)), r)
-            cells, k = _pattern(b[r], b[others], pr, br, g, which)
-            if cells is None or len(cells) < min_overlap:
-                continue
-            for best, votes in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
-                if not any(x[0] == int(r) and x[1] == best for x in more):
-                    more.append((int(r), best, int(others[k]), votes))
-        if which == 0 or len(more) > len(refs):
-            refs = more
-            yield from _confirmed(ctx, b, db, refs, which + 1)
+    done = set()
+    # The references nearest the centre first; when all their groups are rejected, every search star
+    # (false stars among the first ones leave too few true references to confirm each other).
+    for batch in ([order[:n_refs], order] if len(order) > n_refs else [order]):
+        for which in range(int(config.orientations)):
+            # The search goes on (Padgett & Kreutz-Delgado orient by the nearest neighbour; a false
+            # star nearer than the true one turns the whole pattern): each reference's pattern
+            # oriented by its next nearest neighbours, the new matches added to the references.
+            more = list(refs)
+            for r in batch:
+                if (int(r), which) in done:
+                    continue
+                done.add((int(r), which))
+                others = np.delete(np.arange(len(b)), r)
+                cells, k = _pattern(b[r], b[others], pr, br, g, which)
+                if cells is None or len(cells) < min_overlap:
+                    continue
+                for best, votes in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
+                    if not any(x[0] == int(r) and x[1] == best for x in more):
+                        more.append((int(r), best, int(others[k]), votes))
+            if not refs or len(more) > len(refs):
+                refs = more
+                yield from _confirmed(ctx, b, db, refs, which + 1)
 
 
 def _confirmed(ctx, b, db, refs, rounds):
