@@ -214,26 +214,30 @@ def _confirmed(ctx, b, db, refs, rounds):
     """Groups of references whose catalog angles agree with the image, largest first, as proposals."""
     if not refs:
         return
-    # Confirmation: groups of references whose catalog angles agree with the image, largest first
-    # (one catalog star per image star and one image star per catalog star).
+    # Confirmation: groups of references whose catalog angles agree with the image (one catalog star per
+    # image star and one image star per catalog star).  Each agreeing pair of references seeds a group,
+    # grown greedily with the references agreeing with every member (most votes first): a chance
+    # reference that agrees with one true reference cannot then keep the true ones out of every group.
+    img = np.array([r for r, *_ in refs])
+    cat = np.array([c for _, c, *_ in refs])
+    th = np.arccos(np.clip(b[img] @ b[img].T, -1.0, 1.0))
+    tc = np.arccos(np.clip(db.star_vector[cat] @ db.star_vector[cat].T, -1.0, 1.0))
+    tol = np.hypot(ctx.tol[img][:, None], ctx.tol[img][None, :]) + ctx.margin
+    agree = (np.abs(th - tc) <= tol) & (img[:, None] != img[None, :]) & (cat[:, None] != cat[None, :])
+    by_votes = np.argsort([-v for *_, v in refs], kind="stable")
     groups = {}
     for i in range(len(refs)):
-        group = [refs[i]]
-        for j in range(len(refs)):
-            if j == i or any(refs[j][0] == rr[0] or refs[j][1] == rr[1] for rr in group):
+        for j in np.flatnonzero(agree[i]):
+            if j < i:
                 continue
-            ok = True
-            for rr in group:
-                th = math.acos(min(1.0, float(b[refs[j][0]] @ b[rr[0]])))
-                tc = math.acos(min(1.0, float(db.star_vector[refs[j][1]] @ db.star_vector[rr[1]])))
-                if abs(th - tc) > ctx.pair_eps(refs[j][0], rr[0]):
-                    ok = False
-                    break
-            if ok:
-                group.append(refs[j])
-        key = frozenset((r, c) for r, c, *_ in group)
-        if len(group) >= 2 and key not in groups:
-            groups[key] = group
+            members = [i, int(j)]
+            for h in by_votes:
+                if agree[h, members].all():
+                    members.append(int(h))
+            group = [refs[m] for m in members]
+            key = frozenset((r, c) for r, c, *_ in group)
+            if key not in groups:
+                groups[key] = group
     # The confirmed reference stars are the proposal.  (Their orientation
     # neighbours are not added: the image's nearest neighbour need not be the
     # catalog's -- a missing or extra star changes it -- and one wrong pair in
