@@ -31,6 +31,9 @@ Extensions (not in the paper), each for a reason any sensor shares:
   the unique best, and the confirmation between references (catalog angles agreeing
   with the image) chooses: false stars add cells that chance patterns share, so the
   true pattern is often not the unique best;
+* when the groups of the references nearest the centre are rejected, every search
+  star becomes a reference (among false stars the first ones hold too few true
+  references to confirm each other); every agreeing pair of references seeds a group;
 * the pattern radius defaults to the field's half-diagonal, the farthest a neighbour
   of a reference at the centre can be seen (was 0.6 of the narrower field: a sparse
   field then left a reference with fewer than ``min_overlap`` neighbours).
