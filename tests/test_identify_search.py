@@ -157,3 +157,34 @@ def test_grid_catalog_patterns_for_a_database_deeper_than_the_frame(sensor16):
     assert three.count("bad") == 0 and one.count("bad") == 0
     assert three.count("success") >= 0.65 * len(frames)
     assert three.count("success") >= one.count("success") + 0.3 * len(frames)
+
+
+def test_grid_confirmed_references_bring_their_neighbours(sensor16):
+    """Two confirmed references: the other stars whose angles to both name exactly one catalog star join
+    the proposal (a pattern of four or more, not a pair); none of them named wrongly, false stars left out."""
+    import math
+    import types
+
+    import numpy as np
+
+    from startrack.identify.grid import _with_neighbours
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam, cat, stars = sensor16
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    index = {int(i): k for k, i in enumerate(db.star_id)}
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=3, min_catalog_stars=6), 30, 29,
+                         mag_limit=5.4)
+    added = wrong = 0
+    for s, t, _ in frames:
+        b = cam.pixels_to_vectors(np.array([v["x"] for v in s]), np.array([v["y"] for v in s]))
+        true = [(i, index[int(v)]) for i, v in enumerate(t["star_ids"]) if v is not None and int(v) in index]
+        ctx = types.SimpleNamespace(tol=np.full(len(s), 4 * 0.3 / cam.focal_length_px),
+                                    margin=math.radians(2 / 3600))
+        img, got = _with_neighbours(ctx, b, db, [true[0][0], true[1][0]], [true[0][1], true[1][1]])
+        truth = dict(true)
+        for i, c in zip(img[2:], got[2:]):
+            added += 1
+            wrong += truth.get(i) != c
+    assert wrong == 0
+    assert added >= 2 * len(frames)

@@ -34,6 +34,10 @@ Extensions (not in the paper), each for a reason any sensor shares:
 * when the groups of the references nearest the centre are rejected, every search
   star becomes a reference (among false stars the first ones hold too few true
   references to confirm each other); every agreeing pair of references seeds a group;
+* the proposal holds, beside the confirmed references, the neighbours whose angles to
+  every reference match exactly one catalog star: two references alone are a pair
+  pattern, which in a 4-6 star field the shared verification rightly finds too common
+  by chance to accept;
 * the pattern radius defaults to the field's half-diagonal, the farthest a neighbour
   of a reference at the centre can be seen (was 0.6 of the narrower field: a sparse
   field then left a reference with fewer than ``min_overlap`` neighbours).
@@ -241,13 +245,49 @@ def _confirmed(ctx, b, db, refs, rounds):
             key = frozenset((r, c) for r, c, *_ in group)
             if key not in groups:
                 groups[key] = group
-    # The confirmed reference stars are the proposal.  (Their orientation
-    # neighbours are not added: the image's nearest neighbour need not be the
-    # catalog's -- a missing or extra star changes it -- and one wrong pair in
-    # the proposal can pull the attitude onto the wrong member of a close pair.)
+    # The confirmed reference stars are the proposal, with the neighbours whose angles to all of them
+    # name one catalog star (_with_neighbours).  (Not their orientation neighbours: the image's nearest
+    # neighbour need not be the catalog's -- a missing or extra star changes it.)
     for group in sorted(groups.values(), key=lambda g: (-len(g), -sum(v for *_, v in g))):
-        yield Proposal([r for r, *_ in group], [c for _, c, *_ in group], len(refs),
-                       {"grid_votes": [v for *_, v in group], "grid_orientations": rounds})
+        img_g, cat_g = _with_neighbours(ctx, b, db, [r for r, *_ in group], [c for _, c, *_ in group])
+        yield Proposal(img_g, cat_g, len(refs),
+                       {"grid_votes": [v for *_, v in group], "grid_orientations": rounds,
+                        "grid_references": len(group)})
+
+
+def _with_neighbours(ctx, b, db, img, cat):
+    """The confirmed references and the image stars whose angles to every one of them match exactly one
+    catalog neighbour of the first reference's catalog star (within the pair tolerances).
+
+    The grid's pattern match names the reference; its neighbours follow from the same angle
+    confirmation as the references (two or more references: a triangle or more per neighbour).  A
+    proposal of two references alone is a pair pattern, too common by chance in a sparse field for
+    the shared verification to accept; with its confirmed neighbours it is a pattern of four or more.
+    """
+    if len(img) < 2:
+        return img, cat
+    c0 = cat[0]
+    nb = np.asarray(db.neighbor_idx[db.neighbor_ptr[c0]:db.neighbor_ptr[c0 + 1]], dtype=np.int64)
+    nb = nb[~np.isin(nb, cat)]
+    if len(nb) == 0:
+        return img, cat
+    rest = np.setdiff1d(np.arange(len(b)), img)
+    if len(rest) == 0:
+        return img, cat
+    ri = np.asarray(img)
+    th = np.arccos(np.clip(b[rest] @ b[ri].T, -1.0, 1.0))                        # (rest, refs)
+    tc = np.arccos(np.clip(db.star_vector[nb] @ db.star_vector[np.asarray(cat)].T, -1.0, 1.0))   # (nb, refs)
+    tol = np.hypot(ctx.tol[rest][:, None], ctx.tol[ri][None, :]) + ctx.margin   # (rest, refs)
+    ok = (np.abs(th[:, None, :] - tc[None, :, :]) <= tol[:, None, :]).all(axis=2)  # (rest, nb)
+    img, cat = list(img), list(cat)
+    taken = set(cat)
+    for a in range(len(rest)):
+        hit = np.flatnonzero(ok[a])
+        if len(hit) == 1 and int(nb[hit[0]]) not in taken and np.count_nonzero(ok[:, hit[0]]) == 1:
+            img.append(int(rest[a]))
+            cat.append(int(nb[hit[0]]))
+            taken.add(int(nb[hit[0]]))
+    return img, cat
 
 
 GRID = Algorithm("grid", search_grid, GridConfig, "kvector",
