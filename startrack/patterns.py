@@ -402,13 +402,17 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
               len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
     xy_pat = np.ascontiguousarray(xy_all[:n_pat])
     seen = set()
-    chunk = 6
+    # Patterns are looked up a few at a time (one kernel call each), the first ones alone: most images
+    # are identified by their first pattern, and the candidates are verified in the same order either way.
+    starts = [0, 1, 3] + list(range(6, len(combos), 6))
     reason = "no star pattern identified"
-    for s0 in range(0, len(combos), chunk):
+    for s0, s1 in zip(starts, starts[1:] + [len(combos)]):
+        if s0 >= len(combos):
+            break
         if time.perf_counter() > deadline:
             reason = f"no solution within {opts.timeout_s:g} s of search"
             break
-        block = combos[s0:s0 + chunk]
+        block = combos[s0:s1]
         ci, cf = query_patterns(xy_pat, cx, cy, block, index.level_rho, LEVEL_RATIO, index.level_start,
                                 index.level_prefix, index.keys, index.patterns, index.star_vec, float(sigma),
                                 float(opts.tol_geom), f_lo, f_hi, 4096)

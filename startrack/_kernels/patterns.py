@@ -340,9 +340,19 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                     pre = key >> PREFIX_SHIFT
                     s = level_prefix[lv, pre]
                     e_ = level_prefix[lv, pre + 1]
-                    for j in range(s, e_):
+                    # keys are sorted within a level: the first equal to ``key`` by bisection (a fine
+                    # level's prefix bucket holds hundreds of keys)
+                    lo_j = s
+                    hi_j = e_
+                    while lo_j < hi_j:
+                        mid = (lo_j + hi_j) // 2
+                        if keys[base + mid] < key:
+                            lo_j = mid + 1
+                        else:
+                            hi_j = mid
+                    for j in range(lo_j, e_):
                         if keys[base + j] != key:
-                            continue
+                            break
                         pj = base + j
                         _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
                         q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
