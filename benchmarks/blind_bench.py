@@ -138,8 +138,16 @@ def _peers(refs):
 def in_process(esa, cache_env, repeats=5):
     """Median ms per ESA image of solve_image (image in memory, index open, kernels warm), wall and CPU.
 
-    cedar-solve (when installed) runs in its own process, image by image between startrack's runs, so
-    that both see the same load.
+    Both sides start from a decoded image and neither times the file's decoding: startrack's
+    ``solve_image`` gets the float32 array of ``read_image``; cedar-solve's ``solve_from_image`` the
+    loaded PIL image (cedar_runner times it after ``Image.load()``), so its time includes its own
+    conversion to an array, star extraction and the solve.  cedar-solve is given the FOV (11.4 deg),
+    startrack is not.  cedar-solve (when installed) runs in its own process, image by image between
+    startrack's runs, so that both see the same load.
+
+    Also returns startrack's split (median ms per image): detection and centroids (the centroid
+    section's time), pattern search and verification (the identification's), the rest (attitude,
+    records).
     """
     import contextlib
 
@@ -152,7 +160,7 @@ def in_process(esa, cache_env, repeats=5):
     images = [read_image(p) for p in esa]
     for im, meta in images:
         solve_image(im, options=SolveOptions(), saturation=meta["saturation"], index=index)
-    per, per_cpu, cedar = [], [], []
+    per, per_cpu, cedar, split = [], [], [], []
     with contextlib.ExitStack() as stack:
         cs = None
         try:
@@ -163,15 +171,19 @@ def in_process(esa, cache_env, repeats=5):
         except Exception:  # noqa: BLE001 - a missing or broken peer leaves its column empty
             cs = None
         for path, (im, meta) in zip(esa, images, strict=True):
-            ts, cpu = [], []
+            ts, cpu, parts = [], [], []
             for _ in range(repeats):
                 t0, c0 = time.perf_counter(), time.process_time()
                 out = solve_image(im, options=SolveOptions(), saturation=meta["saturation"], index=index)
                 ts.append((time.perf_counter() - t0) * 1000)
                 cpu.append((time.process_time() - c0) * 1000)
                 assert out.status == "ok", out.reason
+                c_ms = float(out.centroid["time_ms"])
+                i_ms = float(out.identification.time_ms)
+                parts.append((c_ms, i_ms, ts[-1] - c_ms - i_ms))
             per.append(float(np.median(ts)))
             per_cpu.append(float(np.median(cpu)))
+            split.append(np.median(np.array(parts), axis=0))
             if cs is not None:
                 cs.solve_image(path, 11.4)
                 cedar.append(float(np.median([cs.solve_image(path, 11.4).get("t_wall_ms", float("nan"))
@@ -183,7 +195,7 @@ def in_process(esa, cache_env, repeats=5):
         t0 = time.process_time()
         out = solve_image(im, options=SolveOptions(blind="labels"), saturation=meta["saturation"])
         labels.append(((time.process_time() - t0) * 1000, str(out.status)))
-    return per, per_cpu, cedar, labels
+    return per, per_cpu, cedar, labels, np.median(np.array(split), axis=0)
 
 
 def first_use(image):
@@ -203,11 +215,11 @@ def first_use(image):
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def jobs(esa, cache_env):
+def jobs(esa, cache_env, copies=2):
     tmp = tempfile.mkdtemp(prefix="st-jobs-")
     try:
         paths = []
-        for k in range(2):
+        for k in range(copies):
             for p in esa:
                 q = os.path.join(tmp, f"{k}-{os.path.basename(p)}")
                 os.symlink(p, q)
@@ -276,68 +288,102 @@ def non_stars(cache_env):
     return rows
 
 
-def report(skip_peers: bool = False) -> str:
-    """Run every measurement once and return the Markdown report."""
+SECTIONS = ("first_use", "real_photos", "in_process", "jobs", "rendered", "non_stars")
+
+
+def report(skip_peers: bool = False, only=SECTIONS) -> str:
+    """Run every measurement (or those of ``only``) once and return the Markdown report."""
     tmp_cache = tempfile.mkdtemp(prefix="st-bench-cache-")
     cache_env = {"STARTRACK_CACHE": tmp_cache}
     refs = references()
     esa = sorted(p for p in refs if p.endswith(".tiff"))
     parts = [f"Blind solving (issue 15), {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
              f"{os.cpu_count()} cores; command: `python benchmarks/blind_bench.py`"
-             + (" --skip-peers" if skip_peers else "") + "\n"]
+             + (" --skip-peers" if skip_peers else "")
+             + (f" --only {','.join(only)}" if tuple(only) != SECTIONS else "")
+             + f"; load average at the start {os.getloadavg()[0]:.1f}\n"]
 
     def emit(text):
         print(text, flush=True)
         parts.append(text)
 
     try:
-        wall, rc, notice, wall2, rc2, cpu, cpu2 = first_use(esa[0])
-        emit(f"### First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty "
-             f"numba cache: **{wall:.1f} s** wall, {cpu:.1f} s CPU (exit {rc}); notices on stderr: {notice!r}. With "
-             f"compiled kernels and an empty index cache: **{wall2:.1f} s** wall, {cpu2:.1f} s CPU (exit {rc2}).\n")
-        rows, walls = real_photos(refs, cache_env, skip_peers)
-        emit("### Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
-             "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole "
-             "process (s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"],
-                                          rows)
-             + f"\n\nstartrack whole process: median {np.median([w for w, _ in walls]):.2f} s wall, "
-               f"{np.median([c for _, c in walls]):.2f} s CPU (user + system); max {max(w for w, _ in walls):.2f} s "
-               f"wall.\n")
-        per, per_cpu, cedar, labels = in_process(esa, cache_env)
-        txt = (f"### In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + "
-               f"identify + attitude), wall: per image {', '.join(f'{v:.0f}' for v in per)} ms; "
-               f"**median {np.median(per):.1f} ms**; CPU: {', '.join(f'{v:.0f}' for v in per_cpu)} ms, "
-               f"**median {np.median(per_cpu):.1f} ms**.\nThe previous blind solver (paper 004 labels + pyramid, "
-               f"`SolveOptions(blind='labels')`): {sum(st == 'ok' for _, st in labels)}/{len(labels)} solved, "
-               f"median {np.median([t for t, _ in labels]):.0f} ms CPU.")
-        if cedar:
-            txt += (f"\ncedar-solve solve_from_image (FOV 11.4 given; its own process, run image by image between "
-                    f"startrack's runs), wall: {', '.join(f'{v:.0f}' for v in cedar)} ms; **median "
-                    f"{np.median(cedar):.1f} ms**; cedar / startrack (wall) = {np.median(cedar) / np.median(per):.2f}.")
-        else:
-            txt += "\ncedar-solve: not installed (CEDAR_PYTHON or .venv-cedar)."
-        emit(txt + "\n")
-        jb, n = jobs(esa, cache_env)
-        emit(f"### Batch of {n} images\n\n" + table(["-j", "wall (s)", "CPU (s)", "solved", "exit"],
-                                                    [[j, f"{w:.2f}", f"{c:.2f}", f"{ok}/{n}", rc]
-                                                     for j, (w, ok, rc, c) in jb.items()])
-             + f"\n\nLoad average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n")
-        emit("### Rendered fields, solved blind\n\n" + table(
-            ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
-             "solve ms", "process s"], rendered(cache_env)) + "\n")
-        emit("### Not star fields\n\n" + table(["image", "status", "exit", "reason", "process s"],
-                                               non_stars(cache_env)) + "\n")
+        if set(only) - {"first_use", "real_photos"}:
+            run_st(["cache", "build", "-q"], cache_env)     # the index (and kernels) of the other sections
+        if "first_use" in only:
+            _first_use_section(esa, emit)
+        if "real_photos" in only:
+            _real_photos_section(refs, cache_env, skip_peers, emit)
+        if "in_process" in only:
+            _in_process_section(esa, cache_env, emit)
+        if "jobs" in only:
+            for copies in (2, 8):
+                jb, n = jobs(esa, cache_env, copies)
+                emit(f"### Batch of {n} images\n\n" + table(["-j", "wall (s)", "CPU (s)", "solved", "exit"],
+                                                            [[j, f"{w:.2f}", f"{c:.2f}", f"{ok}/{n}", rc]
+                                                             for j, (w, ok, rc, c) in jb.items()])
+                     + f"\n\nLoad average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n")
+        if "rendered" in only:
+            emit("### Rendered fields, solved blind\n\n" + table(
+                ["field", "status", "exit", "centre error (arcsec)", "fitted FOV (deg)", "fitted k1", "stars",
+                 "solve ms", "process s"], rendered(cache_env)) + "\n")
+        if "non_stars" in only:
+            emit("### Not star fields\n\n" + table(["image", "status", "exit", "reason", "process s"],
+                                                   non_stars(cache_env)) + "\n")
     finally:
         shutil.rmtree(tmp_cache, ignore_errors=True)
     return "\n".join(parts)
+
+
+def _first_use_section(esa, emit):
+    wall, rc, notice, wall2, rc2, cpu, cpu2 = first_use(esa[0])
+    emit(f"### First use\n\n`startrack solve {os.path.basename(esa[0])}` with an empty cache and an empty "
+         f"numba cache: **{wall:.1f} s** wall, {cpu:.1f} s CPU (exit {rc}); notices on stderr: {notice!r}. With "
+         f"compiled kernels and an empty index cache: **{wall2:.1f} s** wall, {cpu2:.1f} s CPU (exit {rc2}).\n")
+
+
+def _real_photos_section(refs, cache_env, skip_peers, emit):
+    rows, walls = real_photos(refs, cache_env, skip_peers)
+    emit("### Real photos, `startrack solve IMAGE` (no options), warm cache\n\nDistance: image centre vs the "
+         "reference (astrometry.net) centre; width: fitted horizontal FOV vs the reference; time: whole "
+         "process (s).\n\n" + table(["tool", "image", "status", "exit", "distance (deg)", "width", "time (s)"],
+                                      rows)
+         + f"\n\nstartrack whole process: median {np.median([w for w, _ in walls]):.2f} s wall, "
+           f"{np.median([c for _, c in walls]):.2f} s CPU (user + system); max {max(w for w, _ in walls):.2f} s "
+           f"wall.\n")
+
+
+def _in_process_section(esa, cache_env, emit):
+    per, per_cpu, cedar, labels, split = in_process(esa, cache_env)
+    txt = (f"### In one process (ESA images, median of 5 runs each)\n\nstartrack solve_image (centroid + "
+           f"identify + attitude), wall: per image {', '.join(f'{v:.0f}' for v in per)} ms; "
+           f"**median {np.median(per):.1f} ms**; CPU: {', '.join(f'{v:.0f}' for v in per_cpu)} ms, "
+           f"**median {np.median(per_cpu):.1f} ms**.\nThe previous blind solver (paper 004 labels + pyramid, "
+           f"`SolveOptions(blind='labels')`): {sum(st == 'ok' for _, st in labels)}/{len(labels)} solved, "
+           f"median {np.median([t for t, _ in labels]):.0f} ms CPU.\nstartrack's split (median ms per image, "
+           f"wall): detection and centroids {split[0]:.1f}, pattern search and verification {split[1]:.1f}, "
+           f"attitude and records {split[2]:.1f}.")
+    if cedar:
+        txt += (f"\ncedar-solve solve_from_image (FOV 11.4 given; its own process, run image by image between "
+                f"startrack's runs), wall: {', '.join(f'{v:.0f}' for v in cedar)} ms; **median "
+                f"{np.median(cedar):.1f} ms**; cedar / startrack (wall) = {np.median(cedar) / np.median(per):.2f}.")
+    else:
+        txt += "\ncedar-solve: not installed (CEDAR_PYTHON or .venv-cedar)."
+    emit(txt + "\n")
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default=os.path.join(ROOT, "bench-output", "blind.md"))
     parser.add_argument("--skip-peers", action="store_true")
+    parser.add_argument("--only", default=",".join(SECTIONS),
+                        help=f"comma-separated sections to run (default all: {','.join(SECTIONS)})")
     args = parser.parse_args()
-    text = report(args.skip_peers)
+    only = tuple(x.strip() for x in args.only.split(",") if x.strip())
+    unknown = set(only) - set(SECTIONS)
+    if unknown:
+        parser.error(f"unknown sections {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
+    text = report(args.skip_peers, only)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as fh:
         fh.write(text)
