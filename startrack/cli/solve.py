@@ -104,7 +104,7 @@ def _solved(run, jobs, scheduler, progress):
     import resource
     import time
 
-    from startrack.cluster import ordered_map, pool_workers, worker_startup_s
+    from startrack.cluster import idle_cpus, ordered_map, pool_workers, worker_startup_s
 
     if scheduler is not None or jobs <= 1 or len(run) <= 1:
         yield from ordered_map(_solve_one, run, jobs=max(1, min(jobs, len(run))), scheduler=scheduler,
@@ -122,7 +122,9 @@ def _solved(run, jobs, scheduler, progress):
         yield i, doc
         t0 = time.perf_counter()
     rest = run[head:]
-    workers = pool_workers(jobs, len(rest), task_s, worker_startup_s(startup))
+    # A pool's start-up is measured (forked workers) only when there is an idle CPU to give it.
+    workers = pool_workers(jobs, len(rest), task_s, worker_startup_s(startup)) \
+        if min(jobs, len(rest), idle_cpus()) > 1 else 1
     logging.getLogger(__name__).debug("-j %d: %d images left, %.3f s each: %d worker(s)", jobs, len(rest), task_s,
                                       workers)
     for i, doc in ordered_map(_solve_one, rest, jobs=workers, progress=progress):
