@@ -82,11 +82,13 @@ class GridConfig:
 
 
 def _tangent_basis(v):
-    a = np.array([0.0, 0.0, 1.0]) if abs(v[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(a, v)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(v, e1)
-    return e1, e2
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    # e1 = a x v with a = +z (or +x near the poles), normalised; e2 = v x e1 (np.cross's numbers, without its cost)
+    e1 = (-y, x, 0.0) if abs(z) < 0.9 else (0.0, -z, y)
+    n = math.sqrt(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2)
+    e1 = (e1[0] / n, e1[1] / n, e1[2] / n)
+    e2 = (y * e1[2] - z * e1[1], z * e1[0] - x * e1[2], x * e1[1] - y * e1[0])
+    return np.array(e1), np.array(e2)
 
 
 def _pattern(centre, neighbours, pr, br, g, which=0):
@@ -163,15 +165,21 @@ def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
     votes = np.zeros(n_patterns, dtype=np.int64)
     for c in cells:
         votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
-    per_star = votes.reshape(-1, k_or).max(axis=1)
-    want = min(len(per_star), max(2, keep))
-    top = np.argpartition(-per_star, want - 1)[:want]
-    top = top[np.argsort(-per_star[top], kind="stable")]
+    hit = np.flatnonzero(votes >= min_overlap)           # only these can be kept
+    if len(hit) == 0:
+        return []
+    star = hit // k_or
+    v = votes[hit]
+    order = np.lexsort((star, -v))                      # most votes first, then by star
+    star, v = star[order], v[order]
+    first = np.unique(star, return_index=True)[1]      # each star's best orientation
+    first.sort()
+    star, v = star[first], v[first]
     if keep <= 1:
-        if per_star[top[0]] < min_overlap or (len(top) > 1 and per_star[top[1]] == per_star[top[0]]):
+        if len(v) > 1 and v[1] == v[0]:
             return []
-        return [(int(top[0]), int(per_star[top[0]]))]
-    return [(int(t), int(per_star[t])) for t in top[:keep] if per_star[t] >= min_overlap]
+        return [(int(star[0]), int(v[0]))]
+    return [(int(a), int(c)) for a, c in zip(star[:keep], v[:keep])]
 
 
 def search_grid(ctx, config: GridConfig):
@@ -238,9 +246,11 @@ def _confirmed(ctx, b, db, refs, rounds):
             if j < i:
                 continue
             members = [i, int(j)]
-            for h in by_votes:
-                if agree[h, members].all():
+            mask = agree[i] & agree[j]          # the references agreeing with every member so far
+            for h in by_votes[mask[by_votes]]:
+                if mask[h]:
                     members.append(int(h))
+                    mask &= agree[h]
             group = [refs[m] for m in members]
             key = frozenset((r, c) for r, c, *_ in group)
             if key not in groups:
