@@ -342,6 +342,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     if m == 0:
         return out[:0], 0
     cb = _triple(b[i], b[j], b[k])
+    # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
+    lo_jk = math.cos(min(th_jk + e_jk, math.pi))
+    hi_jk = math.cos(max(th_jk - e_jk, 0.0))
     tri = np.empty((max_triangles, 3), dtype=np.int64)
     nt = 0
     s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
@@ -358,7 +361,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 p = nxt[p]
                 if K == J:
                     continue
-                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) > e_jk:
+                d = _dot(star_vec[J], star_vec[K])
+                if d < lo_jk or d > hi_jk:
                     continue
                 if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
                     continue
@@ -405,6 +409,10 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
             lo = math.cos(th_ir + e_ir)
             hi = math.cos(max(th_ir - e_ir, 0.0))
+            lo_jr = math.cos(min(th_jr + e_jr, math.pi))
+            hi_jr = math.cos(max(th_jr - e_jr, 0.0))
+            lo_kr = math.cos(min(th_kr + e_kr, math.pi))
+            hi_kr = math.cos(max(th_kr - e_kr, 0.0))
             nR = 0
             fR = -1
             for q in range(rstart[u], rend[u]):
@@ -419,9 +427,11 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                     continue
                 if R == fJ or R == fK:
                     continue
-                if abs(_angle(star_vec[fJ], star_vec[R]) - th_jr) > e_jr:
+                d = _dot(star_vec[fJ], star_vec[R])
+                if d < lo_jr or d > hi_jr:
                     continue
-                if abs(_angle(star_vec[fK], star_vec[R]) - th_kr) > e_kr:
+                d = _dot(star_vec[fK], star_vec[R])
+                if d < lo_kr or d > hi_kr:
                     continue
                 nR += 1
                 fR = R
