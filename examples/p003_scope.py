@@ -22,7 +22,7 @@ the 10 brightest stars, at least 3 per frame), no false star: Table 3's first bl
    ranges of the two sides (theta_ij, theta_ik) of every triad it tried (both
    orientations; its fourth-star confirmation is not counted).  Besides the identification
    time (search and the shared verification), the search alone is timed: the time spent
-   inside each algorithm's proposal generator.
+   inside each algorithm's proposal generator, and of it the time inside the compiled search kernels.
 
 The database is built here from the shipped catalog (``build-kvector --fov-deg 20 --size
 1024x1024 --mag-max 5.0``) unless ``--database`` names one.
@@ -54,6 +54,29 @@ def pyramid_scope(b, eps_pairs, db, triads_tried):
 
 
 SEARCH_S = [0.0]
+KERNEL_S = [0.0]
+
+
+def time_kernels():
+    """Wrap the compiled search kernels (brightness's and the pyramid's) so that the time inside them accumulates in
+    ``KERNEL_S``: the search time less this is the Python around them."""
+    import startrack._kernels.brightness as kb
+    import startrack._kernels.identify as ki
+
+    def wrap(module, name):
+        inner = getattr(module, name)
+
+        def timed_kernel(*args):
+            t0 = time.perf_counter()
+            try:
+                return inner(*args)
+            finally:
+                KERNEL_S[0] += time.perf_counter() - t0
+
+        setattr(module, name, timed_kernel)
+
+    wrap(kb, "brightness_search")
+    wrap(ki, "pyramid_candidates")
 
 
 def timed(alg):
@@ -118,6 +141,7 @@ def main(argv=None):
             "pyramid": ("pyramid", make_config("pyramid"))}
     for name in ("brightness", "pyramid"):
         register(timed(get_algorithm(name)))
+    time_kernels()
     from startrack.identify.calibration import CalibrationCarry
 
     for name, cfg in runs.values():
@@ -130,7 +154,7 @@ def main(argv=None):
         carry = CalibrationCarry("", 10) if cfg == "carried" else None
         t0 = time.perf_counter()
         for n_frame, (stars, truth, _) in enumerate(test):
-            SEARCH_S[0] = 0.0
+            SEARCH_S[0] = KERNEL_S[0] = 0.0
             if carry is not None:
                 frame_cfg, used = carry.config_for(make_config(name))
                 res = identify_stars(stars, cam, db, name + "/timed", params, frame_cfg)
@@ -138,7 +162,7 @@ def main(argv=None):
                 carry.update(res, n_frame)
             else:
                 res = identify_stars(stars, cam, db, name + "/timed", params, cfg)
-            search_ms = SEARCH_S[0] * 1000
+            search_ms, kernel_ms = SEARCH_S[0] * 1000, KERNEL_S[0] * 1000
             d = res.details or {}
             if name == "pyramid":
                 b = cam.pixels_to_vectors(np.array([s["x"] for s in stars]), np.array([s["y"] for s in stars]))
@@ -150,11 +174,12 @@ def main(argv=None):
                 scope, unnarrowed = pyramid_scope(b[:use], ctx.pair_eps, db, int(d.get("patterns", 0))), None
             else:
                 scope, unnarrowed = d.get("scope"), d.get("scope_unnarrowed")
-            per.append({"outcome": score(res, truth), "ms": res.time_ms, "search_ms": search_ms, "mode": d.get("mode"), "scope": scope,
+            per.append({"outcome": score(res, truth), "ms": res.time_ms, "search_ms": search_ms, "kernel_ms": kernel_ms, "mode": d.get("mode"), "scope": scope,
                         "unnarrowed": unnarrowed, "stars": len(stars)})
         wall = time.perf_counter() - t0
         ms = np.array([p["ms"] for p in per])
         sms = np.array([p["search_ms"] for p in per])
+        kms = np.array([p["kernel_ms"] for p in per])
         sc = np.array([p["scope"] for p in per if p["scope"] is not None], dtype=float)
         un = np.array([p["unnarrowed"] for p in per if p["unnarrowed"] is not None], dtype=float)
         modes = {}
@@ -175,6 +200,8 @@ def main(argv=None):
                        "bad": sum(p["outcome"] == "bad" for p in per),
                        "mean_ms": float(ms.mean()), "median_ms": float(np.median(ms)), "wall_s": wall,
                        "mean_search_ms": float(sms.mean()), "median_search_ms": float(np.median(sms)),
+                       "median_kernel_ms": float(np.median(kms)) if kms.any() else None,
+                       "mean_kernel_ms": float(kms.mean()) if kms.any() else None,
                        "mean_scope": float(sc.mean()) if len(sc) else None,
                        "mean_unnarrowed": float(un.mean()) if len(un) else None, "modes": by_mode}
     out = {"command": f"examples/p003_scope.py --frames {a.frames} --calibration-frames {a.calibration_frames} "

@@ -41,6 +41,9 @@ echo "paper 004 sensor: --brightness-calibration $CAL4"
 P004=(-d "$W/p004-kvector.h5" -d "$W/p004-labels.h5" --fov-deg 24 --size 1200x1200 --mag-max 5.2
       --sigma-arcsec 38 --seed 4 -j 2 -q)
 $ST evaluate "${P004[@]}" -a labelling,pyramid,grid --count "$NT" --json -o "$R/p004-table2.json" > "$R/p004-table2.txt"
+# Table 2 taken apart: each identification's time split into the search and the shared verification.
+$PY examples/p004_time_split.py --frames "$NT" --kvector "$W/p004-kvector.h5" --labels "$W/p004-labels.h5" \
+    -o "$R/p004-time-split.json"
 $ST evaluate "${P004[@]}" -a "$ALL" --brightness-calibration "$CAL4" --count "$NS" --focal-error-pct 0,0.25,0.5,1,2 \
     --json -o "$R/p004-fig7-focal.json" --plot examples/robustness-focal-error.png > "$R/p004-fig7-focal.txt"
 $ST evaluate "${P004[@]}" -a "$ALL" --brightness-calibration "$CAL4" --count "$NS" --false-stars 0,1,2,3,4,5 \
