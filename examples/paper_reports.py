@@ -505,7 +505,7 @@ def _headline_004(results):
                          f"{by['labelling']['mean_ms'] / by['pyramid']['mean_ms']:.2f} "
                          f"({by['labelling']['mean_ms']:.3f} vs {by['pyramid']['mean_ms']:.3f} ms, "
                          f"{doc['params']['count']:,} frames)",
-                         "MATLAB vs numba; every algorithm's time includes the same shared verification"])
+                         "MATLAB vs numba; each identification time includes the shared verification, most of it (next row)"])
     split = _load(os.path.join(results, "p004-time-split.json"))
     if split and {"labelling", "pyramid"} <= set(split["rows"]):
         lab, pyr = split["rows"]["labelling"], split["rows"]["pyramid"]
