@@ -207,13 +207,27 @@ def usable_cpus() -> int:
 
 
 def idle_cpus() -> int:
-    """CPUs left for this process's workers: the usable CPUs minus what other processes keep busy
-    (the 1-minute load average, less this process's own running task), at least 1."""
+    """CPUs left for this process's workers: the usable CPUs minus what other processes keep busy, at least 1.
+
+    On Linux, "busy" is the number of other runnable tasks now (``/proc/loadavg``'s running count,
+    this process excluded; the least of three readings a few milliseconds apart, so that a passing
+    task does not count); elsewhere the 1-minute load average less this process.
+    """
     cpus = usable_cpus()
+    others = None
     try:
-        others = max(0.0, os.getloadavg()[0] - 1.0)
-    except (AttributeError, OSError):
-        others = 0.0
+        readings = []
+        for k in range(3):
+            if k:
+                time.sleep(0.002)
+            with open("/proc/loadavg") as fh:
+                readings.append(int(fh.read().split()[3].split("/")[0]) - 1)
+        others = max(0, min(readings))
+    except (OSError, ValueError, IndexError):
+        try:
+            others = max(0.0, os.getloadavg()[0] - 1.0)
+        except (AttributeError, OSError):
+            others = 0.0
     return max(1, min(cpus, int(cpus - others + 0.5)))
 
 
@@ -257,8 +271,8 @@ def pool_workers(jobs: int, n_tasks: int, task_s: float, startup_s: float) -> in
     ``n_tasks`` tasks of ``task_s`` seconds each (measured on one of them) take
     ``n_tasks task_s`` here, or about ``startup_s + n_tasks task_s / k`` with ``k``
     workers (they start side by side); ``k`` is at most ``jobs``, the tasks and
-    the CPUs this process may use that other processes leave idle (the load
-    average beyond this process; more processes than idle CPUs only share them).
+    the CPUs this process may use that other processes leave idle
+    (:func:`idle_cpus`; more processes than idle CPUs only share them).
     Workers are used only when that estimate is shorter.
     """
     k = min(int(jobs), int(n_tasks), idle_cpus())
