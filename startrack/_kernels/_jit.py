@@ -83,31 +83,54 @@ def _qualname(py_func) -> str:
     return f"{py_func.__module__.rsplit('.', 1)[-1]}.{py_func.__qualname__}"
 
 
-def _arg_key(a):
-    """The exact type of one argument, as numba's ``typeof`` would see it; None when unsupported."""
-    if isinstance(a, np.ndarray):
-        f = a.flags
-        layout = "C" if f.c_contiguous else ("F" if f.f_contiguous else "A")
-        return (a.dtype.str, a.ndim, layout, bool(f.writeable), bool(f.aligned))
-    t = type(a)
-    if t is float:
-        return "<f8"
-    if t is bool:
-        return "|b1"
-    if t is int:
-        return "<i8" if -(2**63) <= a < 2**63 else None
-    if isinstance(a, np.generic) and a.dtype.kind in "biuf":
-        return a.dtype.str
-    return None
+# The per-call key: cheap to compute (a call's overhead is part of every kernel's cost).  An array's is
+# (dtype, ndim, layout | writeable/aligned bits of ``flags.num``) with layout 1 = C, 2 = F, 0 = any; a
+# scalar's its dtype string.  numba types an array contiguous both ways (1-D) as C, as here.
+_C, _F, _ALIGNED, _WRITEABLE = 0x1, 0x2, 0x100, 0x400
+_LAYOUT = {"C": _C, "F": _F, "A": 0}
+_SCALARS = {float: "<f8", int: "<i8", bool: "|b1"}
+for _t in (np.float64, np.float32, np.int64, np.int32, np.int16, np.int8, np.uint64, np.uint32, np.uint16,
+           np.uint8, np.bool_):
+    _SCALARS[_t] = np.dtype(_t).str
+_NDARRAY = np.ndarray
 
 
 def _call_key(args):
-    keys = tuple(_arg_key(a) for a in args)
-    return None if None in keys else keys
+    """The exact type of the arguments, as numba's ``typeof`` would see them; None when unsupported.
+
+    Python ``int`` maps to int64 (None beyond its range), ``float`` to float64.  Array subclasses,
+    arrays of other kinds than bool/int/float, tuples, lists, None, records: None.
+    """
+    out = []
+    for a in args:
+        if type(a) is _NDARRAY:
+            if a.dtype.kind not in "biuf":
+                return None
+            n = a.flags.num
+            out.append((a.dtype, a.ndim, (_C if n & _C else (_F if n & _F else 0)) | (n & (_ALIGNED | _WRITEABLE))))
+        else:
+            k = _SCALARS.get(type(a))
+            if k is None or (k == "<i8" and type(a) is int and not -(2**63) <= a < 2**63):
+                return None
+            out.append(k)
+    return tuple(out)
+
+
+def _fast_key(key):
+    """A manifest key (dtype string, ndim, layout letter, writeable, aligned per array) as :func:`_call_key`'s."""
+    out = []
+    for k in key:
+        if isinstance(k, (tuple, list)):
+            dt, ndim, layout, writeable, aligned = k
+            out.append((np.dtype(dt), int(ndim),
+                        _LAYOUT[layout] | (_WRITEABLE if writeable else 0) | (_ALIGNED if aligned else 0)))
+        else:
+            out.append(k)
+    return tuple(out)
 
 
 def _numba_key(ty):
-    """The key of a numba type (the build side of :func:`_arg_key`); None when unsupported."""
+    """The key of a numba type (the build side of :func:`_call_key`, via :func:`_fast_key`); None when unsupported."""
     from numba.core import types
     from numba.np.numpy_support import as_dtype
 
@@ -210,11 +233,32 @@ def _versions() -> str:
     return f"numba {version('numba')}; numpy {np.__version__}; python {sys.version}; {sys.platform}"
 
 
+def _cpu_id() -> str:
+    """This machine's CPU model and instruction-set flags (cheap: no LLVM), for the build's tag.
+
+    The build is compiled for the host CPU (as numba's JIT compiles), so another CPU model sharing the
+    cache directory (a cluster's home directory) misses it and uses numba's JIT until it builds its own.
+    """
+    try:
+        with open("/proc/cpuinfo") as f:
+            text = f.read(65536).split("\n\n", 1)[0]      # the first processor's block
+        keep = [line for line in text.splitlines() if line.split(":")[0].strip() in ("vendor_id", "model name", "flags",
+                                                                                        "Features", "CPU part")]
+        if keep:
+            return "\n".join(keep)
+    except OSError:
+        pass
+    import platform
+
+    return f"{platform.machine()} {platform.processor()}"
+
+
 @functools.lru_cache(maxsize=1)
 def _tag() -> str:
-    """Hash of the kernels' source and the versions that compile and run them."""
+    """Hash of the kernels' source, the versions that compile and run them, and the CPU they are built for."""
     here = os.path.dirname(os.path.abspath(__file__))
     h = hashlib.sha1(_versions().encode())
+    h.update(_cpu_id().encode())
     files = [os.path.join(here, n) for n in sorted(os.listdir(here)) if n.endswith(".py")]
     # solve.py holds the warm-up that decides which signatures the build holds.
     files.append(os.path.join(os.path.dirname(here), "solve.py"))
@@ -265,12 +309,8 @@ def _load_aot() -> dict:
         return {}
     table: dict = {}
     for qualname, entries in manifest["kernels"].items():
-        table[qualname] = {_as_key(key): getattr(mod, symbol) for symbol, key in entries}
+        table[qualname] = {_fast_key(key): getattr(mod, symbol) for symbol, key in entries}
     return table
-
-
-def _as_key(key):
-    return tuple(tuple(k) if isinstance(k, list) else k for k in key)
 
 
 def aot_loaded() -> bool:
@@ -297,7 +337,10 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
     import warnings
 
     _materialise()
+    from llvmlite import binding as llvm
     from numba.pycc import CC
+
+    cpu = llvm.get_host_cpu_name()      # numba.pycc's default is a generic CPU: ~40 % slower kernels
 
     path = aot_path(directory)
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -314,7 +357,8 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
     skipped: list = []
     while entries:
         cc = CC(module)
-        manifest: dict = {"module": module, "versions": _versions(), "kernels": {}, "skipped": skipped}
+        cc.target_cpu = cpu
+        manifest: dict = {"module": module, "versions": _versions(), "cpu": cpu, "kernels": {}, "skipped": skipped}
         for n, (k, args, key) in enumerate(entries):
             symbol = f"k{n}_{k.py_func.__name__}"
             cc.export(symbol, k._dispatcher.overloads[args].signature)(k.py_func)
