@@ -172,3 +172,36 @@ def expose(signal, out, background_cdf, background_guide, background_lo, backgro
             elif dn > max_dn:
                 dn = max_dn
             out[row, col] = dn
+
+
+@njit(cache=True)
+def background_cdf(upper, pk, kmin, rn):
+    """``out[i] = sum_j pk[j] Phi((upper[i] - kmin - j) / rn)``: P(Poisson count + read noise < upper[i]).
+
+    Counts more than 9 read-noise sigmas below ``upper[i]`` add their whole probability (a
+    running sum), those more than 9 sigmas above none; only the band between is evaluated.
+    ``rn == 0``: the counts below ``upper[i]`` exactly.
+    """
+    n = upper.size
+    m = pk.size
+    cum = np.empty(m + 1)
+    cum[0] = 0.0
+    for j in range(m):
+        cum[j + 1] = cum[j] + pk[j]
+    out = np.empty(n)
+    if rn <= 0.0:
+        for i in range(n):
+            a = int(math.ceil(upper[i] - kmin))     # counts kmin + j < upper[i]
+            out[i] = cum[min(max(a, 0), m)]
+        return out
+    w = 9.0 * rn
+    s2 = math.sqrt(2.0) * rn
+    for i in range(n):
+        u = upper[i] - kmin
+        a = min(max(int(math.ceil(u - w)), 0), m)
+        b = min(max(int(math.floor(u + w)) + 1, a), m)
+        acc = cum[a]
+        for j in range(a, b):
+            acc += pk[j] * 0.5 * (1.0 + math.erf((u - j) / s2))
+        out[i] = acc
+    return out
