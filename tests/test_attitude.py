@@ -168,3 +168,29 @@ def test_wcs_puts_stars_where_the_camera_does(k1, k2):
     d = np.degrees(np.hypot((np.radians(sky[:, 0]) - ra + np.pi) % (2 * np.pi) - np.pi, 0) * np.cos(dec))
     assert np.max(np.abs(d)) * 3600 < 0.05
     assert np.max(np.abs(sky[:, 1] - np.degrees(dec))) * 3600 < 0.05
+
+
+@pytest.mark.parametrize("angle", [0.3, math.pi - 1e-4])
+@pytest.mark.parametrize("n", [3, 4, 12])
+def test_leave_one_out_is_the_solve_from_the_other_stars(angle, n):
+    """The kernel's rank-one downdate of the profile matrix gives each star's residual against the
+    attitude QUEST solves from all the others (also near 180 degrees, the sequential rotations)."""
+    from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest
+
+    rng = np.random.default_rng(n)
+    b = rng.normal(size=(n, 3)) * 0.1 + [0.0, 0.0, 1.0]
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    a = quaternion_to_dcm(np.r_[np.array([1.0, 2.0, 2.0]) / 3.0 * math.sin(angle / 2), math.cos(angle / 2)])
+    r = b @ a + rng.normal(size=(n, 3)) * 2e-5     # A r ~ b
+    r[n // 2] += [0.01, 0.0, 0.0]                   # one wrong star, 0.01 rad off
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    w = rng.uniform(0.5, 2.0, n)
+    w /= w.sum()
+    got = leave_one_out(b, r, w)
+    for i in range(n):
+        keep = np.arange(n) != i
+        q, _ = quest(b[keep], r[keep], w[keep])
+        want = math.acos(min(1.0, float(b[i] @ quat_to_dcm(q) @ r[i])))
+        assert got[i] == pytest.approx(want, abs=1e-9)
+    if n >= 12:                                     # the others agree without it
+        assert got[n // 2] > 10 * np.median(got)

@@ -101,6 +101,12 @@ def quest(b, r, w):
     lam0 = 0.0
     for i in range(w.shape[0]):
         lam0 += w[i] * math.sqrt(_vdot(b[i], b[i]) * _vdot(r[i], r[i]))
+    return quest_profile(bm, lam0)
+
+
+@njit(cache=True)
+def quest_profile(bm, lam0):
+    """:func:`quest` from the profile matrix ``bm`` and the bound ``lam0 = sum w |b| |r|``."""
     lam0 *= 1.0 + 1e-12
     q, lam, g = _quest_core(bm, lam0)
     if g > 1e-2:
@@ -262,25 +268,28 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
 @njit(cache=True)
 def leave_one_out(b, r, w):
     """For every pair ``(b_i, r_i)``: the angle (rad) between ``b_i`` and ``A r_i``, ``A`` solved
-    (QUEST, weights ``w``) from all the other pairs -- how well the rest predicts this star."""
+    (QUEST, weights ``w``) from all the other pairs -- how well the rest predicts this star.
+
+    The profile matrix of all pairs is formed once; each star's is that minus its own term
+    ``w_i b_i r_i^T`` (a rank-one downdate), and so is the Newton start ``sum w |b| |r|``:
+    the same QUEST solve as from the other pairs' sum, without the O(n) re-sum per star."""
     n = b.shape[0]
     out = np.full(n, np.inf)
     if n < 3:
         return out
-    bi = np.empty((n - 1, 3))
-    ri = np.empty((n - 1, 3))
-    wi = np.empty(n - 1)
+    bm = profile(b, r, w)
+    c = np.empty(n)
+    total = 0.0
+    for j in range(n):
+        c[j] = w[j] * math.sqrt(_vdot(b[j], b[j]) * _vdot(r[j], r[j]))
+        total += c[j]
+    bmi = np.empty((3, 3))
     for i in range(n):
-        t = 0
-        for j in range(n):
-            if j == i:
-                continue
-            bi[t] = b[j]
-            ri[t] = r[j]
-            wi[t] = w[j]
-            t += 1
-        q, _ = quest(bi, ri, wi)
-        a = quat_to_dcm(q)
+        for p in range(3):
+            for q in range(3):
+                bmi[p, q] = bm[p, q] - w[i] * b[i, p] * r[i, q]
+        qi, _ = quest_profile(bmi, total - c[i])
+        a = quat_to_dcm(qi)
         d = 0.0
         for u in range(3):
             d += b[i, u] * (a[u, 0] * r[i, 0] + a[u, 1] * r[i, 1] + a[u, 2] * r[i, 2])
