@@ -44,20 +44,35 @@ def _quest_core(bm, lam0):
     ``gamma = (l + sigma) alpha - Delta``, ``X = (alpha I + beta S + S^2) Z`` and
     ``q = (X, gamma) / norm``.  Returns ``(q, lambda, gamma_rel)``.
     """
-    s = bm + bm.T
+    # Scalars throughout (no temporary arrays: this runs once per leave-one-out star); the same
+    # operations in the same order as the matrix expressions in the docstring.
+    s00 = bm[0, 0] + bm[0, 0]
+    s01 = bm[0, 1] + bm[1, 0]
+    s02 = bm[0, 2] + bm[2, 0]
+    s10 = bm[1, 0] + bm[0, 1]
+    s11 = bm[1, 1] + bm[1, 1]
+    s12 = bm[1, 2] + bm[2, 1]
+    s20 = bm[2, 0] + bm[0, 2]
+    s21 = bm[2, 1] + bm[1, 2]
+    s22 = bm[2, 2] + bm[2, 2]
     sigma = bm[0, 0] + bm[1, 1] + bm[2, 2]
-    z = np.array([bm[1, 2] - bm[2, 1], bm[2, 0] - bm[0, 2], bm[0, 1] - bm[1, 0]])
-    kappa = (s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0]) + (s[0, 0] * s[2, 2] - s[0, 2] * s[2, 0]) + \
-        (s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1])
-    delta = s[0, 0] * (s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1]) - s[0, 1] * (s[1, 0] * s[2, 2] - s[1, 2] * s[2, 0]) + \
-        s[0, 2] * (s[1, 0] * s[2, 1] - s[1, 1] * s[2, 0])
-    sz = _mv(s, z)
-    s2z = _mv(s, sz)
+    z0 = bm[1, 2] - bm[2, 1]
+    z1 = bm[2, 0] - bm[0, 2]
+    z2 = bm[0, 1] - bm[1, 0]
+    kappa = (s00 * s11 - s01 * s10) + (s00 * s22 - s02 * s20) + (s11 * s22 - s12 * s21)
+    delta = s00 * (s11 * s22 - s12 * s21) - s01 * (s10 * s22 - s12 * s20) + s02 * (s10 * s21 - s11 * s20)
+    sz0 = s00 * z0 + s01 * z1 + s02 * z2
+    sz1 = s10 * z0 + s11 * z1 + s12 * z2
+    sz2 = s20 * z0 + s21 * z1 + s22 * z2
+    s2z0 = s00 * sz0 + s01 * sz1 + s02 * sz2
+    s2z1 = s10 * sz0 + s11 * sz1 + s12 * sz2
+    s2z2 = s20 * sz0 + s21 * sz1 + s22 * sz2
     a = sigma * sigma - kappa
-    b = sigma * sigma + _vdot(z, z)
-    c = delta + _vdot(z, sz)
-    d = _vdot(z, s2z)
+    b = sigma * sigma + (z0 * z0 + z1 * z1 + z2 * z2)
+    c = delta + (z0 * sz0 + z1 * sz1 + z2 * sz2)
+    d = z0 * s2z0 + z1 * s2z1 + z2 * s2z2
     lam = lam0
+    prev = np.inf
     for _ in range(50):
         f = lam ** 4 - (a + b) * lam * lam - c * lam + (a * b + c * sigma - d)
         fp = 4 * lam ** 3 - 2 * (a + b) * lam - c
@@ -65,22 +80,30 @@ def _quest_core(bm, lam0):
             break
         step = f / fp
         lam -= step
-        if abs(step) < 1e-15 * max(1.0, abs(lam)):
+        scale = max(1.0, abs(lam))
+        if abs(step) < 1e-15 * scale:
             break
+        # Converged to the round-off of f: the steps stop shrinking and only bounce by a few
+        # ulps (they used to run all 50 iterations, most of a solve's time).
+        if abs(step) >= prev and abs(step) < 1e-12 * scale:
+            break
+        prev = abs(step)
     alpha = lam * lam - sigma * sigma + kappa
     beta = lam - sigma
     gamma = (lam + sigma) * alpha - delta
-    x = alpha * z + beta * sz + s2z
-    norm = math.sqrt(gamma * gamma + _vdot(x, x))
+    x0 = alpha * z0 + beta * sz0 + s2z0
+    x1 = alpha * z1 + beta * sz1 + s2z1
+    x2 = alpha * z2 + beta * sz2 + s2z2
+    norm = math.sqrt(gamma * gamma + (x0 * x0 + x1 * x1 + x2 * x2))
     q = np.empty(4)
     # (X, gamma) scales as lambda^3: a tiny norm is all round-off (a rotation of 180 degrees).
     if norm <= 1e-10 * max(1.0, abs(lam)) ** 3:
         q[:] = 0.0
         q[3] = 1.0
         return q, lam, 0.0
-    q[0] = x[0] / norm
-    q[1] = x[1] / norm
-    q[2] = x[2] / norm
+    q[0] = x0 / norm
+    q[1] = x1 / norm
+    q[2] = x2 / norm
     q[3] = gamma / norm
     return q, lam, abs(gamma) / norm
 
