@@ -32,6 +32,76 @@ def _clipped_stats(values, n_iter, kappa):
     return med, sig
 
 
+@njit(cache=True)
+def _sorted_dev_kth(s, lo, hi, p, med, k):
+    """The ``k``-th smallest (0-based) of ``|s[i] - med|`` over ``lo <= i < hi`` (``s`` sorted, ``s[i] < med``
+    exactly for ``i < p``): a merge of the two sorted runs of deviations, left of ``p`` going down, right going up."""
+    a = p - 1
+    b = p
+    v = 0.0
+    for _ in range(k + 1):
+        if a >= lo and (b >= hi or abs(s[a] - med) <= abs(s[b] - med)):
+            v = abs(s[a] - med)
+            a -= 1
+        else:
+            v = abs(s[b] - med)
+            b += 1
+    return v
+
+
+@njit(cache=True)
+def _clipped_stats_sorted(values, n_iter, kappa):
+    """:func:`_clipped_stats` for a small sample (a mesh tile's ~100 values), faster.
+
+    The values are sorted once: each median is then a look-up, the MAD a merge
+    of the deviations either side of the median (both sorted), and the clip
+    keeps a contiguous run of the sorted values (the deviation falls, then
+    rises along it).  The same numbers as :func:`_clipped_stats`'s selections (which
+    it calls when the data hold NaN or infinities); for ~10^4 values the sort costs more than they do.
+    """
+    n = values.shape[0]
+    if n == 0:
+        return 0.0, 0.0
+    s = np.sort(values)
+    if not (np.isfinite(s[0]) and np.isfinite(s[n - 1])):     # NaN sorts last
+        return _clipped_stats(values, n_iter, kappa)
+    lo = 0
+    hi = n
+    med = 0.0
+    sig = 0.0
+    for _ in range(n_iter):
+        m = hi - lo
+        if m == 0:
+            break
+        half = m >> 1
+        if m & 1 == 0:
+            med = (s[lo + half - 1] + s[lo + half]) / 2
+        else:
+            med = s[lo + half]
+        p = lo
+        while p < hi and s[p] < med:
+            p += 1
+        if m & 1 == 0:
+            d = (_sorted_dev_kth(s, lo, hi, p, med, half - 1) + _sorted_dev_kth(s, lo, hi, p, med, half)) / 2
+        else:
+            d = _sorted_dev_kth(s, lo, hi, p, med, half)
+        sig = 1.4826 * d
+        if sig <= 0.0:
+            break
+        lim = kappa * sig
+        nlo = lo
+        while nlo < hi and not abs(s[nlo] - med) <= lim:
+            nlo += 1
+        nhi = hi
+        while nhi > nlo and not abs(s[nhi - 1] - med) <= lim:
+            nhi -= 1
+        if nhi - nlo == m:
+            break
+        lo = nlo
+        hi = nhi
+    return med, sig
+
+
 # Serial on purpose: these passes are memory-bound (two multiply-adds per pixel,
 # ~100 samples per tile), and for star-tracker frames numba's thread start-up and
 # spinning cost more than they save; under contention (``-j N`` batches, a busy
@@ -62,7 +132,7 @@ def background_mesh(image, cell, step):
             for x in range(x0, x1, step):
                 buf[k] = image[y, x]
                 k += 1
-        med, sig = _clipped_stats(buf[:k], 3, 3.0)
+        med, sig = _clipped_stats_sorted(buf[:k], 3, 3.0)
         level[j, i] = med
         sigma[j, i] = sig
     return level, sigma
@@ -96,6 +166,26 @@ def median3(a):
     return out
 
 
+# Reassociation lets LLVM vectorise the sums (~25 % faster).  The terms are float32 values and their
+# float32 squares (as before): a float64 sum of a tile's (4096 terms) holds them exactly when their
+# binary exponents span fewer than ~17 orders (53 - 24 - 12 bits), as on integer-DN images, and
+# then the order of the additions changes no bit of the result; else only at float64 rounding.
+@njit(cache=True, fastmath={"reassoc", "nsz"})
+def _clipped_row_sums(residual, y, x0, x1, lim):
+    """Count, sum and sum of squares (each square in the residual's precision) of ``residual[y, x0:x1]``'s
+    values within ``lim`` of zero."""
+    n = 0
+    s1 = 0.0
+    s2 = 0.0
+    for x in range(x0, x1):
+        v = residual[y, x]
+        if abs(v) <= lim:
+            n += 1
+            s1 += v
+            s2 += v * v
+    return n, s1, s2
+
+
 @njit(cache=True)
 def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, out):
     """Per-tile noise (DN): standard deviation of the residual pixels within ``kappa`` sigma of zero.
@@ -118,12 +208,10 @@ def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, o
                 s1 = 0.0
                 s2 = 0.0
                 for y in range(j * cell, min(h, (j + 1) * cell)):
-                    for x in range(i * cell, min(w, (i + 1) * cell)):
-                        v = residual[y, x]
-                        if abs(v) <= lim:
-                            n += 1
-                            s1 += v
-                            s2 += v * v
+                    a, b, c = _clipped_row_sums(residual, y, i * cell, min(w, (i + 1) * cell), lim)
+                    n += a
+                    s1 += b
+                    s2 += c
                 if n < 50:
                     break
                 var = (s2 - s1 * s1 / n) / (n - 1)
