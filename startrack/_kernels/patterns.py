@@ -334,24 +334,29 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                     cur[t] = lo_b[t]
                 base = level_start[lv]
                 while True:
+                    # The bins of the last ratio are adjacent keys: one bisection for the first of
+                    # them, then a scan through the last (keys[lo..hi] share a prefix: the last ratio's
+                    # 5 bits are below PREFIX_SHIFT).  The same keys in the same order as one look-up per bin.
                     key = 0
-                    for t in range(5):
+                    for t in range(4):
                         key = key * NBINS + cur[t]
-                    pre = key >> PREFIX_SHIFT
+                    key_lo = key * NBINS + lo_b[4]
+                    key_hi = key * NBINS + hi_b[4]
+                    pre = key_lo >> PREFIX_SHIFT
                     s = level_prefix[lv, pre]
                     e_ = level_prefix[lv, pre + 1]
-                    # keys are sorted within a level: the first equal to ``key`` by bisection (a fine
+                    # keys are sorted within a level: the first >= ``key_lo`` by bisection (a fine
                     # level's prefix bucket holds hundreds of keys)
                     lo_j = s
                     hi_j = e_
                     while lo_j < hi_j:
                         mid = (lo_j + hi_j) // 2
-                        if keys[base + mid] < key:
+                        if keys[base + mid] < key_lo:
                             lo_j = mid + 1
                         else:
                             hi_j = mid
                     for j in range(lo_j, e_):
-                        if keys[base + j] != key:
+                        if keys[base + j] > key_hi:
                             break
                         pj = base + j
                         _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
@@ -382,8 +387,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         for k in range(4):
                             _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
                         _edges(iv[0], iv[1], iv[2], iv[3], ie)
-                    # next bin combination
-                    t = 4
+                    # next bin combination (of the first four ratios)
+                    t = 3
                     while t >= 0:
                         cur[t] += 1
                         if cur[t] <= hi_b[t]:
