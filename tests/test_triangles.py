@@ -146,3 +146,46 @@ def test_build_triangles_cli_and_refusals(cli, tmp_path):
     assert_refused(cli("build-triangles", "--fov-deg", "10", "--size", "800x800", "--max-separation-deg", "-1",
                        "-o", tmp_path / "x.h5"), "--max-separation-deg")
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_quadruples_are_every_set_brightest_first():
+    from startrack.identify.modified_pyramid import _quadruples
+
+    for n in (4, 5, 9, 20):
+        assert list(_quadruples(n)) == sorted(itertools.combinations(range(n), 4), key=lambda q: q[::-1])
+
+
+def test_modified_pyramid_keeps_looking_through_false_stars(catalog):
+    """Ten false stars among the detections: the first four-star set of true stars can be far down the list;
+    the search goes through every set (its old stop at 200 sets failed most such frames), never wrong."""
+    from startrack.camera import Camera
+    from startrack.evaluate import Condition, make_frames, score
+    from startrack.identify import IdentifyParams, identify_stars, make_config
+    from startrack.triangles import build_triangles
+
+    cat = catalog.filter_magnitude(2.5, 5.5)
+    db = build_triangles(cat, 8.0)
+    cam = Camera.from_fov(8.0, 1024, 1024)
+    frames = make_frames(cat, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=4), 12, 5,
+                         mag_limit=5.5)
+    params = IdentifyParams(sigma_px=0.3)
+    every = [score(identify_stars(s, cam, db, "modified-pyramid", params), t) for s, t, _ in frames]
+    first = [score(identify_stars(s, cam, db, "modified-pyramid", params,
+                                  make_config("modified-pyramid", {"max_quadruples": 200})), t) for s, t, _ in frames]
+    assert every.count("bad") == 0 and first.count("bad") == 0
+    assert every.count("success") >= 10, every
+    assert every.count("success") > first.count("success"), (every, first)
+
+
+def test_build_triangles_merges_unresolved_doubles(cli, tmp_path):
+    """HIP 103569 and 103571 (10" apart, 0.24 px on a 15 deg 1280 px sensor) image as one star: one entry,
+    the brighter id; --merge-px 0 keeps both."""
+    from startrack.triangles import load_triangles
+
+    args = ["build-triangles", "--fov-deg", "15", "--size", "1280x960", "--mag-max", "6", "-q"]
+    assert cli(*args, "-o", tmp_path / "m.h5").returncode == 0
+    assert cli(*args, "--merge-px", "0", "-o", tmp_path / "u.h5").returncode == 0
+    merged, unmerged = load_triangles(str(tmp_path / "m.h5")), load_triangles(str(tmp_path / "u.h5"))
+    assert {103569, 103571} <= set(unmerged.star_id.tolist())
+    assert len({103569, 103571} & set(merged.star_id.tolist())) == 1
+    assert merged.n_stars < unmerged.n_stars
