@@ -334,19 +334,19 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                     cur[t] = lo_b[t]
                 base = level_start[lv]
                 while True:
-                    # The bins of the last ratio are adjacent keys: one bisection for the first of
-                    # them, then a scan through the last (keys[lo..hi] share a prefix: the last ratio's
-                    # 5 bits are below PREFIX_SHIFT).  The same keys in the same order as one look-up per bin.
+                    # For given bins of the first three ratios, the keys with the last two ratios in
+                    # their bins lie between key_lo and key_hi (keys sorted within a level): one
+                    # bisection for the first, then a scan that skips the last ratio's other bins.  The
+                    # same keys in the same order as one look-up per bin combination.
                     key = 0
-                    for t in range(4):
+                    for t in range(3):
                         key = key * NBINS + cur[t]
-                    key_lo = key * NBINS + lo_b[4]
-                    key_hi = key * NBINS + hi_b[4]
-                    pre = key_lo >> PREFIX_SHIFT
-                    s = level_prefix[lv, pre]
-                    e_ = level_prefix[lv, pre + 1]
-                    # keys are sorted within a level: the first >= ``key_lo`` by bisection (a fine
-                    # level's prefix bucket holds hundreds of keys)
+                    key_lo = (key * NBINS + lo_b[3]) * NBINS + lo_b[4]
+                    key_hi = (key * NBINS + hi_b[3]) * NBINS + hi_b[4]
+                    s = level_prefix[lv, key_lo >> PREFIX_SHIFT]
+                    e_ = level_prefix[lv, (key_hi >> PREFIX_SHIFT) + 1]
+                    # the first key >= ``key_lo`` by bisection (a fine level's prefix bucket holds
+                    # hundreds of keys)
                     lo_j = s
                     hi_j = e_
                     while lo_j < hi_j:
@@ -356,8 +356,12 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         else:
                             hi_j = mid
                     for j in range(lo_j, e_):
-                        if keys[base + j] > key_hi:
+                        kj = keys[base + j]
+                        if kj > key_hi:
                             break
+                        b4 = kj % NBINS
+                        if b4 < lo_b[4] or b4 > hi_b[4]:
+                            continue
                         pj = base + j
                         _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
                         q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
@@ -387,8 +391,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         for k in range(4):
                             _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
                         _edges(iv[0], iv[1], iv[2], iv[3], ie)
-                    # next bin combination (of the first four ratios)
-                    t = 3
+                    # next bin combination (of the first three ratios)
+                    t = 2
                     while t >= 0:
                         cur[t] += 1
                         if cur[t] <= hi_b[t]:
