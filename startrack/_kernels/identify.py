@@ -395,6 +395,23 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         rstart[nr] = s
         rend[nr] = e
         nr += 1
+    # The first triangle scans each fourth star's range of pairs for those of its star I.  With more
+    # triangles, the pairs at each fourth star's angle are linked per catalog star (entries tagged
+    # with the fourth star) the first time a later triangle asks for that star, and every later
+    # triangle walks only the pairs of its own I instead of the whole range again (the same R are
+    # found, in another order: a triangle is confirmed by a unique R).  ``head`` is free for these
+    # lists once its theta_ik lists are cleared.
+    cap = 0
+    if nt >= 2:
+        for p in range(m):
+            head[other[p]] = -1
+        for u in range(nr):
+            cap += 2 * max(rend[u] - rstart[u], 0)
+    ent_next = np.empty(cap, dtype=np.int64)
+    ent_other = np.empty(cap, dtype=np.int64)
+    ent_u = np.empty(cap, dtype=np.int64)
+    ne = 0
+    built = np.zeros(nr, dtype=np.bool_)
     for t in range(nt):
         fI = tri[t, 0]
         fJ = tri[t, 1]
@@ -415,16 +432,54 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             hi_kr = math.cos(max(th_kr - e_kr, 0.0))
             nR = 0
             fR = -1
-            for q in range(rstart[u], rend[u]):
-                cq = pair_cos[q]
-                if cq < lo or cq > hi:
+            if t == 0:
+                for q in range(rstart[u], rend[u]):
+                    cq = pair_cos[q]
+                    if cq < lo or cq > hi:
+                        continue
+                    if pair_i[q] == fI:
+                        R = pair_j[q]
+                    elif pair_j[q] == fI:
+                        R = pair_i[q]
+                    else:
+                        continue
+                    if R == fJ or R == fK:
+                        continue
+                    d = _dot(star_vec[fJ], star_vec[R])
+                    if d < lo_jr or d > hi_jr:
+                        continue
+                    d = _dot(star_vec[fK], star_vec[R])
+                    if d < lo_kr or d > hi_kr:
+                        continue
+                    nR += 1
+                    fR = R
+                    if nR > 1:
+                        break
+            elif not built[u]:
+                built[u] = True
+                for q in range(rstart[u], rend[u]):
+                    cq = pair_cos[q]
+                    if cq < lo or cq > hi:
+                        continue
+                    a = pair_i[q]
+                    z = pair_j[q]
+                    ent_u[ne] = u
+                    ent_other[ne] = z
+                    ent_next[ne] = head[a]
+                    head[a] = ne
+                    ne += 1
+                    ent_u[ne] = u
+                    ent_other[ne] = a
+                    ent_next[ne] = head[z]
+                    head[z] = ne
+                    ne += 1
+            p = head[fI] if t > 0 else -1
+            while p >= 0:
+                if ent_u[p] != u:
+                    p = ent_next[p]
                     continue
-                if pair_i[q] == fI:
-                    R = pair_j[q]
-                elif pair_j[q] == fI:
-                    R = pair_i[q]
-                else:
-                    continue
+                R = ent_other[p]
+                p = ent_next[p]
                 if R == fJ or R == fK:
                     continue
                 d = _dot(star_vec[fJ], star_vec[R])
