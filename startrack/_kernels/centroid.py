@@ -166,26 +166,6 @@ def median3(a):
     return out
 
 
-# Reassociation lets LLVM vectorise the sums (~25 % faster).  The terms are float32 values and their
-# float32 squares (as before): a float64 sum of a tile's (4096 terms) holds them exactly when their
-# binary exponents span fewer than ~17 orders (53 - 24 - 12 bits), as on integer-DN images, and
-# then the order of the additions changes no bit of the result; else only at float64 rounding.
-@njit(cache=True, fastmath={"reassoc", "nsz"})
-def _clipped_row_sums(residual, y, x0, x1, lim):
-    """Count, sum and sum of squares (each square in the residual's precision) of ``residual[y, x0:x1]``'s
-    values within ``lim`` of zero."""
-    n = 0
-    s1 = 0.0
-    s2 = 0.0
-    for x in range(x0, x1):
-        v = residual[y, x]
-        if abs(v) <= lim:
-            n += 1
-            s1 += v
-            s2 += v * v
-    return n, s1, s2
-
-
 @njit(cache=True)
 def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, out):
     """Per-tile noise (DN): standard deviation of the residual pixels within ``kappa`` sigma of zero.
@@ -208,10 +188,12 @@ def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, o
                 s1 = 0.0
                 s2 = 0.0
                 for y in range(j * cell, min(h, (j + 1) * cell)):
-                    a, b, c = _clipped_row_sums(residual, y, i * cell, min(w, (i + 1) * cell), lim)
-                    n += a
-                    s1 += b
-                    s2 += c
+                    for x in range(i * cell, min(w, (i + 1) * cell)):
+                        v = residual[y, x]
+                        if abs(v) <= lim:
+                            n += 1
+                            s1 += v
+                            s2 += v * v
                 if n < 50:
                     break
                 var = (s2 - s1 * s1 / n) / (n - 1)
