@@ -395,14 +395,14 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         rstart[nr] = s
         rend[nr] = e
         nr += 1
-    # The first triangle scans each fourth star's range of pairs for those of its star I.  With more
-    # triangles, the pairs at each fourth star's angle are linked per catalog star (entries tagged
-    # with the fourth star) the first time a later triangle asks for that star, and every later
-    # triangle walks only the pairs of its own I instead of the whole range again (the same R are
-    # found, in another order: a triangle is confirmed by a unique R).  ``head`` is free for these
-    # lists once its theta_ik lists are cleared.
+    # The first two triangles scan each fourth star's range of pairs for those of their star I (a
+    # build costs more than one scan).  From the third on, the pairs at each fourth star's angle are
+    # linked per catalog star (entries tagged with the fourth star) the first time a triangle asks
+    # for that star, and every later triangle walks only the pairs of its own I instead of the whole
+    # range again (the same R are found, in another order: a triangle is confirmed by a unique R).
+    # ``head`` is free for these lists once its theta_ik lists are cleared.
     cap = 0
-    if nt >= 2:
+    if nt >= 3:
         for p in range(m):
             head[other[p]] = -1
         for u in range(nr):
@@ -432,7 +432,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             hi_kr = math.cos(max(th_kr - e_kr, 0.0))
             nR = 0
             fR = -1
-            if t == 0:
+            if t < 2:
                 for q in range(rstart[u], rend[u]):
                     cq = pair_cos[q]
                     if cq < lo or cq > hi:
@@ -473,7 +473,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                     ent_next[ne] = head[z]
                     head[z] = ne
                     ne += 1
-            p = head[fI] if t > 0 else -1
+            p = head[fI] if t >= 2 else -1
             while p >= 0:
                 if ent_u[p] != u:
                     p = ent_next[p]
