@@ -63,7 +63,7 @@ print(json.dumps(out))
 
 
 def test_aot_build_runs_without_numba_and_falls_back_exactly(tmp_path):
-    env = dict(os.environ, STARTRACK_KERNELS=str(tmp_path))
+    env = dict(os.environ, STARTRACK_KERNELS=str(tmp_path), STARTRACK_AOT="1")
     build = ("import numpy as np; from startrack._kernels import _jit; "
              "from startrack._kernels.attitude import quat_to_dcm; "
              "quat_to_dcm(np.array([0.0, 0.0, 0.0, 1.0])); "

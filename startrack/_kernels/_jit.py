@@ -332,19 +332,34 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
     -------
     (path, entries) : the ``.so`` written and its number of entry points.
     """
-    import re
-    import tempfile
-    import warnings
-
     _materialise()
     from llvmlite import binding as llvm
-    from numba.pycc import CC
-
-    cpu = llvm.get_host_cpu_name()      # numba.pycc's default is a generic CPU: ~40 % slower kernels
+    from numba.core import codegen
 
     path = aot_path(directory)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     module = f"_startrack_kernels_{_tag()}"
+
+    # numba.pycc compiles for a generic CPU by default (~40 % slower kernels than numba's JIT); the CPU name
+    # alone is not enough either (an LLVM that does not know the model falls back to generic features), so
+    # the build gets the host's name and its feature string, as the JIT does.
+    cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
+    saved = codegen.AOTCPUCodegen._customize_tm_features
+    codegen.AOTCPUCodegen._customize_tm_features = lambda _self: features
+    try:
+        return _build(path, module, cpu, kernels)
+    finally:
+        codegen.AOTCPUCodegen._customize_tm_features = saved
+
+
+def _build(path, module, cpu, kernels):
+    """:func:`build_aot`'s compilation (codegen already set for the host)."""
+    import re
+    import tempfile
+    import warnings
+
+    from numba.pycc import CC
+
     entries = []
     for k in (list(kernels) if kernels is not None else _KERNELS):
         # Entry points only (kernels called from Python): the others are compiled into them.
