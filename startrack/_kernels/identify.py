@@ -71,6 +71,14 @@ def _first_at_or_after(sorted_pairs, key):
     return lo
 
 
+@njit(cache=True, inline="always")
+def vote_once(votes, stamp, i, c, key):
+    """One vote for hypothesis ``(i, c)`` per ``key`` (an image pair): ``stamp`` remembers the last key."""
+    if stamp[i, c] != key:
+        stamp[i, c] = key
+        votes[i, c] += 1
+
+
 @njit(cache=True)
 def smart_triads(n):
     """Mortari's smart index sequence over triads (dj, dk, i loops): every triad once, spikes spread out."""
@@ -87,204 +95,6 @@ def smart_triads(n):
                 out[t, 2] = k
                 t += 1
     return out
-
-
-@njit(cache=True)
-def pyramid_search(b, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad, use_quadratic, eps,
-                   max_triads, eps_rel=0.0):
-    """The pyramid identification (Mortari, Samaan, Bruccoleri & Junkins 2004).
-
-    ``b`` are image-star unit vectors (camera frame), brightest first.  Triads
-    are tried in the smart index sequence; a triad is accepted when exactly
-    one catalog triangle matches its three angles within ``eps`` with the same
-    handedness (the specular test ``sign b_i.(b_j x b_k) = sign r_I.(r_J x r_K)``);
-    a pyramid when exactly one catalog star matches a fourth image star's three
-    angles to the triangle.  With three stars only, a unique triangle is
-    returned (``r = -1``).
-
-    Returns ``(status, (i, j, k, r), (I, J, K, R), triads_tried, n_triangle_candidates)``:
-    status 1 = pyramid, 2 = unique triangle only (n == 3), 0 = nothing.
-    """
-    n = b.shape[0]
-    idx = np.full(4, -1, dtype=np.int64)
-    cat = np.full(4, -1, dtype=np.int64)
-    if n < 3:
-        return 0, idx, cat, 0, 0
-    triads = smart_triads(n)
-    tried = 0
-    for t in range(triads.shape[0]):
-        if tried >= max_triads:
-            break
-        tried += 1
-        i = triads[t, 0]
-        j = triads[t, 1]
-        k = triads[t, 2]
-        th_ij = _angle(b[i], b[j])
-        th_ik = _angle(b[i], b[k])
-        th_jk = _angle(b[j], b[k])
-        e_ij = eps + eps_rel * th_ij
-        e_ik = eps + eps_rel * th_ik
-        e_jk = eps + eps_rel * th_jk
-        lo_ij = math.cos(th_ij + e_ij)
-        hi_ij = math.cos(max(th_ij - e_ij, 0.0))
-        lo_ik = math.cos(th_ik + e_ik)
-        hi_ik = math.cos(max(th_ik - e_ik, 0.0))
-        s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
-        side_ij = _side_candidates(pair_i, pair_j, pair_cos, s, e, lo_ij, hi_ij)
-        if side_ij.shape[0] == 0:
-            continue
-        s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
-        side_ik = _side_candidates(pair_i, pair_j, pair_cos, s, e, lo_ik, hi_ik)
-        if side_ik.shape[0] == 0:
-            continue
-        cb = _triple(b[i], b[j], b[k])
-        found = 0
-        fI = -1
-        fJ = -1
-        fK = -1
-        for a in range(side_ij.shape[0]):
-            I = side_ij[a, 0]
-            J = side_ij[a, 1]
-            p = _first_at_or_after(side_ik, I)
-            while p < side_ik.shape[0] and side_ik[p, 0] == I:
-                K = side_ik[p, 1]
-                p += 1
-                if K == J:
-                    continue
-                if abs(_angle(star_vec[J], star_vec[K]) - th_jk) > e_jk:
-                    continue
-                if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
-                    continue
-                found += 1
-                fI = I
-                fJ = J
-                fK = K
-                if found > 1:
-                    break
-            if found > 1:
-                break
-        if found != 1:
-            continue
-        if n == 3:
-            idx[0] = i
-            idx[1] = j
-            idx[2] = k
-            cat[0] = fI
-            cat[1] = fJ
-            cat[2] = fK
-            return 2, idx, cat, tried, found
-        # The confirming fourth star.
-        for r in range(n):
-            if r == i or r == j or r == k:
-                continue
-            th_ir = _angle(b[i], b[r])
-            th_jr = _angle(b[j], b[r])
-            th_kr = _angle(b[k], b[r])
-            e_ir = eps + eps_rel * th_ir
-            lo = math.cos(th_ir + e_ir)
-            hi = math.cos(max(th_ir - e_ir, 0.0))
-            s, e = _range(kvector, line, kquad, quad, use_quadratic, lo, hi)
-            nR = 0
-            fR = -1
-            for q in range(s, e):
-                cq = pair_cos[q]
-                if cq < lo or cq > hi:
-                    continue
-                if pair_i[q] == fI:
-                    R = pair_j[q]
-                elif pair_j[q] == fI:
-                    R = pair_i[q]
-                else:
-                    continue
-                if R == fJ or R == fK:
-                    continue
-                t1 = _angle(star_vec[fJ], star_vec[R])
-                if abs(t1 - th_jr) > eps + eps_rel * th_jr:
-                    continue
-                t2 = _angle(star_vec[fK], star_vec[R])
-                if abs(t2 - th_kr) > eps + eps_rel * th_kr:
-                    continue
-                nR += 1
-                fR = R
-            if nR == 1:
-                idx[0] = i
-                idx[1] = j
-                idx[2] = k
-                idx[3] = r
-                cat[0] = fI
-                cat[1] = fJ
-                cat[2] = fK
-                cat[3] = fR
-                return 1, idx, cat, tried, 1
-    return 0, idx, cat, tried, 0
-
-
-@njit(cache=True)
-def geometric_voting(b, star_vec, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps):
-    """Kolomenkin, Pollak, Shimshoni & Lindenbaum (2008): two voting steps.
-
-    First step: every image pair (i, j) whose angle matches a catalog pair
-    (k, l) within ``eps`` votes for k and l as identities of both i and j
-    (one vote per catalog star per image pair).  Each image star takes the
-    catalog star with the most votes.  Second (verification) step: each pair
-    of assigned stars whose catalog angle agrees with the image angle within
-    ``eps`` gives a vote to both.
-
-    Returns ``(identity, votes1, votes2)``, identity -1 where no vote was cast.
-    """
-    n = b.shape[0]
-    votes = np.zeros((n, n_cat), dtype=np.int32)
-    stamp = np.full((n, n_cat), -1, dtype=np.int64)
-    pair_id = 0
-    for i in range(n):
-        for j in range(i + 1, n):
-            th = _angle(b[i], b[j])
-            lo = math.cos(th + eps)
-            hi = math.cos(max(th - eps, 0.0))
-            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
-            for t in range(s, e):
-                c = pair_cos[t]
-                if c < lo or c > hi:
-                    continue
-                k = pair_i[t]
-                l = pair_j[t]
-                if stamp[i, k] != pair_id:
-                    stamp[i, k] = pair_id
-                    votes[i, k] += 1
-                if stamp[i, l] != pair_id:
-                    stamp[i, l] = pair_id
-                    votes[i, l] += 1
-                if stamp[j, k] != pair_id:
-                    stamp[j, k] = pair_id
-                    votes[j, k] += 1
-                if stamp[j, l] != pair_id:
-                    stamp[j, l] = pair_id
-                    votes[j, l] += 1
-            pair_id += 1
-    identity = np.full(n, -1, dtype=np.int64)
-    votes1 = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        best = 0
-        arg = -1
-        for c in range(n_cat):
-            if votes[i, c] > best:
-                best = votes[i, c]
-                arg = c
-        identity[i] = arg
-        votes1[i] = best
-    votes2 = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        if identity[i] < 0:
-            continue
-        for j in range(i + 1, n):
-            if identity[j] < 0 or identity[j] == identity[i]:
-                continue
-            th = _angle(b[i], b[j])
-            tc = _angle(star_vec[identity[i]], star_vec[identity[j]])
-            if abs(th - tc) <= eps:
-                votes2[i] += 1
-                votes2[j] += 1
-    return identity, votes1, votes2
 
 
 @njit(cache=True)
@@ -702,7 +512,7 @@ def pattern_chance(n_cat, eps, v):
 def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps, star_vec, top):
     """Kolomenkin et al. (2008) voting, keeping each image star's ``top`` most-voted identities.
 
-    First step as :func:`geometric_voting` (each image pair votes for both
+    First step (each image pair votes for both
     stars of every catalog pair at its angle within ``eps``, once per image
     pair).  Each image star keeps its ``top`` most-voted catalog stars (ties
     by index).  Second (verification) step over these hypotheses: hypothesis
@@ -728,18 +538,10 @@ def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps,
                     continue
                 k = pair_i[t]
                 l = pair_j[t]
-                if stamp[i, k] != pair_id:
-                    stamp[i, k] = pair_id
-                    votes[i, k] += 1
-                if stamp[i, l] != pair_id:
-                    stamp[i, l] = pair_id
-                    votes[i, l] += 1
-                if stamp[j, k] != pair_id:
-                    stamp[j, k] = pair_id
-                    votes[j, k] += 1
-                if stamp[j, l] != pair_id:
-                    stamp[j, l] = pair_id
-                    votes[j, l] += 1
+                vote_once(votes, stamp, i, k, pair_id)
+                vote_once(votes, stamp, i, l, pair_id)
+                vote_once(votes, stamp, j, k, pair_id)
+                vote_once(votes, stamp, j, l, pair_id)
             pair_id += 1
     identity = np.full((n, top), -1, dtype=np.int64)
     votes1 = np.zeros((n, top), dtype=np.int64)

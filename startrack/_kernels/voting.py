@@ -25,6 +25,7 @@ import numpy as np
 
 from startrack._kernels._jit import njit
 from startrack._kernels.database import kvector_range
+from startrack._kernels.identify import vote_once
 
 
 @njit(cache=True)
@@ -94,18 +95,10 @@ def voting_clusters(b, tol, margin, n_cat, pair_i, pair_j, pair_cos, kvector, li
                 continue
             k = pair_i[t]
             l = pair_j[t]
-            if stamp[i, k] != p:
-                stamp[i, k] = p
-                votes1[i, k] += 1
-            if stamp[i, l] != p:
-                stamp[i, l] = p
-                votes1[i, l] += 1
-            if stamp[j, k] != p:
-                stamp[j, k] = p
-                votes1[j, k] += 1
-            if stamp[j, l] != p:
-                stamp[j, l] = p
-                votes1[j, l] += 1
+            vote_once(votes1, stamp, i, k, p)
+            vote_once(votes1, stamp, i, l, p)
+            vote_once(votes1, stamp, j, k, p)
+            vote_once(votes1, stamp, j, l, p)
     # Validation votes (distinct supporting stars) of the hypotheses with k_min first-step votes.
     votes2 = np.zeros((n, n_cat), dtype=np.int32)
     stamp[:, :] = -1
@@ -119,19 +112,11 @@ def voting_clusters(b, tol, margin, n_cat, pair_i, pair_j, pair_cos, kvector, li
             k = pair_i[t]
             l = pair_j[t]
             if votes1[i, k] >= k_min and votes1[j, l] >= k_min:
-                if stamp[i, k] != p:
-                    stamp[i, k] = p
-                    votes2[i, k] += 1
-                if stamp[j, l] != p:
-                    stamp[j, l] = p
-                    votes2[j, l] += 1
+                vote_once(votes2, stamp, i, k, p)
+                vote_once(votes2, stamp, j, l, p)
             if votes1[i, l] >= k_min and votes1[j, k] >= k_min:
-                if stamp[i, l] != p:
-                    stamp[i, l] = p
-                    votes2[i, l] += 1
-                if stamp[j, k] != p:
-                    stamp[j, k] = p
-                    votes2[j, k] += 1
+                vote_once(votes2, stamp, i, l, p)
+                vote_once(votes2, stamp, j, k, p)
     hid = np.full((n, n_cat), -1, dtype=np.int64)
     nh = 0
     for i in range(n):
