@@ -287,17 +287,12 @@ def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float
     sky, where such stars appear at the catalog's average density: Poisson with
     mean ``lambda`` = ``n_bright`` (database stars brighter than the cut) x
     ``area_frac`` (image solid angle / 4 pi), halved for the sparsest skies.
-    Returns ``P(K <= missing)``; 1 without magnitudes (``n_bright`` = 0).
+    Returns ``P(K <= missing)``; 1 without magnitudes (``n_bright`` = 0).  The fused verification
+    calls the same kernel.
     """
-    lam = 0.5 * n_bright * area_frac
-    if lam <= 0:
-        return 1.0
-    term = math.exp(-lam)
-    total = term
-    for k in range(1, missing + 1):
-        term *= lam / k
-        total += term
-    return min(1.0, total)
+    from startrack._kernels.identify import missing_probability
+
+    return float(missing_probability(int(missing), int(n_bright), float(area_frac)))
 
 
 # A close pair is named only when the other assignment is this much worse in chi-square
