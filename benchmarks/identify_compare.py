@@ -43,16 +43,35 @@ def _row(tool, cond, outcomes, times):
             "median_ms": float(np.nanmedian(t)), "p95_ms": float(np.nanpercentile(t, 95))}
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_sensor_arguments(ap, count):
+    """The sensor, catalogs and conditions of issue 14's comparison (shared by the diagnosis scripts)."""
     ap.add_argument("--fov", type=float, default=15.0)
     ap.add_argument("--size", default="1280x960")
     ap.add_argument("--db-mag", type=float, default=6.0)
     ap.add_argument("--star-mag", type=float, default=5.5)
     ap.add_argument("--min-stars", type=int, default=4, help="catalog stars per frame at least (false stars not counted)")
-    ap.add_argument("--count", type=int, default=1000)
+    ap.add_argument("--count", type=int, default=count)
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10", help="sigma_px:false_stars, ...")
+
+
+def sensor_setup(args):
+    """``(camera, merge_arcsec, database catalog, frame catalog)`` of :func:`add_sensor_arguments`' options."""
+    from startrack.camera import Camera
+    from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
+
+    w, h = (int(v) for v in args.size.split("x"))
+    cam = Camera.from_fov(args.fov, w, h)
+    full = load_catalog()
+    # As build-kvector --size does: stars closer than 2 px are one entry (the sensor sees one blob).
+    merge_arcsec = merge_radius_arcsec(cam, DEFAULT_MERGE_PX)
+    return (cam, merge_arcsec, full.filter_magnitude(None, args.db_mag).merge_close(merge_arcsec),
+            full.filter_magnitude(None, args.star_mag))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_sensor_arguments(ap, count=1000)
     ap.add_argument("--algorithms", default=",".join(ALGORITHMS))
     ap.add_argument("--triangles", default=None,
                     help="build-triangles database for modified-pyramid (default: built here from the same stars)")
@@ -61,8 +80,6 @@ def main(argv=None):
     ap.add_argument("--out", default=os.path.join(OUT, "identify_compare.md"))
     args = ap.parse_args(argv)
 
-    from startrack.camera import Camera
-    from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
     from startrack.evaluate import Condition, evaluate, make_frames
     from startrack.identify import IdentifyParams
     from startrack.kvector import build_kvector, max_separation_deg
@@ -70,13 +87,8 @@ def main(argv=None):
     from startrack.triangles import build_triangles, load_triangles
 
     load_start = " ".join(f"{v:.2f}" for v in os.getloadavg())
-    w, h = (int(v) for v in args.size.split("x"))
-    cam = Camera.from_fov(args.fov, w, h)
-    full = load_catalog()
-    # As build-kvector --size does: stars closer than 2 px are one entry (the sensor sees one blob).
-    merge_arcsec = merge_radius_arcsec(cam, DEFAULT_MERGE_PX)
-    db_cat = full.filter_magnitude(None, args.db_mag).merge_close(merge_arcsec)
-    star_cat = full.filter_magnitude(None, args.star_mag)
+    cam, merge_arcsec, db_cat, star_cat = sensor_setup(args)
+    w, h = cam.width, cam.height
     t0 = time.perf_counter()
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
     t_kv = time.perf_counter() - t0

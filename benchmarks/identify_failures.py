@@ -15,33 +15,22 @@ import collections
 import re
 import time
 
+from identify_compare import add_sensor_arguments, sensor_setup
+
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-a", "--algorithms", default="voting,brightness,grid")
-    ap.add_argument("--fov", type=float, default=15.0)
-    ap.add_argument("--size", default="1280x960")
-    ap.add_argument("--db-mag", type=float, default=6.0)
-    ap.add_argument("--star-mag", type=float, default=5.5)
-    ap.add_argument("--min-stars", type=int, default=4)
-    ap.add_argument("--count", type=int, default=300)
+    add_sensor_arguments(ap, count=300)
     ap.add_argument("--start", type=int, default=0, help="first frame of the sequence")
-    ap.add_argument("--seed", type=int, default=14)
-    ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10")
     ap.add_argument("--frames", action="store_true", help="list every failed frame")
     args = ap.parse_args(argv)
 
-    from startrack.camera import Camera
-    from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
     from startrack.evaluate import Condition, make_frames, score
     from startrack.identify import IdentifyParams, identify_stars
     from startrack.kvector import build_kvector, max_separation_deg
 
-    w, h = (int(v) for v in args.size.split("x"))
-    cam = Camera.from_fov(args.fov, w, h)
-    full = load_catalog()
-    db_cat = full.filter_magnitude(None, args.db_mag).merge_close(merge_radius_arcsec(cam, DEFAULT_MERGE_PX))
-    star_cat = full.filter_magnitude(None, args.star_mag)
+    cam, _, db_cat, star_cat = sensor_setup(args)
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
     for spec in args.conditions.split(","):
         sigma, nfalse = spec.split(":")
