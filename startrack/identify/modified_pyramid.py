@@ -45,7 +45,7 @@ def _sides_ok(b, stars, cos_max) -> bool:
     return all(float(b[p] @ b[q]) >= cos_max for p, q in itertools.combinations(stars, 2))
 
 
-def iter_modified_pyramid(b, db, eps, max_quadruples: int = 4845, quadratic: bool = True):
+def iter_modified_pyramid(b, db, eps, max_quadruples: int = 0, quadratic: bool = True):
     """Proposals of paper 000's modified pyramid, in its order (``patterns``: four-star sets tried so far).
 
     Parameters
@@ -56,7 +56,7 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 4845, quadratic: boo
     eps : float
         Tolerance of an inter-star angle (radians).
     max_quadruples : int
-        Four-star sets tried.
+        Four-star sets tried (0: every one).
     quadratic : bool
         Paper 000's quadratic range search (Eqs. 10-12); ``False``: Mortari's line.
     """
@@ -71,7 +71,7 @@ def iter_modified_pyramid(b, db, eps, max_quadruples: int = 4845, quadratic: boo
     tail = (db.kvector, *db.line, quadratic)
     trials = 0
     for count, (i, j, k, r) in enumerate(_quadruples(n)):
-        if count >= max_quadruples:
+        if max_quadruples and count >= max_quadruples:
             return
         # A base triangle and a confirming triangle, each with every side in the database's range.
         bases = [(i, j, k, r), (i, j, r, k), (i, k, r, j), (j, k, r, i)]
@@ -120,9 +120,9 @@ def propose_modified_pyramid(b, db, eps, params, stars, camera):
 class ModifiedPyramidConfig:
     """Settings of paper 000's modified pyramid."""
 
-    max_quadruples: int = field(default=4845, metadata={
-        "help": "Four-star sets tried, brightest first (default C(20, 4): every set of the 20 search stars; the "
-                "driver's time budget bounds the search)."})
+    max_quadruples: int = field(default=0, metadata={
+        "help": "Four-star sets tried, brightest first (0: every set of the search stars; the driver's time "
+                "budget bounds the search)."})
     range_search: str = field(default="quadratic", metadata={
         "help": "Smallest-angle look-up: 'quadratic' (paper 000 Eqs. 10-12) or 'line' (Mortari's k-vector)."})
 
