@@ -189,3 +189,26 @@ def test_build_triangles_merges_unresolved_doubles(cli, tmp_path):
     assert {103569, 103571} <= set(unmerged.star_id.tolist())
     assert len({103569, 103571} & set(merged.star_id.tolist())) == 1
     assert merged.n_stars < unmerged.n_stars
+
+
+def test_a_false_star_in_the_core_on_an_undetected_catalog_star_is_not_named(catalog):
+    """Found on a sensor no example uses (10.5 deg 1600x1200, database Hp <= 6.8, stars to 6.3, 5 false
+    stars): the modified pyramid's four stars held a false star lying on HIP 48895 (Hp 6.56, fainter than
+    the frame shows), 1.2 mag brighter than that star can be; the core was exempt from the magnitude
+    check and the false star was named.  Now a core detection brighter than its catalog star allows is
+    left unnamed (saturation only makes true stars look fainter), and the rest still identify the frame."""
+    from startrack.camera import Camera
+    from startrack.catalog import merge_radius_arcsec
+    from startrack.evaluate import Condition, make_frames, score
+    from startrack.identify import IdentifyParams, identify_stars
+    from startrack.triangles import build_triangles
+
+    cam = Camera.from_fov(10.5, 1600, 1200)
+    db = build_triangles(catalog.filter_magnitude(None, 6.8).merge_close(merge_radius_arcsec(cam)), min(cam.fov_deg))
+    (s, t, _), = make_frames(catalog.filter_magnitude(None, 6.3), cam,
+                             Condition(sigma_px=0.5, false_stars=5, min_catalog_stars=4), 1, 77, mag_limit=6.3,
+                             start=156)
+    r = identify_stars(s, cam, db, "modified-pyramid", IdentifyParams(sigma_px=0.5))
+    assert score(r, t) == "success"
+    assert all(t["star_ids"][m.star] == m.id for m in r.matches)
+    assert len(r.matches) >= 8

@@ -595,9 +595,10 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
     (a close pair the frame cannot tell apart is refused, never swapped).  A
     group too large to enumerate leaves all its detections unnamed.  A
     detection alone with its stars keeps its match (the unresolved-pair rule
-    of :func:`check_matches`).  Finally a match outside the core whose
-    magnitude disagrees by more than ``max(mag_gate, 4 sigma_m)`` is dropped
-    (a false star on an undetected catalog star).
+    of :func:`check_matches`).  Finally a match whose magnitude disagrees by
+    more than ``max(mag_gate, 4 sigma_m)`` is dropped (a false star on an
+    undetected catalog star); in the proposal's core only when the detection is
+    the brighter (saturated true stars look fainter, never brighter).
 
     Returns ``(match, n_refused, n_inconsistent)``.
     """
@@ -766,14 +767,17 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
                 out[i] = -1
             else:
                 out[i] = cand[i, best_digits[t]]
-    # Magnitude consistency of the matches outside the core.
+    # Magnitude consistency of the matches.  Outside the core both ways; in the core only a
+    # detection brighter than its catalog star allows (a false star on an undetected catalog
+    # star): saturation makes a true bright star look fainter, never brighter.
     inconsistent = 0
     if has_mag:
         gate = max(mag_gate, 4.0 * sig_m)
         for i in range(n):
-            if out[i] < 0 or is_core[i] or not np.isfinite(inst[i]):
+            if out[i] < 0 or not np.isfinite(inst[i]):
                 continue
-            if abs(star_mag[out[i]] - inst[i] - z0) > gate:
+            dm = star_mag[out[i]] - inst[i] - z0
+            if dm > gate or (dm < -gate and not is_core[i]):
                 out[i] = -1
                 inconsistent += 1
     # One detection per star (a group assignment is one-to-one; guard the rest).
