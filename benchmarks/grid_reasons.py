@@ -30,22 +30,20 @@ def main(argv=None):
 
     from startrack.evaluate import Condition, make_frames, score
     from startrack.identify import IdentifyParams, identify_stars
-    from startrack.identify.grid import GridConfig, _pattern, catalog_patterns
+    from startrack.identify.grid import GridConfig, _pattern, catalog_patterns, grid_geometry
     from startrack.kvector import build_kvector, max_separation_deg
 
     cam, _, db_cat, star_cat = sensor_setup(args)
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
     index = {int(i): k for k, i in enumerate(kv.star_id)}
     cfg = GridConfig()
-    g, keep, k_or = cfg.grid_size, cfg.matches_per_reference, cfg.catalog_orientations
-    pr = min(math.radians(cam.max_off_axis_deg), math.radians(kv.max_angle_deg))
-    ptr, _, inv_ptr, inv_stars, _ = catalog_patterns(kv, pr, 0.0, g, k_or)     # br set per condition below
+    keep, k_or = cfg.matches_per_reference, cfg.catalog_orientations
     for spec in args.conditions.split(","):
         sigma, nfalse = spec.split(":")
         params = IdentifyParams(sigma_px=float(sigma))
         eps = math.sqrt(2) * params.tolerance_sigma * float(sigma) / cam.focal_length_px + \
             math.radians(params.margin_arcsec / 3600)
-        br = max(cfg.buffer_px / cam.focal_length_px, 3 * eps)
+        pr, br, g = grid_geometry(cam, kv, cfg, eps)
         ptr, _, inv_ptr, inv_stars, _ = catalog_patterns(kv, pr, br, g, k_or)
         n_pat = len(ptr) - 1
         cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_catalog_stars=args.min_stars)

@@ -38,16 +38,23 @@ Extensions (not in the paper), each for a reason any sensor shares:
   every reference match exactly one catalog star: two references alone are a pair
   pattern, which in a 4-6 star field the shared verification rightly finds too common
   by chance to accept;
-* the pattern radius defaults to the field's half-diagonal, the farthest a neighbour
-  of a reference at the centre can be seen (was 0.6 of the narrower field: a sparse
-  field then left a reference with fewer than ``min_overlap`` neighbours).
+* the pattern radius defaults to the field's diagonal, the farthest two stars of one image
+  can be apart, so that every star of the image is a neighbour of every reference wherever
+  it lies (was the half-diagonal, the reach of a reference at the centre: in a 4-6 star
+  field the references off centre then lacked ``min_overlap`` neighbours, 26 of 1000
+  frames of the 15 deg 1280x960 sensor had fewer than two references with three);
+* the grid size follows from the database's density (``grid_geometry``): ``g`` such that
+  a catalog pattern marks about ``cell_fill`` (1 %) of the cells within ``pr``, i.e. the
+  chance that a random catalog pattern holds a given image cell stays the same for any
+  pattern radius, sensor and catalog depth (the previous fixed ``g = 40`` at the
+  half-diagonal marked 2.4 % on that sensor; doubling ``pr`` with a fixed ``g`` would
+  have made it 4x that).
 
 Other defaults (from the 24 deg / magnitude 5.2 sensor of paper 004; the paper's own
-values are not in our sources): ``g = 40``, ``br`` = 6 px (at least 3 eps), 12
-reference stars, an overlap of at least 3 cells.  The method needs two reference
-stars with three neighbours each in the field: on the 15 deg 1280x960 sensor (stars
-to Hp 5.5, >= 4 a frame) 2.3 % of frames have fewer (7 of 300 measured,
-``benchmarks/identify_failures.py``), which bounds its success there.
+values are not in our sources): ``br`` = 6 px (at least 3 eps), 12 reference stars, an
+overlap of at least 3 cells.  The method needs two reference stars with three
+neighbours each in the field (``benchmarks/grid_reasons.py`` counts the frames that
+have fewer).
 """
 from __future__ import annotations
 
@@ -63,9 +70,13 @@ from startrack.identify.base import Algorithm, Proposal
 class GridConfig:
     """Settings of the grid algorithm (Padgett & Kreutz-Delgado 1997)."""
 
-    grid_size: int = field(default=40, metadata={"help": "Cells per side of the pattern grid (g)."})
+    grid_size: int | None = field(default=None, metadata={
+        "help": "Cells per side of the pattern grid (g); default from the database's density (cell_fill)."})
     pattern_radius_deg: float | None = field(default=None, metadata={
-        "help": "Pattern radius pr (deg); default the field's half-diagonal."})
+        "help": "Pattern radius pr (deg); default the field's diagonal (the farthest two stars of one image can be)."})
+    cell_fill: float = field(default=0.01, metadata={
+        "help": "Without grid_size: the fraction of the cells within pr that a catalog pattern marks on average "
+                "(sets g from the database's stars per solid angle)."})
     buffer_px: float = field(default=6.0, metadata={"help": "Buffer radius br (px; at least 3 tolerances)."})
     min_overlap: int = field(default=3, metadata={"help": "On-cells a catalog pattern must share."})
     references: int = field(default=12, metadata={
@@ -182,14 +193,32 @@ def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
     return [(int(a), int(c)) for a, c in zip(star[:keep], v[:keep])]
 
 
+def grid_geometry(camera, db, config: GridConfig, eps: float):
+    """``(pr, br, g)``: pattern radius and buffer radius (rad) and cells per side of the grid.
+
+    ``pr`` defaults to the field's diagonal (at most the database's largest pair angle): every
+    other star of the image is then a neighbour of every reference, wherever it lies in the
+    field.  ``g`` defaults to the grid whose cells within ``pr`` a catalog pattern marks in the
+    fraction ``cell_fill``: a catalog pattern holds ``N (1 - cos pr) / 2`` neighbours on average
+    (``N`` database stars over the sphere) in ``pi g^2 / 4`` cells, so a chance pattern shares a
+    given image cell with probability ``cell_fill`` whatever the sensor and database depth.
+    """
+    pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else \
+        math.radians(camera.diagonal_fov_deg)
+    pr = min(pr, math.radians(db.max_angle_deg))
+    br = max(float(config.buffer_px) / camera.focal_length_px, 3 * eps)
+    if config.grid_size is not None:
+        g = int(config.grid_size)
+    else:
+        neighbours = db.n_stars * (1.0 - math.cos(pr)) / 2.0
+        g = max(8, int(math.ceil(math.sqrt(4.0 * neighbours / (math.pi * float(config.cell_fill))))))
+    return pr, br, g
+
+
 def search_grid(ctx, config: GridConfig):
     """Grid matches of the reference stars; the confirmed groups, largest first."""
     b, db, eps, camera = ctx.b, ctx.db, ctx.eps, ctx.camera
-    g = int(config.grid_size)
-    pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else \
-        math.radians(camera.max_off_axis_deg)
-    pr = min(pr, math.radians(db.max_angle_deg))
-    br = max(float(config.buffer_px) / camera.focal_length_px, 3 * eps)
+    pr, br, g = grid_geometry(camera, db, config, eps)
     min_overlap = int(config.min_overlap)
     n_refs = int(config.references)
     k_or = max(1, int(config.catalog_orientations))
