@@ -11,6 +11,9 @@ frame is put in one of three classes and crossed with the grid's outcome:
   cells);
 * two or more such references.
 
+(Since the grid also proposes each reference match alone -- ``single_references`` -- the second
+class can succeed.)
+
     .venv/bin/python benchmarks/grid_reasons.py --count 1000 --conditions 0.3:0,0.3:10
 """
 from __future__ import annotations

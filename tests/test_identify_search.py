@@ -108,12 +108,15 @@ def test_grid_tries_further_orientations(sensor16):
 
     db = build_kvector(cat, max_separation_deg(camera=cam))
     # Ten false stars: with the pattern radius at the field's diagonal, five no longer turned a pattern
-    # the orientations of the other references could not make up for (60 of 60 either way).
+    # the orientations of the other references could not make up for (60 of 60 either way).  Without the
+    # single-reference proposals, which also make up for it (60 of 60 with one orientation).
     frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=10, min_catalog_stars=6), 60, 17,
                          mag_limit=5.4)
     params = IdentifyParams(sigma_px=0.3)
-    more = [score(identify_stars(s, cam, db, "grid", params), t) for s, t, _ in frames]
-    once = [score(identify_stars(s, cam, db, "grid", params, make_config("grid", {"orientations": 1})), t)
+    more = [score(identify_stars(s, cam, db, "grid", params, make_config("grid", {"single_references": False})), t)
+            for s, t, _ in frames]
+    once = [score(identify_stars(s, cam, db, "grid", params,
+                                 make_config("grid", {"orientations": 1, "single_references": False})), t)
             for s, t, _ in frames]
     assert more.count("bad") == 0 and once.count("bad") == 0
     assert more.count("success") > once.count("success")
@@ -159,6 +162,24 @@ def test_grid_catalog_patterns_for_a_database_deeper_than_the_frame(sensor16):
     assert three.count("bad") == 0 and one.count("bad") == 0
     assert three.count("success") >= 0.65 * len(frames)
     assert three.count("success") >= one.count("success") + 0.3 * len(frames)
+
+
+def test_grid_single_references_in_four_star_fields(sensor16):
+    """The four brightest stars of a frame: often only one reference has its true pattern among the best,
+    and no second reference confirms it; each reference match is then proposed alone with its orientation
+    star and the neighbours their angles name, and the shared verification decides (no wrong answer)."""
+    cam, cat, stars = sensor16
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, max_stars=4, min_catalog_stars=4), 60, 31,
+                         mag_limit=5.4)
+    params = IdentifyParams(sigma_px=0.3)
+    single = [score(identify_stars(s, cam, db, "grid", params), t) for s, t, _ in frames]
+    paired = [score(identify_stars(s, cam, db, "grid", params, make_config("grid", {"single_references": False})), t)
+              for s, t, _ in frames]
+    assert single.count("bad") == 0 and paired.count("bad") == 0
+    assert single.count("success") >= paired.count("success") + 0.1 * len(frames)
 
 
 def test_grid_confirmed_references_bring_their_neighbours(sensor16):

@@ -41,6 +41,12 @@ Extensions (not in the paper), each for a reason any sensor shares:
   every reference match exactly one catalog star: two references alone are a pair
   pattern, which in a 4-6 star field the shared verification rightly finds too common
   by chance to accept;
+* when every confirmed group is rejected, each reference match is proposed alone
+  (``single_references``; the way geometric voting's every-candidate search validates
+  each candidate, ``voting.py``): the grid match pairs the image pattern's orientation
+  star with the catalog pattern's, and the neighbours whose angles to both name one
+  catalog star join them; in 4-5 star fields often only one reference has its true
+  pattern among the best (15 deg sensor, 0.3 px: 9 of 1000 frames);
 * the pattern radius defaults to the field's diagonal, the farthest two stars of one image
   can be apart, so that every star of the image is a neighbour of every reference wherever
   it lies (was the half-diagonal, the reach of a reference at the centre: in a 4-6 star
@@ -90,6 +96,9 @@ class GridConfig:
     matches_per_reference: int = field(default=4, metadata={
         "help": "Catalog patterns kept per reference star, most shared cells first (1: the paper's unique best); "
                 "the confirmation between references chooses."})
+    single_references: bool = field(default=True, metadata={
+        "help": "When every confirmed group is rejected, propose each reference match alone with the "
+                "neighbours its orientation pair names (the verification decides)."})
     catalog_orientations: int = field(default=5, metadata={
         "help": "Patterns stored per catalog star, oriented by its 1st, 2nd, ... nearest neighbour (1: the "
                 "paper's nearest; a database deeper than the sensor holds neighbours it does not detect)."})
@@ -185,7 +194,7 @@ def catalog_patterns(db, pr, br, g, orientations=1):
 def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
     """Catalog stars whose pattern (any of its orientations) shares the most on-cells, at least
     ``min_overlap``: with ``keep`` = 1 the paper's unique best (none when the runner-up ties), else the
-    ``keep`` best, most shared cells first.  Returns a list of (star, shared cells)."""
+    ``keep`` best, most shared cells first.  Returns a list of (star, shared cells, pattern index)."""
     votes = np.zeros(n_patterns, dtype=np.int64)
     for c in cells:
         votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
@@ -195,15 +204,15 @@ def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
     star = hit // k_or
     v = votes[hit]
     order = np.lexsort((star, -v))                      # most votes first, then by star
-    star, v = star[order], v[order]
+    star, v, hit = star[order], v[order], hit[order]
     first = np.unique(star, return_index=True)[1]      # each star's best orientation
     first.sort()
-    star, v = star[first], v[first]
+    star, v, hit = star[first], v[first], hit[first]
     if keep <= 1:
         if len(v) > 1 and v[1] == v[0]:
             return []
-        return [(int(star[0]), int(v[0]))]
-    return [(int(a), int(c)) for a, c in zip(star[:keep], v[:keep])]
+        return [(int(star[0]), int(v[0]), int(hit[0]))]
+    return [(int(a), int(c), int(t)) for a, c, t in zip(star[:keep], v[:keep], hit[:keep])]
 
 
 def grid_geometry(camera, db, config: GridConfig, eps: float):
@@ -259,12 +268,41 @@ def search_grid(ctx, config: GridConfig):
                 cells, k = _pattern(b[r], b[others], pr, br, g, which)
                 if cells is None or len(cells) < min_overlap:
                     continue
-                for best, votes in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
+                for best, votes, t in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
                     if not any(x[0] == int(r) and x[1] == best for x in more):
-                        more.append((int(r), best, int(others[k]), votes))
+                        more.append((int(r), best, int(others[k]), int(orient[t]), votes))
             if not refs or len(more) > len(refs):
                 refs = more
                 yield from _confirmed(ctx, b, db, refs, which + 1)
+    if config.single_references:
+        yield from _single(ctx, b, db, refs)
+
+
+def _single(ctx, b, db, refs):
+    """Each reference match alone, most shared cells first, as a proposal of the reference, its
+    orientation star and the neighbours whose angles to both name one catalog star
+    (:func:`_with_neighbours`; a mirror-image neighbour makes the verification reject the proposal).
+
+    The grid's match pairs the image pattern oriented by the reference's orientation star with the
+    catalog pattern oriented by the catalog star's: the two orientation stars correspond (when
+    their angles to the references agree).  A reference whose match no other reference confirms
+    (fewer than two references with their true pattern among the best, e.g. a 4-5 star field
+    with the nearest neighbours of the catalog stars outside the field) is then still proposed,
+    and the shared verification decides, as for every proposal.
+    """
+    sv = db.star_vector
+    for i in np.argsort([-v for *_, v in refs], kind="stable"):
+        r, c, o, co, _ = refs[i]
+        if co < 0 or co == c or o == r:
+            continue
+        th = math.acos(min(1.0, float(b[r] @ b[o])))
+        tc = math.acos(min(1.0, float(sv[c] @ sv[co])))
+        if abs(th - tc) > ctx.pair_eps(r, o):
+            continue
+        img, cat = _with_neighbours(ctx, b, db, [r, o], [c, co])
+        if len(img) < 3:
+            continue
+        yield Proposal(img, cat, len(refs), {"grid_votes": [refs[i][-1]], "grid_references": 1})
 
 
 def _confirmed(ctx, b, db, refs, rounds):
