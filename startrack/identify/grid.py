@@ -180,8 +180,9 @@ def catalog_patterns(db, pr, br, g, orientations=1):
             cells_all.append(cells)
             orient[t] = nb[k]
             ptr[t + 1] = ptr[t] + len(cells)
-    cells = np.concatenate(cells_all) if cells_all else np.zeros(0, dtype=np.int64)
-    owner = np.repeat(np.arange(n * k_or), np.diff(ptr))
+    # int32: cell numbers below g^2 and pattern numbers below n * orientations (half the memory of int64)
+    cells = np.concatenate(cells_all).astype(np.int32) if cells_all else np.zeros(0, dtype=np.int32)
+    owner = np.repeat(np.arange(n * k_or, dtype=np.int32), np.diff(ptr))
     order = np.argsort(cells, kind="stable")
     inv_stars = owner[order]
     inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
