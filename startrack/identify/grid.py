@@ -197,9 +197,7 @@ def _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
     """Catalog stars whose pattern (any of its orientations) shares the most on-cells, at least
     ``min_overlap``: with ``keep`` = 1 the paper's unique best (none when the runner-up ties), else the
     ``keep`` best, most shared cells first.  Returns a list of (star, shared cells, pattern index)."""
-    votes = np.zeros(n_patterns, dtype=np.int64)
-    for c in cells:
-        votes[inv_stars[inv_ptr[c]:inv_ptr[c + 1]]] += 1
+    votes = np.bincount(np.concatenate([inv_stars[inv_ptr[c]:inv_ptr[c + 1]] for c in cells]), minlength=n_patterns)
     hit = np.flatnonzero(votes >= min_overlap)           # only these can be kept
     if len(hit) == 0:
         return []
@@ -253,6 +251,7 @@ def search_grid(ctx, config: GridConfig):
     # Reference stars: nearest the image centre first.
     order = np.argsort(-(b @ boresight))
     refs = []
+    named = set()           # (reference, catalog star) pairs in refs
     done = set()
     # The references nearest the centre first; when all their groups are rejected, every search star
     # (false stars among the first ones leave too few true references to confirm each other).
@@ -271,7 +270,8 @@ def search_grid(ctx, config: GridConfig):
                 if cells is None or len(cells) < min_overlap:
                     continue
                 for best, votes, t in _best(cells, inv_ptr, inv_stars, n_patterns, k_or, min_overlap, keep):
-                    if not any(x[0] == int(r) and x[1] == best for x in more):
+                    if (int(r), best) not in named:
+                        named.add((int(r), best))
                         more.append((int(r), best, int(others[k]), int(orient[t]), votes))
             if not refs or len(more) > len(refs):
                 refs = more
