@@ -50,6 +50,7 @@ def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypat
         return fused(*args)
 
     monkeypatch.setattr(kernels, "verify_focal", counted)
+    monkeypatch.setattr(base, "FUSED_SEARCH", False)     # each proposal verified from Python (compared below)
     index = base._z_index
     outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0}
     for k, cond in enumerate(CONDITIONS):
@@ -76,8 +77,46 @@ def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypat
     assert outcomes["ok"] >= 60 and outcomes["scaled"] >= 10 and outcomes["retried"] >= 3, outcomes
 
 
+def test_fused_pyramid_search_decides_as_the_python_loop(sensor, monkeypatch):
+    """The pyramid's search and verification in one kernel (``Algorithm.fused``) as the driver's Python loop
+    over the search's proposals, each verified by the fused verification: the same result, trials and
+    details, the same attitude to the bit; with a budget of a few proposals, the same refusal."""
+    from startrack._kernels import identify as kernels
+
+    cam, db, stars = sensor
+    calls = []
+    fused = kernels.pyramid_identify
+
+    def counted(*args):
+        calls.append(1)
+        return fused(*args)
+
+    monkeypatch.setattr(kernels, "pyramid_identify", counted)
+    outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0, "budget": 0}
+    for k, cond in enumerate(CONDITIONS):
+        for budget in (200, 2):
+            params = IdentifyParams(sigma_px=max(cond.sigma_px, 0.3), max_proposals=budget)
+            for frame, _, _ in make_frames(stars, cam, cond, 25, 40 + k, mag_limit=5.4):
+                monkeypatch.setattr(base, "FUSED_SEARCH", True)
+                before = len(calls)
+                a = identify_stars(frame, cam, db, "pyramid", params)
+                assert len(calls) > before
+                monkeypatch.setattr(base, "FUSED_SEARCH", False)
+                b = identify_stars(frame, cam, db, "pyramid", params)
+                assert _result(a) == _result(b)
+                assert a.details == b.details and a.tolerance_arcsec == b.tolerance_arcsec
+                if a.quaternion_estimate is not None:
+                    assert np.array_equal(a.quaternion_estimate, b.quaternion_estimate)
+                outcomes["ok" if a.status == "ok" else "failed"] += 1
+                outcomes["scaled"] += a.focal_scale is not None
+                outcomes["retried"] += a.trials > 1
+                outcomes["budget"] += "budget" in (a.reason or "")
+    assert outcomes["ok"] >= 120 and outcomes["scaled"] >= 20 and outcomes["retried"] >= 6 and \
+        outcomes["budget"] >= 1 and outcomes["failed"] >= 2, outcomes
+
+
 def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch):
-    """A distorted camera takes the Python path (the kernel projects through a pinhole)."""
+    """A distorted camera takes the Python path (the kernels project through a pinhole)."""
     from startrack._kernels import identify as kernels
 
     cam, db, stars = sensor
@@ -87,6 +126,7 @@ def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch
         raise AssertionError("the fused kernel was called")
 
     monkeypatch.setattr(kernels, "verify_focal", refuse)
+    monkeypatch.setattr(kernels, "pyramid_identify", refuse)
     distorted = Camera(cam.width, cam.height, cam.focal_length_px, cam.cx, cam.cy, 1e-9, 0.0)
     assert identify_stars(frame, distorted, db, "pyramid", IdentifyParams(sigma_px=0.3)).status == "ok"
     with pytest.raises(AssertionError, match="fused kernel"):

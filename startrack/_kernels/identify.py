@@ -1482,3 +1482,116 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
                 k += 1
         sizes[row] = k
     return members, sizes, end
+
+
+
+@njit(cache=True)
+def pyramid_identify(b, tol, triads, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad, xs, ys, b_all,
+                     star_mag, mag_sorted, sig_px, flux, z_order, z_sorted, fpar, ipar, state, seen, best):
+    """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
+
+    What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
+    and :func:`verify_focal`, without a Python round trip per triad and proposal: the triads
+    ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
+    (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
+    triangles none); a proposal whose set of (image, catalog) pairs was tried already is no
+    new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, t + 1)``)
+    and the first accepted ends the search.
+
+    ``fpar``: margin (rad), focal, cx, cy, width, height, fixed match radius (px; <= 0: none),
+    match sigma, margin (rad) of the match radius, eps, max chi2, magnitude floor, magnitude
+    gate, max false-match probability, max focal error.  ``ipar``: max triads, max triangles,
+    min matches, quadratic (0/1), use magnitudes (0/1), max proposals, pause.
+
+    In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns);
+    ``seen`` (max proposals, 9): each tried proposal's pairs (count, then image/catalog
+    indices sorted by image index); ``best`` = (set, code, p_false, missing, bright_pred,
+    n_matched, triangles) of the rejected proposal with the lowest false-match probability
+    (the first while none has one: NaN).
+
+    Returns ``(status, code, match, q, dcm, p_false, n_matched, scale, matched, rms, triangles)``:
+    ``status`` 0 = accepted (the rest is :func:`verify_focal`'s verdict of that proposal and
+    its triad's triangle count), 1 = every triad searched, 2 = ``ipar[5]`` proposals tried,
+    3 = paused after ``ipar[6]`` rejected proposals in this call (call again to go on: the
+    caller looks at its clock in between).
+    """
+    n_tr = min(triads.shape[0], ipar[0])
+    n = xs.shape[0]
+    margin = fpar[0]
+    use_mags = ipar[4] != 0
+    rejected = 0
+    t = state[0]
+    row0 = state[1]
+    key = np.empty(9, dtype=np.int64)
+    while t < n_tr:
+        i = triads[t, 0]
+        j = triads[t, 1]
+        k = triads[t, 2]
+        out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
+                                        kquad, quad, ipar[3] != 0, ipar[1], 256)
+        for rr in range(row0, out.shape[0]):
+            img = np.empty(4 if out[rr, 0] >= 0 else 3, dtype=np.int64)
+            cat = np.empty(img.shape[0], dtype=np.int64)
+            img[0] = i
+            img[1] = j
+            img[2] = k
+            cat[0] = out[rr, 1]
+            cat[1] = out[rr, 2]
+            cat[2] = out[rr, 3]
+            if img.shape[0] == 4:
+                img[3] = out[rr, 0]
+                cat[3] = out[rr, 4]
+            # The set of pairs, sorted by image index (the image indices are distinct).
+            order = np.argsort(img)
+            key[0] = img.shape[0]
+            for u in range(8):
+                key[1 + u] = -1
+            for u in range(img.shape[0]):
+                key[1 + 2 * u] = img[order[u]]
+                key[2 + 2 * u] = cat[order[u]]
+            dup = False
+            for s in range(state[2]):
+                same = True
+                for u in range(9):
+                    if seen[s, u] != key[u]:
+                        same = False
+                        break
+                if same:
+                    dup = True
+                    break
+            if dup:
+                continue
+            seen[state[2]] = key
+            state[2] += 1
+            state[3] = max(state[3], t + 1)
+            code, match, q, dcm, p_false, missing, bright_pred, nm, total, matched, rms = verify_focal(
+                xs, ys, b_all, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, fpar[1], fpar[2],
+                fpar[3], fpar[4], fpar[5], fpar[6], fpar[7], fpar[8], ipar[2], fpar[9], fpar[10], fpar[11], fpar[12],
+                max(state[2], t + 1), fpar[13], fpar[14], z_order, z_sorted)
+            if code == 0:
+                state[0] = t
+                state[1] = rr + 1
+                return 0, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+            if best[0] == 0.0 or (not math.isnan(p_false) and (math.isnan(best[2]) or p_false < best[2])):
+                best[0] = 1.0
+                best[1] = code
+                best[2] = p_false
+                best[3] = missing
+                best[4] = bright_pred
+                best[5] = nm
+                best[6] = n_tri
+            rejected += 1
+            if state[2] >= ipar[5]:
+                state[0] = t
+                state[1] = rr + 1
+                return 2, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+            if rejected >= ipar[6]:
+                state[0] = t
+                state[1] = rr + 1
+                return 3, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+        t += 1
+        row0 = 0
+    state[0] = t
+    state[1] = 0
+    return (1, -1, np.full(n, -1, dtype=np.int64), np.zeros(4), np.zeros((3, 3)), np.nan, 0, 1.0,
+            np.empty(0, dtype=np.int64), np.nan, 0)

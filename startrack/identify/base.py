@@ -209,6 +209,14 @@ class Algorithm:
         pattern chance ``E_core`` counts every geometric chance match, and a
         chance match must then also agree in magnitude, so multiplying by the
         magnitude agreement's probability counts nothing twice.
+    fused : callable or None
+        The search *and* the driver's verification loop in compiled code, for a
+        distortion-free camera: ``fused(ctx, config, frame) -> SearchOutcome``
+        (``frame``: a :class:`FusedFrame`), deciding exactly as :func:`run` does
+        with ``search`` and :func:`_verify_fused` (one kernel call per frame
+        instead of a Python round trip per proposal).  :func:`run` uses it when
+        set, the camera has no distortion and debug logging (which reports each
+        rejected proposal) is off.
     """
 
     name: str
@@ -217,6 +225,35 @@ class Algorithm:
     database: str = "kvector"
     summary: str = ""
     uses_brightness: bool = False
+    fused: Callable | None = None
+
+
+@dataclass
+class FusedFrame:
+    """What :attr:`Algorithm.fused` gets beside the search context: the whole frame's arrays."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    b_all: np.ndarray
+    flux: np.ndarray            # NaN where unknown
+    sig_px: np.ndarray
+    use_mags: bool
+
+
+@dataclass
+class SearchOutcome:
+    """The driver loop's result (:attr:`Algorithm.fused`): the accepted verdict and its focal scale and
+    proposal details, or the best rejected one; proposals tried, patterns compared, why it stopped."""
+
+    accepted: _Verdict | None
+    scale: float | None
+    details: dict
+    best: _Verdict | None
+    best_details: dict
+    tried: int
+    patterns: int
+    reason: str
+    code: ReasonCode
 
 
 def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
@@ -532,6 +569,9 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
 #: Verify pinhole-camera proposals with one kernel call (:func:`_verify_fused`); False: the
 #: step-by-step Python path (:func:`_verify_with_focal`), which the tests compare it with.
 FUSED_VERIFY = True
+#: Run an algorithm's search and verification loop in one kernel (:attr:`Algorithm.fused`) where it has
+#: one and :data:`FUSED_VERIFY` applies; False: the Python loop over its proposals (the tests compare them).
+FUSED_SEARCH = True
 
 _REASONS = {1: ("a star of the proposal disagrees with the attitude of the others", ReasonCode.VERIFICATION_FAILED),
             2: ("the proposal's stars do not agree with the refined attitude", ReasonCode.VERIFICATION_FAILED)}
@@ -554,7 +594,12 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
         float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
         float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
         float(params.max_focal_error), *_z_index(db))
-    scale = None if total == 1.0 else float(total)
+    return _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched, matched, rms, db, params), \
+        (None if total == 1.0 else float(total))
+
+
+def _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched, matched, rms, db, params):
+    """The :class:`_Verdict` of :func:`startrack._kernels.identify.verify_focal`'s result."""
     if code != 0:
         if code in _REASONS:
             reason, rc = _REASONS[code]
@@ -566,11 +611,11 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
         else:
             return _Verdict(None, None, None, dcm, float(p_false),
                             (f"false-match probability {p_false:.2g} above the limit "
-                             f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY), scale
-        return _Verdict(None, None, None, dcm, None, reason, rc), scale
+                             f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY)
+        return _Verdict(None, None, None, dcm, None, reason, rc)
     cat_index = match[matched]
     out = list(map(Match, matched.tolist(), db.star_id[cat_index].tolist()))
-    return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms), scale
+    return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms)
 
 
 def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
@@ -810,7 +855,14 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     best_details = {}
     patterns = 0
     seen = set()
-    for proposal in algorithm.search(ctx, config):
+    search = algorithm.search(ctx, config)
+    if fused and FUSED_SEARCH and algorithm.fused is not None and not log.isEnabledFor(logging.DEBUG):
+        out = algorithm.fused(ctx, config, FusedFrame(xs, ys, b_all, flux if has_flux else np.full(n_all, np.nan),
+                                                        sig_px, use_mags))
+        accepted, scale, details, best, best_details = out.accepted, out.scale, out.details, out.best, out.best_details
+        tried, patterns, reason, code = out.tried, out.patterns, out.reason, out.code
+        search = ()
+    for proposal in search:
         if proposal is None or len(proposal.image) == 0:
             continue
         # The same correspondences proposed again (another triad of the same stars) are no new trial.

@@ -16,6 +16,8 @@ database is :mod:`startrack.identify.modified_pyramid`.
 from __future__ import annotations
 
 import itertools
+import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,5 +74,80 @@ def search_pyramid(ctx, config: PyramidConfig):
     return _search(ctx, config, False)
 
 
+#: Rejected proposals verified in one kernel call before the driver looks at its clock (the time budget).
+PAUSE = 8
+
+
+def fused_pyramid(ctx, config: PyramidConfig, frame):
+    """:func:`search_pyramid` with the driver's verification of each proposal, in one kernel call
+    (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.base.Algorithm.fused`).
+
+    The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
+    between them (every proposal in the Python loop)."""
+    from startrack._kernels.identify import pyramid_identify, smart_triads
+    from startrack.identify.base import (
+        AMBIGUITY_CHI2,
+        MAG_GATE,
+        MAG_SIGMA_FLOOR,
+        SearchOutcome,
+        _fused_verdict,
+        _sorted_mags,
+        _z_index,
+    )
+    from startrack.records import ReasonCode
+
+    db, params, camera = ctx.db, ctx.params, ctx.camera
+    n = len(ctx.b)
+    arrays = db.__dict__.get("_pyramid_arrays")
+    if arrays is None:
+        arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
+                                                   np.asarray(db.quad, dtype=np.float64))
+    line, quad = arrays
+    triads = _TRIAD_ARRAYS.get(n)
+    if triads is None:
+        if len(_TRIAD_ARRAYS) > 64:
+            _TRIAD_ARRAYS.clear()
+        triads = _TRIAD_ARRAYS[n] = smart_triads(n)
+    fpar = np.array([ctx.margin, camera.focal_length_px, camera.cx, camera.cy, camera.width, camera.height,
+                     -1.0 if params.match_radius_px is None else params.match_radius_px, params.match_sigma,
+                     math.radians(params.margin_arcsec / 3600.0), ctx.eps, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE,
+                     params.max_false_probability, params.max_focal_error], dtype=np.float64)
+    budget = max(int(params.max_proposals), 1)
+    ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, int(bool(frame.use_mags)), budget,
+                     PAUSE], dtype=np.int64)
+    state = np.zeros(4, dtype=np.int64)
+    seen = np.empty((budget, 9), dtype=np.int64)
+    best = np.zeros(7)
+    tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
+    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
+    while True:
+        status, vcode, match, q, dcm, p_false, nm, total, matched, rms, n_tri = pyramid_identify(
+            ctx.b, tol, triads, db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, line, db.kquad, quad,
+            frame.xs, frame.ys, frame.b_all, db.star_mag, _sorted_mags(db), frame.sig_px, frame.flux, *_z_index(db),
+            fpar, ipar, state, seen, best)
+        if status == 0 or status == 1:
+            break
+        if status == 2:
+            reason, code = f"search budget of {params.max_proposals} proposals spent", ReasonCode.NO_PATTERN
+            break
+        if time.perf_counter() > ctx.deadline:
+            reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
+            break
+    tried, patterns = int(state[2]), int(state[3])
+    if status == 0:
+        accepted = _fused_verdict(vcode, match, q, dcm, p_false, 0, 0, nm, matched, rms, db, params)
+        return SearchOutcome(accepted, None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {},
+                             tried, patterns, reason, code)
+    bv = None
+    if best[0]:
+        bv = _fused_verdict(int(best[1]), None, None, None, best[2], int(best[3]), int(best[4]), int(best[5]), None,
+                            None, db, params)
+    return SearchOutcome(None, None, {}, bv, {"triangles": int(best[6])} if best[0] else {}, tried, patterns, reason,
+                         code)
+
+
+_TRIAD_ARRAYS: dict = {}    # smart index sequence per number of search stars, as the kernel takes it
+
+
 PYRAMID = Algorithm("pyramid", search_pyramid, PyramidConfig, "kvector",
-                    "Mortari's pyramid on the k-vector pair database.")
+                    "Mortari's pyramid on the k-vector pair database.", fused=fused_pyramid)
