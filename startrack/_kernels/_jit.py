@@ -172,6 +172,21 @@ class LazyKernel:
                 return fn(*args)
         return self.dispatcher(*args)
 
+    def resolve(self, args):
+        """What a call with ``args`` runs: the AOT entry for their exact types, else numba's dispatcher.
+
+        For a caller making many calls whose arguments have the same types by construction (it
+        makes them): it looks the entry up once instead of computing the key per call."""
+        self.entry = True
+        aot = self._aot
+        if aot is None:
+            aot = self._aot = _aot_table().get(self.qualname, {})
+        if aot:
+            fn = aot.get(_call_key(args))
+            if fn is not None:
+                return fn
+        return self.dispatcher
+
     @property
     def dispatcher(self):
         """The numba dispatcher (numba imported and every lazy kernel bound on first use)."""

@@ -1486,22 +1486,25 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
 
 
 @njit(cache=True)
-def pyramid_identify(b, tol, triads, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad, xs, ys, b_all,
-                     star_mag, mag_sorted, sig_px, flux, z_order, z_sorted, fpar, ipar, state, seen, best):
+def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, star_vec, pair_i, pair_j, pair_cos,
+                     kvector, line, kquad, quad, star_mag, mag_sorted, z_order, z_sorted):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
     What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
-    and :func:`verify_focal`, without a Python round trip per triad and proposal: the triads
+    and :func:`verify_focal`, without a Python round trip per triad and proposal: the frame's
+    unit vectors (:func:`pixels_to_unit`), the search stars' tolerances, then the triads
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
     (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
     triangles none); a proposal whose set of (image, catalog) pairs was tried already is no
     new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, t + 1)``)
-    and the first accepted ends the search.
+    and the first accepted ends the search.  Fluxes count when at least three are finite
+    (else all NaN, as the driver passes them).
 
-    ``fpar``: margin (rad), focal, cx, cy, width, height, fixed match radius (px; <= 0: none),
-    match sigma, margin (rad) of the match radius, eps, max chi2, magnitude floor, magnitude
-    gate, max false-match probability, max focal error.  ``ipar``: max triads, max triangles,
-    min matches, quadratic (0/1), use magnitudes (0/1), max proposals, pause.
+    ``fpar``: search margin (rad), focal, cx, cy, width, height, fixed match radius (px; <= 0:
+    none), match sigma, match-radius margin (rad), eps, max chi2, magnitude floor, magnitude
+    gate, max false-match probability, max focal error, tolerance sigma (< 0: no per-star
+    tolerance, the margin alone).  ``ipar``: max triads, max triangles, min matches, quadratic
+    (0/1), search uses brightness (0/1), max proposals, pause, search stars.
 
     In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns);
     ``seen`` (max proposals, 9): each tried proposal's pairs (count, then image/catalog
@@ -1518,7 +1521,19 @@ def pyramid_identify(b, tol, triads, star_vec, pair_i, pair_j, pair_cos, kvector
     n_tr = min(triads.shape[0], ipar[0])
     n = xs.shape[0]
     margin = fpar[0]
-    use_mags = ipar[4] != 0
+    b_all = pixels_to_unit(xs, ys, fpar[1], fpar[2], fpar[3])
+    use = ipar[7]
+    b = np.ascontiguousarray(b_all[:use])
+    tol = np.zeros(use)
+    if fpar[15] >= 0.0:
+        for u in range(use):
+            tol[u] = fpar[15] * sig_px[u] / fpar[1]
+    finite = 0
+    for u in range(n):
+        if np.isfinite(flux_in[u]):
+            finite += 1
+    flux = flux_in if finite >= 3 else np.full(n, np.nan)
+    use_mags = finite >= 3 and ipar[4] == 0
     rejected = 0
     t = state[0]
     row0 = state[1]

@@ -211,7 +211,7 @@ class Algorithm:
         magnitude agreement's probability counts nothing twice.
     fused : callable or None
         The search *and* the driver's verification loop in compiled code, for a
-        distortion-free camera: ``fused(ctx, config, frame) -> SearchOutcome``
+        distortion-free camera: ``fused(config, frame, camera, db, params) -> SearchOutcome``
         (``frame``: a :class:`FusedFrame`), deciding exactly as :func:`run` does
         with ``search`` and :func:`_verify_fused` (one kernel call per frame
         instead of a Python round trip per proposal).  :func:`run` uses it when
@@ -230,14 +230,21 @@ class Algorithm:
 
 @dataclass
 class FusedFrame:
-    """What :attr:`Algorithm.fused` gets beside the search context: the whole frame's arrays."""
+    """What :attr:`Algorithm.fused` gets: the frame as :func:`run` read it.
+
+    ``xs``, ``ys``, ``flux`` (NaN where unknown; the fluxes count when at least three are
+    finite), ``sig_px``: float64 arrays of every star; ``use``: the search stars (the first);
+    ``eps``, ``margin``: the angle tolerances (rad) of :class:`SearchContext`; ``deadline``: the
+    end of the time budget (``time.perf_counter()``)."""
 
     xs: np.ndarray
     ys: np.ndarray
-    b_all: np.ndarray
-    flux: np.ndarray            # NaN where unknown
+    flux: np.ndarray
     sig_px: np.ndarray
-    use_mags: bool
+    use: int
+    eps: float
+    margin: float
+    deadline: float
 
 
 @dataclass
@@ -420,6 +427,22 @@ def _z_index(db):
         order = np.argsort(z, kind="stable").astype(np.int64)
         got = db.__dict__["_z_index"] = (order, np.ascontiguousarray(z[order]))
     return got
+
+
+_NUMBER = frozenset((float, int, bool, np.float64))      # flux types read as numbers (isinstance int/float)
+
+
+def _frame_arrays(frame_stars):
+    """``x``, ``y`` and ``flux`` (NaN where missing or not a number) of the stars as float64 arrays (one
+    pass over the dicts; a flux of another type than int and float, e.g. a string, is NaN)."""
+    rows = [(s["x"], s["y"], s.get("flux")) for s in frame_stars]
+    if all(type(r[2]) in _NUMBER for r in rows):
+        cols = np.array(rows, dtype=np.float64).T.copy()
+        return cols[0], cols[1], cols[2]
+    xs = np.array([r[0] for r in rows], dtype=np.float64)
+    ys = np.array([r[1] for r in rows], dtype=np.float64)
+    flux = np.array([r[2] if isinstance(r[2], (int, float)) else np.nan for r in rows], dtype=np.float64)
+    return xs, ys, flux
 
 
 def _pixels_to_vectors(camera, xs, ys):
@@ -614,8 +637,11 @@ def _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched
                              f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY)
         return _Verdict(None, None, None, dcm, None, reason, rc)
     cat_index = match[matched]
-    out = list(map(Match, matched.tolist(), db.star_id[cat_index].tolist()))
+    out = [_new_tuple(Match, m) for m in zip(matched.tolist(), db.star_id[cat_index].tolist())]
     return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms)
+
+
+_new_tuple = tuple.__new__      # a Match from a (star, id) pair without NamedTuple's Python-level __new__
 
 
 def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags, geom):
@@ -819,33 +845,27 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     if n_all < 3:
         return Identification.failed(name, f"{n_all} star(s): at least 3 are needed", ReasonCode.TOO_FEW_STARS,
                                      time_ms=(time.perf_counter() - t0) * 1000, trials=0)
-    xs = np.array([s["x"] for s in frame_stars], dtype=np.float64)
-    ys = np.array([s["y"] for s in frame_stars], dtype=np.float64)
-    flux = np.array([s.get("flux") if isinstance(s.get("flux"), (int, float)) else np.nan for s in frame_stars],
-                    dtype=np.float64)
-    has_flux = bool(np.isfinite(flux).sum() >= 3)
-    b_all = _pixels_to_vectors(camera, xs, ys)
+    xs, ys, flux = _frame_arrays(frame_stars)
     sig_px = star_sigmas_px(frame_stars, params)
     f = camera.focal_length_px
     margin = math.radians(params.margin_arcsec / 3600.0)
     use = min(n_all, params.max_stars)
     if params.tolerance_arcsec is not None:
-        tol = np.zeros(use)
         margin = math.radians(params.tolerance_arcsec / 3600.0)
+        eps = margin
     else:
-        tol = params.tolerance_sigma * sig_px[:use] / f
-    eps = float(math.sqrt(2.0) * tol.max() + margin)
-    ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
-                        flux[:use] if has_flux else None)
-    ctx.deadline = t0 + params.max_time_ms / 1000.0
-    use_mags = has_flux and not algorithm.uses_brightness
-    log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
-              name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
-              getattr(db, "path", None) or type(db).__name__)
-    deadline = ctx.deadline
-    geom = _geometry(camera)
+        # The largest per-star tolerance (its product and quotient are monotonic in sigma).
+        smax = float(params.sigma_px) if params.sigma_px is not None else float(sig_px[:use].max())
+        eps = float(math.sqrt(2.0) * (params.tolerance_sigma * smax / f) + margin)
+    deadline = t0 + params.max_time_ms / 1000.0
+    debug = log.isEnabledFor(logging.DEBUG)
+    if debug:
+        log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
+                  name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
+                  getattr(db, "path", None) or type(db).__name__)
     fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
+    geom = None if fused else _geometry(camera)
     tried = 0
     best = None
     reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
@@ -854,14 +874,25 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     details = {}
     best_details = {}
     patterns = 0
-    seen = set()
-    search = algorithm.search(ctx, config)
-    if fused and FUSED_SEARCH and algorithm.fused is not None and not log.isEnabledFor(logging.DEBUG):
-        out = algorithm.fused(ctx, config, FusedFrame(xs, ys, b_all, flux if has_flux else np.full(n_all, np.nan),
-                                                        sig_px, use_mags))
+    has_flux = b_all = None
+    search = ()
+    if fused and FUSED_SEARCH and algorithm.fused is not None and not debug:
+        out = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline), camera, db,
+                              params)
         accepted, scale, details, best, best_details = out.accepted, out.scale, out.details, out.best, out.best_details
         tried, patterns, reason, code = out.tried, out.patterns, out.reason, out.code
-        search = ()
+    else:
+        has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+        b_all = _pixels_to_vectors(camera, xs, ys)
+        if params.tolerance_arcsec is not None:
+            tol = np.zeros(use)
+        else:
+            tol = params.tolerance_sigma * sig_px[:use] / f
+        ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
+                            flux[:use] if has_flux else None, deadline)
+        use_mags = has_flux and not algorithm.uses_brightness
+        search = algorithm.search(ctx, config)
+    seen = set()
     for proposal in search:
         if proposal is None or len(proposal.image) == 0:
             continue
@@ -917,6 +948,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     if catalog is not None:
         if not isinstance(catalog, CatalogStars):
             catalog = CatalogStars.from_catalog(catalog)
+        if b_all is None:
+            has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+            b_all = _pixels_to_vectors(camera, xs, ys)
         cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
         b = b_all if scale is None else _pixels_to_vectors(cam, xs, ys)
         margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
@@ -926,7 +960,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
         matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
                                    radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
-                                   (geom if scale is None else _geometry(cam))[0], depth,
+                                   _geometry(camera if scale is None else cam)[0], depth,
                                    sig_px / cam.focal_length_px)
         if depth is not None:
             details["match_mag_limit"] = round(depth, 2)

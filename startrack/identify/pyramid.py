@@ -22,7 +22,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Algorithm, Proposal
+from startrack._kernels import identify as _kernels
+from startrack.identify.base import (
+    AMBIGUITY_CHI2,
+    MAG_GATE,
+    MAG_SIGMA_FLOOR,
+    Algorithm,
+    Proposal,
+    SearchOutcome,
+    _fused_verdict,
+    _sorted_mags,
+    _z_index,
+)
+from startrack.records import ReasonCode
 
 
 @dataclass(frozen=True)
@@ -78,59 +90,45 @@ def search_pyramid(ctx, config: PyramidConfig):
 PAUSE = 8
 
 
-def fused_pyramid(ctx, config: PyramidConfig, frame):
+def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     """:func:`search_pyramid` with the driver's verification of each proposal, in one kernel call
     (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.base.Algorithm.fused`).
 
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
     between them (every proposal in the Python loop)."""
-    from startrack._kernels.identify import pyramid_identify, smart_triads
-    from startrack.identify.base import (
-        AMBIGUITY_CHI2,
-        MAG_GATE,
-        MAG_SIGMA_FLOOR,
-        SearchOutcome,
-        _fused_verdict,
-        _sorted_mags,
-        _z_index,
-    )
-    from startrack.records import ReasonCode
-
-    db, params, camera = ctx.db, ctx.params, ctx.camera
-    n = len(ctx.b)
-    arrays = db.__dict__.get("_pyramid_arrays")
-    if arrays is None:
-        arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
-                                                   np.asarray(db.quad, dtype=np.float64))
-    line, quad = arrays
-    triads = _TRIAD_ARRAYS.get(n)
+    kernel = _kernels.pyramid_identify
+    plan = _plan(db, kernel)
+    use = frame.use
+    triads = _TRIAD_ARRAYS.get(use)
     if triads is None:
         if len(_TRIAD_ARRAYS) > 64:
             _TRIAD_ARRAYS.clear()
-        triads = _TRIAD_ARRAYS[n] = smart_triads(n)
-    fpar = np.array([ctx.margin, camera.focal_length_px, camera.cx, camera.cy, camera.width, camera.height,
+        triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
+    fpar = np.array([frame.margin, camera.focal_length_px, camera.cx, camera.cy, camera.width, camera.height,
                      -1.0 if params.match_radius_px is None else params.match_radius_px, params.match_sigma,
-                     math.radians(params.margin_arcsec / 3600.0), ctx.eps, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE,
-                     params.max_false_probability, params.max_focal_error], dtype=np.float64)
+                     math.radians(params.margin_arcsec / 3600.0), frame.eps, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE,
+                     params.max_false_probability, params.max_focal_error,
+                     -1.0 if params.tolerance_arcsec is not None else params.tolerance_sigma], dtype=np.float64)
     budget = max(int(params.max_proposals), 1)
-    ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, int(bool(frame.use_mags)), budget,
-                     PAUSE], dtype=np.int64)
+    ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, 0, budget, PAUSE, use],
+                    dtype=np.int64)
     state = np.zeros(4, dtype=np.int64)
-    seen = np.empty((budget, 9), dtype=np.int64)
     best = np.zeros(7)
-    tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
+    # The frame's arrays as the kernel's types (those its entry was resolved for).
+    args = (_f64(frame.xs), _f64(frame.ys), _f64(frame.sig_px), _f64(frame.flux), triads, fpar, ipar, state,
+            np.empty((budget, 9), dtype=np.int64), best) + plan[2]
+    fn = plan[3]
+    if fn is None:
+        fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
     reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
     while True:
-        status, vcode, match, q, dcm, p_false, nm, total, matched, rms, n_tri = pyramid_identify(
-            ctx.b, tol, triads, db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, line, db.kquad, quad,
-            frame.xs, frame.ys, frame.b_all, db.star_mag, _sorted_mags(db), frame.sig_px, frame.flux, *_z_index(db),
-            fpar, ipar, state, seen, best)
+        status, vcode, match, q, dcm, p_false, nm, total, matched, rms, n_tri = fn(*args)
         if status == 0 or status == 1:
             break
         if status == 2:
             reason, code = f"search budget of {params.max_proposals} proposals spent", ReasonCode.NO_PATTERN
             break
-        if time.perf_counter() > ctx.deadline:
+        if time.perf_counter() > frame.deadline:
             reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
             break
     tried, patterns = int(state[2]), int(state[3])
@@ -144,6 +142,27 @@ def fused_pyramid(ctx, config: PyramidConfig, frame):
                             None, db, params)
     return SearchOutcome(None, None, {}, bv, {"triangles": int(best[6])} if best[0] else {}, tried, patterns, reason,
                          code)
+
+
+def _f64(a):
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _plan(db, kernel):
+    """The database's arrays as :func:`fused_pyramid`'s kernel takes them, and the kernel's entry for
+    them (resolved at the first call), cached on the database while its arrays are the same objects."""
+    src = (db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, db.line, db.kquad, db.quad, db.star_mag)
+    plan = db.__dict__.get("_pyramid_plan")
+    if plan is not None and plan[0] is kernel and all(a is b for a, b in zip(plan[1], src)):
+        return plan
+    z_order, z_sorted = _z_index(db)
+    arrays = (np.ascontiguousarray(db.star_vector, dtype=np.float64), np.ascontiguousarray(db.pair_i),
+              np.ascontiguousarray(db.pair_j), np.ascontiguousarray(db.pair_cos, dtype=np.float64),
+              np.ascontiguousarray(db.kvector), np.asarray(db.line, dtype=np.float64), np.ascontiguousarray(db.kquad),
+              np.asarray(db.quad, dtype=np.float64), np.ascontiguousarray(db.star_mag, dtype=np.float64),
+              _sorted_mags(db), z_order, z_sorted)
+    plan = db.__dict__["_pyramid_plan"] = [kernel, src, arrays, None]
+    return plan
 
 
 _TRIAD_ARRAYS: dict = {}    # smart index sequence per number of search stars, as the kernel takes it
