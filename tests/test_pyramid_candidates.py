@@ -3,8 +3,7 @@
 Every row ``(r, I, J, K, R)`` of :func:`startrack._kernels.identify.pyramid_candidates` must name
 the first fourth star ``r`` (after ``i, j, k``) for which exactly one catalog star ``R`` has its three
 angles to ``I, J, K`` within the tolerances, and that ``R``; no earlier fourth star may have exactly
-one.  Frames with 1 px noise and false stars give triads with several catalog triangles (the
-kernel's linked lists of later triangles, not only the first triangle's scan).
+one.  Frames with 1 px noise and false stars give triads with several catalog triangles.
 """
 import math
 
@@ -48,6 +47,7 @@ def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
 
 def test_fourth_star_confirmation_matches_brute_force(setup):
     from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack.identify.pyramid import pair_adjacency
 
     cam, db, stars = setup
     line = np.asarray(db.line, dtype=np.float64)
@@ -64,7 +64,8 @@ def test_fourth_star_confirmation_matches_brute_force(setup):
         tol = params.tolerance_sigma * np.full(n, 1.0) / cam.focal_length_px
         for i, j, k in smart_triads(n)[:6].tolist():
             out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
-                                            db.pair_cos, db.kvector, line, db.kquad, quad, False, 64, 256)
+                                            db.pair_cos, db.kvector, line, db.kquad, quad, False, 64, 256,
+                                            *pair_adjacency(db))
             multi += len(out) >= 2
             for r, I, J, K, R in out.tolist():
                 rows += 1

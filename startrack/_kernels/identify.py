@@ -99,7 +99,7 @@ def smart_triads(n):
 
 @njit(cache=True)
 def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
-                       use_quadratic, max_triangles, max_out):
+                       use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos):
     """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
 
     The triad's catalog triangles come from k-vector (or paper 000 quadratic)
@@ -108,7 +108,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     first other image star ``r`` (brightest first) whose three angles to it
     match exactly one catalog star ``R``; with three image stars the triangle
     itself is the candidate.  The tolerance of pair ``(u, v)`` is
-    ``sqrt(tol_u^2 + tol_v^2) + margin``.
+    ``sqrt(tol_u^2 + tol_v^2) + margin``.  The fourth star's candidates ``R`` are the
+    database pairs of ``I`` at the angle ``theta_ir``: a bisection of ``I``'s pairs sorted by
+    cosine (``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
 
     Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
     a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
@@ -189,45 +191,15 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             out[no, 3] = tri[t, 2]
             no += 1
         return out[:no], nt
-    # Per fourth star: its range of pairs by the angle to star i.
-    rs = np.empty(n, dtype=np.int64)
-    rstart = np.empty(n, dtype=np.int64)
-    rend = np.empty(n, dtype=np.int64)
-    nr = 0
-    for r in range(n):
-        if r == i or r == j or r == k:
-            continue
-        th_ir = _angle(b[i], b[r])
-        e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
-        s, e = _range(kvector, line, kquad, quad, use_quadratic, math.cos(th_ir + e_ir),
-                      math.cos(max(th_ir - e_ir, 0.0)))
-        rs[nr] = r
-        rstart[nr] = s
-        rend[nr] = e
-        nr += 1
-    # The first two triangles scan each fourth star's range of pairs for those of their star I (a
-    # build costs more than one scan).  From the third on, the pairs at each fourth star's angle are
-    # linked per catalog star (entries tagged with the fourth star) the first time a triangle asks
-    # for that star, and every later triangle walks only the pairs of its own I instead of the whole
-    # range again (the same R are found, in another order: a triangle is confirmed by a unique R).
-    # ``head`` is free for these lists once its theta_ik lists are cleared.
-    cap = 0
-    if nt >= 3:
-        for p in range(m):
-            head[other[p]] = -1
-        for u in range(nr):
-            cap += 2 * max(rend[u] - rstart[u], 0)
-    ent_next = np.empty(cap, dtype=np.int64)
-    ent_other = np.empty(cap, dtype=np.int64)
-    ent_u = np.empty(cap, dtype=np.int64)
-    ne = 0
-    built = np.zeros(nr, dtype=np.bool_)
     for t in range(nt):
         fI = tri[t, 0]
         fJ = tri[t, 1]
         fK = tri[t, 2]
-        for u in range(nr):
-            r = rs[u]
+        a0 = adj_ptr[fI]
+        a1 = adj_ptr[fI + 1]
+        for r in range(n):
+            if r == i or r == j or r == k:
+                continue
             th_ir = _angle(b[i], b[r])
             th_jr = _angle(b[j], b[r])
             th_kr = _angle(b[k], b[r])
@@ -240,56 +212,20 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             hi_jr = math.cos(max(th_jr - e_jr, 0.0))
             lo_kr = math.cos(min(th_kr + e_kr, math.pi))
             hi_kr = math.cos(max(th_kr - e_kr, 0.0))
+            # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
+            p = a0
+            q = a1
+            while p < q:
+                mid = (p + q) >> 1
+                if adj_cos[mid] < lo:
+                    p = mid + 1
+                else:
+                    q = mid
             nR = 0
             fR = -1
-            if t < 2:
-                for q in range(rstart[u], rend[u]):
-                    cq = pair_cos[q]
-                    if cq < lo or cq > hi:
-                        continue
-                    if pair_i[q] == fI:
-                        R = pair_j[q]
-                    elif pair_j[q] == fI:
-                        R = pair_i[q]
-                    else:
-                        continue
-                    if R == fJ or R == fK:
-                        continue
-                    d = _dot(star_vec[fJ], star_vec[R])
-                    if d < lo_jr or d > hi_jr:
-                        continue
-                    d = _dot(star_vec[fK], star_vec[R])
-                    if d < lo_kr or d > hi_kr:
-                        continue
-                    nR += 1
-                    fR = R
-                    if nR > 1:
-                        break
-            elif not built[u]:
-                built[u] = True
-                for q in range(rstart[u], rend[u]):
-                    cq = pair_cos[q]
-                    if cq < lo or cq > hi:
-                        continue
-                    a = pair_i[q]
-                    z = pair_j[q]
-                    ent_u[ne] = u
-                    ent_other[ne] = z
-                    ent_next[ne] = head[a]
-                    head[a] = ne
-                    ne += 1
-                    ent_u[ne] = u
-                    ent_other[ne] = a
-                    ent_next[ne] = head[z]
-                    head[z] = ne
-                    ne += 1
-            p = head[fI] if t >= 2 else -1
-            while p >= 0:
-                if ent_u[p] != u:
-                    p = ent_next[p]
-                    continue
-                R = ent_other[p]
-                p = ent_next[p]
+            while p < a1 and adj_cos[p] <= hi:
+                R = adj_other[p]
+                p += 1
                 if R == fJ or R == fK:
                     continue
                 d = _dot(star_vec[fJ], star_vec[R])
@@ -311,6 +247,35 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 no += 1
                 break
     return out[:no], nt
+
+
+@njit(cache=True)
+def pair_adjacency(n_stars, pair_i, pair_j, pair_cos):
+    """Every star's database pairs sorted by cosine: ``(ptr, other, cos)``, star ``s``'s pairs being
+    ``other[ptr[s]:ptr[s + 1]]`` at ``cos[ptr[s]:ptr[s + 1]]`` (ascending; each pair is listed under
+    both its stars)."""
+    count = np.zeros(n_stars + 1, dtype=np.int64)
+    m = pair_i.shape[0]
+    for t in range(m):
+        count[pair_i[t] + 1] += 1
+        count[pair_j[t] + 1] += 1
+    for s in range(n_stars):
+        count[s + 1] += count[s]
+    ptr = count.copy()
+    other = np.empty(2 * m, dtype=np.int32)
+    cos = np.empty(2 * m)
+    fill = count[:n_stars].copy()
+    # pair_cos is sorted ascending (the k-vector's order), so each star's pairs are filled in order.
+    for t in range(m):
+        a = pair_i[t]
+        z = pair_j[t]
+        other[fill[a]] = z
+        cos[fill[a]] = pair_cos[t]
+        fill[a] += 1
+        other[fill[z]] = a
+        cos[fill[z]] = pair_cos[t]
+        fill[z] += 1
+    return ptr, other, cos
 
 
 @njit(cache=True)
@@ -1487,7 +1452,7 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
 
 @njit(cache=True)
 def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, star_vec, pair_i, pair_j, pair_cos,
-                     kvector, line, kquad, quad, star_mag, mag_sorted, z_order, z_sorted):
+                     kvector, line, kquad, quad, star_mag, mag_sorted, z_order, z_sorted, adj_ptr, adj_other, adj_cos):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
     What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
@@ -1500,7 +1465,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     and the first accepted ends the search.  Fluxes count when at least three are finite
     (else all NaN, as the driver passes them).
 
-    ``fpar``: search margin (rad), focal, cx, cy, width, height, fixed match radius (px; <= 0:
+    ``adj_*``: :func:`pair_adjacency`.  ``fpar``: search margin (rad), focal, cx, cy, width, height, fixed match radius (px; <= 0:
     none), match sigma, match-radius margin (rad), eps, max chi2, magnitude floor, magnitude
     gate, max false-match probability, max focal error, tolerance sigma (< 0: no per-star
     tolerance, the margin alone).  ``ipar``: max triads, max triangles, min matches, quadratic
@@ -1543,7 +1508,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
         j = triads[t, 1]
         k = triads[t, 2]
         out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
-                                        kquad, quad, ipar[3] != 0, ipar[1], 256)
+                                        kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos)
         for rr in range(row0, out.shape[0]):
             img = np.empty(4 if out[rr, 0] >= 0 else 3, dtype=np.int64)
             cat = np.empty(img.shape[0], dtype=np.int64)

@@ -59,6 +59,7 @@ def _search(ctx, config, quadratic):
         arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
                                                    np.asarray(db.quad, dtype=np.float64))
     line, quad = arrays
+    adjacency = pair_adjacency(db)
     tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
     triads = _TRIADS.get(n)
     if triads is None:
@@ -69,7 +70,7 @@ def _search(ctx, config, quadratic):
     for t, (i, j, k) in enumerate(itertools.islice(triads, config.max_triads), start=1):
         out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                         db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
-                                        config.max_triangles, 256)
+                                        config.max_triangles, 256, *adjacency)
         for r, I, J, K, R in out.tolist():
             key = (i, j, k, I, J, K)
             if key in seen:
@@ -144,6 +145,17 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
                          code)
 
 
+def pair_adjacency(db):
+    """Every database star's pairs sorted by cosine (:func:`startrack._kernels.identify.pair_adjacency`),
+    built once per database (the fourth star's look-up of :func:`pyramid_candidates`)."""
+    got = db.__dict__.get("_pair_adjacency")
+    if got is None or got[0] is not db.pair_cos:
+        got = db.__dict__["_pair_adjacency"] = (db.pair_cos, _kernels.pair_adjacency(
+            len(db.star_vector), np.ascontiguousarray(db.pair_i), np.ascontiguousarray(db.pair_j),
+            np.ascontiguousarray(db.pair_cos, dtype=np.float64)))
+    return got[1]
+
+
 def _f64(a):
     return np.ascontiguousarray(a, dtype=np.float64)
 
@@ -160,7 +172,7 @@ def _plan(db, kernel):
               np.ascontiguousarray(db.pair_j), np.ascontiguousarray(db.pair_cos, dtype=np.float64),
               np.ascontiguousarray(db.kvector), np.asarray(db.line, dtype=np.float64), np.ascontiguousarray(db.kquad),
               np.asarray(db.quad, dtype=np.float64), np.ascontiguousarray(db.star_mag, dtype=np.float64),
-              _sorted_mags(db), z_order, z_sorted)
+              _sorted_mags(db), z_order, z_sorted) + pair_adjacency(db)
     plan = db.__dict__["_pyramid_plan"] = [kernel, src, arrays, None]
     return plan
 
