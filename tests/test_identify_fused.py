@@ -1,5 +1,5 @@
 """The fast paths decide exactly as the general ones: the one-kernel verification (``base._verify_fused``,
-with the database's declination index) as the step-by-step Python path scanning every database star, and the
+with the database's sky index) as the step-by-step Python path scanning every database star, and the
 voting clusters grown in a kernel as the Python loops.
 
 Both paths run on the same frames (centroid noise, false stars, magnitude noise, a focal-length
@@ -51,19 +51,19 @@ def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypat
 
     monkeypatch.setattr(kernels, "verify_focal", counted)
     monkeypatch.setattr(base, "FUSED_SEARCH", False)     # each proposal verified from Python (compared below)
-    index = base._z_index
+    index = base._sky_index
     outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0}
     for k, cond in enumerate(CONDITIONS):
         params = IdentifyParams(sigma_px=max(cond.sigma_px, 0.3))
         for frame, _, _ in make_frames(stars, cam, cond, 25, 40 + k, mag_limit=5.4):
             monkeypatch.setattr(base, "FUSED_VERIFY", True)
-            monkeypatch.setattr(base, "_z_index", index)
+            monkeypatch.setattr(base, "_sky_index", index)
             before = len(calls)
             a = identify_stars(frame, cam, db, algorithm, params)
             assert len(calls) - before == a.trials       # every proposal went through the kernel
-            # The reference: the Python path, every database star scanned (no declination index).
+            # The reference: the Python path, every database star scanned (no sky index).
             monkeypatch.setattr(base, "FUSED_VERIFY", False)
-            monkeypatch.setattr(base, "_z_index", lambda _db: base._NO_INDEX)
+            monkeypatch.setattr(base, "_sky_index", lambda _db: base._NO_INDEX)
             b = identify_stars(frame, cam, db, algorithm, params)
             assert len(calls) - before == a.trials       # ... and none of the Python path's
             assert _result(a) == _result(b)

@@ -929,20 +929,20 @@ def focal_scale(b, img, star_vec, cat):
 
 
 @njit(cache=True)
-def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, z_order,
-                z_sorted):
+def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
+                sky_ra):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
     distance from the core's centre (none when two are; each star once, the first
     detection keeps it); the scale is the median of catalog over measured angle over
-    the pairs at least 0.3 of the longest.  ``z_order``/``z_sorted``: see :func:`cone_stars`.
+    the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see :func:`cone_stars`.
     """
     n = xs.shape[0]
     m = star_vec.shape[0]
     front = np.empty(m, dtype=np.int64)
-    nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, z_order, z_sorted, front)
+    nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
     px = np.empty(nf)
     py = np.empty(nf)
     idx = np.empty(nf, dtype=np.int64)
@@ -1024,33 +1024,121 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     return np.median(keep[:nk])
 
 
+@njit(cache=True, inline="always")
+def _sky_band(z, nb):
+    """The band (of ``nb`` equal-area bands in z) of a unit vector's z component."""
+    return min(nb - 1, max(0, int((z + 1.0) * nb * 0.5)))
+
+
+@njit(cache=True, inline="always")
+def _sky_ra(x, y):
+    """Right ascension in [0, 2 pi) of a direction's x, y components."""
+    a = math.atan2(y, x)
+    return a + 2.0 * math.pi if a < 0.0 else a
+
+
 @njit(cache=True)
-def cone_stars(ax, ay, az, cos_r, star_vec, z_order, z_sorted, out):
+def sky_index(star_vec, nb):
+    """The stars by band of z (``nb`` equal-area bands) and, within a band, by right ascension:
+    ``(cells, ra)`` with ``cells = [nb, ptr_0 .. ptr_nb, the stars]`` (band ``b``'s stars are
+    ``cells[nb + 2 + ptr_b : nb + 2 + ptr_(b+1)]``) and ``ra`` their right ascensions, ascending
+    within each band (:func:`cone_stars`)."""
+    m = star_vec.shape[0]
+    band = np.empty(m, dtype=np.int64)
+    ra = np.empty(m)
+    count = np.zeros(nb + 1, dtype=np.int64)
+    for s in range(m):
+        band[s] = _sky_band(star_vec[s, 2], nb)
+        ra[s] = _sky_ra(star_vec[s, 0], star_vec[s, 1])
+        count[band[s] + 1] += 1
+    for b in range(nb):
+        count[b + 1] += count[b]
+    order = np.empty(m, dtype=np.int64)
+    fill = count[:nb].copy()
+    for s in range(m):
+        order[fill[band[s]]] = s
+        fill[band[s]] += 1
+    cells = np.empty(nb + 2 + m, dtype=np.int64)
+    cells[0] = nb
+    cells[1:nb + 2] = count
+    out_ra = np.empty(m)
+    for b in range(nb):
+        seg = order[count[b]:count[b + 1]]
+        keys = np.empty(seg.shape[0])
+        for t in range(seg.shape[0]):
+            keys[t] = ra[seg[t]]
+        o = np.argsort(keys, kind="mergesort")
+        for t in range(seg.shape[0]):
+            cells[nb + 2 + count[b] + t] = seg[o[t]]
+            out_ra[count[b] + t] = keys[o[t]]
+    return cells, out_ra
+
+
+@njit(cache=True)
+def cone_stars(ax, ay, az, cos_r, star_vec, sky_cells, sky_ra, out):
     """The stars ``s`` with ``(ax, ay, az) . star_vec[s] > cos_r``, ascending, into ``out``; returns their count.
 
-    ``z_order`` (the stars by their z component) and ``z_sorted`` (those components)
-    restrict the test to the declination band that can hold the cone (a small margin
-    beyond it); empty arrays: every star is tested.  Same stars, same order either way.
+    ``sky_cells``/``sky_ra`` (:func:`sky_index`) restrict the test to the bands of z that can
+    hold the cone and, in each, to the right ascensions within the cone's widest extent
+    ``asin(sin r / cos dec)`` (all of them around a pole), with small margins; arrays that
+    do not index ``star_vec`` (empty): every star is tested.  Same stars, same order either way.
     """
     m = star_vec.shape[0]
     k = 0
-    if z_order.shape[0] != m:
+    if sky_ra.shape[0] != m or sky_cells.shape[0] != m + 2 + (sky_cells[0] if sky_cells.shape[0] > 0 else 0):
         for s in range(m):
             if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
                 out[k] = s
                 k += 1
         return k
+    nb = sky_cells[0]
     dec = math.asin(max(-1.0, min(1.0, az)))
     rho = math.acos(max(-1.0, min(1.0, cos_r)))
     zlo = -2.0 if dec - rho <= -0.5 * math.pi else math.sin(dec - rho) - 1e-9
     zhi = 2.0 if dec + rho >= 0.5 * math.pi else math.sin(dec + rho) + 1e-9
-    lo = np.searchsorted(z_sorted, zlo)
-    hi = np.searchsorted(z_sorted, zhi, side="right")
-    for t in range(lo, hi):
-        s = z_order[t]
-        if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
-            out[k] = s
-            k += 1
+    full = zlo <= -1.0 or zhi >= 1.0
+    half = 0.0
+    a0 = 0.0
+    if not full:
+        w = math.sin(rho) / math.cos(dec)
+        if w >= 1.0:
+            full = True
+        else:
+            half = math.asin(w) + 1e-6
+            a0 = _sky_ra(ax, ay)
+            full = half >= math.pi
+    # Up to two right-ascension intervals (the cone may straddle 0).
+    lo1 = 0.0
+    hi1 = 2.0 * math.pi
+    lo2 = 1.0
+    hi2 = 0.0
+    if not full:
+        lo1 = a0 - half
+        hi1 = a0 + half
+        if lo1 < 0.0:
+            lo2 = lo1 + 2.0 * math.pi
+            hi2 = 2.0 * math.pi
+            lo1 = 0.0
+        elif hi1 >= 2.0 * math.pi:
+            lo2 = 0.0
+            hi2 = hi1 - 2.0 * math.pi
+            hi1 = 2.0 * math.pi
+    base = nb + 2
+    for b in range(_sky_band(max(-1.0, zlo), nb), _sky_band(min(1.0, zhi), nb) + 1):
+        p0 = sky_cells[1 + b]
+        p1 = sky_cells[2 + b]
+        for part in range(2):
+            lo = lo1 if part == 0 else lo2
+            hi = hi1 if part == 0 else hi2
+            if hi < lo:
+                continue
+            q0 = p0 + np.searchsorted(sky_ra[p0:p1], lo)
+            q1 = p0 + np.searchsorted(sky_ra[p0:p1], hi, side="right")
+            for t in range(q0, q1):
+                s = sky_cells[base + t]
+                if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
+                    out[k] = s
+                    k += 1
     out[:k].sort()
     return k
 
@@ -1066,8 +1154,8 @@ def _to_global(match, sub):
 
 @njit(cache=True)
 def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
-                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, z_order,
-                z_sorted):
+                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
+                sky_ra):
     """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine``), the
@@ -1076,7 +1164,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     agreement, the bright stars missing, the matched count, and the numbers of the
     false-match probability (the caller multiplies them out).
 
-    ``z_order``/``z_sorted``: the database's declination index (:func:`cone_stars`; empty: none).
+    ``sky_cells``/``sky_ra``: the database's sky index (:func:`sky_index`; empty: none).
 
     Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
     ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
@@ -1091,7 +1179,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     a0 = quat_to_dcm(q0)
     cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
     sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
-    ns = cone_stars(a0[2, 0], a0[2, 1], a0[2, 2], cos_sub, star_vec_all, z_order, z_sorted, sub)
+    ns = cone_stars(a0[2, 0], a0[2, 1], a0[2, 2], cos_sub, star_vec_all, sky_cells, sky_ra, sub)
     cat = np.empty(cat_all.shape[0], dtype=np.int64)
     for t in range(cat_all.shape[0]):
         pos = np.searchsorted(sub[:ns], cat_all[t])
@@ -1244,7 +1332,7 @@ def pinhole_cos_fov(focal, cx, cy, width, height):
 @njit(cache=True)
 def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
                     width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset, max_chi2,
-                    mag_floor, mag_gate, trials, max_false, z_order, z_sorted):
+                    mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
     """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
 
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched)``: ``code`` 0 =
@@ -1261,7 +1349,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
     code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
-        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, z_order, z_sorted)
+        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells, sky_ra)
     nm = 0
     for i in range(n):
         if match[i] >= 0:
@@ -1290,7 +1378,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
 @njit(cache=True)
 def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal0, cx, cy, width,
                  height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, max_chi2, mag_floor, mag_gate,
-                 trials, max_false, max_focal_error, z_order, z_sorted):
+                 trials, max_false, max_focal_error, sky_cells, sky_ra):
     """:func:`startrack.identify.base._verify_with_focal` in one call, for a distortion-free camera.
 
     The same steps as the Python driver (focal scale of the proposal, verification, the
@@ -1317,7 +1405,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
         b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width, height,
         fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_chi2, mag_floor, mag_gate, trials,
-        max_false, z_order, z_sorted)
+        max_false, sky_cells, sky_ra)
     total = 1.0 if math.isnan(scale) else scale
     if code != 0:
         return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
@@ -1330,7 +1418,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
     step = field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                       max_focal_error, z_order, z_sorted)
+                       max_focal_error, sky_cells, sky_ra)
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         total *= step
         focal = focal0 / total
@@ -1338,7 +1426,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false, z_order, z_sorted)
+            mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
     for _ in range(4):
         if code != 0 or nm < 3:
             break
@@ -1363,7 +1451,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false, z_order, z_sorted)
+            mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
     return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
 
 
@@ -1452,7 +1540,7 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
 
 @njit(cache=True)
 def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, star_vec, pair_i, pair_j, pair_cos,
-                     kvector, line, kquad, quad, star_mag, mag_sorted, z_order, z_sorted, adj_ptr, adj_other, adj_cos):
+                     kvector, line, kquad, quad, star_mag, mag_sorted, sky_cells, sky_ra, adj_ptr, adj_other, adj_cos):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
     What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
@@ -1547,7 +1635,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             code, match, q, dcm, p_false, missing, bright_pred, nm, total, matched, rms = verify_focal(
                 xs, ys, b_all, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, fpar[1], fpar[2],
                 fpar[3], fpar[4], fpar[5], fpar[6], fpar[7], fpar[8], ipar[2], fpar[9], fpar[10], fpar[11], fpar[12],
-                max(state[2], t + 1), fpar[13], fpar[14], z_order, z_sorted)
+                max(state[2], t + 1), fpar[13], fpar[14], sky_cells, sky_ra)
             if code == 0:
                 state[0] = t
                 state[1] = rr + 1

@@ -30,8 +30,10 @@ Because every proposal passes the same gate, an algorithm that proposes more
 from __future__ import annotations
 
 import contextvars
+import itertools
 import logging
 import math
+import operator
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
@@ -417,32 +419,33 @@ def _sorted_mags(db):
 _NO_INDEX = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64))
 
 
-def _z_index(db):
-    """The database stars by their z component (declination) and those components, cached on the
-    database: the verification looks at the band of the field only
-    (:func:`startrack._kernels.identify.cone_stars`)."""
-    got = db.__dict__.get("_z_index")
-    if got is None or len(got[0]) != len(db.star_vector):
-        z = np.ascontiguousarray(db.star_vector[:, 2], dtype=np.float64)
-        order = np.argsort(z, kind="stable").astype(np.int64)
-        got = db.__dict__["_z_index"] = (order, np.ascontiguousarray(z[order]))
-    return got
+def _sky_index(db):
+    """The database's sky index (:func:`startrack._kernels.identify.sky_index`: bands of z, right
+    ascension within a band), cached on the database: the verification looks at the stars that can be
+    in the field only (:func:`startrack._kernels.identify.cone_stars`).  About sqrt(N) bands."""
+    got = db.__dict__.get("_sky_index")
+    if got is None or got[0] is not db.star_vector:
+        from startrack._kernels.identify import sky_index
+
+        sv = np.ascontiguousarray(db.star_vector, dtype=np.float64)
+        got = db.__dict__["_sky_index"] = (db.star_vector, sky_index(sv, max(8, min(1024, int(math.sqrt(len(sv)))))))
+    return got[1]
 
 
-_NUMBER = frozenset((float, int, bool, np.float64))      # flux types read as numbers (isinstance int/float)
+_NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # flux types read as themselves (None: NaN)
+_GET_X, _GET_Y = operator.itemgetter("x"), operator.itemgetter("y")
 
 
 def _frame_arrays(frame_stars):
-    """``x``, ``y`` and ``flux`` (NaN where missing or not a number) of the stars as float64 arrays (one
-    pass over the dicts; a flux of another type than int and float, e.g. a string, is NaN)."""
-    rows = [(s["x"], s["y"], s.get("flux")) for s in frame_stars]
-    if all(type(r[2]) in _NUMBER for r in rows):
-        cols = np.array(rows, dtype=np.float64).T.copy()
-        return cols[0], cols[1], cols[2]
-    xs = np.array([r[0] for r in rows], dtype=np.float64)
-    ys = np.array([r[1] for r in rows], dtype=np.float64)
-    flux = np.array([r[2] if isinstance(r[2], (int, float)) else np.nan for r in rows], dtype=np.float64)
-    return xs, ys, flux
+    """``x``, ``y`` and ``flux`` (NaN where missing or not an int or float, e.g. a string) of the stars as
+    float64 arrays."""
+    n = len(frame_stars)
+    xs = np.fromiter(map(_GET_X, frame_stars), np.float64, n)
+    ys = np.fromiter(map(_GET_Y, frame_stars), np.float64, n)
+    flux = [s.get("flux") for s in frame_stars]
+    if _NUMBER.issuperset(map(type, flux)):         # None is NaN too
+        return xs, ys, np.array(flux, dtype=np.float64)
+    return xs, ys, np.array([f if isinstance(f, (int, float)) else np.nan for f in flux], dtype=np.float64)
 
 
 def _pixels_to_vectors(camera, xs, ys):
@@ -489,7 +492,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     fl = flux if flux is not None else np.full(n_all, np.nan)
     code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
         b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
-        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, *_z_index(db))
+        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, *_sky_index(db))
     if code == 1:
         return _Verdict(None, None, None, dcm, None, "a star of the proposal disagrees with the attitude of the others",
                         ReasonCode.VERIFICATION_FAILED)
@@ -616,7 +619,7 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
         float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
         float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
         float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
-        float(params.max_focal_error), *_z_index(db))
+        float(params.max_focal_error), *_sky_index(db))
     return _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched, matched, rms, db, params), \
         (None if total == 1.0 else float(total))
 
@@ -637,7 +640,7 @@ def _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched
                              f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY)
         return _Verdict(None, None, None, dcm, None, reason, rc)
     cat_index = match[matched]
-    out = [_new_tuple(Match, m) for m in zip(matched.tolist(), db.star_id[cat_index].tolist())]
+    out = list(map(_new_tuple, itertools.repeat(Match), zip(matched.tolist(), db.star_id[cat_index].tolist())))
     return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms)
 
 
@@ -674,7 +677,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
     step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-                        params.max_focal_error, _z_index(db))
+                        params.max_focal_error, _sky_index(db))
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)

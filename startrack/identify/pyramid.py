@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import operator
 import time
 from dataclasses import dataclass, field
 
@@ -31,8 +32,8 @@ from startrack.identify.base import (
     Proposal,
     SearchOutcome,
     _fused_verdict,
+    _sky_index,
     _sorted_mags,
-    _z_index,
 )
 from startrack.records import ReasonCode
 
@@ -165,9 +166,9 @@ def _plan(db, kernel):
     them (resolved at the first call), cached on the database while its arrays are the same objects."""
     src = (db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, db.line, db.kquad, db.quad, db.star_mag)
     plan = db.__dict__.get("_pyramid_plan")
-    if plan is not None and plan[0] is kernel and all(a is b for a, b in zip(plan[1], src)):
+    if plan is not None and plan[0] is kernel and all(map(operator.is_, plan[1], src)):
         return plan
-    z_order, z_sorted = _z_index(db)
+    z_order, z_sorted = _sky_index(db)
     arrays = (np.ascontiguousarray(db.star_vector, dtype=np.float64), np.ascontiguousarray(db.pair_i),
               np.ascontiguousarray(db.pair_j), np.ascontiguousarray(db.pair_cos, dtype=np.float64),
               np.ascontiguousarray(db.kvector), np.asarray(db.line, dtype=np.float64), np.ascontiguousarray(db.kquad),
