@@ -187,3 +187,33 @@ def test_voting_clusters_kernel_grows_the_python_clusters(sensor, monkeypatch):
         assert got == _clusters_python(ctx, b, keep, identity, votes2, top)
         proposals += len(got)
     assert len(rounds) >= 30 and proposals >= 20, (len(rounds), proposals)
+
+
+def test_sky_index_cones_hold_the_stars_of_a_full_scan(catalog):
+    """cone_stars with the sky index (bands of z, right ascension within a band) returns exactly the stars,
+    in the same order, of the test of every star: random cones of 0.5 to 40 deg, some around a pole,
+    some straddling right ascension 0, for several band counts."""
+    import math
+
+    from startrack._kernels.identify import cone_stars, sky_index
+
+    sv = np.ascontiguousarray(catalog.filter_magnitude(None, 6.5).vectors())
+    rng = np.random.default_rng(5)
+    none = (np.zeros(0, dtype=np.int64), np.zeros(0))
+    held = 0
+    for nb in (8, int(math.sqrt(len(sv))), 1024):
+        cells, ra = sky_index(sv, nb)
+        for t in range(300):
+            v = rng.normal(size=3)
+            if t % 3 == 1:
+                v = np.array([0.05 * rng.normal(), 0.05 * rng.normal(), rng.choice([-1.0, 1.0])])
+            elif t % 3 == 2:
+                v = np.array([1.0, 0.01 * rng.normal(), rng.normal()])
+            v /= np.linalg.norm(v)
+            cos_r = math.cos(math.radians(rng.uniform(0.5, 40.0)))
+            full, fast = np.empty(len(sv), dtype=np.int64), np.empty(len(sv), dtype=np.int64)
+            k1 = cone_stars(v[0], v[1], v[2], cos_r, sv, *none, full)
+            k2 = cone_stars(v[0], v[1], v[2], cos_r, sv, cells, ra, fast)
+            assert k1 == k2 and np.array_equal(full[:k1], fast[:k2])
+            held += k1
+    assert held > 10000
