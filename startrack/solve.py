@@ -390,11 +390,19 @@ def warm_for_build(index=None) -> None:
 
         for method in METHODS:
             find_stars(image, replace(CentroidOptions(), method=method))
-    # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too).
-    from startrack.identify import warm_up
+    # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too): its
+    # one-kernel search, and the driver's Python loop with the fused verification, through which every
+    # other algorithm verifies its proposals (pixels_to_unit, verify_focal).
+    from startrack.identify import base, warm_up
     from startrack.kvector import build_kvector
 
-    warm_up("pyramid", build_kvector(catalog.filter_magnitude(mag_max=5.0), 17.0))
+    db = build_kvector(catalog.filter_magnitude(mag_max=5.0), 17.0)
+    warm_up("pyramid", db)
+    saved, base.FUSED_SEARCH = base.FUSED_SEARCH, False
+    try:
+        warm_up("pyramid", db)
+    finally:
+        base.FUSED_SEARCH = saved
 
 
 def _notice(text: str) -> None:
