@@ -175,32 +175,64 @@ def tile_clipped_std(residual, cell, sigma_mesh, kappa, truncated_std, n_iter, o
     ``truncated_std`` (the standard deviation of a unit normal truncated to
     +-kappa).  ``out`` (same shape as ``sigma_mesh``) receives it; a tile with
     fewer than 50 pixels kept keeps ``sigma_mesh``.
+
+    Each iteration is one pass over a row of tiles, row by row, summing every
+    column separately (independent sums, so the loop over a row's pixels is
+    vectorised; one running sum a tile made it latency-bound), then a tile's
+    columns; the same sums up to rounding.
     """
     h, w = residual.shape
     ny, nx = sigma_mesh.shape
+    s = np.empty((ny, nx))
+    active = np.ones((ny, nx), dtype=np.bool_)
     for j in range(ny):
         for i in range(nx):
-            s = sigma_mesh[j, i]
-            out[j, i] = s
-            for _ in range(n_iter):
-                lim = kappa * s
-                n = 0
+            s[j, i] = sigma_mesh[j, i]
+            out[j, i] = sigma_mesh[j, i]
+    lim = np.empty(w)
+    cn = np.empty(w)
+    c1 = np.empty(w)
+    c2 = np.empty(w)
+    for _ in range(n_iter):
+        for j in range(ny):
+            todo = False
+            for i in range(nx):
+                todo = todo or active[j, i]
+            if not todo:
+                continue
+            for x in range(w):
+                i = x // cell
+                lim[x] = kappa * s[j, i] if i < nx and active[j, i] else -1.0
+                cn[x] = 0.0
+                c1[x] = 0.0
+                c2[x] = 0.0
+            for y in range(j * cell, min(h, (j + 1) * cell)):
+                row = residual[y]
+                for x in range(w):
+                    v = row[x]
+                    keep = abs(v) <= lim[x]
+                    cn[x] += 1.0 if keep else 0.0
+                    c1[x] += v if keep else 0.0
+                    c2[x] += v * v if keep else 0.0     # the square in the residual's precision, as before
+            for i in range(nx):
+                if not active[j, i]:
+                    continue
+                n = 0.0
                 s1 = 0.0
                 s2 = 0.0
-                for y in range(j * cell, min(h, (j + 1) * cell)):
-                    for x in range(i * cell, min(w, (i + 1) * cell)):
-                        v = residual[y, x]
-                        if abs(v) <= lim:
-                            n += 1
-                            s1 += v
-                            s2 += v * v
+                for x in range(i * cell, min(w, (i + 1) * cell)):
+                    n += cn[x]
+                    s1 += c1[x]
+                    s2 += c2[x]
                 if n < 50:
-                    break
+                    active[j, i] = False
+                    continue
                 var = (s2 - s1 * s1 / n) / (n - 1)
                 if not var > 0.0:
-                    break
-                s = math.sqrt(var) / truncated_std
-                out[j, i] = s
+                    active[j, i] = False
+                    continue
+                s[j, i] = math.sqrt(var) / truncated_std
+                out[j, i] = s[j, i]
     return out
 
 
