@@ -521,38 +521,55 @@ def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask)
     ``level`` and ``threshold`` are bilinear interpolations of their meshes
     between tile centres (as ``cv2.resize``): the vertical interpolation is done
     once per row and the horizontal weights once per column, so each pixel
-    costs two multiply-adds per map.
+    costs two multiply-adds per map.  A row is done in runs of columns between
+    two tile centres (the same pair of mesh values), so the loop over a run's
+    pixels has no indexed look-ups and is vectorised.
     """
     h, w = image.shape
     ny, nx = level_mesh.shape
-    i0 = np.empty(w, dtype=np.int64)
-    i1 = np.empty(w, dtype=np.int64)
     tx = np.empty(w)
+    # Runs of columns sharing the mesh columns (a, b): run k is starts[k] <= x < starts[k + 1].
+    ra = np.empty(w, dtype=np.int64)
+    rb = np.empty(w, dtype=np.int64)
+    starts = np.empty(w + 1, dtype=np.int64)
+    n_runs = 0
     for x in range(w):
         fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
         a = min(int(fx), nx - 2) if nx > 1 else 0
-        i0[x] = a
-        i1[x] = min(a + 1, nx - 1)
         tx[x] = fx - a
+        if n_runs == 0 or a != ra[n_runs - 1]:
+            ra[n_runs] = a
+            rb[n_runs] = min(a + 1, nx - 1)
+            starts[n_runs] = x
+            n_runs += 1
+    starts[n_runs] = w
+    lrow = np.empty(nx)
+    trow = np.empty(nx)
     for y in range(h):
         fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
         j0 = min(int(fy), ny - 2) if ny > 1 else 0
         j1 = min(j0 + 1, ny - 1)
         ty = fy - j0
-        lrow = np.empty(nx)
-        trow = np.empty(nx)
         for i in range(nx):
             lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
             trow[i] = threshold_mesh[j0, i] * (1.0 - ty) + threshold_mesh[j1, i] * ty
-        for x in range(w):
-            a = i0[x]
-            b = i1[x]
-            t = tx[x]
-            lev = lrow[a] + (lrow[b] - lrow[a]) * t
-            thr = trow[a] + (trow[b] - trow[a]) * t
-            r = image[y, x] - lev
-            residual[y, x] = r
-            mask[y, x] = 1 if r > thr else 0
+        for k in range(n_runs):
+            la = lrow[ra[k]]
+            dl = lrow[rb[k]] - la
+            ta = trow[ra[k]]
+            dt = trow[rb[k]] - ta
+            # Slices indexed from 0: numba then knows no index is negative (no wrap-around test a pixel).
+            x0 = starts[k]
+            x1 = starts[k + 1]
+            t_run = tx[x0:x1]
+            im_run = image[y, x0:x1]
+            res_run = residual[y, x0:x1]
+            mask_run = mask[y, x0:x1]
+            for q in range(x1 - x0):
+                t = t_run[q]
+                r = im_run[q] - (la + dl * t)
+                res_run[q] = r
+                mask_run[q] = 1 if r > ta + dt * t else 0
 
 
 @njit(cache=True)
