@@ -49,6 +49,23 @@ def _sorted_dev_kth(s, lo, hi, p, med, k):
     return v
 
 
+# Up to this many values an insertion sort is faster than numba's quicksort (~2.5 vs 3.4 us for a mesh tile's
+# 121 values; equal at ~250).
+_INSERTION_SORT_MAX = 200
+
+
+@njit(cache=True)
+def _insertion_sort(a):
+    """Sort ``a`` (finite values) in place."""
+    for i in range(1, a.shape[0]):
+        v = a[i]
+        j = i
+        while j > 0 and a[j - 1] > v:
+            a[j] = a[j - 1]
+            j -= 1
+        a[j] = v
+
+
 @njit(cache=True)
 def _clipped_stats_sorted(values, n_iter, kappa):
     """:func:`_clipped_stats` for a small sample (a mesh tile's ~100 values), faster.
@@ -62,9 +79,16 @@ def _clipped_stats_sorted(values, n_iter, kappa):
     n = values.shape[0]
     if n == 0:
         return 0.0, 0.0
-    s = np.sort(values)
-    if not (np.isfinite(s[0]) and np.isfinite(s[n - 1])):     # NaN sorts last
-        return _clipped_stats(values, n_iter, kappa)
+    s = np.empty(n)
+    for i in range(n):
+        v = values[i]
+        if not np.isfinite(v):
+            return _clipped_stats(values, n_iter, kappa)
+        s[i] = v
+    if n <= _INSERTION_SORT_MAX:
+        _insertion_sort(s)
+    else:
+        s.sort()
     lo = 0
     hi = n
     med = 0.0
