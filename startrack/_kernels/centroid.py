@@ -381,13 +381,25 @@ def _axis_factors(coords, c, s, g, dg_dc, dg_ds):
     ``k`` of ``coords``, with its derivatives in ``c`` and ``s``."""
     r2 = math.sqrt(2.0) * s
     norm = math.sqrt(math.pi) * r2
+    ea = 0.0
+    eb = 0.0
+    pa = 0.0
+    pb = 0.0
     for n in range(coords.shape[0]):
         k = coords[n]
         ua = (k - 0.5 - c) / r2
         ub = (k + 0.5 - c) / r2
-        g[n] = 0.5 * (math.erf(ub) - math.erf(ua))
-        pa = math.exp(-ua * ua)
+        if n > 0 and k == coords[n - 1] + 1:
+            # The pixel's lower edge is the previous pixel's upper edge (k - 0.5 == (k - 1) + 0.5 exactly for
+            # whole k, so ua is the previous ub to the bit): its erf and exp are already known.
+            ea = eb
+            pa = pb
+        else:
+            ea = math.erf(ua)
+            pa = math.exp(-ua * ua)
+        eb = math.erf(ub)
         pb = math.exp(-ub * ub)
+        g[n] = 0.5 * (eb - ea)
         dg_dc[n] = (pa - pb) / norm
         dg_ds[n] = ((k - 0.5 - c) * pa - (k + 0.5 - c) * pb) / (norm * s)
 
