@@ -121,7 +121,13 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
     arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``).
     """
-    from startrack._kernels.centroid import _clipped_stats, background_mesh, clipped_stats_of_sorted
+    from startrack._kernels.centroid import (
+        _clipped_stats,
+        background_mesh,
+        clipped_stats_of_sorted,
+        mesh_samples,
+        mesh_stats,
+    )
 
     h, w = image.shape
     step = max(1, int(round(math.sqrt(h * w / 10000.0))))
@@ -137,7 +143,15 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
         return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
     cell = options.mesh_px
     mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
-    level, sigma = background_mesh(np.ascontiguousarray(image, dtype=np.float32), cell, mstep)
+    img32 = np.ascontiguousarray(image, dtype=np.float32)
+    ny, nx = -(-h // cell), -(-w // cell)
+    if ny * nx * -(-min(cell, h) // mstep) * -(-min(cell, w) // mstep) <= 4_000_000:
+        # The tiles' samples sorted by numpy (vectorised; ~0.07 ms for 192 tiles of 121 samples against
+        # ~0.4 ms of insertion sorts in background_mesh), then the same clipped statistics.
+        samples, counts, finite = mesh_samples(img32, cell, mstep)
+        level, sigma = mesh_stats(np.sort(samples, axis=1), samples, counts, finite, ny, nx, 3, 3.0)
+    else:       # a fine mesh on a large frame: no copy of every sample
+        level, sigma = background_mesh(img32, cell, mstep)
     level = _median3(level)
     sigma = _median3(sigma)
     sigma = np.where(sigma > 0, sigma, gsigma)

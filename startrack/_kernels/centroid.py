@@ -181,6 +181,57 @@ def background_mesh(image, cell, step):
 
 
 @njit(cache=True)
+def mesh_samples(image, cell, step):
+    """The samples of :func:`background_mesh`'s tiles, one row a tile (row-major tiles), for a sort by numpy.
+
+    Returns ``(samples (ny * nx, n_max) float32, +inf after a tile's own, counts, finite)``: ``finite[t]``
+    is false when tile ``t`` holds NaN or an infinity.
+    """
+    h, w = image.shape
+    ny = (h + cell - 1) // cell
+    nx = (w + cell - 1) // cell
+    n_max = ((min(cell, h) + step - 1) // step) * ((min(cell, w) + step - 1) // step)
+    samples = np.full((ny * nx, n_max), np.inf, dtype=np.float32)
+    counts = np.empty(ny * nx, dtype=np.int64)
+    finite = np.ones(ny * nx, dtype=np.bool_)
+    for t in range(ny * nx):
+        y0 = (t // nx) * cell
+        x0 = (t % nx) * cell
+        k = 0
+        for y in range(y0, min(h, y0 + cell), step):
+            for x in range(x0, min(w, x0 + cell), step):
+                v = image[y, x]
+                samples[t, k] = v
+                if not np.isfinite(v):
+                    finite[t] = False
+                k += 1
+        counts[t] = k
+    return samples, counts, finite
+
+
+@njit(cache=True)
+def mesh_stats(ordered, samples, counts, finite, ny, nx, n_iter, kappa):
+    """:func:`background_mesh`'s ``(level, sigma)`` from :func:`mesh_samples` and the same rows sorted
+    (``ordered``): the same numbers (a tile with NaN or infinities goes to :func:`_clipped_stats`, as there)."""
+    level = np.empty((ny, nx))
+    sigma = np.empty((ny, nx))
+    buf = np.empty(samples.shape[1])
+    for t in range(ny * nx):
+        k = counts[t]
+        if finite[t]:
+            for i in range(k):
+                buf[i] = ordered[t, i]
+            med, sig = clipped_stats_of_sorted(buf[:k], n_iter, kappa)
+        else:
+            for i in range(k):
+                buf[i] = samples[t, i]
+            med, sig = _clipped_stats(buf[:k], n_iter, kappa)
+        level[t // nx, t % nx] = med
+        sigma[t // nx, t % nx] = sig
+    return level, sigma
+
+
+@njit(cache=True)
 def median3(a):
     """3 x 3 median filter of a small 2-D float64 mesh, edges replicated (as ``np.median`` of the 9 values,
     NaN when one is NaN)."""
