@@ -690,22 +690,28 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
 def _unique(stars: list) -> list:
     """Drop a detection within 1.5 px (or half its FWHM) of a brighter one: two peaks of one blob that converged."""
     kept = []
-    grid: dict = {}
+    grid: dict = {}     # cell -> positions of the kept stars there
     cell = 8.0
     for s_ in stars:
+        x, y = s_["x"], s_["y"]
         r = max(1.5, 0.5 * s_.get("fwhm_px", 0.0))
-        gx, gy = int(s_["x"] // cell), int(s_["y"] // cell)
+        r2 = r * r
+        gx, gy = int(x // cell), int(y // cell)
         reach = int(r // cell) + 1
         dup = False
         for ix in range(gx - reach, gx + reach + 1):
             for iy in range(gy - reach, gy + reach + 1):
-                for k in grid.get((ix, iy), ()):
-                    if (s_["x"] - k["x"]) ** 2 + (s_["y"] - k["y"]) ** 2 <= r * r:
+                for kx, ky in grid.get((ix, iy), ()):
+                    if (x - kx) ** 2 + (y - ky) ** 2 <= r2:
                         dup = True
                         break
+                if dup:
+                    break
+            if dup:
+                break
         if not dup:
             kept.append(s_)
-            grid.setdefault((gx, gy), []).append(s_)
+            grid.setdefault((gx, gy), []).append((x, y))
     return kept
 
 
