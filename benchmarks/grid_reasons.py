@@ -47,7 +47,7 @@ def main(argv=None):
         eps = math.sqrt(2) * params.tolerance_sigma * float(sigma) / cam.focal_length_px + \
             math.radians(params.margin_arcsec / 3600)
         pr, br, g = grid_geometry(cam, kv, cfg, eps)
-        ptr, _, inv_ptr, inv_stars, _ = catalog_patterns(kv, pr, br, g, k_or)
+        ptr, inv_ptr, inv_stars, _ = catalog_patterns(kv, pr, br, g, k_or)
         n_pat = len(ptr) - 1
         cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_catalog_stars=args.min_stars)
         table = collections.Counter()

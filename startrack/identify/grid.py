@@ -154,7 +154,9 @@ def _pattern(centre, neighbours, pr, br, g, which=0):
 
 
 def catalog_patterns(db, pr, br, g, orientations=1):
-    """Patterns of every database star: CSR (ptr, cells), inverted index (cell -> patterns), orientation stars.
+    """Patterns of every database star: ``(ptr, inv_ptr, inv_stars, orient)``: pattern ``t`` has
+    ``ptr[t + 1] - ptr[t]`` on-cells; the patterns holding cell ``c`` are ``inv_stars[inv_ptr[c]:inv_ptr[c + 1]]``
+    (ascending); ``orient[t]`` is its orientation star (-1: no pattern).
 
     Pattern ``s * orientations + w`` is star ``s``'s oriented by its ``w``-th nearest
     neighbour outside ``br`` (empty when it has fewer).
@@ -178,18 +180,22 @@ def catalog_patterns(db, pr, br, g, orientations=1):
                 ptr[t + 1] = ptr[t]
                 continue
             cells, k = got[w]
-            cells_all.append(cells)
+            cells_all.append(cells.astype(np.int32))
             orient[t] = nb[k]
             ptr[t + 1] = ptr[t] + len(cells)
-    # int32: cell numbers below g^2 and pattern numbers below n * orientations (half the memory of int64)
-    cells = np.concatenate(cells_all).astype(np.int32) if cells_all else np.zeros(0, dtype=np.int32)
+    # int32: cell numbers below g^2 and pattern numbers below n * orientations (half the memory of int64).
+    # Only the inverted index is kept (the search looks patterns up by cell; each pattern's cells are
+    # not needed again): half the memory of keeping both.
+    cells = np.concatenate(cells_all) if cells_all else np.zeros(0, dtype=np.int32)
+    del cells_all
     owner = np.repeat(np.arange(n * k_or, dtype=np.int32), np.diff(ptr))
-    order = np.argsort(cells, kind="stable")
-    inv_stars = owner[order]
-    inv_ptr = np.searchsorted(cells[order], np.arange(g * g + 1))
+    inv_stars = owner[np.argsort(cells, kind="stable")]
+    del owner
+    inv_ptr = np.zeros(g * g + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cells, minlength=g * g), out=inv_ptr[1:])
     if len(per_db) > 4:
         per_db.clear()
-    per_db[key] = (ptr, cells, inv_ptr, inv_stars, orient)
+    per_db[key] = (ptr, inv_ptr, inv_stars, orient)
     return per_db[key]
 
 
@@ -245,7 +251,7 @@ def search_grid(ctx, config: GridConfig):
     n_refs = int(config.references)
     k_or = max(1, int(config.catalog_orientations))
     keep = max(1, int(config.matches_per_reference))
-    ptr, cells_db, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g, k_or)
+    ptr, inv_ptr, inv_stars, orient = catalog_patterns(db, pr, br, g, k_or)
     n_patterns = len(ptr) - 1
     boresight = np.array([0.0, 0.0, 1.0])
     # Reference stars: nearest the image centre first.
