@@ -607,19 +607,26 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
     """:func:`_verify_with_focal` for a distortion-free camera in one kernel call
     (:func:`startrack._kernels.identify.verify_focal`): the same steps and checks on the same
     kernels, the same verdict.  Returns ``(verdict, focal scale or None)``."""
-    from startrack._kernels.identify import verify_focal
+    from startrack._kernels import identify as kernels
 
-    img = np.asarray(proposal.image, dtype=np.int64)
-    cat = np.asarray(proposal.catalog, dtype=np.int64)
+    # Every argument's type is fixed here (fresh int64 and float64 arrays, Python scalars) or by the
+    # database: the kernel's entry is resolved once per database (LazyKernel.resolve).
+    img = np.array(proposal.image, dtype=np.int64)
+    cat = np.array(proposal.catalog, dtype=np.int64)
     n_all = len(xs)
     fl = flux if flux is not None else np.full(n_all, np.nan)
-    code, match, q, dcm, p_false, missing, bright_pred, n_matched, total, matched, rms = verify_focal(
-        xs, ys, b_all, db.star_vector, db.star_mag, _sorted_mags(db), img, cat, sig_px, fl, bool(use_mags),
-        float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
-        float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
-        float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
-        float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
-        float(params.max_focal_error), *_sky_index(db))
+    args = (xs, ys, b_all, db.star_vector, db.star_mag, _sorted_mags(db), img, cat, sig_px, fl, bool(use_mags),
+            float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
+            float(camera.height), -1.0 if params.match_radius_px is None else float(params.match_radius_px),
+            float(params.match_sigma), math.radians(params.margin_arcsec / 3600.0), int(params.min_matches),
+            float(eps), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, int(trials), float(params.max_false_probability),
+            float(params.max_focal_error)) + _sky_index(db)
+    kernel = kernels.verify_focal
+    got = db.__dict__.get("_verify_focal_entry")
+    if got is None or got[0] is not kernel or got[1] is not db.star_vector or got[2] is not db.star_mag:
+        got = db.__dict__["_verify_focal_entry"] = (kernel, db.star_vector, db.star_mag,
+                                                    kernel.resolve(args) if hasattr(kernel, "resolve") else kernel)
+    code, match, q, dcm, p_false, missing, bright_pred, n_matched, total, matched, rms = got[3](*args)
     return _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched, matched, rms, db, params), \
         (None if total == 1.0 else float(total))
 
