@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from startrack.errors import BadInputError
-from startrack.formats.frame import read_frames, validate_frame
+from startrack.formats.frame import MAX_JSON_DEPTH, read_frames, validate_frame
 
 FRAME_CASES = 300
 IMAGE_CASES = 150
@@ -108,6 +108,26 @@ def test_image_headers_are_read_or_refused_in_one_line(tmp_path_factory, width, 
     assert info["bit_depth"] in (8, 16, 32) and info["saturation"] in (255.0, 65535.0) or info["bit_depth"] == 32
 
 
+def _is_json(text):
+    """A JSON value on its own that a frame reader takes (NaN and Infinity are not JSON; nesting at most
+    MAX_JSON_DEPTH levels)."""
+    def refuse(name):
+        raise ValueError(name)
+    try:
+        value = json.loads(text, parse_constant=refuse)
+    except (ValueError, RecursionError):
+        return False
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            return False
+        if isinstance(item, (list, dict)):
+            stack.extend((v, depth + 1) for v in (item.values() if isinstance(item, dict) else item)
+                         if isinstance(v, (list, dict)))
+    return True
+
+
 def _expected_exit(docs, section):
     bad = any(d.get(section, {}).get("bad_input") for d in docs)
     failed = any(d.get(section, {}).get("status") == "failed" for d in docs)
@@ -124,6 +144,13 @@ def test_attitude_on_fuzzed_streams_is_honest(text_lines):
     proc = run_cli("attitude", input="\n".join(text_lines) + "\n")
     assert "Traceback" not in proc.stderr and "internal error" not in proc.stderr, proc.stderr
     docs = [json.loads(line) for line in proc.stdout.splitlines()]
+    if not _is_json(text_lines[0]):
+        if _is_json("\n".join(text_lines)):
+            return                      # one (pretty-printed) document or array, not JSON Lines
+        if not any(_is_json(line) for line in text_lines[1:]):
+            # Neither JSON Lines nor one document (formats.md): the stream is unreadable.
+            assert proc.returncode == 2 and docs == [] and len(proc.stderr.splitlines()) == 1, proc.stderr
+            return
     assert len(docs) == len(text_lines)
     assert proc.returncode == _expected_exit(docs, "attitude"), (proc.returncode, proc.stderr)
     assert all(d["attitude"]["status"] in ("ok", "failed") for d in docs)
@@ -154,3 +181,21 @@ def test_render_options_are_used_or_refused_in_one_line(fov, size, count, false_
         assert len(docs) == count and math.isfinite(fov) and fov > 0
     else:
         assert isinstance(result.exception, SystemExit)
+
+
+def test_attitude_refuses_a_match_without_an_id_in_one_line():
+    """Found by the stream fuzzer: a match without ``id`` was an internal error (KeyError)."""
+    bad = json.loads(json.dumps(GOOD))
+    bad["identification"] = {"status": "ok", "algorithm": "x", "matches": [{"star": 0}, {"star": 1, "id": 30438}]}
+    proc = run_cli("attitude", input=json.dumps(GOOD) + "\n" + json.dumps(bad) + "\n")
+    assert proc.returncode == 2, proc.stderr
+    assert "<stdin>:2: identification.matches[0].id: must be an integer catalog id" in proc.stderr, proc.stderr
+    assert "internal error" not in proc.stderr, proc.stderr
+    docs = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(docs) == 2 and docs[1]["attitude"]["bad_input"] is True
+
+
+def test_attitude_on_a_stream_of_no_json_is_one_error():
+    """Found by the stream fuzzer: lines none of which is JSON are not JSON Lines: one error line, exit 2."""
+    proc = run_cli("attitude", input="00\n00\n")
+    assert proc.returncode == 2 and proc.stdout == "" and len(proc.stderr.splitlines()) == 1, proc.stderr

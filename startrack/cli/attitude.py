@@ -1,4 +1,6 @@
 """startrack attitude: Wahba solvers with uncertainty, residuals, outlier rejection and FITS WCS."""
+import json
+
 import click
 
 from startrack.cli.options import (
@@ -122,9 +124,16 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             return doc
         stars = doc.get("stars") or []
         matches = ident.get("matches") or []
+        if not isinstance(matches, list):
+            raise BadInputError(source, "identification.matches", "must be a list")
         for i, m in enumerate(matches):
-            if not isinstance(m, dict) or not isinstance(m.get("star"), int) or not 0 <= m["star"] < len(stars):
+            if not isinstance(m, dict) or isinstance(m.get("star"), bool) or not isinstance(m.get("star"), int) \
+                    or not 0 <= m["star"] < len(stars):
                 raise BadInputError(source, f"identification.matches[{i}].star", "must index into stars")
+            cid = m.get("id")
+            if isinstance(cid, bool) or not isinstance(cid, int):
+                raise BadInputError(source, f"identification.matches[{i}].id",
+                                    f"must be an integer catalog id, got {json.dumps(cid)[:40]}")
         ep = epoch
         if ep is None and (doc.get("image") or {}).get("time"):
             ep = julian_year(parse_time(doc["image"]["time"], f"{source}: image.time"))

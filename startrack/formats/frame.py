@@ -330,9 +330,9 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
         src = f"{name}:{first_no + k}"
         if k > 0 and not any_good:
             try:
-                json.loads(line, parse_constant=_reject_constant)
+                _loads(line)
                 any_good = True
-            except (ValueError, RecursionError):
+            except ValueError:
                 pass
         try:
             value = _loads(line)
