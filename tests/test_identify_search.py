@@ -211,3 +211,25 @@ def test_grid_confirmed_references_bring_their_neighbours(sensor16):
             wrong += truth.get(i) != c
     assert wrong == 0
     assert added >= 2 * len(frames)
+
+
+def test_grid_builds_its_catalog_patterns_outside_the_frames_time(sensor16):
+    """The first frame of a sensor builds the grid's catalog patterns: reported as prepare_ms, not in time_ms;
+    frames whose tolerance differs a little share them (the buffer radius is rounded up)."""
+    from startrack.identify.grid import GridConfig, grid_geometry
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam, cat, stars = sensor16
+    db = build_kvector(cat, max_separation_deg(camera=cam))
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=4), 2, 5, mag_limit=5.4)
+    first = identify_stars(frames[0][0], cam, db, "grid", IdentifyParams(sigma_px=0.3))
+    again = identify_stars(frames[1][0], cam, db, "grid", IdentifyParams(sigma_px=0.3))
+    assert first.details.get("prepare_ms", 0) > 0 and "prepare_ms" not in again.details
+    # The build is reported apart: the first frame's time is that of an ordinary frame, not the build's.
+    assert first.time_ms < first.details["prepare_ms"]
+    # Tolerances 10 % apart give one buffer radius (above the configured buffer: rounded up in sqrt(2) steps).
+    cfg = GridConfig()
+    eps = 3.0 * cfg.buffer_px / cam.focal_length_px
+    b1 = grid_geometry(cam, db, cfg, eps)[1]
+    assert b1 == grid_geometry(cam, db, cfg, 1.1 * eps)[1] and b1 >= 3 * 1.1 * eps
+    assert grid_geometry(cam, db, cfg, 0.1 * eps)[1] == pytest.approx(cfg.buffer_px / cam.focal_length_px)

@@ -219,6 +219,11 @@ class Algorithm:
         instead of a Python round trip per proposal).  :func:`run` uses it when
         set, the camera has no distortion and debug logging (which reports each
         rejected proposal) is off.
+    prepare : callable or None
+        ``prepare(config, camera, db, eps) -> bool``: what the search needs of the
+        database for this sensor and tolerance, built once (e.g. the grid's catalog
+        patterns); :func:`run` calls it before the frame's clock starts and reports
+        a build's time as ``details["prepare_ms"]`` (True: it built now).
     """
 
     name: str
@@ -228,6 +233,7 @@ class Algorithm:
     summary: str = ""
     uses_brightness: bool = False
     fused: Callable | None = None
+    prepare: Callable | None = None
 
 
 @dataclass
@@ -867,6 +873,12 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         # The largest per-star tolerance (its product and quotient are monotonic in sigma).
         smax = float(params.sigma_px) if params.sigma_px is not None else float(sig_px[:use].max())
         eps = float(math.sqrt(2.0) * (params.tolerance_sigma * smax / f) + margin)
+    prepare_ms = None
+    if algorithm.prepare is not None:
+        tp = time.perf_counter()
+        if algorithm.prepare(config, camera, db, eps):
+            prepare_ms = (time.perf_counter() - tp) * 1000
+            t0 += prepare_ms / 1000.0       # loading for this sensor, not identification: not in time_ms
     deadline = t0 + params.max_time_ms / 1000.0
     debug = log.isEnabledFor(logging.DEBUG)
     if debug:
@@ -949,8 +961,11 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                  reason)
         return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
                                      false_match_probability=best.p_false if best is not None else None,
-                                     details={**best_details, "patterns": int(patterns)})
+                                     details={**best_details, "patterns": int(patterns),
+                                              **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
     details["patterns"] = int(patterns)
+    if prepare_ms:
+        details["prepare_ms"] = round(prepare_ms, 1)
     rms = accepted.residual_rms if accepted.residual_rms is not None else \
         float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
     details["residual_arcsec_rms"] = round(rms, 3)

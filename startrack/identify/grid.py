@@ -234,7 +234,11 @@ def grid_geometry(camera, db, config: GridConfig, eps: float):
     pr = math.radians(config.pattern_radius_deg) if config.pattern_radius_deg is not None else \
         math.radians(camera.diagonal_fov_deg)
     pr = min(pr, math.radians(db.max_angle_deg))
-    br = max(float(config.buffer_px) / camera.focal_length_px, 3 * eps)
+    # At least three tolerances; above the configured buffer, rounded up to a power of sqrt(2) times
+    # it, so that frames whose tolerance differs a little (each frame's own star sigmas) share one
+    # set of catalog patterns instead of building their own.
+    buffer = float(config.buffer_px) / camera.focal_length_px
+    br = buffer if 3 * eps <= buffer else buffer * 2.0 ** (math.ceil(2.0 * math.log2(3 * eps / buffer)) / 2.0)
     if config.grid_size is not None:
         g = int(config.grid_size)
     else:
@@ -388,5 +392,22 @@ def _with_neighbours(ctx, b, db, img, cat):
     return img, cat
 
 
+def prepare_grid(config: GridConfig, camera, db, eps: float) -> bool:
+    """Build (once per database, camera and buffer radius) the catalog patterns a frame will need.
+
+    The driver calls it before it starts the frame's clock: the patterns are the database's,
+    made for this sensor (like loading it), not part of identifying the frame.  True when it
+    built them now.
+    """
+    pr, br, g = grid_geometry(camera, db, config, eps)
+    k_or = max(1, int(config.catalog_orientations))
+    key = (round(pr, 9), round(br, 9), g, k_or)
+    if key in db.__dict__.get("_grid_patterns", {}):
+        return False
+    catalog_patterns(db, pr, br, g, k_or)
+    return True
+
+
 GRID = Algorithm("grid", search_grid, GridConfig, "kvector",
-                 "Padgett & Kreutz-Delgado's grid patterns, built from the k-vector database's neighbour lists.")
+                 "Padgett & Kreutz-Delgado's grid patterns, built from the k-vector database's neighbour lists.",
+                 prepare=prepare_grid)
