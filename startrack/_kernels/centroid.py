@@ -114,15 +114,7 @@ def clipped_stats_of_sorted(s, n_iter, kappa):
             med = (s[lo + half - 1] + s[lo + half]) / 2
         else:
             med = s[lo + half]
-        # the first value not below the median (bisection: the same index as a scan)
-        p = lo
-        q = hi
-        while p < q:
-            mid = (p + q) >> 1
-            if s[mid] < med:
-                p = mid + 1
-            else:
-                q = mid
+        p = lo + np.searchsorted(s[lo:hi], med)     # the first value not below the median
         if m & 1 == 0:
             d = (_sorted_dev_kth(s, lo, hi, p, med, half - 1) + _sorted_dev_kth(s, lo, hi, p, med, half)) / 2
         else:

@@ -213,14 +213,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             lo_kr = math.cos(min(th_kr + e_kr, math.pi))
             hi_kr = math.cos(max(th_kr - e_kr, 0.0))
             # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
-            p = a0
-            q = a1
-            while p < q:
-                mid = (p + q) >> 1
-                if adj_cos[mid] < lo:
-                    p = mid + 1
-                else:
-                    q = mid
+            p = a0 + np.searchsorted(adj_cos[a0:a1], lo)
             nR = 0
             fR = -1
             while p < a1 and adj_cos[p] <= hi:
