@@ -217,3 +217,40 @@ def test_sky_index_cones_hold_the_stars_of_a_full_scan(catalog):
             assert k1 == k2 and np.array_equal(full[:k1], fast[:k2])
             held += k1
     assert held > 10000
+
+
+def test_fused_pyramid_settings_are_shared_and_left_unchanged(sensor, monkeypatch):
+    """The fused pyramid's kernel settings (``fpar``, ``ipar``) are made once per camera, settings and
+    tolerance and shared by the frames after: the kernel must leave them as made, and a setting changed
+    in place on the same IdentifyParams must reach the kernel (the cache key is the values)."""
+    from startrack.identify import pyramid
+
+    cam, db, stars = sensor
+    made = pyramid._settings
+    calls = []
+
+    def spy(config, frame, camera, params):
+        got = made(config, frame, camera, params)
+        cached = dict(pyramid._SETTINGS)
+        pyramid._SETTINGS.clear()
+        calls.append((got, made(config, frame, camera, params)))     # made afresh
+        pyramid._SETTINGS.clear()
+        pyramid._SETTINGS.update(cached)
+        return got
+
+    monkeypatch.setattr(pyramid, "_settings", spy)
+    params = IdentifyParams(sigma_px=0.3)
+    frames = [f for f, _, _ in make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=3, min_catalog_stars=4),
+                                           20, 11, mag_limit=5.4)]
+    results = [identify_stars(f, cam, db, "pyramid", params) for f in frames]
+    assert any(r.trials > 1 for r in results)        # kernel calls with rejected proposals
+    assert len({id(got[0]) for got, _ in calls}) < len(calls)      # shared
+    for got, fresh in calls:
+        assert np.array_equal(got[0], fresh[0]) and np.array_equal(got[1], fresh[1]) and got[2] == fresh[2]
+    params.max_proposals = 1
+    params.max_false_probability = 1e-30
+    for f in frames[:5]:
+        a = identify_stars(f, cam, db, "pyramid", params)
+        b = identify_stars(f, cam, db, "pyramid", IdentifyParams(sigma_px=0.3, max_proposals=1,
+                                                                  max_false_probability=1e-30))
+        assert _result(a) == _result(b) and a.status == "failed" and a.trials == 1

@@ -106,19 +106,11 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         if len(_TRIAD_ARRAYS) > 64:
             _TRIAD_ARRAYS.clear()
         triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
-    fpar = np.array([frame.margin, camera.focal_length_px, camera.cx, camera.cy, camera.width, camera.height,
-                     -1.0 if params.match_radius_px is None else params.match_radius_px, params.match_sigma,
-                     math.radians(params.margin_arcsec / 3600.0), frame.eps, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE,
-                     params.max_false_probability, params.max_focal_error,
-                     -1.0 if params.tolerance_arcsec is not None else params.tolerance_sigma], dtype=np.float64)
-    budget = max(int(params.max_proposals), 1)
-    ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, 0, budget, PAUSE, use],
-                    dtype=np.int64)
-    state = np.zeros(4, dtype=np.int64)
-    best = np.zeros(7)
-    # The frame's arrays as the kernel's types (those its entry was resolved for).
-    args = (_f64(frame.xs), _f64(frame.ys), _f64(frame.sig_px), _f64(frame.flux), triads, fpar, ipar, state,
-            np.empty((budget, 9), dtype=np.int64), best) + plan[2]
+    fpar, ipar, budget = _settings(config, frame, camera, params)
+    # The frame's arrays are float64 and contiguous (FusedFrame), the types the kernel's entry was resolved for.
+    args = (frame.xs, frame.ys, frame.sig_px, frame.flux, triads, fpar, ipar, np.zeros(4, np.int64),
+            np.empty((budget, 9), np.int64), np.zeros(7)) + plan[2]
+    state, best = args[7], args[9]
     fn = plan[3]
     if fn is None:
         fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
@@ -157,8 +149,44 @@ def pair_adjacency(db):
     return got[1]
 
 
-def _f64(a):
-    return np.ascontiguousarray(a, dtype=np.float64)
+_SETTINGS: dict = {}         # fused_pyramid's kernel settings per camera, IdentifyParams and config values
+_CAMERA_KEY = operator.attrgetter("focal_length_px", "cx", "cy", "width", "height")
+_PARAMS_KEY = operator.attrgetter("match_radius_px", "match_sigma", "margin_arcsec", "max_false_probability",
+                                  "max_focal_error", "tolerance_arcsec", "tolerance_sigma", "min_matches",
+                                  "max_proposals")
+
+
+def _settings(config, frame, camera, params):
+    """:func:`fused_pyramid`'s ``fpar`` and ``ipar`` (the kernel only reads them) and the proposal budget.
+
+    Made once per value of what they hold and looked up after: first by the camera's, the settings'
+    and the configuration's values (IdentifyParams can change between frames: the key is its values,
+    not the object), then by the frame's tolerance and number of search stars (the same for every
+    frame with a fixed ``sigma_px``; with the stars' own sigmas a new frame copies the first level)."""
+    key = (_CAMERA_KEY(camera), _PARAMS_KEY(params), config.max_triads, config.max_triangles)
+    level = _SETTINGS.get(key)
+    if level is None:
+        fpar = np.array([0.0, camera.focal_length_px, camera.cx, camera.cy, camera.width, camera.height,
+                         -1.0 if params.match_radius_px is None else params.match_radius_px, params.match_sigma,
+                         math.radians(params.margin_arcsec / 3600.0), 0.0, AMBIGUITY_CHI2, MAG_SIGMA_FLOOR,
+                         MAG_GATE, params.max_false_probability, params.max_focal_error,
+                         -1.0 if params.tolerance_arcsec is not None else params.tolerance_sigma], dtype=np.float64)
+        budget = max(int(params.max_proposals), 1)
+        ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, 0, budget, PAUSE, 0],
+                        dtype=np.int64)
+        if len(_SETTINGS) > 64:
+            _SETTINGS.clear()
+        level = _SETTINGS[key] = (fpar, ipar, budget, {})
+    frames = level[3]
+    fkey = (frame.margin, frame.eps, frame.use)
+    got = frames.get(fkey)
+    if got is None:
+        fpar, ipar = level[0].copy(), level[1].copy()
+        fpar[0], fpar[9], ipar[7] = frame.margin, frame.eps, frame.use
+        if len(frames) > 64:
+            frames.clear()
+        got = frames[fkey] = (fpar, ipar, level[2])
+    return got
 
 
 def _plan(db, kernel):
