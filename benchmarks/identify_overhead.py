@@ -1,0 +1,94 @@
+"""The Python part of the fused pyramid's ``time_ms``: per frame, ``time_ms`` minus the time inside its kernel.
+
+The frames and sensor are issue 14's (:mod:`identify_compare`'s options: 15 deg 1280x960,
+database Hp <= 6, stars to 5.5).  Every frame is identified ``--reps`` times; per frame the
+minimum over the repetitions is kept (the least disturbed by other processes) and the median
+over frames reported: ``time_ms``, the kernel's time (its entry wrapped with a clock, which adds
+a little to it), their difference, the fused call's Python part (``Algorithm.fused`` minus the
+kernel) and the driver's (``time_ms`` minus ``Algorithm.fused``).  A hash of every result
+(status, reason, matches, trials, quaternion, false-match probability, details) tells whether two
+trees decide alike.  Run it from each tree to compare, alternating:
+
+    PYTHONPATH=. .venv/bin/python benchmarks/identify_overhead.py --conditions 0.3:0,1.0:0 --count 1000
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+
+def _clocked(fn, spent, k):
+    """``fn`` adding its time to ``spent[k]``."""
+    def call(*a):
+        t = time.perf_counter()
+        try:
+            return fn(*a)
+        finally:
+            spent[k] += time.perf_counter() - t
+    return call
+
+
+def main(argv=None):
+    from identify_compare import add_sensor_arguments, sensor_setup
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_sensor_arguments(ap, 300)
+    ap.add_argument("--reps", type=int, default=5)
+    args = ap.parse_args(argv)
+
+    import startrack
+    from startrack.evaluate import Condition, make_frames
+    from startrack.identify import IdentifyParams, get_algorithm, identify_stars
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam, _, db_cat, star_cat = sensor_setup(args)
+    kv = build_kvector(db_cat, max_separation_deg(camera=cam))
+    alg = get_algorithm("pyramid")
+    print(f"startrack at {os.path.dirname(startrack.__file__)}, load {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    for spec in args.conditions.split(","):
+        sigma, false_stars = spec.split(":")
+        cond = Condition(sigma_px=float(sigma), false_stars=int(false_stars), min_catalog_stars=args.min_stars)
+        params = IdentifyParams(sigma_px=float(sigma))
+        frames = make_frames(star_cat, cam, cond, args.count, args.seed, mag_limit=args.star_mag)
+        identify_stars(frames[0][0], cam, kv, "pyramid", params)      # loads the kernels, makes the plan
+        plan = kv.__dict__["_pyramid_plan"]
+        kernel, fused = plan[3], alg.fused
+        spent = [0.0, 0.0]
+
+        plan[3] = _clocked(kernel, spent, 0)
+        object.__setattr__(alg, "fused", _clocked(fused, spent, 1))
+        shape = (args.reps, len(frames))
+        t_ms, t_kernel, t_fused = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+        results = []
+        try:
+            for rep in range(args.reps):
+                for f, (stars, _, _) in enumerate(frames):
+                    spent[0] = spent[1] = 0.0
+                    r = identify_stars(stars, cam, kv, "pyramid", params)
+                    t_ms[rep, f], t_kernel[rep, f], t_fused[rep, f] = r.time_ms / 1000, spent[0], spent[1]
+                    if rep == 0:
+                        q = None if r.quaternion_estimate is None else r.quaternion_estimate.tolist()
+                        results.append((str(r.status), r.reason, [tuple(m) for m in r.matches], r.trials, q,
+                                        r.false_match_probability, r.details))
+        finally:
+            plan[3] = kernel
+            object.__setattr__(alg, "fused", fused)
+
+        def med(a):
+            return float(np.median(a.min(axis=0))) * 1e6
+
+        ok = sum(1 for r in results if r[0] == "ok")
+        print(f"{spec}: {len(frames)} frames, {ok} ok, results {hashlib.sha1(repr(results).encode()).hexdigest()[:12]}; "
+              f"median us: time_ms {med(t_ms):.1f}, kernel {med(t_kernel):.1f}, time_ms - kernel "
+              f"{med(t_ms - t_kernel):.2f} (fused call {med(t_fused - t_kernel):.2f}, driver {med(t_ms - t_fused):.2f})")
+
+
+if __name__ == "__main__":
+    main()
