@@ -260,20 +260,27 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
     last matching with the final attitude (so that the matches returned are the
     ones that attitude supports).
 
+    A round whose matches are those of the round before ends the loop: its solve would be
+    the last one again (same stars, same weights), and so would every later matching.
+
     Returns ``(match, q, n_predicted)``.
     """
     w = np.ones(img.shape[0])
     q, _ = quest(b[img], star_vec[cat], w)
     match = np.full(b.shape[0], -1, dtype=np.int64)
     npred = 0
-    for _ in range(rounds):
+    for rnd in range(rounds):
         dcm = quat_to_dcm(q)
+        prev = match
         match, npred = match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, radius)
         k = 0
+        same = rnd > 0
         for i in range(match.shape[0]):
             if match[i] >= 0:
                 k += 1
-        if k < 2:
+            if match[i] != prev[i]:
+                same = False
+        if k < 2 or same:
             return match, q, npred
         bi = np.empty((k, 3))
         ri = np.empty((k, 3))
@@ -312,12 +319,28 @@ def leave_one_out(b, r, w):
             for q in range(3):
                 bmi[p, q] = bm[p, q] - w[i] * b[i, p] * r[i, q]
         qi, _ = quest_profile(bmi, total - c[i])
-        a = quat_to_dcm(qi)
-        d = 0.0
-        for u in range(3):
-            d += b[i, u] * (a[u, 0] * r[i, 0] + a[u, 1] * r[i, 1] + a[u, 2] * r[i, 2])
-        out[i] = math.acos(min(1.0, max(-1.0, d)))
+        out[i] = math.acos(min(1.0, max(-1.0, _rotated_dot(qi, b[i], r[i]))))
     return out
+
+
+@njit(cache=True, inline="always")
+def _rotated_dot(q, b, r):
+    """``b . (A(q) r)``, ``A`` of :func:`quat_to_dcm` (the same arithmetic, without the matrix)."""
+    q1, q2, q3, q4 = q[0], q[1], q[2], q[3]
+    a00 = q1 * q1 - q2 * q2 - q3 * q3 + q4 * q4
+    a01 = 2 * (q1 * q2 + q3 * q4)
+    a02 = 2 * (q1 * q3 - q2 * q4)
+    a10 = 2 * (q1 * q2 - q3 * q4)
+    a11 = -q1 * q1 + q2 * q2 - q3 * q3 + q4 * q4
+    a12 = 2 * (q2 * q3 + q1 * q4)
+    a20 = 2 * (q1 * q3 + q2 * q4)
+    a21 = 2 * (q2 * q3 - q1 * q4)
+    a22 = -q1 * q1 - q2 * q2 + q3 * q3 + q4 * q4
+    d = 0.0
+    d += b[0] * (a00 * r[0] + a01 * r[1] + a02 * r[2])
+    d += b[1] * (a10 * r[0] + a11 * r[1] + a12 * r[2])
+    d += b[2] * (a20 * r[0] + a21 * r[1] + a22 * r[2])
+    return d
 
 
 @njit(cache=True)
