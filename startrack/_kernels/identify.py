@@ -932,10 +932,41 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     detection keeps it); the scale is the median of catalog over measured angle over
     the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see :func:`cone_stars`.
     """
-    n = xs.shape[0]
     m = star_vec.shape[0]
     front = np.empty(m, dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
+    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+
+
+@njit(cache=True)
+def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
+                     sky_ra, near):
+    """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core_near`'s stars near
+    the field) when that cone holds it: the same stars in the same order, without a search of
+    the database.  The cone of ``near`` holds the field's cone when the angle between their axes
+    plus the field's radius is within the cone's radius (1e-6 rad to spare for rounding)."""
+    sub, n_cone, ax, ay, az, cos_cone = near
+    fx = dcm[2, 0]
+    fy = dcm[2, 1]
+    fz = dcm[2, 2]
+    apart = math.acos(min(1.0, max(-1.0, ax * fx + ay * fy + az * fz)))
+    if apart + math.acos(min(1.0, max(-1.0, cos_front))) + 1e-6 > math.acos(min(1.0, max(-1.0, cos_cone))):
+        return field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                           sky_cells, sky_ra)
+    front = np.empty(n_cone, dtype=np.int64)
+    nf = 0
+    for t in range(n_cone):
+        s = sub[t]
+        if fx * star_vec[s, 0] + fy * star_vec[s, 1] + fz * star_vec[s, 2] > cos_front:
+            front[nf] = s
+            nf += 1
+    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+
+
+@njit(cache=True)
+def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
+    """:func:`field_scale` on the stars ``front[:nf]`` (its cone)."""
+    n = xs.shape[0]
     px = np.empty(nf)
     py = np.empty(nf)
     idx = np.empty(nf, dtype=np.int64)
@@ -1146,10 +1177,15 @@ def _to_global(match, sub):
 
 
 @njit(cache=True)
-def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
+def verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
                 cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
                 sky_ra):
-    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
+    """:func:`verify_core`, also returning the database stars near the field it worked on:
+    ``(..., near, n_cone, ax, ay, az, cos_cone)`` -- ``near[:n_cone]`` are the stars ``s`` with
+    ``(ax, ay, az) . star_vec_all[s] > cos_cone`` (:func:`cone_stars`, ascending), the rest of
+    ``near`` the proposal's stars outside that cone.
+
+    The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine``), the
     bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
@@ -1173,6 +1209,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
     sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
     ns = cone_stars(a0[2, 0], a0[2, 1], a0[2, 2], cos_sub, star_vec_all, sky_cells, sky_ra, sub)
+    ns0 = ns
     cat = np.empty(cat_all.shape[0], dtype=np.int64)
     for t in range(cat_all.shape[0]):
         pos = np.searchsorted(sub[:ns], cat_all[t])
@@ -1234,7 +1271,8 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         for t in range(nm):
             if loo[t] > radius[mi[t]] * widen:
                 if is_core[mi[t]]:
-                    return (1, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+                    return (1, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
+                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
                 match[mi[t]] = -1
                 nm -= 1
     agree = 0
@@ -1246,11 +1284,14 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         if d >= math.cos(radius[img[t]]):
             agree += 1
     if agree < min(img.shape[0], min_matches):
-        return (2, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (2, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
+                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
     if bright_pred >= 3 and missing > bright_pred // 2:
-        return (3, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (3, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
+                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
     if nm < min_matches and not (n == 3 and nm == 3):
-        return (4, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0)
+        return (4, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
+                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
     # The core's pattern chance with the window of its actual residual.
     bc = np.empty((nc, 3))
     rc = np.empty((nc, 3))
@@ -1272,7 +1313,31 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         rs += radius[i] * focal
     mean_r = rs / n
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
-    return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit)
+    return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit,
+                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
+
+
+@njit(cache=True)
+def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
+                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
+                sky_ra):
+    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
+
+    Attitude from the proposal and two rounds of match-all (``refine``), the
+    bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
+    matches (:func:`resolve_conflicts`), the leave-one-out test, the proposal's
+    agreement, the bright stars missing, the matched count, and the numbers of the
+    false-match probability (the caller multiplies them out): :func:`verify_core_near`.
+
+    Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
+    ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
+    leave-one-out, 2 = the proposal's stars do not agree with the refined attitude, 3 =
+    most bright predicted stars missing, 4 = too few matches.
+    """
+    got = verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags,
+                           cos_fov, focal, cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2,
+                           mag_floor, mag_gate, sky_cells, sky_ra)
+    return got[0], got[1], got[2], got[3], got[4], got[5], got[6], got[7], got[8], got[9], got[10], got[11]
 
 
 @njit(cache=True)
@@ -1328,8 +1393,9 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
                     mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
     """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
 
-    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched)``: ``code`` 0 =
-    accepted, 1-4 as :func:`verify_core`, 5 = false-match probability above ``max_false``.
+    Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, near)``: ``code`` 0 =
+    accepted, 1-4 as :func:`verify_core`, 5 = false-match probability above ``max_false``; ``near``
+    the stars near the field (:func:`verify_core_near`'s last six values).
     """
     n = b.shape[0]
     radius = np.empty(n)
@@ -1340,15 +1406,18 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
         radius[i] = r / focal
         sig_rad[i] = sig_px[i] / focal
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
-    code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
+    got = verify_core_near(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
         width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells, sky_ra)
+    code, match, q, dcm, missing, n_bright, p_mag, bright_pred, e_core, p_hit = (
+        got[0], got[1], got[2], got[3], got[6], got[7], got[8], got[9], got[10], got[11])
+    near = (got[12], got[13], got[14], got[15], got[16], got[17])
     nm = 0
     for i in range(n):
         if match[i] >= 0:
             nm += 1
     if code != 0:
-        return code, match, q, dcm, np.nan, missing, bright_pred, nm
+        return code, match, q, dcm, np.nan, missing, bright_pred, nm, near
     nc = min(4, img.shape[0])
     distinct = 0
     agree = 0
@@ -1364,8 +1433,8 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     p_missing = missing_probability(missing, n_bright, width * height / focal ** 2 / (4 * math.pi)) * p_mag
     p_false = min(1.0, e_core * max(trials, 1)) * binomial_sf(nm - agree, n - distinct, p_hit) * p_missing
     if p_false > max_false:
-        return 5, match, q, dcm, p_false, missing, bright_pred, nm
-    return 0, match, q, dcm, p_false, missing, bright_pred, nm
+        return 5, match, q, dcm, p_false, missing, bright_pred, nm, near
+    return 0, match, q, dcm, p_false, missing, bright_pred, nm, near
 
 
 @njit(cache=True)
@@ -1395,7 +1464,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         focal = focal0 / scale
         b = pixels_to_unit(xs, ys, focal, cx, cy)
         offset = abs(scale - 1.0)
-    code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+    code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
         b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width, height,
         fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_chi2, mag_floor, mag_gate, trials,
         max_false, sky_cells, sky_ra)
@@ -1410,13 +1479,13 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         rmin = min(rmin, radius_px[i])
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
-    step = field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                       max_focal_error, sky_cells, sky_ra)
+    step = field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
+                            max_focal_error, sky_cells, sky_ra, near)
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
-        code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+        code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
             mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
@@ -1441,7 +1510,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
-        code, match, q, dcm, p_false, missing, bright_pred, nm = _verify_pinhole(
+        code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
             height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
             mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
