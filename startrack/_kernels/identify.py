@@ -1651,7 +1651,8 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
 
 
 @njit(cache=True)
-def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, star_vec, pair_i, pair_j, pair_cos,
+def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, res_i, res_f, star_vec, pair_i,
+                     pair_j, pair_cos,
                      kvector, line, kquad, quad, star_mag, mag_sorted, sky_cells, sky_ra, adj_ptr, adj_other, adj_cos):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
@@ -1677,11 +1678,15 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     n_matched, triangles) of the rejected proposal with the lowest false-match probability
     (the first while none has one: NaN).
 
-    Returns ``(status, code, match, q, dcm, p_false, n_matched, scale, matched, rms, triangles)``:
+    Returns ``(status, code, p_false, n_matched, scale, rms, triangles)``:
     ``status`` 0 = accepted (the rest is :func:`verify_focal`'s verdict of that proposal and
     its triad's triangle count), 1 = every triad searched, 2 = ``ipar[5]`` proposals tried,
     3 = paused after ``ipar[6]`` rejected proposals in this call (call again to go on: the
-    caller looks at its clock in between).
+    caller looks at its clock in between).  The verdict's arrays go to the caller's buffers
+    (a new array returned to Python costs more than the rest of a small frame's bookkeeping):
+    ``res_i[:n]`` the match of every detection (-1: none), ``res_i[n:n + n_matched]`` the matched
+    detections; ``res_f[:4]`` the quaternion, ``res_f[4:13]`` the attitude matrix by rows
+    (``res_i`` holds at least ``2 n``, ``res_f`` 13).
     """
     n_tr = min(triads.shape[0], ipar[0])
     n = xs.shape[0]
@@ -1751,7 +1756,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             if code == 0:
                 state[0] = t
                 state[1] = rr + 1
-                return 0, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+                _put_verdict(res_i, res_f, match, q, dcm, matched)
+                return 0, code, p_false, nm, total, rms, n_tri
             if best[0] == 0.0 or (not math.isnan(p_false) and (math.isnan(best[2]) or p_false < best[2])):
                 best[0] = 1.0
                 best[1] = code
@@ -1764,14 +1770,28 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             if state[2] >= ipar[5]:
                 state[0] = t
                 state[1] = rr + 1
-                return 2, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+                return 2, code, p_false, nm, total, rms, n_tri
             if rejected >= ipar[6]:
                 state[0] = t
                 state[1] = rr + 1
-                return 3, code, match, q, dcm, p_false, nm, total, matched, rms, n_tri
+                return 3, code, p_false, nm, total, rms, n_tri
         t += 1
         row0 = 0
     state[0] = t
     state[1] = 0
-    return (1, -1, np.full(n, -1, dtype=np.int64), np.zeros(4), np.zeros((3, 3)), np.nan, 0, 1.0,
-            np.empty(0, dtype=np.int64), np.nan, 0)
+    return 1, -1, np.nan, 0, 1.0, np.nan, 0
+
+
+@njit(cache=True)
+def _put_verdict(res_i, res_f, match, q, dcm, matched):
+    """:func:`pyramid_identify`'s verdict arrays into the caller's buffers (see there)."""
+    n = match.shape[0]
+    for i in range(n):
+        res_i[i] = match[i]
+    for t in range(matched.shape[0]):
+        res_i[n + t] = matched[t]
+    for u in range(4):
+        res_f[u] = q[u]
+    for u in range(3):
+        for v in range(3):
+            res_f[4 + 3 * u + v] = dcm[u, v]

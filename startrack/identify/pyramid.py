@@ -109,15 +109,16 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
     fpar, ipar, budget = _settings(config, frame, camera, params)
     # The frame's arrays are float64 and contiguous (FusedFrame), the types the kernel's entry was resolved for.
-    buffers = _buffers(budget)
+    n = len(frame.xs)
+    buffers = _buffers(budget, n)
     args = (frame.xs, frame.ys, frame.sig_px, frame.flux, triads, fpar, ipar) + buffers + plan[2]
-    state, best = buffers[0], buffers[2]
+    state, best, res_i, res_f = buffers[0], buffers[2], buffers[3], buffers[4]
     fn = plan[3]
     if fn is None:
         fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
     reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
     while True:
-        status, vcode, match, q, dcm, p_false, nm, total, matched, rms, n_tri = fn(*args)
+        status, vcode, p_false, nm, total, rms, n_tri = fn(*args)
         if status == 0 or status == 1:
             break
         if status == 2:
@@ -128,7 +129,9 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
             break
     _, _, tried, patterns = state.tolist()
     if status == 0:
-        accepted = _fused_verdict(vcode, match, q, dcm, p_false, 0, 0, nm, matched, rms, db, params)
+        # Views of this thread's buffers serve the rest of this frame's run(); the quaternion outlives it.
+        accepted = _fused_verdict(vcode, res_i[:n], res_f[:4].copy(), res_f[4:13].reshape(3, 3), p_false, 0, 0, nm,
+                                  res_i[n:n + nm], rms, db, params)
         return SearchOutcome(accepted, None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {},
                              tried, patterns, reason, code)
     bv = None
@@ -153,13 +156,15 @@ def pair_adjacency(db):
 _BUFFERS = threading.local()
 
 
-def _buffers(budget):
-    """The kernel's in/out arrays ``state``, ``seen`` and ``best`` (:func:`fused_pyramid`), made once per
-    thread and proposal budget and reused by the thread's next frames: ``state`` and ``best`` zeroed,
-    ``seen``'s rows read by the kernel only after it wrote them in the same search."""
+def _buffers(budget, n):
+    """The kernel's in/out arrays ``state``, ``seen``, ``best``, ``res_i`` and ``res_f`` (:func:`fused_pyramid`)
+    for a frame of ``n`` stars, made once per thread and proposal budget (and grown for more stars) and
+    reused by the thread's next frames: ``state`` and ``best`` zeroed, ``seen``'s rows read by the kernel
+    only after it wrote them in the same search, ``res_i``/``res_f`` written with an accepted verdict."""
     got = getattr(_BUFFERS, "arrays", None)
-    if got is None or got[1].shape[0] != budget:
-        got = _BUFFERS.arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7))
+    if got is None or got[1].shape[0] != budget or got[3].shape[0] < 2 * n:
+        got = _BUFFERS.arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
+                                 np.empty(max(256, 2 * n), np.int64), np.empty(13))
     else:
         got[0].fill(0)
         got[2].fill(0)
