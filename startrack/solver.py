@@ -212,7 +212,9 @@ class Solver:
         camera = self._need_camera(camera, "identify")
         algorithm = algorithm or self.algorithm
         db = self.database(camera)
-        res = identify_stars(_star_list(stars), camera, db, algorithm, params)
+        from startrack.records import StarTable
+
+        res = identify_stars(stars if isinstance(stars, StarTable) else list(stars), camera, db, algorithm, params)
         return identification_record(res)
 
     def attitude(self, stars, identification, camera=None, *, method: str | None = None,
@@ -304,14 +306,6 @@ class Solver:
         if camera is None:
             raise ParameterError("camera", "is needed (give it here or to Solver)", f"Solver.{what}")
         return camera
-
-
-def _star_list(stars) -> list:
-    from startrack.records import StarTable
-
-    if isinstance(stars, StarTable):
-        return stars.to_list()
-    return list(stars)
 
 
 def _read(frame):

@@ -276,3 +276,29 @@ def test_fused_pyramid_from_threads_decides_as_one_thread(sensor):
         sys.setswitchinterval(interval)
     assert threaded == alone * 3
     assert sum(r[0] == "ok" for r in alone) >= 30 and any(r[3] > 1 for r in alone)
+
+
+@pytest.mark.parametrize("algorithm", ["pyramid", "labelling"])
+def test_star_table_is_identified_as_its_star_list(sensor, algorithm, catalog):
+    """A StarTable's columns (read as they are, no per-star dict) give the result of the same stars as
+    dicts: with and without reported sigmas, on the fused path (pyramid) and the Python one (labelling)."""
+    from startrack.labels import build_labels
+    from startrack.records import StarTable
+
+    cam, db, stars = sensor
+    dbase = db if algorithm == "pyramid" else build_labels(catalog.filter_magnitude(None, 5.8), 14.0)
+    cond = Condition(sigma_px=0.5, false_stars=2, min_catalog_stars=4)
+    seen_ok = 0
+    for k, (frame, _, _) in enumerate(make_frames(stars, cam, cond, 12, 77, mag_limit=5.4)):
+        if k % 2:      # reported per-star sigmas, some missing (the frame's median stands in)
+            frame = [dict(s, sigma_px=0.2 + 0.05 * i) if i % 3 else dict(s) for i, s in enumerate(frame)]
+        for params in (IdentifyParams(sigma_px=0.5), IdentifyParams()):
+            a = identify_stars(frame, cam, dbase, algorithm, params)
+            table = StarTable([s["x"] for s in frame], [s["y"] for s in frame], [s.get("flux") for s in frame],
+                              [s.get("sigma_px", np.nan) for s in frame])      # NaN: not reported
+            b = identify_stars(table, cam, dbase, algorithm, params)
+            assert _result(a) == _result(b)
+            if a.quaternion_estimate is not None:
+                np.testing.assert_array_equal(a.quaternion_estimate, b.quaternion_estimate)
+            seen_ok += a.status == "ok"
+    assert seen_ok >= 12

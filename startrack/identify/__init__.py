@@ -177,9 +177,10 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
 
     Parameters
     ----------
-    stars : list of dict
+    stars : list of dict or StarTable
         ``x``, ``y`` (pixels), optionally ``flux`` and ``sigma_px`` (px),
-        brightest first (as ``centroid`` writes them).
+        brightest first (as ``centroid`` writes them); a StarTable's columns are
+        used as they are.
     camera : Camera
     db : KVectorDatabase or LabelDatabase
         The database kind of the algorithm (:func:`database_kind`).

@@ -40,7 +40,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from startrack.records import Identification, Match, ReasonCode, Status
+from startrack.records import Identification, Match, ReasonCode, StarTable, Status
 
 __all__ = ["Algorithm", "IdentifyParams", "NoConfig", "Proposal", "SearchContext", "false_match_probability",
            "CatalogStars", "match_catalog", "run", "tolerance_rad"]
@@ -442,6 +442,28 @@ def _sky_index(db):
 
 _NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # flux types read as themselves (None: NaN)
 _GET_X, _GET_Y = operator.itemgetter("x"), operator.itemgetter("y")
+
+
+def _table_arrays(table, params: IdentifyParams):
+    """``x``, ``y``, ``flux`` and the 1-sigma noise (:func:`star_sigmas_px`) of a
+    :class:`~startrack.records.StarTable`'s columns, float64 and contiguous, without a per-star
+    object."""
+    xs = np.ascontiguousarray(table.x, dtype=np.float64)
+    ys = np.ascontiguousarray(table.y, dtype=np.float64)
+    flux = np.ascontiguousarray(table.flux, dtype=np.float64)
+    n = len(xs)
+    if params.sigma_px is not None:
+        sig = np.empty(n)
+        sig.fill(float(params.sigma_px))
+        return xs, ys, flux, sig
+    sig = np.full(n, 0.5)
+    if table.sigma_px is not None:
+        reported = np.asarray(table.sigma_px, dtype=np.float64)
+        ok = np.isfinite(reported) & (reported > 0)
+        if ok.any():
+            scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
+            sig = np.where(ok, scaled, float(np.median(scaled[ok])))
+    return xs, ys, flux, sig
 
 
 def _frame_arrays(frame_stars):
@@ -867,8 +889,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     ----------
     algorithm : Algorithm
     config : dataclass instance of ``algorithm.config``
-    frame_stars : list of dict
-        ``x``, ``y`` (px), optionally ``flux`` and ``sigma_px``, brightest first.
+    frame_stars : list of dict or StarTable
+        ``x``, ``y`` (px), optionally ``flux`` and ``sigma_px``, brightest first; a
+        :class:`~startrack.records.StarTable`'s columns are read as they are (no per-star dict).
     camera : Camera
     db : database of ``algorithm.database`` kind
     params : IdentifyParams
@@ -896,8 +919,11 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     if n_all < 3:
         return Identification.failed(name, f"{n_all} star(s): at least 3 are needed", ReasonCode.TOO_FEW_STARS,
                                      time_ms=(time.perf_counter() - t0) * 1000, trials=0)
-    xs, ys, flux = _frame_arrays(frame_stars)
-    sig_px = star_sigmas_px(frame_stars, params)
+    if isinstance(frame_stars, StarTable):
+        xs, ys, flux, sig_px = _table_arrays(frame_stars, params)
+    else:
+        xs, ys, flux = _frame_arrays(frame_stars)
+        sig_px = star_sigmas_px(frame_stars, params)
     f = camera.focal_length_px
     margin = math.radians(params.margin_arcsec / 3600.0)
     use = min(n_all, params.max_stars)
@@ -945,6 +971,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             tol = np.zeros(use)
         else:
             tol = params.tolerance_sigma * sig_px[:use] / f
+        if isinstance(frame_stars, StarTable):
+            frame_stars = frame_stars.to_list()     # the searches read stars as dicts
         ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
                             flux[:use] if has_flux else None, deadline)
         use_mags = has_flux and not algorithm.uses_brightness
