@@ -286,3 +286,23 @@ def test_com_sigma_is_honest_on_16_bit_frames(catalog):
     err, sig = _com_scatter(catalog, sensor, CentroidOptions(method="com", gain_e_per_dn=sensor.gain), frames=10)
     assert len(err) >= 60
     assert 0.65 < 1.4826 * np.median(np.abs(err / sig)) < 1.5
+
+
+def test_pixels_without_value_are_not_saturation():
+    """NaN pixels (a dead region, a mosaic's gap) are no data: the stars away from them are found and the
+    frame is not called saturated (a NaN maximum made every pixel count as saturated); a frame without
+    any finite pixel says so."""
+    from startrack.centroid import find_stars
+
+    rng = np.random.default_rng(1)
+    img = rng.normal(100, 5, (300, 400)).astype(np.float32)
+    yy, xx = np.mgrid[:300, :400]
+    stars = [(250, 200, 3000), (330, 60, 2000), (180, 250, 4000)]
+    for x, y, f in stars:
+        img += f / (2 * np.pi * 1.5 ** 2) * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.5 ** 2))
+    img[:, :10] = np.nan
+    found = find_stars(img)
+    assert found.reason is None
+    assert sorted((round(s["x"]), round(s["y"])) for s in found.stars) == sorted((x, y) for x, y, _ in stars)
+    empty = find_stars(np.full((300, 400), np.nan, dtype=np.float32))
+    assert empty.stars == [] and empty.reason == "image has no finite pixel value"
