@@ -288,21 +288,43 @@ def test_com_sigma_is_honest_on_16_bit_frames(catalog):
     assert 0.65 < 1.4826 * np.median(np.abs(err / sig)) < 1.5
 
 
-def test_pixels_without_value_are_not_saturation():
-    """NaN pixels (a dead region, a mosaic's gap) are no data: the stars away from them are found and the
-    frame is not called saturated (a NaN maximum made every pixel count as saturated); a frame without
-    any finite pixel says so."""
+def test_pixels_without_value_are_no_data():
+    """NaN pixels (a dead region, a mosaic's gap) are no data: the frame is not called saturated (a NaN
+    maximum made every pixel count as saturated), and the stars beside a region wider than half a mesh
+    tile are found (its tiles' NaN background spread to their neighbours); a frame without any finite
+    pixel says so."""
     from startrack.centroid import find_stars
 
     rng = np.random.default_rng(1)
     img = rng.normal(100, 5, (300, 400)).astype(np.float32)
     yy, xx = np.mgrid[:300, :400]
-    stars = [(250, 200, 3000), (330, 60, 2000), (180, 250, 4000)]
+    stars = [(100, 80, 5000), (250, 200, 3000), (330, 60, 2000), (60, 150, 4000), (180, 250, 4000)]
     for x, y, f in stars:
         img += f / (2 * np.pi * 1.5 ** 2) * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.5 ** 2))
-    img[:, :10] = np.nan
-    found = find_stars(img)
-    assert found.reason is None
-    assert sorted((round(s["x"]), round(s["y"])) for s in found.stars) == sorted((x, y) for x, y, _ in stars)
+    for width in (10, 40):      # 10: a few NaN per tile; 40: the first tiles mostly NaN (was 3 of 5 stars)
+        holed = img.copy()
+        holed[:, :width] = np.nan
+        found = find_stars(holed)
+        assert found.reason is None
+        assert sorted((round(s["x"]), round(s["y"])) for s in found.stars) == sorted((x, y) for x, y, _ in stars)
     empty = find_stars(np.full((300, 400), np.nan, dtype=np.float32))
     assert empty.stars == [] and empty.reason == "image has no finite pixel value"
+
+
+def test_mesh_paths_agree_with_pixels_without_value():
+    """The two mesh statistics (numpy-sorted samples, and the kernel for fine meshes) give the same levels,
+    NaN for the tiles without enough finite samples, on a frame with NaN and infinite regions."""
+    from startrack._kernels.centroid import MIN_TILE_SAMPLES, background_mesh, mesh_samples, mesh_stats
+
+    rng = np.random.default_rng(3)
+    img = rng.normal(50, 3, (200, 260)).astype(np.float32)
+    img[:, :70] = np.nan            # tiles 0 (all) and 1 (partly) of each row
+    img[150:, 200:] = np.inf
+    samples, counts, sampled = mesh_samples(img, 64, 6)
+    level, sigma = mesh_stats(np.sort(samples, axis=1), counts, sampled, 4, 5, 3, 3.0)
+    level2, sigma2 = background_mesh(img, 64, 6)
+    np.testing.assert_array_equal(level, level2)
+    np.testing.assert_array_equal(sigma, sigma2)
+    assert np.isnan(level[:, 0]).all() and np.isfinite(level[:3, 1:4]).all()
+    assert (counts[np.isnan(level.ravel())] < MIN_TILE_SAMPLES).all()
+    assert abs(np.nanmedian(level) - 50) < 1

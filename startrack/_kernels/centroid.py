@@ -144,8 +144,10 @@ def clipped_stats_of_sorted(s, n_iter, kappa):
 def background_mesh(image, cell, step):
     """Sigma-clipped median and sigma on a mesh of ``cell`` x ``cell`` tiles.
 
-    Every ``step``-th pixel of a tile is sampled.  Returns ``(level, sigma)``
-    arrays of shape ``(ceil(h / cell), ceil(w / cell))``.
+    Every ``step``-th pixel of a tile is sampled; NaN and infinite pixels are no
+    data (a tile with fewer than :data:`MIN_TILE_SAMPLES` finite samples gets NaN:
+    the caller fills it from its neighbours).  Returns ``(level, sigma)`` arrays of
+    shape ``(ceil(h / cell), ceil(w / cell))``.
     """
     h, w = image.shape
     ny = (h + cell - 1) // cell
@@ -164,20 +166,31 @@ def background_mesh(image, cell, step):
         k = 0
         for y in range(y0, y1, step):
             for x in range(x0, x1, step):
-                buf[k] = image[y, x]
-                k += 1
+                v = image[y, x]
+                if np.isfinite(v):
+                    buf[k] = v
+                    k += 1
+        if k < min(MIN_TILE_SAMPLES, n):
+            level[j, i] = np.nan
+            sigma[j, i] = np.nan
+            continue
         med, sig = _clipped_stats_sorted(buf[:k], 3, 3.0)
         level[j, i] = med
         sigma[j, i] = sig
     return level, sigma
 
 
+#: A mesh tile with fewer finite samples than this (of its ~100) has no level of its own: its
+#: neighbours' stand in (:func:`median3` over the finite ones), else the frame's.
+MIN_TILE_SAMPLES = 10
+
+
 @njit(cache=True)
 def mesh_samples(image, cell, step):
     """The samples of :func:`background_mesh`'s tiles, one row a tile (row-major tiles), for a sort by numpy.
 
-    Returns ``(samples (ny * nx, n_max) float32, +inf after a tile's own, counts, finite)``: ``finite[t]``
-    is false when tile ``t`` holds NaN or an infinity.
+    Returns ``(samples (ny * nx, n_max) float32, counts, sampled)``: a tile's finite samples (NaN and
+    infinite pixels are no data), then +inf; ``counts[t]`` their number, ``sampled[t]`` the pixels sampled.
     """
     h, w = image.shape
     ny = (h + cell - 1) // cell
@@ -185,39 +198,40 @@ def mesh_samples(image, cell, step):
     n_max = ((min(cell, h) + step - 1) // step) * ((min(cell, w) + step - 1) // step)
     samples = np.full((ny * nx, n_max), np.inf, dtype=np.float32)
     counts = np.empty(ny * nx, dtype=np.int64)
-    finite = np.ones(ny * nx, dtype=np.bool_)
+    sampled = np.empty(ny * nx, dtype=np.int64)
     for t in range(ny * nx):
         y0 = (t // nx) * cell
         x0 = (t % nx) * cell
         k = 0
+        m = 0
         for y in range(y0, min(h, y0 + cell), step):
             for x in range(x0, min(w, x0 + cell), step):
                 v = image[y, x]
-                samples[t, k] = v
-                if not np.isfinite(v):
-                    finite[t] = False
-                k += 1
+                m += 1
+                if np.isfinite(v):
+                    samples[t, k] = v
+                    k += 1
         counts[t] = k
-    return samples, counts, finite
+        sampled[t] = m
+    return samples, counts, sampled
 
 
 @njit(cache=True)
-def mesh_stats(ordered, samples, counts, finite, ny, nx, n_iter, kappa):
-    """:func:`background_mesh`'s ``(level, sigma)`` from :func:`mesh_samples` and the same rows sorted
-    (``ordered``): the same numbers (a tile with NaN or infinities goes to :func:`_clipped_stats`, as there)."""
+def mesh_stats(ordered, counts, sampled, ny, nx, n_iter, kappa):
+    """:func:`background_mesh`'s ``(level, sigma)`` from :func:`mesh_samples`' rows sorted (``ordered``): the
+    same numbers (NaN for a tile with fewer than :data:`MIN_TILE_SAMPLES` finite samples)."""
     level = np.empty((ny, nx))
     sigma = np.empty((ny, nx))
-    buf = np.empty(samples.shape[1])
+    buf = np.empty(ordered.shape[1])
     for t in range(ny * nx):
         k = counts[t]
-        if finite[t]:
-            for i in range(k):
-                buf[i] = ordered[t, i]
-            med, sig = clipped_stats_of_sorted(buf[:k], n_iter, kappa)
-        else:
-            for i in range(k):
-                buf[i] = samples[t, i]
-            med, sig = _clipped_stats(buf[:k], n_iter, kappa)
+        if k < min(MIN_TILE_SAMPLES, sampled[t]):
+            level[t // nx, t % nx] = np.nan
+            sigma[t // nx, t % nx] = np.nan
+            continue
+        for i in range(k):
+            buf[i] = ordered[t, i]
+        med, sig = clipped_stats_of_sorted(buf[:k], n_iter, kappa)
         level[t // nx, t % nx] = med
         sigma[t // nx, t % nx] = sig
     return level, sigma
@@ -225,29 +239,34 @@ def mesh_stats(ordered, samples, counts, finite, ny, nx, n_iter, kappa):
 
 @njit(cache=True)
 def median3(a):
-    """3 x 3 median filter of a small 2-D float64 mesh, edges replicated (as ``np.median`` of the 9 values,
-    NaN when one is NaN)."""
+    """3 x 3 median filter of a small 2-D float64 mesh, edges replicated (as ``np.median`` of the 9 values);
+    NaN cells (tiles without data) are left out of their neighbours' medians and get the median of
+    their finite neighbours (NaN when none is)."""
     ny, nx = a.shape
     out = np.empty((ny, nx))
     buf = np.empty(9)
     for j in range(ny):
         for i in range(nx):
             k = 0
-            nan = False
             for dj in range(-1, 2):
                 jj = min(max(j + dj, 0), ny - 1)
                 for di in range(-1, 2):
                     v = a[jj, min(max(i + di, 0), nx - 1)]
                     if v != v:
-                        nan = True
-                    # insertion sort of the 9 values
+                        continue
+                    # insertion sort of the finite values
                     m = k
                     while m > 0 and buf[m - 1] > v:
                         buf[m] = buf[m - 1]
                         m -= 1
                     buf[m] = v
                     k += 1
-            out[j, i] = math.nan if nan else buf[4]
+            if k == 0:
+                out[j, i] = math.nan
+            elif k & 1:
+                out[j, i] = buf[k >> 1]
+            else:
+                out[j, i] = 0.5 * (buf[(k >> 1) - 1] + buf[k >> 1])
     return out
 
 
