@@ -233,3 +233,18 @@ def test_grid_builds_its_catalog_patterns_outside_the_frames_time(sensor16):
     b1 = grid_geometry(cam, db, cfg, eps)[1]
     assert b1 == grid_geometry(cam, db, cfg, 1.1 * eps)[1] and b1 >= 3 * 1.1 * eps
     assert grid_geometry(cam, db, cfg, 0.1 * eps)[1] == pytest.approx(cfg.buffer_px / cam.focal_length_px)
+
+
+def test_grid_warm_up_with_the_frames_camera_builds_their_patterns(sensor16):
+    """warm_up given the frames' camera (identify --camera) prepares the grid for it: the first frame builds
+    nothing (without the camera it warmed up on a 10 deg camera of its own, and the first frame built)."""
+    from startrack.identify import warm_up
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam, cat, stars = sensor16
+    frames = make_frames(stars, cam, Condition(sigma_px=0.5, min_catalog_stars=4), 1, 9, mag_limit=5.4)
+    for camera, built in ((cam, False), (None, True)):
+        db = build_kvector(cat, max_separation_deg(camera=cam))
+        warm_up("grid", db, IdentifyParams(), camera)
+        first = identify_stars(frames[0][0], cam, db, "grid", IdentifyParams())
+        assert ("prepare_ms" in first.details) is built

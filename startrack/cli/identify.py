@@ -166,12 +166,12 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
         from startrack.identify.base import CatalogStars
 
         deep = CatalogStars.from_catalog(load_catalog(catalog))
-    params_for_warm_up = IdentifyParams(max_time_ms=max_time_ms)
-    warm_up(algorithm, db, params_for_warm_up)
-    load_ms = (time.perf_counter() - t_load) * 1000
     override = None
     if camera_file:
         override = load_camera_file(camera_file)
+    params_for_warm_up = IdentifyParams(max_time_ms=max_time_ms)
+    warm_up(algorithm, db, params_for_warm_up, override)
+    load_ms = (time.perf_counter() - t_load) * 1000
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
                             max_false_probability=max_false_probability, max_proposals=max_proposals,
                             max_time_ms=max_time_ms)

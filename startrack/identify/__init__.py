@@ -89,12 +89,14 @@ def get_algorithm(name: str) -> Algorithm:
     return reg[name]
 
 
-def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
+def warm_up(algorithm: str, db, params: IdentifyParams | None = None, camera=None) -> None:
     """Compile (or load from numba's cache) every kernel ``algorithm`` uses, on a frame made from ``db``.
 
     Call once after loading a database so that the first real frame's
     ``time_ms`` holds identification only.  The frame: the database's stars
-    around its first star, seen by a 10 deg camera.
+    around its first star, seen by ``camera`` when the frames' camera is known
+    (what an algorithm prepares for a sensor, e.g. grid's catalog patterns, is
+    then the frames'), else by a 10 deg camera.
     """
     from startrack.camera import Camera
     from startrack.rotations import radec_roll_to_dcm, vector_to_radec
@@ -102,7 +104,7 @@ def warm_up(algorithm: str, db, params: IdentifyParams | None = None) -> None:
     ra, dec = vector_to_radec(db.star_vector[0])
     dcm = radec_roll_to_dcm(ra, dec, 17.0)
     widest = getattr(db, "max_angle_deg", None) or getattr(db, "fov_deg", 20.0)
-    cam = Camera.from_fov(min(10.0, 0.5 * float(widest)), 512, 512)
+    cam = camera if camera is not None else Camera.from_fov(min(10.0, 0.5 * float(widest)), 512, 512)
     body = db.star_vector @ dcm.T
     front = body[:, 2] > 0.9
     x, y = cam.vectors_to_pixels(body[front])
