@@ -921,50 +921,8 @@ def focal_scale(b, img, star_vec, cat):
     return num / den
 
 
-#: A focal-length scale fitted to the stars is used only when it differs from the one in use by
-#: more than this many of its standard errors (:func:`scale_sigma`): within them the stars
-#: cannot tell it from noise, and a verification at a noise-fitted focal length re-decides the
-#: same frame for nothing.
-FOCAL_SIGNIFICANCE = 3.0
-#: The standard error of a median over its least-squares counterpart's (normal errors, sqrt(pi / 2)).
-MEDIAN_EFFICIENCY = 1.2533141373155001
-
-
 @njit(cache=True)
-def scale_sigma(xs, ys, idx, sig_px):
-    """First-order standard error of a focal-length scale fitted to the detections ``idx`` (pixel
-    positions ``xs``, ``ys``; 1-sigma centroid errors ``sig_px`` per axis).
-
-    The scale is measured by the stars' offsets ``d_i`` from their centroid: for the least-squares
-    scale of a similarity fit, ``s = sum d_i . D_i / sum |d_i|^2`` (``D_i`` the catalog's), an
-    error ``e_i`` of detection ``i`` moves it by ``-s sum e_i . d_i / sum |d_i|^2`` (first order,
-    ``s`` near 1), so ``sigma = sqrt(sum sigma_i^2 |d_i|^2) / sum |d_i|^2``.  The least-squares scale
-    over all pairs' angles (:func:`focal_scale`) is the same fit for a small field (the sum over
-    pairs of ``|d_u - d_v|^2`` is ``n`` times the sum of ``|d_i|^2``), so this is its standard error
-    too, without a trigonometric function per pair.  NaN with fewer than two stars."""
-    n = idx.shape[0]
-    if n < 2:
-        return np.nan
-    mx = 0.0
-    my = 0.0
-    for t in range(n):
-        mx += xs[idx[t]]
-        my += ys[idx[t]]
-    mx /= n
-    my /= n
-    den = 0.0
-    num = 0.0
-    for t in range(n):
-        r2 = (xs[idx[t]] - mx) ** 2 + (ys[idx[t]] - my) ** 2
-        den += r2
-        num += sig_px[idx[t]] ** 2 * r2
-    if den <= 0.0:
-        return np.nan
-    return math.sqrt(num) / den
-
-
-@njit(cache=True)
-def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, sig_px, max_err, sky_cells,
+def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
                 sky_ra):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
 
@@ -973,20 +931,16 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     distance from the core's centre (none when two are; each star once, the first
     detection keeps it); the scale is the median of catalog over measured angle over
     the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see :func:`cone_stars`.
-
-    Returns ``(scale, sigma)``: ``sigma`` its standard error (:func:`scale_sigma` of the tentative
-    matches, times :data:`MEDIAN_EFFICIENCY`; ``sig_px`` the detections' 1-sigma centroid errors, px).
     """
     m = star_vec.shape[0]
     front = np.empty(m, dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, sig_px, max_err, front,
-                           nf)
+    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
 
 
 @njit(cache=True)
-def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, sig_px, max_err,
-                     sky_cells, sky_ra, near):
+def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
+                     sky_ra, near):
     """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core_near`'s stars near
     the field) when that cone holds it: the same stars in the same order, without a search of
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
@@ -997,8 +951,8 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
     fz = dcm[2, 2]
     apart = math.acos(min(1.0, max(-1.0, ax * fx + ay * fy + az * fz)))
     if apart + math.acos(min(1.0, max(-1.0, cos_front))) + 1e-6 > math.acos(min(1.0, max(-1.0, cos_cone))):
-        return field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, sig_px,
-                           max_err, sky_cells, sky_ra)
+        return field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                           sky_cells, sky_ra)
     front = np.empty(n_cone, dtype=np.int64)
     nf = 0
     for t in range(n_cone):
@@ -1006,12 +960,11 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
         if fx * star_vec[s, 0] + fy * star_vec[s, 1] + fz * star_vec[s, 2] > cos_front:
             front[nf] = s
             nf += 1
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, sig_px, max_err, front,
-                           nf)
+    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
 
 
 @njit(cache=True)
-def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, sig_px, max_err, front, nf):
+def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
     """:func:`field_scale` on the stars ``front[:nf]`` (its cone)."""
     n = xs.shape[0]
     px = np.empty(nf)
@@ -1031,7 +984,7 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         idx[k] = s
         k += 1
     if k < 4:
-        return np.nan, np.nan
+        return np.nan
     mx = 0.0
     my = 0.0
     for t in range(core.shape[0]):
@@ -1072,7 +1025,7 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         cat[nm] = s
         nm += 1
     if nm < 4:
-        return np.nan, np.nan
+        return np.nan
     npair = nm * (nm - 1) // 2
     mea = np.empty(npair)
     ratio = np.empty(npair)
@@ -1091,8 +1044,8 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
             keep[nk] = ratio[t]
             nk += 1
     if nk < 3:
-        return np.nan, np.nan
-    return np.median(keep[:nk]), MEDIAN_EFFICIENCY * scale_sigma(xs, ys, img[:nm], sig_px)
+        return np.nan
+    return np.median(keep[:nk])
 
 
 @njit(cache=True, inline="always")
@@ -1526,10 +1479,9 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         rmin = min(rmin, radius_px[i])
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
-    step, step_sigma = field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                                        sig_px, max_focal_error, sky_cells, sky_ra, near)
-    if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error and \
-            not abs(step - 1.0) < FOCAL_SIGNIFICANCE * step_sigma:
+    step = field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
+                            max_focal_error, sky_cells, sky_ra, near)
+    if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
@@ -1552,8 +1504,6 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
                 t += 1
         step = focal_scale(b, mi, star_vec, mc)
         if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
-            break
-        if abs(step - 1.0) < FOCAL_SIGNIFICANCE * scale_sigma(xs, ys, mi, sig_px):
             break
         if abs(step - 1.0) * far < 0.1 * rmin:
             break

@@ -567,27 +567,8 @@ def _focal_scale(b_all, img, cat, star_vec):
     return None if math.isnan(s) else float(s)
 
 
-def _scale_sigma(xs, ys, img, sig_px):
-    """:func:`startrack._kernels.identify.scale_sigma`: the standard error of a focal-length scale fitted to
-    the detections ``img`` (None when undefined)."""
-    from startrack._kernels.identify import scale_sigma
-
-    got = scale_sigma(xs, ys, np.asarray(img, dtype=np.int64), np.asarray(sig_px, dtype=np.float64))
-    return None if math.isnan(got) else float(got)
-
-
-def _significant(step, sigma):
-    """True when the scale ``step`` differs from 1 by more than
-    :data:`startrack._kernels.identify.FOCAL_SIGNIFICANCE` of its standard error ``sigma`` (a scale
-    within them is noise: the stars cannot tell it from 1)."""
-    from startrack._kernels.identify import FOCAL_SIGNIFICANCE
-
-    return sigma is None or not abs(step - 1.0) < FOCAL_SIGNIFICANCE * sigma
-
-
-def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err, zindex=None, sig_px=None):
-    """The focal-length scale the whole field implies and its standard error (``(None, None)`` with fewer
-    than four tentative matches).
+def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
+    """The focal-length scale the whole field implies (None with fewer than four tentative matches).
 
     With the attitude of a proposal solved at a wrong focal length, the other stars sit
     off their predictions by up to ``max_err`` times their distance from the core (the
@@ -596,27 +577,25 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
     wrong.  Each detection here takes the one predicted star within its radius widened by
     that displacement (none when two are), and the scale is the median of catalog over
     measured angle over the long pairs of these tentative matches (robust to the odd
-    wrong one).  Its standard error is :func:`_scale_sigma` of those matches (``sig_px`` the
-    detections' 1-sigma errors; zero when not given) times
-    :data:`startrack._kernels.identify.MEDIAN_EFFICIENCY`.
+    wrong one).
     """
-    sig = np.zeros(len(xs)) if sig_px is None else np.asarray(sig_px, dtype=np.float64)
     if not (camera.k1 or camera.k2):
         from startrack._kernels.identify import field_scale
 
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
-        got, sigma = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px),
-                                 float(camera.cx), float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
-                                 np.asarray(radius_px, dtype=np.float64), sig, float(max_err), *(zindex or _NO_INDEX))
-        return (None, None) if math.isnan(got) else (float(got), None if math.isnan(sigma) else float(sigma))
+        got = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px), float(camera.cx),
+                          float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
+                          np.asarray(radius_px, dtype=np.float64), float(max_err),
+                          *(zindex or _NO_INDEX))
+        return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
-        return None, None
+        return None
     x, y = camera.vectors_to_pixels(star_vec[front] @ dcm.T)
     ok = np.isfinite(x) & np.isfinite(y)
     front, x, y = front[ok], x[ok], y[ok]
     if len(front) < 4:
-        return None, None
+        return None
     d_core = np.hypot(xs - float(np.mean(xs[core])), ys - float(np.mean(ys[core])))
     allowed = radius_px + max_err * d_core
     dist = np.hypot(xs[:, None] - x[None, :], ys[:, None] - y[None, :])
@@ -627,23 +606,20 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
     take = (near <= allowed) & (second > allowed)
     img = np.flatnonzero(take)
     if len(img) < 4:
-        return None, None
+        return None
     cat = front[order[img, 0]]
     if len(np.unique(cat)) < len(cat):
         keep = np.unique(cat, return_index=True)[1]
         img, cat = img[keep], cat[keep]
         if len(img) < 4:
-            return None, None
+            return None
     iu = np.triu_indices(len(img), 1)
     mea = np.arccos(np.minimum((b_all[img] @ b_all[img].T)[iu], 1.0))
     ref = np.arccos(np.minimum((star_vec[cat] @ star_vec[cat].T)[iu], 1.0))
     long = mea >= 0.3 * mea.max()
     if np.count_nonzero(long) < 3:
-        return None, None
-    from startrack._kernels.identify import MEDIAN_EFFICIENCY
-
-    sigma = _scale_sigma(xs, ys, img, sig)
-    return float(np.median(ref[long] / mea[long])), None if sigma is None else MEDIAN_EFFICIENCY * sigma
+        return None
+    return float(np.median(ref[long] / mea[long]))
 
 
 #: Verify pinhole-camera proposals with one kernel call (:func:`_verify_fused`); False: the
@@ -718,13 +694,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     pays for the freedom (``scale_offset`` of :func:`verify`), and the identification is
     refused when the field's scale refuses it.  Without this, a focal-length error left a
     few outer stars matched to the wrong neighbour (paper 004 Fig. 7 conditions).
-    Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used, nor
-    scales within :data:`startrack._kernels.identify.FOCAL_SIGNIFICANCE` standard errors of
-    the one in use (:func:`_scale_sigma`: the stars' centroid errors through their spread
-    over the image): those are noise, and verifying again at them re-decides the frame for nothing.
-    The proposal's own scale is used without that test: before any verification the stars'
-    scale, noisy as it is, is a better guess than the nominal one when the focal length is
-    off (measured: frames with a 0.5 % focal error were lost with the test there).
+    Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used.
     Returns ``(verdict, focal scale or None)``.
     """
     star_vec = db.star_vector
@@ -743,10 +713,9 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-    step, step_sigma = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-                                    params.max_focal_error, _sky_index(db), sig_px)
-    if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error and \
-            _significant(step, step_sigma):
+    step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
+                        params.max_focal_error, _sky_index(db))
+    if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
         b_all = _pixels_to_vectors(cam, xs, ys)
@@ -756,8 +725,6 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
             break
         step = _focal_scale(b_all, v.star_index, v.cat_index, star_vec)
         if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
-            break
-        if not _significant(step, _scale_sigma(xs, ys, v.star_index, sig_px)):
             break
         # A step that moves the farthest matched star by less than a tenth of the smallest
         # match radius cannot change a match: the matches cannot tell it from 1 (noise).
