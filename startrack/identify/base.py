@@ -278,15 +278,18 @@ def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
         out = np.empty(n)
         out.fill(float(params.sigma_px))        # np.full's values, in a third of its time
         return out
-    out = np.full(n, 0.5)
-    reported = np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
-                         for s in stars], dtype=np.float64)
+    return _reported_sigmas(np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
+                                      for s in stars], dtype=np.float64), params)
+
+
+def _reported_sigmas(reported, params: IdentifyParams) -> np.ndarray:
+    """The stars' reported sigmas (NaN: none) scaled by ``params.reported_sigma_factor`` within 0.05-2 px; a
+    star without one gets the frame's median, a frame without any 0.5 px each."""
     ok = np.isfinite(reported) & (reported > 0)
-    if ok.any():
-        scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
-        # A star without a reported sigma gets the frame's median.
-        out = np.where(ok, scaled, float(np.median(scaled[ok])))
-    return out
+    if not ok.any():
+        return np.full(len(reported), 0.5)
+    scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
+    return np.where(ok, scaled, float(np.median(scaled[ok])))
 
 
 def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
@@ -455,14 +458,10 @@ def _table_arrays(table, params: IdentifyParams):
     if params.sigma_px is not None:
         sig = np.empty(n)
         sig.fill(float(params.sigma_px))
-        return xs, ys, flux, sig
-    sig = np.full(n, 0.5)
-    if table.sigma_px is not None:
-        reported = np.asarray(table.sigma_px, dtype=np.float64)
-        ok = np.isfinite(reported) & (reported > 0)
-        if ok.any():
-            scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
-            sig = np.where(ok, scaled, float(np.median(scaled[ok])))
+    elif table.sigma_px is None:
+        sig = np.full(n, 0.5)
+    else:
+        sig = _reported_sigmas(np.asarray(table.sigma_px, dtype=np.float64), params)
     return xs, ys, flux, sig
 
 
