@@ -459,17 +459,19 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         return CentroidResult(stars, rejected, float(level), float(sigma), (time.perf_counter() - t0) * 1000.0,
                               reason, params)
 
-    top, bottom = float(img.max()), float(img.min())
-    if not (math.isfinite(top) and math.isfinite(bottom)):
+    sat = options.saturation_dn if options.saturation_dn is not None else saturation
+    bottom = float(img.min())
+    top = float(img.max()) if sat is None else None     # the saturation level when none is given
+    probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
+    if not math.isfinite(bottom) or (top is not None and not math.isfinite(top)):
         # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
         finite = img[np.isfinite(img)]
         if finite.size == 0:
             return result([], [], float("nan"), 0.0, "image has no finite pixel value")
-        top, bottom = float(finite.max()), float(finite.min())
-    sat = options.saturation_dn if options.saturation_dn is not None else (saturation if saturation is not None
-                                                                              else top)
-    probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
-    probe = probe[np.isfinite(probe)] if probe.dtype.kind == "f" and not np.isfinite(probe).all() else probe
+        bottom = float(finite.min())
+        top = float(finite.max()) if top is not None else None
+        probe = probe[np.isfinite(probe)]
+    sat = top if sat is None else sat
     frac_sat = (float(np.mean(probe >= sat)) if probe.size else 0.0) if sat > bottom else 1.0
     if frac_sat > 0.5:
         return result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of pixels)")

@@ -941,7 +941,7 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
 @njit(cache=True)
 def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
                      sky_ra, near):
-    """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core_near`'s stars near
+    """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core`'s stars near
     the field) when that cone holds it: the same stars in the same order, without a search of
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
     plus the field's radius is within the cone's radius (1e-6 rad to spare for rounding)."""
@@ -1177,15 +1177,10 @@ def _to_global(match, sub):
 
 
 @njit(cache=True)
-def verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
+def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
                 cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
                 sky_ra):
-    """:func:`verify_core`, also returning the database stars near the field it worked on:
-    ``(..., near, n_cone, ax, ay, az, cos_cone)`` -- ``near[:n_cone]`` are the stars ``s`` with
-    ``(ax, ay, az) . star_vec_all[s] > cos_cone`` (:func:`cone_stars`, ascending), the rest of
-    ``near`` the proposal's stars outside that cone.
-
-    The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
+    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine``), the
     bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
@@ -1195,10 +1190,13 @@ def verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, ra
 
     ``sky_cells``/``sky_ra``: the database's sky index (:func:`sky_index`; empty: none).
 
-    Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
-    ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
-    leave-one-out, 2 = the proposal's stars do not agree with the refined attitude, 3 =
-    most bright predicted stars missing, 4 = too few matches.
+    Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor,
+    near, n_cone, ax, ay, az, cos_cone)``; ``code`` 0 = passed the checks (the probability decides),
+    1 = a proposal star fails leave-one-out, 2 = the proposal's stars do not agree with the refined
+    attitude, 3 = most bright predicted stars missing, 4 = too few matches.  The last six are the
+    database stars near the field that it worked on (:func:`field_scale_near`): ``near[:n_cone]``
+    the stars ``s`` with ``(ax, ay, az) . star_vec_all[s] > cos_cone`` (:func:`cone_stars`,
+    ascending), the rest of ``near`` the proposal's stars outside that cone.
     """
     n = b.shape[0]
     m_all = star_vec_all.shape[0]
@@ -1318,29 +1316,6 @@ def verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, ra
 
 
 @njit(cache=True)
-def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
-                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
-                sky_ra):
-    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
-
-    Attitude from the proposal and two rounds of match-all (``refine``), the
-    bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
-    matches (:func:`resolve_conflicts`), the leave-one-out test, the proposal's
-    agreement, the bright stars missing, the matched count, and the numbers of the
-    false-match probability (the caller multiplies them out): :func:`verify_core_near`.
-
-    Returns ``(code, match, q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit_floor)``;
-    ``code`` 0 = passed the checks (the probability decides), 1 = a proposal star fails
-    leave-one-out, 2 = the proposal's stars do not agree with the refined attitude, 3 =
-    most bright predicted stars missing, 4 = too few matches.
-    """
-    got = verify_core_near(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags,
-                           cos_fov, focal, cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2,
-                           mag_floor, mag_gate, sky_cells, sky_ra)
-    return got[0], got[1], got[2], got[3], got[4], got[5], got[6], got[7], got[8], got[9], got[10], got[11]
-
-
-@njit(cache=True)
 def binomial_sf(m, n, p):
     """``P(X >= m)`` for ``X ~ Binomial(n, p)`` (:func:`startrack.identify.base._binomial_sf`: exact
     binomial coefficients up to ``n = 60``, then their floating-point product)."""
@@ -1395,7 +1370,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
 
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, near)``: ``code`` 0 =
     accepted, 1-4 as :func:`verify_core`, 5 = false-match probability above ``max_false``; ``near``
-    the stars near the field (:func:`verify_core_near`'s last six values).
+    the stars near the field (:func:`verify_core`'s last six values).
     """
     n = b.shape[0]
     radius = np.empty(n)
@@ -1406,7 +1381,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
         radius[i] = r / focal
         sig_rad[i] = sig_px[i] / focal
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
-    got = verify_core_near(
+    got = verify_core(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
         width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells, sky_ra)
     code, match, q, dcm, missing, n_bright, p_mag, bright_pred, e_core, p_hit = (

@@ -273,18 +273,22 @@ class SearchOutcome:
 
 def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
     """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
-    n = len(stars)
+    return _sigmas(len(stars), params, lambda: np.array(
+        [s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan for s in stars],
+        dtype=np.float64))
+
+
+def _sigmas(n: int, params: IdentifyParams, reported) -> np.ndarray:
+    """:func:`star_sigmas_px` of ``n`` stars: ``params.sigma_px`` for all, else ``reported()`` (their reported
+    sigmas, NaN: none; ``None``: no column) scaled by ``params.reported_sigma_factor`` within 0.05-2 px, a
+    star without one getting the frame's median and a frame without any 0.5 px each."""
     if params.sigma_px is not None:
         out = np.empty(n)
         out.fill(float(params.sigma_px))        # np.full's values, in a third of its time
         return out
-    return _reported_sigmas(np.array([s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan
-                                      for s in stars], dtype=np.float64), params)
-
-
-def _reported_sigmas(reported, params: IdentifyParams) -> np.ndarray:
-    """The stars' reported sigmas (NaN: none) scaled by ``params.reported_sigma_factor`` within 0.05-2 px; a
-    star without one gets the frame's median, a frame without any 0.5 px each."""
+    reported = reported()
+    if reported is None:
+        return np.full(n, 0.5)
     ok = np.isfinite(reported) & (reported > 0)
     if not ok.any():
         return np.full(len(reported), 0.5)
@@ -454,14 +458,8 @@ def _table_arrays(table, params: IdentifyParams):
     xs = np.ascontiguousarray(table.x, dtype=np.float64)
     ys = np.ascontiguousarray(table.y, dtype=np.float64)
     flux = np.ascontiguousarray(table.flux, dtype=np.float64)
-    n = len(xs)
-    if params.sigma_px is not None:
-        sig = np.empty(n)
-        sig.fill(float(params.sigma_px))
-    elif table.sigma_px is None:
-        sig = np.full(n, 0.5)
-    else:
-        sig = _reported_sigmas(np.asarray(table.sigma_px, dtype=np.float64), params)
+    sig = _sigmas(len(xs), params,
+                  lambda: None if table.sigma_px is None else np.asarray(table.sigma_px, dtype=np.float64))
     return xs, ys, flux, sig
 
 
@@ -519,7 +517,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     # leave-one-out, the proposal's agreement, bright stars missing, the count of matches
     # (reasons below), and the numbers of the false-match probability.
     fl = flux if flux is not None else np.full(n_all, np.nan)
-    code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit = verify_core(
+    code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit, *_near = verify_core(
         b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
         int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, *_sky_index(db))
     if code == 1:
