@@ -179,6 +179,20 @@ def bench_identify_compare():
     return "identify: six algorithms beside tetra3rs and cedar-solve (issue 14)", text.split("\n", 2)[2]
 
 
+def bench_identify_speed():
+    import identify_speed as isp
+
+    path = os.path.join(OUT_DIR, "identify_speed.md")
+    rows = []
+    for fov in ("12", "15", "20"):
+        isp.main(["--fov", fov, "--size", "1280x960", "--count", os.environ.get("IDENTIFY_SPEED_COUNT", "1000"),
+                  "--out", path])
+        with open(path) as fh:
+            rows.append(fh.read())
+    return ("identify: pyramid's median time beside tetra3rs's, alternated passes in one process (issue 14: ratio "
+            "<= 1)", "\n".join(rows))
+
+
 def bench_attitude():
     import pipeline_bench as pb
 
@@ -247,7 +261,8 @@ def bench_accuracy():
 
 
 SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
-            "identify": bench_identify, "identify-compare": bench_identify_compare, "attitude": bench_attitude,
+            "identify": bench_identify, "identify-compare": bench_identify_compare,
+            "identify-speed": bench_identify_speed, "attitude": bench_attitude,
             "track": bench_track,
             "accuracy": bench_accuracy}
 
