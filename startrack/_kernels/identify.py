@@ -943,8 +943,15 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     detection keeps it); the scale is the median of catalog over measured angle over
     the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see :func:`cone_stars`.
     """
-    m = star_vec.shape[0]
-    front = np.empty(m, dtype=np.int64)
+    return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                             sky_cells, sky_ra)[0]
+
+
+@njit(cache=True)
+def _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
+                      sky_ra):
+    """:func:`field_scale` with :func:`_field_scale_of`'s matches and pair angles."""
+    front = np.empty(star_vec.shape[0], dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
     return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
 
@@ -955,15 +962,17 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
     """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core`'s stars near
     the field) when that cone holds it: the same stars in the same order, without a search of
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
-    plus the field's radius is within the cone's radius (1e-6 rad to spare for rounding)."""
+    plus the field's radius is within the cone's radius (1e-6 rad to spare for rounding).
+
+    Returns :func:`_field_scale_of`'s tuple (the scale first)."""
     sub, n_cone, ax, ay, az, cos_cone = near
     fx = dcm[2, 0]
     fy = dcm[2, 1]
     fz = dcm[2, 2]
     apart = math.acos(min(1.0, max(-1.0, ax * fx + ay * fy + az * fz)))
     if apart + math.acos(min(1.0, max(-1.0, cos_front))) + 1e-6 > math.acos(min(1.0, max(-1.0, cos_cone))):
-        return field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
-                           sky_cells, sky_ra)
+        return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
+                                 max_err, sky_cells, sky_ra)
     front = np.empty(n_cone, dtype=np.int64)
     nf = 0
     for t in range(n_cone):
@@ -976,7 +985,13 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
 
 @njit(cache=True)
 def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
-    """:func:`field_scale` on the stars ``front[:nf]`` (its cone)."""
+    """:func:`field_scale` on the stars ``front[:nf]`` (its cone).
+
+    Returns ``(scale, img, cat, pair_cat, pair_mea)``: the tentative matches ``img[u]`` -> ``cat[u]``
+    (ascending detections) and, for their pairs ``u < v`` in order, the catalog and the measured
+    angles (:func:`focal_scale_reusing` takes them; empty when there were fewer than four)."""
+    none_i = np.empty(0, dtype=np.int64)
+    none_f = np.empty(0)
     n = xs.shape[0]
     px = np.empty(nf)
     py = np.empty(nf)
@@ -995,7 +1010,7 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         idx[k] = s
         k += 1
     if k < 4:
-        return np.nan
+        return np.nan, none_i, none_i, none_f, none_f
     mx = 0.0
     my = 0.0
     for t in range(core.shape[0]):
@@ -1036,16 +1051,18 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         cat[nm] = s
         nm += 1
     if nm < 4:
-        return np.nan
+        return np.nan, none_i, none_i, none_f, none_f
     npair = nm * (nm - 1) // 2
     mea = np.empty(npair)
+    ang = np.empty(npair)
     ratio = np.empty(npair)
     t = 0
     longest = 0.0
     for u in range(nm):
         for v in range(u + 1, nm):
             mea[t] = _angle(b[img[u]], b[img[v]])
-            ratio[t] = _angle(star_vec[cat[u]], star_vec[cat[v]]) / mea[t] if mea[t] > 0 else np.nan
+            ang[t] = _angle(star_vec[cat[u]], star_vec[cat[v]])
+            ratio[t] = ang[t] / mea[t] if mea[t] > 0 else np.nan
             longest = max(longest, mea[t])
             t += 1
     keep = np.empty(npair)
@@ -1054,9 +1071,46 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         if mea[t] >= 0.3 * longest and np.isfinite(ratio[t]):
             keep[nk] = ratio[t]
             nk += 1
-    if nk < 3:
+    scale = np.median(keep[:nk]) if nk >= 3 else np.nan
+    return scale, img[:nm], cat[:nm], ang, mea
+
+
+@njit(cache=True)
+def focal_scale_reusing(b, img, star_vec, cat, fs_img, fs_cat, fs_ang, fs_mea, same_b):
+    """:func:`focal_scale` (the same sums in the same order, so the same value), taking the angles of a
+    pair from :func:`_field_scale_of`'s result (``fs_*``) where it holds the pair: the catalog angle
+    when both detections have the same stars there, the measured one too when ``same_b`` (``b`` is
+    the array the field's scale measured).  Most pairs of a verified field are there: each saves one
+    or two ``acos``."""
+    n = img.shape[0]
+    if n < 3:
         return np.nan
-    return np.median(keep[:nk])
+    nf = fs_img.shape[0]
+    pos = np.full(n, -1, dtype=np.int64)
+    w = 0
+    for u in range(n):
+        while w < nf and fs_img[w] < img[u]:
+            w += 1
+        if w < nf and fs_img[w] == img[u] and fs_cat[w] == cat[u]:
+            pos[u] = w
+    num = 0.0
+    den = 0.0
+    for u in range(n):
+        pu = pos[u]
+        for v in range(u + 1, n):
+            pv = pos[v]
+            if pu >= 0 and pv >= 0:
+                t = pu * (2 * nf - pu - 1) // 2 + pv - pu - 1
+                r = fs_ang[t]
+                m = fs_mea[t] if same_b else _angle(b[img[u]], b[img[v]])
+            else:
+                m = _angle(b[img[u]], b[img[v]])
+                r = _angle(star_vec[cat[u]], star_vec[cat[v]])
+            num += r * m
+            den += m * m
+    if den <= 0.0:
+        return np.nan
+    return num / den
 
 
 @njit(cache=True, inline="always")
@@ -1465,9 +1519,12 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         rmin = min(rmin, radius_px[i])
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
-    step = field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                            max_focal_error, sky_cells, sky_ra, near)
+    step, fs_img, fs_cat, fs_ang, fs_mea = field_scale_near(
+        b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px, max_focal_error, sky_cells,
+        sky_ra, near)
+    same_b = True       # b is the one the field's scale measured
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
+        same_b = False
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
@@ -1488,11 +1545,12 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
                 mc[t] = match[i]
                 far = max(far, math.hypot(xs[i] - cx, ys[i] - cy))
                 t += 1
-        step = focal_scale(b, mi, star_vec, mc)
+        step = focal_scale_reusing(b, mi, star_vec, mc, fs_img, fs_cat, fs_ang, fs_mea, same_b)
         if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
             break
         if abs(step - 1.0) * far < 0.1 * rmin:
             break
+        same_b = False
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
