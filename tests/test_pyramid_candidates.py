@@ -26,20 +26,22 @@ def setup(catalog):
     return cam, db, catalog.filter_magnitude(None, 5.5)
 
 
+def _window(b, tol, margin, u, v):
+    """The cosine window of the image pair (u, v), as the kernel makes it."""
+    th = math.acos(min(1.0, max(-1.0, float(b[u] @ b[v]))))
+    e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+    return math.cos(min(th + e, math.pi)), math.cos(max(th - e, 0.0))
+
+
 def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
     """The catalog stars R with the pair (I, R) in the database and the three angles in tolerance."""
-    def window(u, v):
-        th = math.acos(min(1.0, float(b[u] @ b[v])))
-        e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
-        return math.cos(min(th + e, math.pi)), math.cos(max(th - e, 0.0))
-
-    lo, hi = window(i, r)
+    lo, hi = _window(b, tol, margin, i, r)
     sel = ((db.pair_i == I) | (db.pair_j == I)) & (db.pair_cos >= lo) & (db.pair_cos <= hi)
     cand = np.where(db.pair_i[sel] == I, db.pair_j[sel], db.pair_i[sel]).astype(np.int64)
     cand = cand[(cand != J) & (cand != K)]
     sv = db.star_vector
     for other, (u, v) in ((J, (j, r)), (K, (k, r))):
-        lo, hi = window(u, v)
+        lo, hi = _window(b, tol, margin, u, v)
         d = sv[cand] @ sv[other]
         cand = cand[(d >= lo) & (d <= hi)]
     return cand
@@ -74,3 +76,51 @@ def test_fourth_star_confirmation_matches_brute_force(setup):
                     assert len(_unique_r(db, b, tol, margin, i, j, k, s, I, J, K)) != 1
                 assert _unique_r(db, b, tol, margin, i, j, k, r, I, J, K).tolist() == [R]
     assert rows >= 100 and multi >= 5, (rows, multi)
+
+
+def test_triangles_match_brute_force(setup):
+    """The number of catalog triangles of a triad is that of a brute-force search: every ordered pair
+    (I, J) of the database at theta_ij, K paired with I at theta_ik, the angle J-K within its window
+    and the same handedness.  At 20 deg of pair range and 1 px noise windows hold hundreds of
+    pairs, so stars left out by any shortcut (the theta_jk pre-filter) would change the count."""
+    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack.identify.pyramid import pair_adjacency
+
+    cam, db, stars = setup
+    line = np.asarray(db.line, dtype=np.float64)
+    quad = np.asarray(db.quad, dtype=np.float64)
+    sv = db.star_vector
+    params = IdentifyParams(sigma_px=1.0)
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    cond = Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4)
+    checked = found = 0
+    for frame, _, _ in make_frames(stars, cam, cond, 15, 3, mag_limit=5.5):
+        xs = np.array([s["x"] for s in frame])
+        ys = np.array([s["y"] for s in frame])
+        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
+        tol = params.tolerance_sigma * np.full(len(b), 1.0) / cam.focal_length_px
+        for i, j, k in smart_triads(len(b))[:8].tolist():
+            _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
+                                          db.kvector, line, db.kquad, quad, False, 10_000, 256,
+                                          *pair_adjacency(db))
+            (lo_ij, hi_ij), (lo_ik, hi_ik), (lo_jk, hi_jk) = (_window(b, tol, margin, u, v)
+                                                              for u, v in ((i, j), (i, k), (j, k)))
+            sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
+            ij = np.concatenate([np.stack([db.pair_i[sel], db.pair_j[sel]], 1),
+                                 np.stack([db.pair_j[sel], db.pair_i[sel]], 1)]).astype(np.int64)
+            sel = (db.pair_cos >= lo_ik) & (db.pair_cos <= hi_ik)
+            partners = {}
+            for a, z in zip(db.pair_i[sel].tolist(), db.pair_j[sel].tolist()):
+                partners.setdefault(a, []).append(z)
+                partners.setdefault(z, []).append(a)
+            hand = np.linalg.det(np.stack([b[i], b[j], b[k]])) > 0
+            want = 0
+            for I, J in ij.tolist():
+                for K in partners.get(I, []):
+                    d = float(sv[J] @ sv[K])
+                    if K != J and lo_jk <= d <= hi_jk and (np.linalg.det(np.stack([sv[I], sv[J], sv[K]])) > 0) == hand:
+                        want += 1
+            assert n_tri == want, (i, j, k, n_tri, want)
+            checked += 1
+            found += want
+    assert checked >= 100 and found >= 150, (checked, found)

@@ -133,9 +133,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
     s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
     n_cat = star_vec.shape[0]
-    head = np.full(n_cat, -1, dtype=np.int64)
-    nxt = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
-    other = np.empty(2 * max(e2 - s2, 0), dtype=np.int64)
+    head = np.full(n_cat, -1, dtype=np.int32)
+    nxt = np.empty(2 * max(e2 - s2, 0), dtype=np.int32)
+    other = np.empty(2 * max(e2 - s2, 0), dtype=np.int32)
     m = 0
     for t in range(s2, e2):
         c = pair_cos[t]
@@ -157,6 +157,20 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
     lo_jk = math.cos(min(th_jk + e_jk, math.pi))
     hi_jk = math.cos(max(th_jk - e_jk, 0.0))
+    # J and K of a triangle both have a database pair at theta_jk when that window lies within the
+    # database's pairs (every pair of its stars closer than its largest angle is in it, and
+    # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
+    # passed over before their vectors are read.  The window is widened by 1e-12 so that no
+    # cosine rounding can drop a star the exact test below would keep.
+    mark = np.ones(n_cat, dtype=np.bool_)
+    if pair_cos.shape[0] > 0 and lo_jk - 1e-12 >= pair_cos[0] + 1e-9:
+        mark[:] = False
+        s3, e3 = kvector_range(kvector, line[0], line[1], lo_jk - 1e-12, hi_jk + 1e-12)
+        for t in range(s3, e3):
+            c = pair_cos[t]
+            if c >= lo_jk - 1e-12 and c <= hi_jk + 1e-12:
+                mark[pair_i[t]] = True
+                mark[pair_j[t]] = True
     tri = np.empty((max_triangles, 3), dtype=np.int64)
     nt = 0
     s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
@@ -171,9 +185,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         if c < lo_ij or c > hi_ij:
             continue
         lead[nl] = t
-        nl += head[pair_i[t]] >= 0
+        nl += (head[pair_i[t]] >= 0) & mark[pair_j[t]]
         lead[nl] = -1 - t
-        nl += head[pair_j[t]] >= 0
+        nl += (head[pair_j[t]] >= 0) & mark[pair_i[t]]
     for u in range(nl):
         t = lead[u]
         I = pair_i[t] if t >= 0 else pair_j[-1 - t]
@@ -182,7 +196,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         while p >= 0:
             K = other[p]
             p = nxt[p]
-            if K == J:
+            if K == J or not mark[K]:
                 continue
             d = _dot(star_vec[J], star_vec[K])
             if d < lo_jk or d > hi_jk:
@@ -202,6 +216,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             out[no, 3] = tri[t, 2]
             no += 1
         return out[:no], nt
+    # The fourth star's cosine windows to I, J and K, made at its first use (the same for every triangle).
+    win = np.empty((n, 6))
+    made = np.zeros(n, dtype=np.bool_)
     for t in range(nt):
         fI = tri[t, 0]
         fJ = tri[t, 1]
@@ -211,18 +228,26 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         for r in range(n):
             if r == i or r == j or r == k:
                 continue
-            th_ir = _angle(b[i], b[r])
-            th_jr = _angle(b[j], b[r])
-            th_kr = _angle(b[k], b[r])
-            e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
-            e_jr = math.sqrt(tol[j] ** 2 + tol[r] ** 2) + margin
-            e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
-            lo = math.cos(th_ir + e_ir)
-            hi = math.cos(max(th_ir - e_ir, 0.0))
-            lo_jr = math.cos(min(th_jr + e_jr, math.pi))
-            hi_jr = math.cos(max(th_jr - e_jr, 0.0))
-            lo_kr = math.cos(min(th_kr + e_kr, math.pi))
-            hi_kr = math.cos(max(th_kr - e_kr, 0.0))
+            if not made[r]:
+                th_ir = _angle(b[i], b[r])
+                th_jr = _angle(b[j], b[r])
+                th_kr = _angle(b[k], b[r])
+                e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
+                e_jr = math.sqrt(tol[j] ** 2 + tol[r] ** 2) + margin
+                e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
+                win[r, 0] = math.cos(th_ir + e_ir)
+                win[r, 1] = math.cos(max(th_ir - e_ir, 0.0))
+                win[r, 2] = math.cos(min(th_jr + e_jr, math.pi))
+                win[r, 3] = math.cos(max(th_jr - e_jr, 0.0))
+                win[r, 4] = math.cos(min(th_kr + e_kr, math.pi))
+                win[r, 5] = math.cos(max(th_kr - e_kr, 0.0))
+                made[r] = True
+            lo = win[r, 0]
+            hi = win[r, 1]
+            lo_jr = win[r, 2]
+            hi_jr = win[r, 3]
+            lo_kr = win[r, 4]
+            hi_kr = win[r, 5]
             # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
             p = a0 + np.searchsorted(adj_cos[a0:a1], lo)
             nR = 0
