@@ -172,7 +172,7 @@ def esoq2(body, reference, weights=None):
         for col in range(3):
             if col != axis:
                 bmat[:, col] = -bmat[:, col]
-    _, lam, _ = _quest_core(bmat, _upper_bound(body, reference, a))
+    lam = _quest_core(bmat, _upper_bound(body, reference, a))[4]
     s = bmat + bmat.T
     z = np.array([bmat[1, 2] - bmat[2, 1], bmat[2, 0] - bmat[0, 2], bmat[0, 1] - bmat[1, 0]])
     tr = np.trace(bmat)

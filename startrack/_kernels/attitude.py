@@ -18,18 +18,6 @@ def profile(b, r, w):
     return bm
 
 
-@njit(cache=True, inline="always")
-def _mv(m, v):
-    return np.array([m[0, 0] * v[0] + m[0, 1] * v[1] + m[0, 2] * v[2],
-                     m[1, 0] * v[0] + m[1, 1] * v[1] + m[1, 2] * v[2],
-                     m[2, 0] * v[0] + m[2, 1] * v[1] + m[2, 2] * v[2]])
-
-
-@njit(cache=True, inline="always")
-def _vdot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
 @njit(cache=True)
 def _quest_core(bm, lam0):
     """QUEST on a profile matrix: Newton on the characteristic equation, adjugate quaternion.
@@ -42,7 +30,7 @@ def _quest_core(bm, lam0):
     ``lam0`` (Shuster starts at ``sum w``; an upper bound makes sure the largest
     root is the one found).  Then ``alpha = l^2 - sigma^2 + kappa``, ``beta = l - sigma``,
     ``gamma = (l + sigma) alpha - Delta``, ``X = (alpha I + beta S + S^2) Z`` and
-    ``q = (X, gamma) / norm``.  Returns ``(q, lambda, gamma_rel)``.
+    ``q = (X, gamma) / norm``.  Returns ``(q1, q2, q3, q4, lambda, gamma_rel)``.
     """
     # Scalars throughout (no temporary arrays: this runs once per leave-one-out star); the same
     # operations in the same order as the matrix expressions in the docstring.
@@ -95,17 +83,10 @@ def _quest_core(bm, lam0):
     x1 = alpha * z1 + beta * sz1 + s2z1
     x2 = alpha * z2 + beta * sz2 + s2z2
     norm = math.sqrt(gamma * gamma + (x0 * x0 + x1 * x1 + x2 * x2))
-    q = np.empty(4)
     # (X, gamma) scales as lambda^3: a tiny norm is all round-off (a rotation of 180 degrees).
     if norm <= 1e-10 * max(1.0, abs(lam)) ** 3:
-        q[:] = 0.0
-        q[3] = 1.0
-        return q, lam, 0.0
-    q[0] = x0 / norm
-    q[1] = x1 / norm
-    q[2] = x2 / norm
-    q[3] = gamma / norm
-    return q, lam, abs(gamma) / norm
+        return 0.0, 0.0, 0.0, 1.0, lam, 0.0
+    return x0 / norm, x1 / norm, x2 / norm, gamma / norm, lam, abs(gamma) / norm
 
 
 @njit(cache=True)
@@ -117,26 +98,53 @@ def quest(b, r, w):
     (Shuster & Oh's method of sequential rotations: two columns of ``B``
     negated) and the result turned back.  Returns ``(q, lambda_max)``.
     """
-    bm = profile(b, r, w)
+    every = np.arange(w.shape[0])
+    return quest_pairs(b, every, r, every, w)
+
+
+@njit(cache=True)
+def quest_pairs(b, img, r, cat, w):
+    """:func:`quest` of ``b[img]``, ``r[cat]``, ``w`` without gathering the rows (the same sums in the same
+    order, so the same bits)."""
+    bm = np.zeros((3, 3))
+    for t in range(img.shape[0]):
+        i = img[t]
+        c = cat[t]
+        for p in range(3):
+            for q in range(3):
+                bm[p, q] += w[t] * b[i, p] * r[c, q]
     # Newton from an upper bound of lambda_max (sum w |b| |r|), so that it
     # converges to the largest root even when the second root is close (two
     # stars) or the vectors are not exactly unit.
     lam0 = 0.0
-    for i in range(w.shape[0]):
-        lam0 += w[i] * math.sqrt(_vdot(b[i], b[i]) * _vdot(r[i], r[i]))
+    for t in range(img.shape[0]):
+        lam0 += w[t] * math.sqrt(_norm2(b, img[t]) * _norm2(r, cat[t]))
     return quest_profile(bm, lam0)
+
+
+@njit(cache=True, inline="always")
+def _norm2(v, i):
+    """``|v[i]|^2`` (the row's squared length, without a view of the row)."""
+    return v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
 
 
 @njit(cache=True)
 def quest_profile(bm, lam0):
     """:func:`quest` from the profile matrix ``bm`` and the bound ``lam0 = sum w |b| |r|``."""
+    q1, q2, q3, q4, lam = _quest_scalars(bm, lam0)
+    return np.array([q1, q2, q3, q4]), lam
+
+
+@njit(cache=True)
+def _quest_scalars(bm, lam0):
+    """:func:`quest_profile` as five scalars ``(q1, q2, q3, q4, lambda)`` (no array: it runs once per
+    leave-one-out star)."""
     lam0 *= 1.0 + 1e-12
-    q, lam, g = _quest_core(bm, lam0)
+    q1, q2, q3, q4, lam, g = _quest_core(bm, lam0)
     if g > 1e-2:
-        if q[3] < 0:
-            q = -q
-        return q, lam
-    best_q = q
+        if q4 < 0:
+            return -q1, -q2, -q3, -q4, lam
+        return q1, q2, q3, q4, lam
     best_g = g
     for axis in range(3):
         bm2 = bm.copy()
@@ -144,23 +152,22 @@ def quest_profile(bm, lam0):
             for col in range(3):
                 if col != axis:
                     bm2[row, col] = -bm[row, col]
-        q2, lam2, g2 = _quest_core(bm2, lam0)
+        p1, p2, p3, p4, lam2, g2 = _quest_core(bm2, lam0)
         if g2 > best_g:
             # Undo the 180-degree turn of the reference frame: q = q' (x) e_axis.
             if axis == 0:
-                qq = np.array([q2[3], -q2[2], q2[1], -q2[0]])
+                q1, q2, q3, q4 = p4, -p3, p2, -p1
             elif axis == 1:
-                qq = np.array([q2[2], q2[3], -q2[0], -q2[1]])
+                q1, q2, q3, q4 = p3, p4, -p1, -p2
             else:
-                qq = np.array([-q2[1], q2[0], q2[3], -q2[2]])
-            best_q = qq
+                q1, q2, q3, q4 = -p2, p1, p4, -p3
             best_g = g2
             lam = lam2
         if best_g > 0.3:
             break
-    if best_q[3] < 0:
-        best_q = -best_q
-    return best_q, lam
+    if q4 < 0:
+        return -q1, -q2, -q3, -q4, lam
+    return q1, q2, q3, q4, lam
 
 
 @njit(cache=True)
@@ -181,23 +188,23 @@ def quat_to_dcm(q):
 
 
 @njit(cache=True)
-def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, radius):
-    """Nearest catalog star (within ``radius`` rad, unambiguous) for every image vector.
+def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, margin_px, lists, pv):
+    """The catalog stars in front of the camera with ``dcm`` (``z >= cos_fov``), in their order.
 
-    Catalog stars are projected with ``dcm`` and kept when they land on the
-    sensor (plus the radius).  A match needs the nearest catalog star within
-    the radius and no other within twice the radius, unless the two catalog
-    stars are closer to each other than the radius: an unresolved pair (one
-    blob), of which the nearer is taken.  Each catalog star is used once (the
-    closer image star wins).
-    Returns ``(match, n_predicted)`` with ``match[i]`` a catalog index or -1.
+    Three lists of (star index ``lists[t]``, camera-frame direction ``pv[t] = dcm star_vec[s]``),
+    each in the stars' order (``m`` = ``len(star_vec)``; ``lists`` and ``pv`` hold ``3 m``):
+    rows ``[0, k)`` every star in front, ``[m, m + n_near)`` those projected on the sensor or
+    within ``margin_px`` pixels of it, ``[2 m, 2 m + n_on)`` those on the sensor.  The matching
+    (:func:`match_projected`) and the verification's checks
+    (:func:`startrack._kernels.identify.check_matches`, ``resolve_conflicts``) read the same
+    projection of an attitude instead of each projecting the stars again, each from a
+    contiguous list (a slice of ``lists`` and ``pv``: indices that need no check for
+    negative values).  Returns ``(k, n_near, n_on)``.
     """
-    n = b.shape[0]
     m = star_vec.shape[0]
-    margin = radius * focal
-    cand = np.empty(m, dtype=np.int64)
-    pred = np.empty((m, 3))
-    nc = 0
+    k = 0
+    n_near = m
+    n_on = 2 * m
     for s in range(m):
         z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
         if z < cos_fov:
@@ -205,24 +212,51 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
         px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
-        if px < -0.5 - margin or px > width - 0.5 + margin or py < -0.5 - margin or py > height - 0.5 + margin:
-            continue
-        cand[nc] = s
-        pred[nc, 0] = x
-        pred[nc, 1] = y
-        pred[nc, 2] = z
-        nc += 1
-    match = np.full(n, -1, dtype=np.int64)
-    best_ang = np.full(n, 1e9)
+        _put_row(lists, pv, k, s, x, y, z)
+        k += 1
+        if not (px < -0.5 - margin_px or px > width - 0.5 + margin_px or py < -0.5 - margin_px
+                or py > height - 0.5 + margin_px):
+            _put_row(lists, pv, n_near, s, x, y, z)
+            n_near += 1
+        if not (px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5):
+            _put_row(lists, pv, n_on, s, x, y, z)
+            n_on += 1
+    return k, n_near - m, n_on - 2 * m
+
+
+@njit(cache=True, inline="always")
+def _put_row(lists, pv, t, s, x, y, z):
+    lists[t] = s
+    pv[t, 0] = x
+    pv[t, 1] = y
+    pv[t, 2] = z
+
+
+@njit(cache=True)
+def match_projected(b, stars, pv, radius, match):
+    """Nearest catalog star (within ``radius`` rad, unambiguous) for every image vector, into ``match``.
+
+    The candidates are the catalog stars ``stars`` projected to ``pv`` (:func:`project_stars`'
+    list of those on the sensor plus the radius).  A match needs the
+    nearest catalog star within the radius and no other within twice the radius, unless the
+    two catalog stars are closer to each other than the radius: an unresolved pair (one
+    blob), of which the nearer is taken.  Each catalog star is used once (the closer image
+    star wins).  ``match[i]`` becomes a catalog index or -1.
+    """
+    n = b.shape[0]
+    # The cosine of the angle to the nearest star (clipped to 1 as the angle's acos is):
+    # the larger it is the closer the star, without an acos per detection.
+    best_cos = np.empty(n)
     cos_r = math.cos(radius)
     cos_2r = math.cos(2.0 * radius)
     for i in range(n):
+        match[i] = -1
         d1 = -2.0
         d2 = -2.0
         a1 = -1
         a2 = -1
-        for c in range(nc):
-            d = b[i, 0] * pred[c, 0] + b[i, 1] * pred[c, 1] + b[i, 2] * pred[c, 2]
+        for c in range(stars.shape[0]):
+            d = b[i, 0] * pv[c, 0] + b[i, 1] * pv[c, 1] + b[i, 2] * pv[c, 2]
             if d > d1:
                 d2 = d1
                 a2 = a1
@@ -234,65 +268,82 @@ def match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2,
         if a1 < 0 or d1 < cos_r:
             continue
         if a2 >= 0 and d2 >= cos_2r:
-            pair = pred[a1, 0] * pred[a2, 0] + pred[a1, 1] * pred[a2, 1] + pred[a1, 2] * pred[a2, 2]
+            pair = pv[a1, 0] * pv[a2, 0] + pv[a1, 1] * pv[a2, 1] + pv[a1, 2] * pv[a2, 2]
             if pair < cos_r:
                 continue    # two distinct catalog stars near this image star: ambiguous
-        ang1 = math.acos(min(1.0, d1))
-        match[i] = cand[a1]
-        best_ang[i] = ang1
-    # One image star per catalog star: keep the closer.
+        match[i] = stars[a1]
+        best_cos[i] = min(1.0, d1)
+    # One image star per catalog star: keep the closer.  (acos is strictly decreasing over
+    # [cos radius, 1] at the resolution of doubles, so comparing the clipped cosines orders
+    # the detections as comparing their angles did.)
     for i in range(n):
         if match[i] < 0:
             continue
         for j in range(i + 1, n):
             if match[j] == match[i]:
-                if best_ang[j] < best_ang[i]:
+                if best_cos[j] > best_cos[i]:
                     match[i] = -1
                     break
                 else:
                     match[j] = -1
-    return match, nc
 
 
 @njit(cache=True)
 def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds):
     """Attitude from the proposal, then ``rounds`` of match-all / re-solve, and a
     last matching with the final attitude (so that the matches returned are the
-    ones that attitude supports).
-
-    A round whose matches are those of the round before ends the loop: its solve would be
-    the last one again (same stars, same weights), and so would every later matching.
+    ones that attitude supports): :func:`refine_from` the proposal's QUEST attitude.
 
     Returns ``(match, q, n_predicted)``.
     """
-    w = np.ones(img.shape[0])
-    q, _ = quest(b[img], star_vec[cat], w)
-    match = np.full(b.shape[0], -1, dtype=np.int64)
-    npred = 0
+    m = star_vec.shape[0]
+    q, _ = quest_pairs(b, img, star_vec, cat, np.ones(img.shape[0]))
+    match, q, counts = refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds,
+                                   np.empty(3 * m, dtype=np.int64), np.empty((3 * m, 3)))
+    return match, q, counts[1]
+
+
+@njit(cache=True)
+def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds, lists, pv):
+    """``rounds`` of match-all (:func:`match_projected`, candidates within ``radius`` rad beyond the
+    sensor) / re-solve from the attitude ``q``, and a last matching with the final attitude.
+
+    A round whose matches are those of the round before ends the loop: its solve would be
+    the last one again (same stars, same weights), and so would every later matching.
+    ``lists``/``pv`` are the scratch of :func:`project_stars`; they are left holding the
+    projection of the returned attitude.
+
+    Returns ``(match, q, counts)``, ``counts`` that projection's ``(k, n_near, n_on)`` (``n_near``
+    the stars predicted for the matching).
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    match = np.full(n, -1, dtype=np.int64)
+    prev = np.empty(n, dtype=np.int64)
+    mi = np.empty(n, dtype=np.int64)
+    mc = np.empty(n, dtype=np.int64)
+    margin = radius * focal
     for rnd in range(rounds):
-        dcm = quat_to_dcm(q)
-        prev = match
-        match, npred = match_stars(b, star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, radius)
-        k = 0
+        prev[:] = match
+        counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, margin, lists,
+                               pv)
+        match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
+        nm = 0
         same = rnd > 0
-        for i in range(match.shape[0]):
+        for i in range(n):
             if match[i] >= 0:
-                k += 1
+                mi[nm] = i
+                mc[nm] = match[i]
+                nm += 1
             if match[i] != prev[i]:
                 same = False
-        if k < 2 or same:
-            return match, q, npred
-        bi = np.empty((k, 3))
-        ri = np.empty((k, 3))
-        t = 0
-        for i in range(match.shape[0]):
-            if match[i] >= 0:
-                bi[t] = b[i]
-                ri[t] = star_vec[match[i]]
-                t += 1
-        q, _ = quest(bi, ri, np.ones(k))
-    match, npred = match_stars(b, star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, radius)
-    return match, q, npred
+        if nm < 2 or same:
+            return match, q, counts
+        q, _ = quest_pairs(b, mi[:nm], star_vec, mc[:nm], np.ones(nm))
+    counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, margin, lists,
+                           pv)
+    match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
+    return match, q, counts
 
 
 @njit(cache=True)
@@ -311,22 +362,21 @@ def leave_one_out(b, r, w):
     c = np.empty(n)
     total = 0.0
     for j in range(n):
-        c[j] = w[j] * math.sqrt(_vdot(b[j], b[j]) * _vdot(r[j], r[j]))
+        c[j] = w[j] * math.sqrt(_norm2(b, j) * _norm2(r, j))
         total += c[j]
     bmi = np.empty((3, 3))
     for i in range(n):
         for p in range(3):
             for q in range(3):
                 bmi[p, q] = bm[p, q] - w[i] * b[i, p] * r[i, q]
-        qi, _ = quest_profile(bmi, total - c[i])
-        out[i] = math.acos(min(1.0, max(-1.0, _rotated_dot(qi, b[i], r[i]))))
+        q1, q2, q3, q4, _ = _quest_scalars(bmi, total - c[i])
+        out[i] = math.acos(min(1.0, max(-1.0, _rotated_dot(q1, q2, q3, q4, b, i, r, i))))
     return out
 
 
 @njit(cache=True, inline="always")
-def _rotated_dot(q, b, r):
-    """``b . (A(q) r)``, ``A`` of :func:`quat_to_dcm` (the same arithmetic, without the matrix)."""
-    q1, q2, q3, q4 = q[0], q[1], q[2], q[3]
+def _rotated_dot(q1, q2, q3, q4, b, i, r, j):
+    """``b[i] . (A(q) r[j])``, ``A`` of :func:`quat_to_dcm` (the same arithmetic, without the matrix)."""
     a00 = q1 * q1 - q2 * q2 - q3 * q3 + q4 * q4
     a01 = 2 * (q1 * q2 + q3 * q4)
     a02 = 2 * (q1 * q3 - q2 * q4)
@@ -337,9 +387,9 @@ def _rotated_dot(q, b, r):
     a21 = 2 * (q2 * q3 - q1 * q4)
     a22 = -q1 * q1 - q2 * q2 + q3 * q3 + q4 * q4
     d = 0.0
-    d += b[0] * (a00 * r[0] + a01 * r[1] + a02 * r[2])
-    d += b[1] * (a10 * r[0] + a11 * r[1] + a12 * r[2])
-    d += b[2] * (a20 * r[0] + a21 * r[1] + a22 * r[2])
+    d += b[i, 0] * (a00 * r[j, 0] + a01 * r[j, 1] + a02 * r[j, 2])
+    d += b[i, 1] * (a10 * r[j, 0] + a11 * r[j, 1] + a12 * r[j, 2])
+    d += b[i, 2] * (a20 * r[j, 0] + a21 * r[j, 1] + a22 * r[j, 2])
     return d
 
 

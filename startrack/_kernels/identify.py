@@ -4,7 +4,7 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest, refine
+from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest_pairs, refine_from
 from startrack._kernels.database import kvector_range, label_search, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 
@@ -12,6 +12,12 @@ from startrack._kernels.sphere import project_to_pixel
 @njit(cache=True, inline="always")
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, inline="always")
+def _dot_rows(x, i, y, j):
+    """``x[i] . y[j]`` (rows of two arrays, without a view of either row)."""
+    return x[i, 0] * y[j, 0] + x[i, 1] * y[j, 1] + x[i, 2] * y[j, 2]
 
 
 @njit(cache=True, inline="always")
@@ -308,12 +314,12 @@ def pair_adjacency(n_stars, pair_i, pair_j, pair_cos):
 
 
 @njit(cache=True)
-def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height,
-                  k1, k2, mag_sorted):
+def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, on_stars, on_pv):
     """The verification's bookkeeping after the attitude, in one pass.
 
-    * catalog stars predicted in the image with ``dcm``;
-    * each detection's match kept only within its own ``radius[i]`` (rad);
+    * catalog stars predicted in the image with ``dcm``: ``on_stars``, projected to ``on_pv``
+      (:func:`startrack._kernels.attitude.project_stars`' list of those on the sensor);
+    * each detection's match kept only within its own ``radius[i]`` (rad; ``cos_r`` its cosine);
     * an unresolved pair -- two predicted stars within a detection's radius of
       it and of each other -- is named after its brighter star (the one the
       sensor sees), when that star is not matched elsewhere;
@@ -321,10 +327,10 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
       over them of ``min(1, k_i / 100)``, ``k_i`` the predicted stars within ten
       of its radii (the local density; a circle of one radius is 1/100 of it);
     * the bright stars missing: with the frame's zero point (median of catalog
-      magnitude + 2.5 log10 flux over matched stars with a flux) and its robust
-      scatter, ``cut`` = (faintest detection's magnitude) - max(0.5, 3 scatter);
-      ``missing`` = unmatched predicted stars brighter than ``cut``; ``n_bright``
-      = database stars brighter than ``cut`` (``cut`` is NaN with fewer than
+      magnitude - instrumental magnitude ``inst`` (-2.5 log10 flux; NaN without a flux) over
+      matched stars) and its robust scatter, ``cut`` = (faintest detection's magnitude) -
+      max(0.5, 3 scatter); ``missing`` = unmatched predicted stars brighter than ``cut``;
+      ``n_bright`` = database stars brighter than ``cut`` (``cut`` is NaN with fewer than
       three matched fluxes).
 
     * the magnitude agreement of the core (``is_core``): the chance that random
@@ -334,28 +340,12 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     ``star_vec``/``star_mag`` may be the part of the database near the field; the
     database-wide counts come from ``mag_sorted``, every database magnitude sorted.
 
-    Returns ``(match, n_pred, p_hit_local, missing, n_bright, cut, p_mag, n_bright_pred)``,
-    ``n_bright_pred`` the predicted stars brighter than ``cut``.
+    Returns ``(match, n_pred, p_local, missing, n_bright, cut, p_mag, n_bright_pred, zero_point, scatter)``,
+    ``n_bright_pred`` the predicted stars brighter than ``cut``, the zero point and scatter NaN with
+    fewer than three matched fluxes.
     """
     n = b.shape[0]
-    m = star_vec.shape[0]
-    pred_idx = np.empty(m, dtype=np.int64)
-    pred = np.empty((m, 3))
-    npred = 0
-    for s in range(m):
-        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
-        if z < cos_fov:
-            continue
-        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
-        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
-        if px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5:
-            continue
-        pred_idx[npred] = s
-        pred[npred, 0] = x
-        pred[npred, 1] = y
-        pred[npred, 2] = z
-        npred += 1
+    npred = on_stars.shape[0]
     out = match.copy()
     for i in range(n):
         c = out[i]
@@ -364,30 +354,30 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
         d = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
         e = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
         f = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
-        if b[i, 0] * d + b[i, 1] * e + b[i, 2] * f < math.cos(radius[i]):
+        if b[i, 0] * d + b[i, 1] * e + b[i, 2] * f < cos_r[i]:
             out[i] = -1
     hit_sum = 0.0
     n_others = 0
     for i in range(n):
-        cos_r = math.cos(radius[i])
         cos_l = math.cos(10.0 * radius[i])
         best = -1
-        k = 0
+        near = 0
         for u in range(npred):
-            d = b[i, 0] * pred[u, 0] + b[i, 1] * pred[u, 1] + b[i, 2] * pred[u, 2]
+            d = b[i, 0] * on_pv[u, 0] + b[i, 1] * on_pv[u, 1] + b[i, 2] * on_pv[u, 2]
             if d >= cos_l:
-                k += 1
-            if out[i] >= 0 and d >= cos_r:
-                s = pred_idx[u]
+                near += 1
+            if out[i] >= 0 and d >= cos_r[i]:
+                s = on_stars[u]
                 if best < 0 or star_mag[s] < star_mag[best]:
                     best = s
         if not is_core[i]:
-            hit_sum += min(1.0, k * 0.01)
+            hit_sum += min(1.0, near * 0.01)
             n_others += 1
         c = out[i]
         if c < 0 or best < 0 or best == c:
             continue
-        if _dot(star_vec[best], star_vec[c]) < cos_r:
+        if (star_vec[best, 0] * star_vec[c, 0] + star_vec[best, 1] * star_vec[c, 1]
+                + star_vec[best, 2] * star_vec[c, 2]) < cos_r[i]:
             continue
         used = False
         for j in range(n):
@@ -402,19 +392,17 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     nz = 0
     faint = -np.inf
     for i in range(n):
-        if flux[i] > 0 and np.isfinite(flux[i]):
-            inst = -2.5 * math.log10(flux[i])
-            faint = max(faint, inst)
+        if np.isfinite(inst[i]):
+            faint = max(faint, inst[i])
             if out[i] >= 0:
-                zp[nz] = star_mag[out[i]] - inst
+                zp[nz] = star_mag[out[i]] - inst[i]
                 nz += 1
     if nz < 3:
-        return out, npred, p_local, 0, 0, np.nan, 1.0, 0
+        return out, npred, p_local, 0, 0, np.nan, 1.0, 0, np.nan, np.nan
     z0 = np.median(zp[:nz])
-    dev = np.empty(nz)
     for t in range(nz):
-        dev[t] = abs(zp[t] - z0)
-    scatter = 1.4826 * np.median(dev)
+        zp[t] = abs(zp[t] - z0)
+    scatter = 1.4826 * np.median(zp[:nz])
     delta = max(0.5, 3.0 * scatter)
     cut = faint + z0 - delta
     # Magnitude agreement of the core: a chance pattern has catalog magnitudes drawn from
@@ -424,13 +412,13 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     p_mag = 1.0
     worst = 0.0
     for i in range(n):
-        if not is_core[i] or out[i] < 0 or not (flux[i] > 0 and np.isfinite(flux[i])):
+        if not is_core[i] or out[i] < 0 or not np.isfinite(inst[i]):
             continue
-        want = -2.5 * math.log10(flux[i]) + z0
+        want = inst[i] + z0
         if abs(star_mag[out[i]] - want) > delta:
             continue
-        k = np.searchsorted(mag_sorted, want + delta, side="right") - np.searchsorted(mag_sorted, want - delta)
-        frac = k / mag_sorted.shape[0]
+        got = np.searchsorted(mag_sorted, want + delta, side="right") - np.searchsorted(mag_sorted, want - delta)
+        frac = got / mag_sorted.shape[0]
         p_mag *= frac
         worst = max(worst, frac)
     if worst > 0.0:
@@ -438,7 +426,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
     missing = 0
     bright = 0
     for u in range(npred):
-        s = pred_idx[u]
+        s = on_stars[u]
         if star_mag[s] > cut:
             continue
         bright += 1
@@ -450,16 +438,19 @@ def check_matches(b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_
         if not found:
             missing += 1
     n_bright = np.searchsorted(mag_sorted, cut, side="right")
-    return out, npred, p_local, missing, n_bright, cut, p_mag, bright
+    return out, npred, p_local, missing, n_bright, cut, p_mag, bright, z0, scatter
 
 
 @njit(cache=True)
-def core_window(b, r, floor, cap):
-    """``max |theta_b - theta_r|`` over the pairs of the core (rad), clipped to ``[floor, cap]``."""
+def core_window(b, img, r, cat, nc, floor, cap):
+    """``max |theta_b - theta_r|`` over the pairs of the core (the first ``nc`` of ``b[img]``,
+    ``r[cat]``; rad), clipped to ``[floor, cap]``."""
     worst = 0.0
-    for u in range(b.shape[0]):
-        for v in range(u + 1, b.shape[0]):
-            worst = max(worst, abs(_angle(b[u], b[v]) - _angle(r[u], r[v])))
+    for u in range(nc):
+        for v in range(u + 1, nc):
+            tb = math.acos(min(1.0, max(-1.0, _dot_rows(b, img[u], b, img[v]))))
+            tr = math.acos(min(1.0, max(-1.0, _dot_rows(r, cat[u], r, cat[v]))))
+            worst = max(worst, abs(tb - tr))
     return min(cap, max(worst, floor))
 
 
@@ -571,19 +562,21 @@ def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps,
 
 
 @njit(cache=True)
-def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is_core, cos_fov, max_chi2, mag_floor,
-                      mag_gate):
+def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, max_chi2, z0, scatter, mag_floor,
+                      mag_gate, stars, pv):
     """Make every match unambiguous within its tolerance, and magnitude-consistent.
 
-    Each detection ``i`` is linked to every catalog star predicted (``dcm``)
-    within its own radius ``radius[i]`` (rad).  Detections linked to a common
+    Each detection ``i`` is linked to every catalog star predicted in front of the
+    camera (``stars`` projected to ``pv`` with the attitude,
+    :func:`startrack._kernels.attitude.project_stars`) within its own radius ``radius[i]``
+    (rad; ``cos_r`` its cosine).  Detections linked to a common
     star form a group; in a group of two or more detections, every one-to-one
     assignment of the group's detections to its stars (a detection may stay
     unassigned, at the cost of ``radius / sigma`` squared) is scored by
     ``sum (offset_i / sigma_i)^2`` plus, with fluxes, ``sum (m_cat - m_pred)^2 /
     sigma_m^2`` -- ``m_pred`` = instrumental magnitude ``inst`` + the frame's
-    zero point (median over the matched stars), ``sigma_m`` their robust
-    scatter, at least ``mag_floor``.  The best assignment names its
+    zero point ``z0`` (:func:`check_matches`; NaN: no magnitudes), ``sigma_m`` its robust
+    ``scatter``, at least ``mag_floor``.  The best assignment names its
     detections, except a detection whose star differs in another assignment
     scoring within ``max_chi2`` of the best: that detection is left unnamed
     (a close pair the frame cannot tell apart is refused, never swapped).  A
@@ -597,9 +590,8 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
     Returns ``(match, n_refused, n_inconsistent)``.
     """
     n = b.shape[0]
-    m = star_vec.shape[0]
     out = match.copy()
-    # Catalog stars predicted within some detection's radius.
+    # Projected stars (their rows in ``stars``) within some detection's radius.
     cand = np.full((n, 8), -1, dtype=np.int64)
     ncand = np.zeros(n, dtype=np.int64)
     cnt = np.zeros(n, dtype=np.int64)
@@ -607,52 +599,25 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
     for i in range(n):
         rmax = max(rmax, radius[i])
     cos_rmax = math.cos(rmax)
-    pidx = np.empty(64, dtype=np.int64)
-    npi = 0
-    for s in range(m):
-        z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
-        if z < cos_fov:
-            continue
-        x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
-        y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        hit = False
+    nproj = stars.shape[0]
+    linked = np.zeros(nproj, dtype=np.bool_)
+    for u in range(nproj):
         for i in range(n):
-            d = b[i, 0] * x + b[i, 1] * y + b[i, 2] * z
-            if d < cos_rmax or d < math.cos(radius[i]):
+            d = b[i, 0] * pv[u, 0] + b[i, 1] * pv[u, 1] + b[i, 2] * pv[u, 2]
+            if d < cos_rmax or d < cos_r[i]:
                 continue
-            hit = True
+            linked[u] = True
             if ncand[i] < 8:
-                cand[i, ncand[i]] = s
+                cand[i, ncand[i]] = u
             ncand[i] += 1
-        if hit:
-            if npi == pidx.shape[0]:
-                grown = np.empty(2 * npi, dtype=np.int64)
-                grown[:npi] = pidx
-                pidx = grown
-            pidx[npi] = s
-            npi += 1
-    near_star = pidx[:npi]
     # Zero point and scatter of the frame's magnitudes.
-    has_mag = False
-    z0 = 0.0
-    sig_m = mag_floor
-    zp = np.empty(n)
-    nz = 0
-    for i in range(n):
-        if out[i] >= 0 and np.isfinite(inst[i]):
-            zp[nz] = star_mag[out[i]] - inst[i]
-            nz += 1
-    if nz >= 3:
-        has_mag = True
-        z0 = np.median(zp[:nz])
-        dev = np.empty(nz)
-        for t in range(nz):
-            dev[t] = abs(zp[t] - z0)
-        sig_m = max(mag_floor, 1.4826 * np.median(dev))
+    has_mag = not math.isnan(z0)
+    sig_m = max(mag_floor, scatter) if has_mag else mag_floor
     # Groups: detections sharing a star (union-find over detections).
     parent = np.arange(n)
-    for u in range(near_star.shape[0]):
-        s = near_star[u]
+    for s in range(nproj):
+        if not linked[s]:
+            continue
         first = -1
         for i in range(n):
             hit = False
@@ -705,16 +670,11 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
         for t in range(k):
             i = members[t]
             for c in range(ncand[i]):
-                s = cand[i, c]
-                ang = math.acos(min(1.0, b[i, 0] * (dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1]
-                                                    + dcm[0, 2] * star_vec[s, 2])
-                                    + b[i, 1] * (dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1]
-                                                 + dcm[1, 2] * star_vec[s, 2])
-                                    + b[i, 2] * (dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1]
-                                                 + dcm[2, 2] * star_vec[s, 2])))
+                u = cand[i, c]
+                ang = math.acos(min(1.0, b[i, 0] * pv[u, 0] + b[i, 1] * pv[u, 1] + b[i, 2] * pv[u, 2]))
                 cc = (ang / sigma[i]) ** 2
                 if has_mag and np.isfinite(inst[i]):
-                    cc += ((star_mag[s] - inst[i] - z0) / sig_m) ** 2
+                    cc += ((star_mag[stars[u]] - inst[i] - z0) / sig_m) ** 2
                 cost[t, c] = cc
             cost[t, ncand[i]] = (radius[i] / sigma[i]) ** 2
         digits = np.zeros(k, dtype=np.int64)
@@ -760,7 +720,7 @@ def resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sigma, inst, is
                     refused += 1
                 out[i] = -1
             else:
-                out[i] = cand[i, best_digits[t]]
+                out[i] = stars[cand[i, best_digits[t]]]
     # Magnitude consistency of the matches.  Outside the core both ways; in the core only a
     # detection brighter than its catalog star allows (a false star on an undetected catalog
     # star): saturation makes a true bright star look fainter, never brighter.
@@ -1272,7 +1232,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
                 sky_ra):
     """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
-    Attitude from the proposal and two rounds of match-all (``refine``), the
+    Attitude from the proposal and two rounds of match-all (``refine_from``), the
     bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
     matches (:func:`resolve_conflicts`), the leave-one-out test, the proposal's
     agreement, the bright stars missing, the matched count, and the numbers of the
@@ -1292,7 +1252,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     m_all = star_vec_all.shape[0]
     # The database stars near the field (the proposal's attitude, 2 deg of margin beyond the
     # corners): every later pass works on them only; the proposal's stars are always in.
-    q0, _ = quest(b[img], star_vec_all[cat_all], np.ones(img.shape[0]))
+    q0, _ = quest_pairs(b, img, star_vec_all, cat_all, np.ones(img.shape[0]))
     a0 = quat_to_dcm(q0)
     cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
     sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
@@ -1311,47 +1271,57 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     star_vec = np.empty((ns, 3))
     star_mag = np.empty(ns)
     for t in range(ns):
-        star_vec[t] = star_vec_all[sub[t]]
-        star_mag[t] = star_mag_all[sub[t]]
+        s = sub[t]
+        star_vec[t, 0] = star_vec_all[s, 0]
+        star_vec[t, 1] = star_vec_all[s, 1]
+        star_vec[t, 2] = star_vec_all[s, 2]
+        star_mag[t] = star_mag_all[s]
+    near = (sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
     rmax = 0.0
     for i in range(n):
         rmax = max(rmax, radius[i])
-    match, q, _ = refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, rmax, 2)
+    # The proposal's attitude is q0 (the same stars and weights); the projection of the refined
+    # attitude stays in lists/pv for the checks below.
+    lists = np.empty(3 * ns, dtype=np.int64)
+    pv = np.empty((3 * ns, 3))
+    match, q, counts = refine_from(b, star_vec, q0, cos_fov, focal, cx, cy, width, height, k1, k2, rmax, 2, lists, pv)
     dcm = quat_to_dcm(q)
     is_core = np.zeros(n, dtype=np.bool_)
     nc = min(4, img.shape[0])
     for t in range(nc):
         is_core[img[t]] = True
-    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred = check_matches(
-        b, star_vec, star_mag, dcm, match, radius, is_core, flux, cos_fov, focal, cx, cy, width, height, k1, k2,
-        mag_sorted)
-    if not use_mags:
-        p_mag = 1.0
+    cos_r = np.empty(n)
     inst = np.empty(n)
     for i in range(n):
+        cos_r[i] = math.cos(radius[i])
         inst[i] = -2.5 * math.log10(flux[i]) if (np.isfinite(flux[i]) and flux[i] > 0) else np.nan
-    match, _, _ = resolve_conflicts(b, star_vec, star_mag, dcm, match, radius, sig_rad, inst, is_core, cos_fov,
-                                    max_chi2, mag_floor, mag_gate)
+    match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred, z0, scatter = check_matches(
+        b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, lists[2 * ns:2 * ns + counts[2]],
+        pv[2 * ns:2 * ns + counts[2]])
+    if not use_mags:
+        p_mag = 1.0
+    match, _, _ = resolve_conflicts(b, star_mag, match, radius, cos_r, sig_rad, inst, is_core, max_chi2, z0, scatter,
+                                    mag_floor, mag_gate, lists[:counts[0]], pv[:counts[0]])
     nm = 0
     for i in range(n):
         if match[i] >= 0:
             nm += 1
     if nm >= 4:
-        mi = np.empty(nm, dtype=np.int64)
-        t = 0
-        for i in range(n):
-            if match[i] >= 0:
-                mi[t] = i
-                t += 1
         bb = np.empty((nm, 3))
         rr = np.empty((nm, 3))
         w = np.empty(nm)
+        mi = np.empty(nm, dtype=np.int64)
+        t = 0
         ws = 0.0
-        for t in range(nm):
-            bb[t] = b[mi[t]]
-            rr[t] = star_vec[match[mi[t]]]
-            w[t] = 1.0 / sig_rad[mi[t]] ** 2
-            ws += w[t]
+        for i in range(n):
+            if match[i] >= 0:
+                mi[t] = i
+                for u in range(3):
+                    bb[t, u] = b[i, u]
+                    rr[t, u] = star_vec[match[i], u]
+                w[t] = 1.0 / sig_rad[i] ** 2
+                ws += w[t]
+                t += 1
         for t in range(nm):
             w[t] /= ws
         loo = leave_one_out(bb, rr, w)
@@ -1359,8 +1329,8 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         for t in range(nm):
             if loo[t] > radius[mi[t]] * widen:
                 if is_core[mi[t]]:
-                    return (1, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
-                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
+                    return (1, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred,
+                            0.0, 0.0) + near
                 match[mi[t]] = -1
                 nm -= 1
     agree = 0
@@ -1369,40 +1339,40 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         d = 0.0
         for u in range(3):
             d += b[img[t], u] * (dcm[u, 0] * star_vec[s, 0] + dcm[u, 1] * star_vec[s, 1] + dcm[u, 2] * star_vec[s, 2])
-        if d >= math.cos(radius[img[t]]):
+        if d >= cos_r[img[t]]:
             agree += 1
+    code = 0
     if agree < min(img.shape[0], min_matches):
-        return (2, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
-                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
-    if bright_pred >= 3 and missing > bright_pred // 2:
-        return (3, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
-                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
-    if nm < min_matches and not (n == 3 and nm == 3):
-        return (4, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0, 0.0,
-                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
+        code = 2
+    elif bright_pred >= 3 and missing > bright_pred // 2:
+        code = 3
+    elif nm < min_matches and not (n == 3 and nm == 3):
+        code = 4
+    if code != 0:
+        return (code, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0,
+                0.0) + near
     # The core's pattern chance with the window of its actual residual.
     bc = np.empty((nc, 3))
-    rc = np.empty((nc, 3))
     smax = 0.0
     for t in range(nc):
-        bc[t] = b[img[t]]
-        rc[t] = star_vec[cat[t]]
+        for u in range(3):
+            bc[t, u] = b[img[t], u]
         smax = max(smax, sig_rad[img[t]])
-    window = core_window(bc, rc, math.sqrt(2.0) * smax, eps)
+    window = core_window(b, img, star_vec, cat, nc, math.sqrt(2.0) * smax, eps)
     e_core = pattern_chance(m_all, window, bc)
     if scale_offset > 0.0:
         gmin = 1.0
         for u in range(nc):
             for v in range(nc):
-                gmin = min(gmin, _dot(bc[u], bc[v]))
+                gmin = min(gmin, _dot_rows(bc, u, bc, v))
         e_core *= 1.0 + scale_offset * math.acos(max(-1.0, min(1.0, gmin))) / window
     rs = 0.0
     for i in range(n):
         rs += radius[i] * focal
     mean_r = rs / n
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
-    return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core, p_hit,
-                sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
+    return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core,
+            p_hit) + near
 
 
 @njit(cache=True)
