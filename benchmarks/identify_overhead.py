@@ -10,6 +10,9 @@ kernel) and the driver's (``time_ms`` minus ``Algorithm.fused``).  A hash of eve
 trees decide alike.  Run it from each tree to compare, alternating:
 
     PYTHONPATH=. .venv/bin/python benchmarks/identify_overhead.py --conditions 0.3:0,1.0:0 --count 1000
+
+``--reported-sigmas``: the stars carry their own ``sigma_px`` (as ``centroid`` writes them) instead of
+one fixed value.
 """
 from __future__ import annotations
 
@@ -41,6 +44,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_sensor_arguments(ap, 300)
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--reported-sigmas", action="store_true",
+                    help="every star carries its own sigma_px (the condition's sigma times 0.5-1.5, drawn per star) "
+                         "and IdentifyParams.sigma_px is None: the tolerance is the frame's")
     args = ap.parse_args(argv)
 
     import startrack
@@ -57,6 +63,11 @@ def main(argv=None):
         cond = Condition(sigma_px=float(sigma), false_stars=int(false_stars), min_catalog_stars=args.min_stars)
         params = IdentifyParams(sigma_px=float(sigma))
         frames = make_frames(star_cat, cam, cond, args.count, args.seed, mag_limit=args.star_mag)
+        if args.reported_sigmas:
+            rng = np.random.default_rng(args.seed)
+            frames = [([dict(s, sigma_px=float(sigma) * u) for s, u in zip(stars, rng.uniform(0.5, 1.5, len(stars)))],
+                       truth, rest) for stars, truth, rest in frames]
+            params = IdentifyParams()
         identify_stars(frames[0][0], cam, kv, "pyramid", params)      # loads the kernels, makes the plan
         plan = kv.__dict__["_pyramid_plan"]
         kernel, fused = plan[3], alg.fused

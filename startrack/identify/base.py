@@ -290,10 +290,14 @@ def _sigmas(n: int, params: IdentifyParams, reported) -> np.ndarray:
     if reported is None:
         return np.full(n, 0.5)
     ok = np.isfinite(reported) & (reported > 0)
-    if not ok.any():
+    have = np.count_nonzero(ok)
+    if have == 0:
         return np.full(len(reported), 0.5)
-    scaled = np.clip(reported * params.reported_sigma_factor, 0.05, 2.0)
-    return np.where(ok, scaled, float(np.median(scaled[ok])))
+    # np.clip's values (NaN stays NaN), without its Python wrapper
+    scaled = np.minimum(np.maximum(reported * params.reported_sigma_factor, 0.05), 2.0)
+    if have < len(scaled):
+        scaled[~ok] = float(np.median(scaled[ok]))
+    return scaled
 
 
 def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
