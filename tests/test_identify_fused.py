@@ -226,27 +226,29 @@ def test_fused_pyramid_settings_are_shared_and_left_unchanged(sensor, monkeypatc
     from startrack.identify import pyramid
 
     cam, db, stars = sensor
-    made = pyramid._settings
+    made = pyramid._inputs
     calls = []
 
-    def spy(config, frame, camera, params):
-        got = made(config, frame, camera, params)
+    def spy(plan, config, frame, camera, params, n):
+        got = made(plan, config, frame, camera, params, n)
         cached = dict(pyramid._SETTINGS)
         pyramid._SETTINGS.clear()
-        calls.append((got, made(config, frame, camera, params)))     # made afresh
+        calls.append((got[1], pyramid._settings(config, frame, camera, params)))     # made afresh
         pyramid._SETTINGS.clear()
         pyramid._SETTINGS.update(cached)
         return got
 
-    monkeypatch.setattr(pyramid, "_settings", spy)
+    monkeypatch.setattr(pyramid, "_inputs", spy)
     params = IdentifyParams(sigma_px=0.3)
     frames = [f for f, _, _ in make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=3, min_catalog_stars=4),
                                            20, 11, mag_limit=5.4)]
     results = [identify_stars(f, cam, db, "pyramid", params) for f in frames]
     assert any(r.trials > 1 for r in results)        # kernel calls with rejected proposals
-    assert len({id(got[0]) for got, _ in calls}) < len(calls)      # shared
-    for got, fresh in calls:
-        assert np.array_equal(got[0], fresh[0]) and np.array_equal(got[1], fresh[1]) and got[2] == fresh[2]
+    # The kernel's arguments after the frame's arrays: triads, fpar, ipar, state, seen (budget rows), ...
+    assert len({id(rest[1]) for rest, _ in calls}) < len(calls)      # shared
+    for rest, (fpar, ipar, budget, triads) in calls:
+        assert np.array_equal(rest[1], fpar) and np.array_equal(rest[2], ipar) and rest[4].shape[0] == budget
+        assert np.array_equal(rest[0], triads)
     params.max_proposals = 1
     params.max_false_probability = 1e-30
     for f in frames[:5]:

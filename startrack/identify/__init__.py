@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 
-from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposal, SearchContext
+from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposal, SearchContext, run
 from startrack.records import Identification, Match
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
@@ -173,6 +173,19 @@ def make_config(name: str, values: dict | None = None):
     return alg.config(**values)
 
 
+_DEFAULT_CONFIGS: dict = {}     # an algorithm's default configuration per configuration type, when frozen
+
+
+def _default_config(kind: type):
+    """``kind()``: made once when ``kind`` is a frozen dataclass (an instance nobody can change is shared)."""
+    got = _DEFAULT_CONFIGS.get(kind)
+    if got is None:
+        got = kind()
+        if dataclasses.is_dataclass(kind) and kind.__dataclass_params__.frozen:
+            _DEFAULT_CONFIGS[kind] = got
+    return got
+
+
 def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: IdentifyParams | None = None,
                    config=None, catalog=None) -> Identification:
     """Identify the stars of one frame.
@@ -202,11 +215,9 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         ``ok`` with matches (star index -> catalog id) or ``failed`` with a
         reason.  Never raises for an unidentifiable frame.
     """
-    from startrack.identify.base import run
-
     alg = get_algorithm(algorithm)
     if config is None:
-        config = alg.config()
+        config = _default_config(alg.config)
     elif not isinstance(config, alg.config):
         from startrack.errors import BadInputError
 

@@ -273,9 +273,7 @@ class SearchOutcome:
 
 def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
     """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
-    return _sigmas(len(stars), params, lambda: np.array(
-        [s.get("sigma_px") if isinstance(s.get("sigma_px"), (int, float)) else np.nan for s in stars],
-        dtype=np.float64))
+    return _sigmas(len(stars), params, lambda: _floats([s.get("sigma_px") for s in stars]))
 
 
 def _sigmas(n: int, params: IdentifyParams, reported) -> np.ndarray:
@@ -451,7 +449,7 @@ def _sky_index(db):
     return got[1]
 
 
-_NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # flux types read as themselves (None: NaN)
+_NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # types read as themselves (None: NaN)
 _GET_X, _GET_Y = operator.itemgetter("x"), operator.itemgetter("y")
 
 
@@ -473,10 +471,14 @@ def _frame_arrays(frame_stars):
     n = len(frame_stars)
     xs = np.fromiter(map(_GET_X, frame_stars), np.float64, n)
     ys = np.fromiter(map(_GET_Y, frame_stars), np.float64, n)
-    flux = [s.get("flux") for s in frame_stars]
-    if _NUMBER.issuperset(map(type, flux)):         # None is NaN too
-        return xs, ys, np.array(flux, dtype=np.float64)
-    return xs, ys, np.array([f if isinstance(f, (int, float)) else np.nan for f in flux], dtype=np.float64)
+    return xs, ys, _floats([s.get("flux") for s in frame_stars])
+
+
+def _floats(values: list) -> np.ndarray:
+    """``values`` as float64, NaN for None and for anything not an int or float (e.g. a string)."""
+    if _NUMBER.issuperset(map(type, values)):         # None is NaN too
+        return np.array(values, dtype=np.float64)
+    return np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=np.float64)
 
 
 def _pixels_to_vectors(camera, xs, ys):
@@ -677,6 +679,12 @@ def _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched
                             (f"false-match probability {p_false:.2g} above the limit "
                              f"{params.max_false_probability:g}"), ReasonCode.FALSE_MATCH_PROBABILITY)
         return _Verdict(None, None, None, dcm, None, reason, rc)
+    return _accepted_verdict(match, matched, q, dcm, p_false, rms, db)
+
+
+def _accepted_verdict(match, matched, q, dcm, p_false, rms, db):
+    """The :class:`_Verdict` of an accepted verification (:func:`_fused_verdict` with code 0): ``match``
+    the database index of every detection (-1: none), ``matched`` the matched detections."""
     cat_index = match[matched]
     out = list(map(_new_tuple, itertools.repeat(Match), zip(matched.tolist(), db.star_id[cat_index].tolist())))
     return _Verdict(out, matched, cat_index, dcm, float(p_false), None, None, None, q, rms)
@@ -893,14 +901,13 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         xs, ys, flux = _frame_arrays(frame_stars)
         sig_px = star_sigmas_px(frame_stars, params)
     f = camera.focal_length_px
-    margin = math.radians(params.margin_arcsec / 3600.0)
     use = min(n_all, params.max_stars)
     if params.tolerance_arcsec is not None:
-        margin = math.radians(params.tolerance_arcsec / 3600.0)
-        eps = margin
+        margin = eps = math.radians(params.tolerance_arcsec / 3600.0)
     else:
+        margin = math.radians(params.margin_arcsec / 3600.0)
         # The largest per-star tolerance (its product and quotient are monotonic in sigma).
-        smax = float(params.sigma_px) if params.sigma_px is not None else float(sig_px[:use].max())
+        smax = float(params.sigma_px) if params.sigma_px is not None else float(np.maximum.reduce(sig_px[:use]))
         eps = float(math.sqrt(2.0) * (params.tolerance_sigma * smax / f) + margin)
     prepare_ms = None
     if algorithm.prepare is not None:
@@ -909,44 +916,104 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             prepare_ms = (time.perf_counter() - tp) * 1000
             t0 += prepare_ms / 1000.0       # loading for this sensor, not identification: not in time_ms
     deadline = t0 + params.max_time_ms / 1000.0
-    debug = log.isEnabledFor(logging.DEBUG)
+    info = log.isEnabledFor(logging.INFO)
+    debug = info and log.isEnabledFor(logging.DEBUG)
     if debug:
         log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
                   name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
                   getattr(db, "path", None) or type(db).__name__)
     fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
-    geom = None if fused else _geometry(camera)
-    tried = 0
-    best = None
-    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
-    accepted = None
-    scale = None
-    details = {}
-    best_details = {}
-    patterns = 0
-    has_flux = b_all = None
-    search = ()
+    b_all = None
     if fused and FUSED_SEARCH and algorithm.fused is not None and not debug:
         out = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline), camera, db,
                               params)
-        accepted, scale, details, best, best_details = out.accepted, out.scale, out.details, out.best, out.best_details
-        tried, patterns, reason, code = out.tried, out.patterns, out.reason, out.code
     else:
-        has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
         b_all = _pixels_to_vectors(camera, xs, ys)
-        if params.tolerance_arcsec is not None:
-            tol = np.zeros(use)
-        else:
-            tol = params.tolerance_sigma * sig_px[:use] / f
-        if isinstance(frame_stars, StarTable):
-            frame_stars = frame_stars.to_list()     # the searches read stars as dicts
-        ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
-                            flux[:use] if has_flux else None, deadline)
-        use_mags = has_flux and not algorithm.uses_brightness
-        search = algorithm.search(ctx, config)
+        out = _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline,
+                           fused, camera, db, params)
+    accepted, reason, code = out.accepted, out.reason, out.code
+    if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
+        # The search itself stopped at the deadline (ctx.expired) between proposals.
+        reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
+    elapsed = (time.perf_counter() - t0) * 1000
+    tol_arcsec = round(math.degrees(eps) * 3600, 3)
+    tried, patterns = out.tried, out.patterns
+    if accepted is None:
+        best = out.best
+        if best is not None and reason.startswith("no consistent"):
+            reason, code = best.reason, best.code
+        elif best is not None:
+            reason = f"{reason}; best: {best.reason}"
+        if info:
+            log.info("%s: not identified after %d proposal(s), %d pattern(s), %.0f ms: %s", name, tried, patterns,
+                     elapsed, reason)
+        return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
+                                     false_match_probability=best.p_false if best is not None else None,
+                                     details={**out.best_details, "patterns": int(patterns),
+                                              **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
+    details = out.details
+    details["patterns"] = int(patterns)
+    if prepare_ms:
+        details["prepare_ms"] = round(prepare_ms, 1)
+    rms = accepted.residual_rms if accepted.residual_rms is not None else \
+        float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
+    details["residual_arcsec_rms"] = round(rms, 3)
+    matches, quaternion, scale = accepted.matches, accepted.quaternion, out.scale
+    if catalog is not None:
+        if not isinstance(catalog, CatalogStars):
+            catalog = CatalogStars.from_catalog(catalog)
+        has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+        if b_all is None:
+            b_all = _pixels_to_vectors(camera, xs, ys)
+        cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
+        b = b_all if scale is None else _pixels_to_vectors(cam, xs, ys)
+        margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
+        radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
+            np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+        n_db = len(matches)
+        depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
+        matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
+                                   radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
+                                   _geometry(camera if scale is None else cam)[0], depth,
+                                   sig_px / cam.focal_length_px)
+        if depth is not None:
+            details["match_mag_limit"] = round(depth, 2)
+        if q is not None:
+            quaternion = q
+            details["matched_beyond_database"] = len(matches) - n_db
+        elapsed = (time.perf_counter() - t0) * 1000
+    if info:
+        log.info("%s: %d of %d stars identified at proposal %d (%d pattern(s)), false-match probability %.2g, "
+                 "%.0f ms", name, len(matches), n_all, tried, patterns, float(accepted.p_false), elapsed)
+    return Identification(Status.OK, name, matches, time_ms=elapsed, false_match_probability=float(accepted.p_false),
+                          trials=tried, tolerance_arcsec=tol_arcsec,
+                          focal_scale=None if scale is None else round(float(scale), 7),
+                          quaternion_estimate=quaternion, details=details)
+
+
+def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline, fused,
+                 camera, db, params) -> SearchOutcome:
+    """:func:`run`'s loop in Python: ``algorithm.search``'s proposals, each verified (:func:`_verify_fused`
+    when ``fused``, else :func:`_verify_with_focal`), until one passes or the budget ends."""
+    name = algorithm.name
+    has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+    if params.tolerance_arcsec is not None:
+        tol = np.zeros(use)
+    else:
+        tol = params.tolerance_sigma * sig_px[:use] / camera.focal_length_px
+    if isinstance(frame_stars, StarTable):
+        frame_stars = frame_stars.to_list()     # the searches read stars as dicts
+    ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
+                        flux[:use] if has_flux else None, deadline)
+    use_mags = has_flux and not algorithm.uses_brightness
+    geom = None if fused else _geometry(camera)
+    tried = patterns = 0
+    best = accepted = scale = None
+    details, best_details = {}, {}
+    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
     seen = set()
-    for proposal in search:
+    for proposal in algorithm.search(ctx, config):
         if proposal is None or len(proposal.image) == 0:
             continue
         # The same correspondences proposed again (another triad of the same stars) are no new trial.
@@ -978,55 +1045,4 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         if time.perf_counter() > deadline:
             reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
             break
-    if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
-        # The search itself stopped at the deadline (ctx.expired) between proposals.
-        reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
-    elapsed = (time.perf_counter() - t0) * 1000
-    tol_arcsec = round(math.degrees(eps) * 3600, 3)
-    if accepted is None:
-        if best is not None and reason.startswith("no consistent"):
-            reason, code = best.reason, best.code
-        elif best is not None:
-            reason = f"{reason}; best: {best.reason}"
-        log.info("%s: not identified after %d proposal(s), %d pattern(s), %.0f ms: %s", name, tried, patterns, elapsed,
-                 reason)
-        return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
-                                     false_match_probability=best.p_false if best is not None else None,
-                                     details={**best_details, "patterns": int(patterns),
-                                              **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
-    details["patterns"] = int(patterns)
-    if prepare_ms:
-        details["prepare_ms"] = round(prepare_ms, 1)
-    rms = accepted.residual_rms if accepted.residual_rms is not None else \
-        float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
-    details["residual_arcsec_rms"] = round(rms, 3)
-    matches, quaternion = accepted.matches, accepted.quaternion
-    if catalog is not None:
-        if not isinstance(catalog, CatalogStars):
-            catalog = CatalogStars.from_catalog(catalog)
-        if b_all is None:
-            has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
-            b_all = _pixels_to_vectors(camera, xs, ys)
-        cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
-        b = b_all if scale is None else _pixels_to_vectors(cam, xs, ys)
-        margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
-        radius_px = np.full(n_all, float(params.match_radius_px)) if params.match_radius_px is not None else \
-            np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-        n_db = len(matches)
-        depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
-        matches, q = match_catalog(matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
-                                   radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
-                                   _geometry(camera if scale is None else cam)[0], depth,
-                                   sig_px / cam.focal_length_px)
-        if depth is not None:
-            details["match_mag_limit"] = round(depth, 2)
-        if q is not None:
-            quaternion = q
-            details["matched_beyond_database"] = len(matches) - n_db
-        elapsed = (time.perf_counter() - t0) * 1000
-    log.info("%s: %d of %d stars identified at proposal %d (%d pattern(s)), false-match probability %.2g, %.0f ms",
-             name, len(matches), n_all, tried, patterns, float(accepted.p_false), elapsed)
-    return Identification(Status.OK, name, matches, time_ms=elapsed,
-                          false_match_probability=float(accepted.p_false), trials=tried,
-                          tolerance_arcsec=tol_arcsec, focal_scale=None if scale is None else round(float(scale), 7),
-                          quaternion_estimate=quaternion, details=details)
+    return SearchOutcome(accepted, scale, details, best, best_details, tried, patterns, reason, code)

@@ -32,6 +32,7 @@ from startrack.identify.base import (
     Algorithm,
     Proposal,
     SearchOutcome,
+    _accepted_verdict,
     _fused_verdict,
     _sky_index,
     _sorted_mags,
@@ -99,47 +100,45 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
 
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
     between them (every proposal in the Python loop)."""
-    kernel = _kernels.pyramid_identify
-    plan = _plan(db, kernel)
-    use = frame.use
-    triads = _TRIAD_ARRAYS.get(use)
-    if triads is None:
-        if len(_TRIAD_ARRAYS) > 64:
-            _TRIAD_ARRAYS.clear()
-        triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
-    fpar, ipar, budget = _settings(config, frame, camera, params)
+    plan = _plan(db)
+    xs = frame.xs
+    n = len(xs)
+    buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
     # The frame's arrays are float64 and contiguous (FusedFrame), the types the kernel's entry was resolved for.
-    n = len(frame.xs)
-    buffers = _buffers(budget, n)
-    args = (frame.xs, frame.ys, frame.sig_px, frame.flux, triads, fpar, ipar) + buffers + plan[2]
-    state, best, res_i, res_f = buffers[0], buffers[2], buffers[3], buffers[4]
+    args = (xs, frame.ys, frame.sig_px, frame.flux, *rest)
     fn = plan[3]
     if fn is None:
+        kernel = plan[0]
         fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
-    reason, code = "no consistent star pattern found", ReasonCode.NO_PATTERN
     while True:
-        status, vcode, p_false, nm, total, rms, n_tri = fn(*args)
-        if status == 0 or status == 1:
+        status, _, p_false, nm, total, rms, n_tri = fn(*args)
+        if status <= 1:
             break
         if status == 2:
-            reason, code = f"search budget of {params.max_proposals} proposals spent", ReasonCode.NO_PATTERN
-            break
+            return _failed(buffers, db, params, f"search budget of {params.max_proposals} proposals spent",
+                           ReasonCode.NO_PATTERN)
         if time.perf_counter() > frame.deadline:
-            reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
-            break
+            return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
+    if status == 1:
+        return _failed(buffers, db, params, "no consistent star pattern found", ReasonCode.NO_PATTERN)
+    # Views of this thread's buffers serve the rest of this frame's run(); the quaternion outlives it.
+    state, _, _, res_i, res_f = buffers
     _, _, tried, patterns = state.tolist()
-    if status == 0:
-        # Views of this thread's buffers serve the rest of this frame's run(); the quaternion outlives it.
-        accepted = _fused_verdict(vcode, res_i[:n], res_f[:4].copy(), res_f[4:13].reshape(3, 3), p_false, 0, 0, nm,
-                                  res_i[n:n + nm], rms, db, params)
-        return SearchOutcome(accepted, None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {},
-                             tried, patterns, reason, code)
-    bv = None
-    if best[0]:
-        bv = _fused_verdict(int(best[1]), None, None, None, best[2], int(best[3]), int(best[4]), int(best[5]), None,
-                            None, db, params)
-    return SearchOutcome(None, None, {}, bv, {"triangles": int(best[6])} if best[0] else {}, tried, patterns, reason,
-                         code)
+    return SearchOutcome(_accepted_verdict(res_i[:n], res_i[n:n + nm], res_f[:4].copy(), dcm, p_false, rms, db),
+                         None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {}, tried, patterns,
+                         "no consistent star pattern found", ReasonCode.NO_PATTERN)
+
+
+def _failed(buffers, db, params, reason, code):
+    """:func:`fused_pyramid`'s outcome without an accepted proposal: the best rejected one's verdict
+    (the kernel's ``best``), the counts of its ``state``, why the search stopped."""
+    state, _, best, _, _ = buffers
+    _, _, tried, patterns = state.tolist()
+    if not best[0]:
+        return SearchOutcome(None, None, {}, None, {}, tried, patterns, reason, code)
+    bv = _fused_verdict(int(best[1]), None, None, None, best[2], int(best[3]), int(best[4]), int(best[5]), None, None,
+                        db, params)
+    return SearchOutcome(None, None, {}, bv, {"triangles": int(best[6])}, tried, patterns, reason, code)
 
 
 def pair_adjacency(db):
@@ -157,18 +156,46 @@ _BUFFERS = threading.local()
 
 
 def _buffers(budget, n):
-    """The kernel's in/out arrays ``state``, ``seen``, ``best``, ``res_i`` and ``res_f`` (:func:`fused_pyramid`)
-    for a frame of ``n`` stars, made once per thread and proposal budget (and grown for more stars) and
-    reused by the thread's next frames: ``state`` and ``best`` zeroed, ``seen``'s rows read by the kernel
-    only after it wrote them in the same search, ``res_i``/``res_f`` written with an accepted verdict."""
+    """``(buffers, dcm)``: the kernel's in/out arrays ``state``, ``seen``, ``best``, ``res_i`` and ``res_f``
+    (:func:`fused_pyramid`) for a frame of ``n`` stars and the attitude matrix's view of ``res_f``, made
+    once per thread and proposal budget (and grown for more stars) and reused by the thread's next
+    frames: ``state`` and ``best`` zeroed, ``seen``'s rows read by the kernel only after it wrote them in
+    the same search, ``res_i``/``res_f`` written with an accepted verdict."""
     got = getattr(_BUFFERS, "arrays", None)
-    if got is None or got[1].shape[0] != budget or got[3].shape[0] < 2 * n:
-        got = _BUFFERS.arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
-                                 np.empty(max(256, 2 * n), np.int64), np.empty(13))
+    if got is None or len(got[0][1]) != budget or len(got[0][3]) < 2 * n:
+        arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
+                  np.empty(max(256, 2 * n), np.int64), np.empty(13))
+        got = _BUFFERS.arrays = (arrays, arrays[4][4:13].reshape(3, 3))
     else:
-        got[0].fill(0)
-        got[2].fill(0)
+        got[0][0].fill(0)
+        got[0][2].fill(0)
     return got
+
+
+def _inputs(plan, config, frame, camera, params, n):
+    """``(buffers, rest, dcm)``: the thread's buffers (:func:`_buffers`; ``state`` and ``best`` zeroed), the
+    kernel's arguments after the frame's four arrays (the triads, ``fpar`` and ``ipar`` of :func:`_settings`,
+    the buffers, the database's arrays of ``plan``) and the attitude matrix's view of the buffers.
+
+    Kept with the database's plan per value of the settings (the last 64) and used again while the
+    thread's buffers are the same and large enough: one look-up instead of those of :func:`_settings`
+    and :func:`_buffers` and a new tuple."""
+    key = (_CAMERA_KEY(camera), _PARAMS_KEY(params), config.max_triads, config.max_triangles, frame.margin,
+           frame.eps, frame.use)
+    buffers, dcm = getattr(_BUFFERS, "arrays", (None, None))
+    memo = plan[4]
+    rest = memo.get(key)
+    # rest[3] is the state array of the buffers it was made with
+    if rest is not None and buffers is not None and rest[3] is buffers[0] and len(buffers[3]) >= 2 * n:
+        buffers[0].fill(0)
+        buffers[2].fill(0)
+        return buffers, rest, dcm
+    fpar, ipar, budget, triads = _settings(config, frame, camera, params)
+    buffers, dcm = _buffers(budget, n)
+    if len(memo) > 64:
+        memo.clear()
+    rest = memo[key] = (triads, fpar, ipar, *buffers, *plan[2])
+    return buffers, rest, dcm
 
 
 _SETTINGS: dict = {}         # fused_pyramid's kernel settings per camera, IdentifyParams and config values
@@ -179,7 +206,8 @@ _PARAMS_KEY = operator.attrgetter("match_radius_px", "match_sigma", "margin_arcs
 
 
 def _settings(config, frame, camera, params):
-    """:func:`fused_pyramid`'s ``fpar`` and ``ipar`` (the kernel only reads them) and the proposal budget.
+    """:func:`fused_pyramid`'s ``fpar`` and ``ipar`` (the kernel only reads them), the proposal budget and
+    the triads of the frame's search stars (smart index sequence).
 
     Made once per value of what they hold and looked up after: first by the camera's, the settings'
     and the configuration's values (IdentifyParams can change between frames: the key is its values,
@@ -200,21 +228,33 @@ def _settings(config, frame, camera, params):
             _SETTINGS.clear()
         level = _SETTINGS[key] = (fpar, ipar, budget, {})
     frames = level[3]
-    fkey = (frame.margin, frame.eps, frame.use)
+    use = frame.use
+    fkey = (frame.margin, frame.eps, use)
     got = frames.get(fkey)
     if got is None:
         fpar, ipar = level[0].copy(), level[1].copy()
-        fpar[0], fpar[9], ipar[7] = frame.margin, frame.eps, frame.use
+        fpar[0], fpar[9], ipar[7] = frame.margin, frame.eps, use
+        triads = _TRIAD_ARRAYS.get(use)
+        if triads is None:
+            if len(_TRIAD_ARRAYS) > 64:
+                _TRIAD_ARRAYS.clear()
+            triads = _TRIAD_ARRAYS[use] = _kernels.smart_triads(use)
         if len(frames) > 64:
             frames.clear()
-        got = frames[fkey] = (fpar, ipar, level[2])
+        got = frames[fkey] = (fpar, ipar, level[2], triads)
     return got
 
 
-def _plan(db, kernel):
+_PLAN_SOURCES = operator.attrgetter("star_vector", "pair_i", "pair_j", "pair_cos", "kvector", "line", "kquad", "quad",
+                                    "star_mag")
+
+
+def _plan(db):
     """The database's arrays as :func:`fused_pyramid`'s kernel takes them, and the kernel's entry for
-    them (resolved at the first call), cached on the database while its arrays are the same objects."""
-    src = (db.star_vector, db.pair_i, db.pair_j, db.pair_cos, db.kvector, db.line, db.kquad, db.quad, db.star_mag)
+    them (resolved at the first call), cached on the database while its arrays (and the kernel) are
+    the same objects: ``[kernel, source arrays, arrays, entry, the last frame's inputs]`` (:func:`_inputs`)."""
+    kernel = _kernels.pyramid_identify
+    src = _PLAN_SOURCES(db)
     plan = db.__dict__.get("_pyramid_plan")
     if plan is not None and plan[0] is kernel and all(map(operator.is_, plan[1], src)):
         return plan
@@ -224,7 +264,7 @@ def _plan(db, kernel):
               np.ascontiguousarray(db.kvector), np.asarray(db.line, dtype=np.float64), np.ascontiguousarray(db.kquad),
               np.asarray(db.quad, dtype=np.float64), np.ascontiguousarray(db.star_mag, dtype=np.float64),
               _sorted_mags(db), z_order, z_sorted) + pair_adjacency(db)
-    plan = db.__dict__["_pyramid_plan"] = [kernel, src, arrays, None]
+    plan = db.__dict__["_pyramid_plan"] = [kernel, src, arrays, None, {}]
     return plan
 
 
