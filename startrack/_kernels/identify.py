@@ -27,6 +27,20 @@ def _angle(u, v):
 
 
 @njit(cache=True, inline="always")
+def _cos_window(th, e):
+    """The cosines ``(lo, hi)`` of the angles ``th + e`` (at most pi) and ``th - e`` (at least 0): a pair
+    of image stars at angle ``th`` matches a catalog pair whose cosine lies in ``[lo, hi]``."""
+    return math.cos(min(th + e, math.pi)), math.cos(max(th - e, 0.0))
+
+
+@njit(cache=True, inline="always")
+def _pair_window(b, tol, margin, u, v):
+    """:func:`_cos_window` of image stars ``u`` and ``v``: their angle, with the tolerance
+    ``sqrt(tol_u^2 + tol_v^2) + margin``."""
+    return _cos_window(_angle(b[u], b[v]), math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin)
+
+
+@njit(cache=True, inline="always")
 def _triple(a, b, c):
     """Scalar triple product ``a . (b x c)`` (the handedness of a triangle)."""
     return a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0])
@@ -126,16 +140,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     n = b.shape[0]
     out = np.full((max_out, 5), -1, dtype=np.int64)
     no = 0
-    th_ij = _angle(b[i], b[j])
-    th_ik = _angle(b[i], b[k])
-    th_jk = _angle(b[j], b[k])
-    e_ij = math.sqrt(tol[i] ** 2 + tol[j] ** 2) + margin
-    e_ik = math.sqrt(tol[i] ** 2 + tol[k] ** 2) + margin
-    e_jk = math.sqrt(tol[j] ** 2 + tol[k] ** 2) + margin
-    lo_ij = math.cos(th_ij + e_ij)
-    hi_ij = math.cos(max(th_ij - e_ij, 0.0))
-    lo_ik = math.cos(th_ik + e_ik)
-    hi_ik = math.cos(max(th_ik - e_ik, 0.0))
+    lo_ij, hi_ij = _pair_window(b, tol, margin, i, j)
+    lo_ik, hi_ik = _pair_window(b, tol, margin, i, k)
     # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
     s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
     n_cat = star_vec.shape[0]
@@ -161,8 +167,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         return out[:0], 0
     cb = _triple(b[i], b[j], b[k])
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
-    lo_jk = math.cos(min(th_jk + e_jk, math.pi))
-    hi_jk = math.cos(max(th_jk - e_jk, 0.0))
+    lo_jk, hi_jk = _pair_window(b, tol, margin, j, k)
     # J and K of a triangle both have a database pair at theta_jk when that window lies within the
     # database's pairs (every pair of its stars closer than its largest angle is in it, and
     # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
@@ -235,18 +240,9 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             if r == i or r == j or r == k:
                 continue
             if not made[r]:
-                th_ir = _angle(b[i], b[r])
-                th_jr = _angle(b[j], b[r])
-                th_kr = _angle(b[k], b[r])
-                e_ir = math.sqrt(tol[i] ** 2 + tol[r] ** 2) + margin
-                e_jr = math.sqrt(tol[j] ** 2 + tol[r] ** 2) + margin
-                e_kr = math.sqrt(tol[k] ** 2 + tol[r] ** 2) + margin
-                win[r, 0] = math.cos(th_ir + e_ir)
-                win[r, 1] = math.cos(max(th_ir - e_ir, 0.0))
-                win[r, 2] = math.cos(min(th_jr + e_jr, math.pi))
-                win[r, 3] = math.cos(max(th_jr - e_jr, 0.0))
-                win[r, 4] = math.cos(min(th_kr + e_kr, math.pi))
-                win[r, 5] = math.cos(max(th_kr - e_kr, 0.0))
+                win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
+                win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
+                win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
                 made[r] = True
             lo = win[r, 0]
             hi = win[r, 1]
@@ -514,8 +510,7 @@ def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps,
     for i in range(n):
         for j in range(i + 1, n):
             th = _angle(b[i], b[j])
-            lo = math.cos(th + eps)
-            hi = math.cos(max(th - eps, 0.0))
+            lo, hi = _cos_window(th, eps)
             s, e = kvector_range(kvector, line[0], line[1], lo, hi)
             for t in range(s, e):
                 c = pair_cos[t]
