@@ -306,18 +306,19 @@ def test_star_table_is_identified_as_its_star_list(sensor, algorithm, catalog):
     assert seen_ok >= 12
 
 
-def _angle(u, v):
-    """The kernels' angle between unit vectors, in the same arithmetic."""
+def _chord(u, v):
+    """The kernels' chord between unit vectors (``_chord_rows``), in the same arithmetic."""
     import math
 
     u, v = u.tolist(), v.tolist()
-    return math.acos(min(1.0, max(-1.0, u[0] * v[0] + u[1] * v[1] + u[2] * v[2])))
+    dx, dy, dz = u[0] - v[0], u[1] - v[1], u[2] - v[2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-def test_focal_scale_reusing_the_field_scale_angles_equals_focal_scale():
+def test_focal_scale_reusing_the_field_scale_chords_equals_focal_scale():
     """focal_scale_reusing gives focal_scale's value bit for bit, whichever of its pairs the field
     scale's list holds: the same detections with the same stars, some with other stars, detections it
-    lacks or has beyond; its measured angles taken only while ``b`` is the same."""
+    lacks or has beyond; its measured chords taken only while ``b`` is the same."""
     from startrack._kernels.identify import focal_scale, focal_scale_reusing
 
     rng = np.random.default_rng(11)
@@ -333,8 +334,8 @@ def test_focal_scale_reusing_the_field_scale_angles_equals_focal_scale():
         fs_img = np.sort(rng.choice(40, n_fs, replace=False)).astype(np.int64)
         fs_cat = rng.choice(300, n_fs, replace=False).astype(np.int64)
         pairs = [(u, v) for u in range(n_fs) for v in range(u + 1, n_fs)]
-        fs_ang = np.array([_angle(sv[fs_cat[u]], sv[fs_cat[v]]) for u, v in pairs]).reshape(-1)
-        fs_mea = np.array([_angle(b[fs_img[u]], b[fs_img[v]]) for u, v in pairs]).reshape(-1)
+        fs_ang = np.array([_chord(sv[fs_cat[u]], sv[fs_cat[v]]) for u, v in pairs]).reshape(-1)
+        fs_mea = np.array([_chord(b[fs_img[u]], b[fs_img[v]]) for u, v in pairs]).reshape(-1)
         # The verification's matches: part of the field scale's (some with another star) and others.
         keep = [i for i in range(n_fs) if rng.random() < 0.8]
         img = {int(fs_img[i]): int(fs_cat[i]) if rng.random() < 0.9 else int(rng.integers(300)) for i in keep}
@@ -348,3 +349,25 @@ def test_focal_scale_reusing_the_field_scale_angles_equals_focal_scale():
             assert (np.isnan(want) and np.isnan(got)) or want == got, (trial, same_b, want, got)
         reused += len(set(mi) & set(fs_img.tolist())) >= 2
     assert reused > 100
+
+
+def test_focal_scale_of_chords_measures_a_known_focal_error():
+    """A field measured with a focal length 1 % short of the true one (every measured angle about 1 %
+    too large) gives the focal scale ``f_used / f_true`` (true f = f / scale) to within the tangent
+    projection's departure from proportional angles, whichever attitude; 1 at the true focal length."""
+    from startrack._kernels.identify import focal_scale, pixels_to_unit
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    rng = np.random.default_rng(5)
+    f_true, f_used = 3000.0, 3000.0 / 1.01
+    xs = rng.uniform(0, 1280, 12)
+    ys = rng.uniform(0, 960, 12)
+    for q in random_quaternions(5, rng):
+        b_true = pixels_to_unit(xs, ys, f_true, 639.5, 479.5)
+        sv = b_true @ quaternion_to_dcm(q)          # the catalog's vectors of these detections
+        b = pixels_to_unit(xs, ys, f_used, 639.5, 479.5)
+        idx = np.arange(12, dtype=np.int64)
+        s = focal_scale(b, idx, sv, idx)
+        # Angles through a pinhole are not exactly proportional to 1/f (tan): within 1e-3.
+        assert abs(s - f_used / f_true) < 1e-3, s
+        assert abs(focal_scale(b_true, idx, sv, idx) - 1.0) < 1e-12

@@ -561,7 +561,8 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
 
 
 def _focal_scale(b_all, img, cat, star_vec):
-    """Least-squares ``s`` with ``theta_cat = s theta_mea`` over the given pairs (None if < 3 stars)."""
+    """Least-squares ``s`` with ``c_cat = s c_mea`` over the given pairs' chords (None if < 3 stars;
+    :func:`startrack._kernels.identify.focal_scale`)."""
     if len(img) < 3:
         return None
     from startrack._kernels.identify import focal_scale
@@ -579,8 +580,8 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
     misses the outer ones and a scale fitted to the few matched near the core stays
     wrong.  Each detection here takes the one predicted star within its radius widened by
     that displacement (none when two are), and the scale is the median of catalog over
-    measured angle over the long pairs of these tentative matches (robust to the odd
-    wrong one).
+    measured chord (angle, :func:`startrack._kernels.identify.focal_scale`) over the long pairs of
+    these tentative matches (robust to the odd wrong one).
     """
     if not (camera.k1 or camera.k2):
         from startrack._kernels.identify import field_scale
@@ -617,8 +618,9 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
         if len(img) < 4:
             return None
     iu = np.triu_indices(len(img), 1)
-    mea = np.arccos(np.minimum((b_all[img] @ b_all[img].T)[iu], 1.0))
-    ref = np.arccos(np.minimum((star_vec[cat] @ star_vec[cat].T)[iu], 1.0))
+    # Chords, as the kernel's focal_scale: the angle ratio without an arccos.
+    mea = np.linalg.norm(b_all[img][:, None, :] - b_all[img][None, :, :], axis=2)[iu]
+    ref = np.linalg.norm(star_vec[cat][:, None, :] - star_vec[cat][None, :, :], axis=2)[iu]
     long = mea >= 0.3 * mea.max()
     if np.count_nonzero(long) < 3:
         return None
