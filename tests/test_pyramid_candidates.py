@@ -124,3 +124,23 @@ def test_triangles_match_brute_force(setup):
             checked += 1
             found += want
     assert checked >= 100 and found >= 150, (checked, found)
+
+
+def test_first_at_or_above_is_searchsorted():
+    """The fourth star's look-up in a star's pairs (:func:`_first_at_or_above`) is ``np.searchsorted``'s
+    left index for any ascending values, query, and spread bounds (true ones, wrong ones, equal ones),
+    with ties, values outside the bounds and empty ranges; the neighbours outside the range are never
+    taken."""
+    from startrack._kernels.identify import _first_at_or_above
+
+    rng = np.random.default_rng(1)
+    for _ in range(5000):
+        n = int(rng.integers(0, 60))
+        if rng.random() < 0.7:
+            a = np.sort(rng.uniform(-0.2, 1.0, n))
+        else:
+            a = np.sort(rng.choice(np.linspace(0.0, 1.0, 7), n))        # ties
+        arr = np.concatenate([[-9.0, -8.0], a, [8.0, 9.0]])
+        x = float(rng.uniform(-0.5, 1.5)) if n == 0 or rng.random() < 0.5 else float(a[rng.integers(n)])
+        lo, hi = (-0.2, 1.0) if rng.random() < 0.7 else tuple(np.sort(rng.uniform(-1.0, 2.0, 2)))
+        assert _first_at_or_above(arr, 2, 2 + n, x, lo, hi) == 2 + np.searchsorted(a, x)

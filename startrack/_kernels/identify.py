@@ -101,6 +101,53 @@ def _first_at_or_after(sorted_pairs, key):
     return lo
 
 
+@njit(cache=True)
+def _first_at_or_above(a, p0, p1, x, lo, hi):
+    """``p0 + np.searchsorted(a[p0:p1], x)`` (the first ``p`` in ``[p0, p1)`` with ``a[p] >= x``, else ``p1``)
+    for ``a[p0:p1]`` ascending within ``[lo, hi]``, starting where ``x`` would lie were the values evenly
+    spread over ``[lo, hi]`` and doubling the step from there, then bisecting.
+
+    A star's database pairs are spread about evenly in cosine (a cap's area is linear in its cosine),
+    so the first guess is within a few entries: two or three reads of a cold array where a bisection
+    from the ends makes eight or nine, each a cache miss."""
+    n = p1 - p0
+    if n <= 0:
+        return p1
+    g = p0
+    if hi > lo:
+        f = (x - lo) / (hi - lo)
+        if f >= 1.0:
+            g = p1 - 1
+        elif f > 0.0:
+            g = min(p1 - 1, p0 + int(f * n))
+    # Bracket [a_lo, a_hi] with a[a_lo - 1] < x <= a[a_hi] (a_lo = p0 / a_hi = p1 at the ends).
+    if a[g] >= x:
+        a_hi = g
+        step = 1
+        a_lo = g - step
+        while a_lo >= p0 and a[a_lo] >= x:
+            a_hi = a_lo
+            step *= 2
+            a_lo = a_hi - step
+        a_lo = max(a_lo + 1, p0)
+    else:
+        a_lo = g + 1
+        step = 1
+        a_hi = g + step
+        while a_hi < p1 and a[a_hi] < x:
+            a_lo = a_hi + 1
+            step *= 2
+            a_hi = a_lo - 1 + step
+        a_hi = min(a_hi, p1)
+    while a_lo < a_hi:
+        mid = (a_lo + a_hi) >> 1
+        if a[mid] < x:
+            a_lo = mid + 1
+        else:
+            a_hi = mid
+    return a_lo
+
+
 @njit(cache=True, inline="always")
 def vote_once(votes, stamp, i, c, key):
     """One vote for hypothesis ``(i, c)`` per ``key`` (an image pair): ``stamp`` remembers the last key."""
@@ -239,6 +286,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         return out[:no], nt
     # The fourth star's cosine windows to I, J and K, made at its first use (the same for every triangle).
     win = np.empty((n, 6))
+    c_min = pair_cos[0] if pair_cos.shape[0] > 0 else -1.0
+    c_max = pair_cos[pair_cos.shape[0] - 1] if pair_cos.shape[0] > 0 else 1.0
     made = np.zeros(n, dtype=np.bool_)
     for t in range(nt):
         fI = tri[t, 0]
@@ -261,7 +310,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             lo_kr = win[r, 4]
             hi_kr = win[r, 5]
             # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
-            p = a0 + np.searchsorted(adj_cos[a0:a1], lo)
+            p = _first_at_or_above(adj_cos, a0, a1, lo, c_min, c_max)
             nR = 0
             fR = -1
             while p < a1 and adj_cos[p] <= hi:
