@@ -67,7 +67,7 @@ def test_fourth_star_confirmation_matches_brute_force(setup):
         for i, j, k in smart_triads(n)[:6].tolist():
             out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                             db.pair_cos, db.kvector, line, db.kquad, quad, False, 64, 256,
-                                            *pair_adjacency(db))
+                                            *pair_adjacency(db), 0.0)
             multi += len(out) >= 2
             for r, I, J, K, R in out.tolist():
                 rows += 1
@@ -102,7 +102,7 @@ def test_triangles_match_brute_force(setup):
         for i, j, k in smart_triads(len(b))[:8].tolist():
             _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
                                           db.kvector, line, db.kquad, quad, False, 10_000, 256,
-                                          *pair_adjacency(db))
+                                          *pair_adjacency(db), 0.0)
             (lo_ij, hi_ij), (lo_ik, hi_ik), (lo_jk, hi_jk) = (_window(b, tol, margin, u, v)
                                                               for u, v in ((i, j), (i, k), (j, k)))
             sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
@@ -144,3 +144,64 @@ def test_first_at_or_above_is_searchsorted():
         x = float(rng.uniform(-0.5, 1.5)) if n == 0 or rng.random() < 0.5 else float(a[rng.integers(n)])
         lo, hi = (-0.2, 1.0) if rng.random() < 0.7 else tuple(np.sort(rng.uniform(-1.0, 2.0, 2)))
         assert _first_at_or_above(arr, 2, 2 + n, x, lo, hi) == 2 + np.searchsorted(a, x)
+
+
+def test_triangles_with_a_free_focal_length_match_brute_force(setup):
+    """With the focal length free within 3 % (``focal_error``), a triad's triangles are the brute-force
+    ones: the three sides within the widened windows ``[theta (1 - f) - e, theta (1 + f) + e]``, the
+    same handedness, and one scale for all three (the scales each side allows, ``[(a - e) / theta,
+    (a + e) / theta]``, overlap within ``1 +- f``).  The frames are seen through a focal length 2 %
+    off, so the true triangles are found only this way."""
+    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack.identify.pyramid import pair_adjacency
+
+    cam, db, stars = setup
+    line = np.asarray(db.line, dtype=np.float64)
+    quad = np.asarray(db.quad, dtype=np.float64)
+    sv = db.star_vector
+    ferr = 0.03
+    params = IdentifyParams(sigma_px=0.3)
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    cond = Condition(sigma_px=0.3, focal_error_pct=2.0, min_catalog_stars=4)
+    checked = found = 0
+    for frame, _, _ in make_frames(stars, cam, cond, 6, 5, mag_limit=5.5):
+        xs = np.array([s["x"] for s in frame])
+        ys = np.array([s["y"] for s in frame])
+        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
+        tol = params.tolerance_sigma * np.full(len(b), 0.3) / cam.focal_length_px
+        for i, j, k in smart_triads(len(b))[:4].tolist():
+            _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
+                                          db.kvector, line, db.kquad, quad, False, 100_000, 256,
+                                          *pair_adjacency(db), ferr)
+            sides = {}
+            for u, v in ((i, j), (i, k), (j, k)):
+                th = math.acos(min(1.0, float(b[u] @ b[v])))
+                e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+                sides[u, v] = (th, e, math.cos(min(th * (1 + ferr) + e, math.pi)), math.cos(max(th * (1 - ferr) - e, 0)))
+            (_, _, lo_ij, hi_ij), (_, _, lo_ik, hi_ik), (_, _, lo_jk, hi_jk) = sides.values()
+            sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
+            ij = np.concatenate([np.stack([db.pair_i[sel], db.pair_j[sel]], 1),
+                                 np.stack([db.pair_j[sel], db.pair_i[sel]], 1)]).astype(np.int64)
+            sel = (db.pair_cos >= lo_ik) & (db.pair_cos <= hi_ik)
+            partners = {}
+            for a, z in zip(db.pair_i[sel].tolist(), db.pair_j[sel].tolist()):
+                partners.setdefault(a, []).append(z)
+                partners.setdefault(z, []).append(a)
+            hand = np.linalg.det(np.stack([b[i], b[j], b[k]])) > 0
+            want = 0
+            for I, J in ij.tolist():
+                for K in partners.get(I, []):
+                    d = float(sv[J] @ sv[K])
+                    if K == J or not lo_jk <= d <= hi_jk:
+                        continue
+                    if (np.linalg.det(np.stack([sv[I], sv[J], sv[K]])) > 0) != hand:
+                        continue
+                    lo, hi = 1 - ferr, 1 + ferr
+                    for (th, e, _, _), (P, Q) in zip(sides.values(), ((I, J), (I, K), (J, K))):
+                        a = math.acos(min(1.0, max(-1.0, float(sv[P] @ sv[Q]))))
+                        lo, hi = max(lo, (a - e) / th), min(hi, (a + e) / th)
+                    want += lo <= hi
+            assert n_tri == want, (i, j, k, n_tri, want)
+            checked += 1
+            found += want
+    assert checked >= 20 and found >= 20, (checked, found)

@@ -51,6 +51,26 @@ def _pair_window(b, tol, margin, u, v):
 
 
 @njit(cache=True, inline="always")
+def _pair_window_scaled(b, tol, margin, u, v, s_lo, s_hi):
+    """:func:`_pair_window` of image stars ``u`` and ``v`` whose catalog angle is their angle times a
+    focal-length scale in ``[s_lo, s_hi]``: the cosines of ``theta s_hi + e`` and ``theta s_lo - e``
+    (with ``s_lo = s_hi = 1`` the same bits as :func:`_pair_window`)."""
+    th = _angle(b[u], b[v])
+    e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+    return math.cos(min(th * s_hi + e, math.pi)), math.cos(max(th * s_lo - e, 0.0))
+
+
+@njit(cache=True, inline="always")
+def _scale_range(cos_cat, th, e, s_lo, s_hi):
+    """``[s_lo, s_hi]`` narrowed to the scales ``s`` with ``|theta_cat - s theta| <= e`` for a pair of
+    catalog cosine ``cos_cat`` and image angle ``th`` (empty: ``lo > hi``)."""
+    a = math.acos(min(1.0, max(-1.0, cos_cat)))
+    if th <= 0.0:
+        return (s_lo, s_hi) if a <= e else (1.0, 0.0)
+    return max(s_lo, (a - e) / th), min(s_hi, (a + e) / th)
+
+
+@njit(cache=True, inline="always")
 def _triple(a, b, c):
     """Scalar triple product ``a . (b x c)`` (the handedness of a triangle)."""
     return a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0])
@@ -176,7 +196,7 @@ def smart_triads(n):
 
 @njit(cache=True)
 def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
-                       use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos):
+                       use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos, focal_error):
     """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
 
     The triad's catalog triangles come from k-vector (or paper 000 quadratic)
@@ -189,6 +209,13 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     database pairs of ``I`` at the angle ``theta_ir``: a bisection of ``I``'s pairs sorted by
     cosine (``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
 
+    ``focal_error`` > 0: the focal length is known to that fraction only, so every catalog
+    angle is the image angle times one common scale ``s`` in ``[1 - focal_error, 1 + focal_error]``
+    (up to each pair's tolerance): the three windows are widened to that, a triangle is kept
+    when one scale fits its three sides (the scales each side allows overlap), and the fourth
+    star's windows are those of the triangle's scales.  0: the nominal focal length (the
+    published search).
+
     Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
     a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
     triangles found (``max_triangles + 1`` when there were more: the triad is
@@ -197,8 +224,10 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     n = b.shape[0]
     out = np.full((max_out, 5), -1, dtype=np.int64)
     no = 0
-    lo_ij, hi_ij = _pair_window(b, tol, margin, i, j)
-    lo_ik, hi_ik = _pair_window(b, tol, margin, i, k)
+    s_lo = 1.0 - focal_error
+    s_hi = 1.0 + focal_error
+    lo_ij, hi_ij = _pair_window_scaled(b, tol, margin, i, j, s_lo, s_hi)
+    lo_ik, hi_ik = _pair_window_scaled(b, tol, margin, i, k, s_lo, s_hi)
     # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
     s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
     n_cat = star_vec.shape[0]
@@ -224,7 +253,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         return out[:0], 0
     cb = _triple(b[i], b[j], b[k])
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
-    lo_jk, hi_jk = _pair_window(b, tol, margin, j, k)
+    lo_jk, hi_jk = _pair_window_scaled(b, tol, margin, j, k, s_lo, s_hi)
     # J and K of a triangle both have a database pair at theta_jk when that window lies within the
     # database's pairs (every pair of its stars closer than its largest angle is in it, and
     # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
@@ -240,7 +269,17 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 mark[pair_i[t]] = True
                 mark[pair_j[t]] = True
     tri = np.empty((max_triangles, 3), dtype=np.int64)
+    tri_s = np.empty((max_triangles, 2))
     nt = 0
+    scaled = focal_error > 0.0
+    th_ij = th_ik = th_jk = e_ij = e_ik = e_jk = 0.0
+    if scaled:
+        th_ij = _angle(b[i], b[j])
+        th_ik = _angle(b[i], b[k])
+        th_jk = _angle(b[j], b[k])
+        e_ij = math.sqrt(tol[i] ** 2 + tol[j] ** 2) + margin
+        e_ik = math.sqrt(tol[i] ** 2 + tol[k] ** 2) + margin
+        e_jk = math.sqrt(tol[j] ** 2 + tol[k] ** 2) + margin
     s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
     # The pairs at theta_ij (both orientations, in order) whose first star I has a pair at
     # theta_ik, gathered without a branch: about four in five have none, and a branch on that
@@ -271,11 +310,22 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 continue
             if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
                 continue
+            t_lo = 1.0
+            t_hi = 1.0
+            if scaled:
+                # One scale for the three sides (each side's scales within its tolerance).
+                t_lo, t_hi = _scale_range(_dot(star_vec[I], star_vec[J]), th_ij, e_ij, s_lo, s_hi)
+                t_lo, t_hi = _scale_range(_dot(star_vec[I], star_vec[K]), th_ik, e_ik, t_lo, t_hi)
+                t_lo, t_hi = _scale_range(d, th_jk, e_jk, t_lo, t_hi)
+                if t_lo > t_hi:
+                    continue
             if nt >= max_triangles:
                 return out[:0], nt + 1
             tri[nt, 0] = I
             tri[nt, 1] = J
             tri[nt, 2] = K
+            tri_s[nt, 0] = t_lo
+            tri_s[nt, 1] = t_hi
             nt += 1
     if n == 3:
         for t in range(min(nt, max_out)):
@@ -298,17 +348,23 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         for r in range(n):
             if r == i or r == j or r == k:
                 continue
-            if not made[r]:
-                win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
-                win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
-                win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
-                made[r] = True
-            lo = win[r, 0]
-            hi = win[r, 1]
-            lo_jr = win[r, 2]
-            hi_jr = win[r, 3]
-            lo_kr = win[r, 4]
-            hi_kr = win[r, 5]
+            if scaled:
+                # The triangle's own scales (a narrower range than the search's).
+                lo, hi = _pair_window_scaled(b, tol, margin, i, r, tri_s[t, 0], tri_s[t, 1])
+                lo_jr, hi_jr = _pair_window_scaled(b, tol, margin, j, r, tri_s[t, 0], tri_s[t, 1])
+                lo_kr, hi_kr = _pair_window_scaled(b, tol, margin, k, r, tri_s[t, 0], tri_s[t, 1])
+            else:
+                if not made[r]:
+                    win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
+                    win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
+                    win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
+                    made[r] = True
+                lo = win[r, 0]
+                hi = win[r, 1]
+                lo_jr = win[r, 2]
+                hi_jr = win[r, 3]
+                lo_kr = win[r, 4]
+                hi_kr = win[r, 5]
             # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
             p = _first_at_or_above(adj_cos, a0, a1, lo, c_min, c_max)
             nR = 0
@@ -1709,7 +1765,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     unit vectors (:func:`pixels_to_unit`), the search stars' tolerances, then the triads
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
     (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
-    triangles none); a proposal whose set of (image, catalog) pairs was tried already is no
+    triangles none), and when the focal length may be off (``fpar[14]`` > 0) the triads once
+    more with the focal length free within that (``focal_error``); a proposal whose set of (image, catalog) pairs was tried already is no
     new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, t + 1)``)
     and the first accepted ends the search.  Fluxes count when at least three are finite
     (else all NaN, as the driver passes them).
@@ -1756,12 +1813,17 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     t = state[0]
     row0 = state[1]
     key = np.empty(9, dtype=np.int64)
-    while t < n_tr:
-        i = triads[t, 0]
-        j = triads[t, 1]
-        k = triads[t, 2]
+    # The triads at the nominal focal length, then (a focal error allowed) again with the focal
+    # length free within it: t counts on through the second pass (the patterns compared).
+    passes = 2 if fpar[14] > 0.0 else 1
+    while t < passes * n_tr:
+        tt = t % n_tr
+        i = triads[tt, 0]
+        j = triads[tt, 1]
+        k = triads[tt, 2]
         out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
-                                        kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos)
+                                        kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos,
+                                        0.0 if t < n_tr else fpar[14])
         for rr in range(row0, out.shape[0]):
             img = np.empty(4 if out[rr, 0] >= 0 else 3, dtype=np.int64)
             cat = np.empty(img.shape[0], dtype=np.int64)

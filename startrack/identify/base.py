@@ -78,7 +78,8 @@ class IdentifyParams:
     max_false_probability : float
         Refuse an identification more likely than this to be a coincidence.
     max_focal_error : float
-        Largest relative focal-length error measured and corrected.
+        Largest relative focal-length error measured and corrected; the pyramid searches its
+        triads once more with the focal length free within it when the nominal one finds nothing.
     max_proposals : int
         Proposals verified before giving up (the search budget).
     max_time_ms : float

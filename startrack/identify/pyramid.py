@@ -10,12 +10,14 @@ Every confirmed pyramid is a proposal, the triad's in the order found: where
 Mortari's pyramid stops at the first triad with a *unique* triangle, this
 search also proposes the pyramids of ambiguous triads and goes on after a
 rejected one (the shared verification decides), which is what a sparse field
-of four or five stars needs.  Paper 000's quadratic search on its triangle
-database is :mod:`startrack.identify.modified_pyramid`.
+of four or five stars needs.  When the triads give no accepted proposal and the
+focal length may be off (``max_focal_error``), they are searched once more with
+the focal length free within that (one scale for a triangle's three sides).
+Paper 000's quadratic search on its triangle database is
+:mod:`startrack.identify.modified_pyramid`.
 """
 from __future__ import annotations
 
-import itertools
 import math
 import operator
 import threading
@@ -70,12 +72,18 @@ def _search(ctx, config, quadratic):
             _TRIADS.clear()
         triads = _TRIADS[n] = [tuple(r) for r in smart_triads(n).tolist()]
     seen = set()
-    for t, (i, j, k) in enumerate(itertools.islice(triads, config.max_triads), start=1):
+    used = triads[:config.max_triads]
+    # The triads at the nominal focal length, then, when the focal length may be off
+    # (params.max_focal_error), again with it free within that (pyramid_candidates' focal_error):
+    # a field seen through a focal length 1 % off has its long pairs a few tolerances away from
+    # the database's.  The pattern count goes on through the second pass.
+    passes = [0.0] + ([float(ctx.params.max_focal_error)] if ctx.params.max_focal_error > 0 else [])
+    for t, (focal_error, (i, j, k)) in enumerate(((f, triad) for f in passes for triad in used), start=1):
         out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                         db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
-                                        config.max_triangles, 256, *adjacency)
+                                        config.max_triangles, 256, *adjacency, focal_error)
         for r, I, J, K, R in out.tolist():
-            key = (i, j, k, I, J, K)
+            key = (focal_error, i, j, k, I, J, K)
             if key in seen:
                 continue
             seen.add(key)
