@@ -10,6 +10,10 @@ star ids).  Database loading is outside every timing.
     .venv/bin/python benchmarks/identify_compare.py --count 1000            # the issue-14 table
     .venv/bin/python benchmarks/identify_compare.py --triangles tri15.h5    # modified-pyramid on build-triangles' file
     .venv/bin/python benchmarks/identify_compare.py --fov 12 --size 1024x768 --count 300
+    .venv/bin/python benchmarks/identify_compare.py --conditions 0.3:0:1,0.3:3:2 --count 300   # 1 %, 2 % focal error
+
+A condition is ``sigma_px:false_stars[:focal_error_pct]``: with a focal-length error the star lists are
+those of a camera whose focal length is that much off the one every tool is given.
 """
 from __future__ import annotations
 
@@ -52,7 +56,8 @@ def add_sensor_arguments(ap, count):
     ap.add_argument("--min-stars", type=int, default=4, help="catalog stars per frame at least (false stars not counted)")
     ap.add_argument("--count", type=int, default=count)
     ap.add_argument("--seed", type=int, default=14)
-    ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10", help="sigma_px:false_stars, ...")
+    ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10",
+                    help="sigma_px:false_stars, ... (identify_compare.py also takes sigma_px:false_stars:focal_error_pct)")
 
 
 def sensor_setup(args):
@@ -137,8 +142,9 @@ def main(argv=None):
     bad = []
     try:
         for spec in args.conditions.split(","):
-            sigma, nfalse = spec.split(":")
-            cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_catalog_stars=args.min_stars)
+            sigma, nfalse, *focal = spec.split(":")
+            cond = Condition(sigma_px=float(sigma), false_stars=int(nfalse), min_catalog_stars=args.min_stars,
+                             focal_error_pct=float(focal[0]) if focal else 0.0)
             params = IdentifyParams(sigma_px=float(sigma))
             got = evaluate(algos, [cond], args.count, dbs, cam, star_cat, args.seed, args.jobs, params, args.star_mag)
             rows += [dict(r, condition=cond.label()) for r in got]

@@ -47,6 +47,28 @@ def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
     return cand
 
 
+def _brute_triangles(db, b, i, j, k, windows):
+    """Every catalog triangle (I, J, K) of triad (i, j, k) by brute force: (I, J) a database pair in the
+    window of (i, j) (either orientation), (I, K) one in that of (i, k), J-K's cosine in that of
+    (j, k), and the triad's handedness.  ``windows``: the three cosine windows in that order."""
+    (lo_ij, hi_ij), (lo_ik, hi_ik), (lo_jk, hi_jk) = windows
+    sv = db.star_vector
+    sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
+    ij = np.concatenate([np.stack([db.pair_i[sel], db.pair_j[sel]], 1),
+                         np.stack([db.pair_j[sel], db.pair_i[sel]], 1)]).astype(np.int64)
+    sel = (db.pair_cos >= lo_ik) & (db.pair_cos <= hi_ik)
+    partners = {}
+    for a, z in zip(db.pair_i[sel].tolist(), db.pair_j[sel].tolist()):
+        partners.setdefault(a, []).append(z)
+        partners.setdefault(z, []).append(a)
+    hand = np.linalg.det(np.stack([b[i], b[j], b[k]])) > 0
+    for I, J in ij.tolist():
+        for K in partners.get(I, []):
+            d = float(sv[J] @ sv[K])
+            if K != J and lo_jk <= d <= hi_jk and (np.linalg.det(np.stack([sv[I], sv[J], sv[K]])) > 0) == hand:
+                yield I, J, K
+
+
 def test_fourth_star_confirmation_matches_brute_force(setup):
     from startrack._kernels.identify import pyramid_candidates, smart_triads
     from startrack.identify.pyramid import pair_adjacency
@@ -103,23 +125,8 @@ def test_triangles_match_brute_force(setup):
             _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
                                           db.kvector, line, db.kquad, quad, False, 10_000, 256,
                                           *pair_adjacency(db), 0.0)
-            (lo_ij, hi_ij), (lo_ik, hi_ik), (lo_jk, hi_jk) = (_window(b, tol, margin, u, v)
-                                                              for u, v in ((i, j), (i, k), (j, k)))
-            sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
-            ij = np.concatenate([np.stack([db.pair_i[sel], db.pair_j[sel]], 1),
-                                 np.stack([db.pair_j[sel], db.pair_i[sel]], 1)]).astype(np.int64)
-            sel = (db.pair_cos >= lo_ik) & (db.pair_cos <= hi_ik)
-            partners = {}
-            for a, z in zip(db.pair_i[sel].tolist(), db.pair_j[sel].tolist()):
-                partners.setdefault(a, []).append(z)
-                partners.setdefault(z, []).append(a)
-            hand = np.linalg.det(np.stack([b[i], b[j], b[k]])) > 0
-            want = 0
-            for I, J in ij.tolist():
-                for K in partners.get(I, []):
-                    d = float(sv[J] @ sv[K])
-                    if K != J and lo_jk <= d <= hi_jk and (np.linalg.det(np.stack([sv[I], sv[J], sv[K]])) > 0) == hand:
-                        want += 1
+            want = sum(1 for _ in _brute_triangles(db, b, i, j, k, [_window(b, tol, margin, u, v)
+                                                                    for u, v in ((i, j), (i, k), (j, k))]))
             assert n_tri == want, (i, j, k, n_tri, want)
             checked += 1
             found += want
@@ -173,34 +180,18 @@ def test_triangles_with_a_free_focal_length_match_brute_force(setup):
             _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
                                           db.kvector, line, db.kquad, quad, False, 100_000, 256,
                                           *pair_adjacency(db), ferr)
-            sides = {}
+            sides = []
             for u, v in ((i, j), (i, k), (j, k)):
                 th = math.acos(min(1.0, float(b[u] @ b[v])))
                 e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
-                sides[u, v] = (th, e, math.cos(min(th * (1 + ferr) + e, math.pi)), math.cos(max(th * (1 - ferr) - e, 0)))
-            (_, _, lo_ij, hi_ij), (_, _, lo_ik, hi_ik), (_, _, lo_jk, hi_jk) = sides.values()
-            sel = (db.pair_cos >= lo_ij) & (db.pair_cos <= hi_ij)
-            ij = np.concatenate([np.stack([db.pair_i[sel], db.pair_j[sel]], 1),
-                                 np.stack([db.pair_j[sel], db.pair_i[sel]], 1)]).astype(np.int64)
-            sel = (db.pair_cos >= lo_ik) & (db.pair_cos <= hi_ik)
-            partners = {}
-            for a, z in zip(db.pair_i[sel].tolist(), db.pair_j[sel].tolist()):
-                partners.setdefault(a, []).append(z)
-                partners.setdefault(z, []).append(a)
-            hand = np.linalg.det(np.stack([b[i], b[j], b[k]])) > 0
+                sides.append((th, e, (math.cos(min(th * (1 + ferr) + e, math.pi)), math.cos(max(th * (1 - ferr) - e, 0)))))
             want = 0
-            for I, J in ij.tolist():
-                for K in partners.get(I, []):
-                    d = float(sv[J] @ sv[K])
-                    if K == J or not lo_jk <= d <= hi_jk:
-                        continue
-                    if (np.linalg.det(np.stack([sv[I], sv[J], sv[K]])) > 0) != hand:
-                        continue
-                    lo, hi = 1 - ferr, 1 + ferr
-                    for (th, e, _, _), (P, Q) in zip(sides.values(), ((I, J), (I, K), (J, K))):
-                        a = math.acos(min(1.0, max(-1.0, float(sv[P] @ sv[Q]))))
-                        lo, hi = max(lo, (a - e) / th), min(hi, (a + e) / th)
-                    want += lo <= hi
+            for I, J, K in _brute_triangles(db, b, i, j, k, [w for _, _, w in sides]):
+                lo, hi = 1 - ferr, 1 + ferr
+                for (th, e, _), (P, Q) in zip(sides, ((I, J), (I, K), (J, K))):
+                    a = math.acos(min(1.0, max(-1.0, float(sv[P] @ sv[Q]))))
+                    lo, hi = max(lo, (a - e) / th), min(hi, (a + e) / th)
+                want += lo <= hi
             assert n_tri == want, (i, j, k, n_tri, want)
             checked += 1
             found += want

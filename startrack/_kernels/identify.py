@@ -206,8 +206,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     match exactly one catalog star ``R``; with three image stars the triangle
     itself is the candidate.  The tolerance of pair ``(u, v)`` is
     ``sqrt(tol_u^2 + tol_v^2) + margin``.  The fourth star's candidates ``R`` are the
-    database pairs of ``I`` at the angle ``theta_ir``: a bisection of ``I``'s pairs sorted by
-    cosine (``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
+    database pairs of ``I`` at the angle ``theta_ir``: a search of ``I``'s pairs sorted by
+    cosine (:func:`_first_at_or_above`; ``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
 
     ``focal_error`` > 0: the focal length is known to that fraction only, so every catalog
     angle is the image angle times one common scale ``s`` in ``[1 - focal_error, 1 + focal_error]``
