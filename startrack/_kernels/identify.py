@@ -195,6 +195,24 @@ def smart_triads(n):
 
 
 @njit(cache=True)
+def free_focal_patterns(b, tol, margin, i, j, k, focal_error):
+    """The image patterns triad ``(i, j, k)`` compares with the database when the focal length is free
+    within ``focal_error`` (:func:`pyramid_candidates`): one per scale its longest side tells apart,
+    ``1 + ceil(2 focal_error theta / e)`` (``e`` that side's tolerance).  The look-elsewhere count of
+    the false-match probability: a random catalog triangle has that many more chances to fit."""
+    best = -1.0
+    e_best = 1.0
+    for t in range(3):
+        u = i if t < 2 else j
+        v = j if t == 0 else k
+        th = _angle(b[u], b[v])
+        if th > best:
+            best = th
+            e_best = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+    return 1 + int(math.ceil(2.0 * focal_error * best / e_best))
+
+
+@njit(cache=True)
 def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
                        use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos, focal_error):
     """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
@@ -1766,7 +1784,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
     (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
     triangles none), and when the focal length may be off (``fpar[14]`` > 0) the triads once
-    more with the focal length free within that (``focal_error``); a proposal whose set of (image, catalog) pairs was tried already is no
+    more with the focal length free within that (``focal_error``; each such triad counts
+    :func:`free_focal_patterns` patterns); a proposal whose set of (image, catalog) pairs was tried already is no
     new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, t + 1)``)
     and the first accepted ends the search.  Fluxes count when at least three are finite
     (else all NaN, as the driver passes them).
@@ -1816,11 +1835,19 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     # The triads at the nominal focal length, then (a focal error allowed) again with the focal
     # length free within it: t counts on through the second pass (the patterns compared).
     passes = 2 if fpar[14] > 0.0 else 1
+    # A triad of the second pass compares free_focal_patterns() patterns: ``extra`` counts those
+    # beyond one of the triads before t (the pattern count is t + 1 + extra).
+    extra = 0
+    for u in range(n_tr, min(t, passes * n_tr)):
+        extra += free_focal_patterns(b, tol, margin, triads[u - n_tr, 0], triads[u - n_tr, 1],
+                                     triads[u - n_tr, 2], fpar[14]) - 1
     while t < passes * n_tr:
         tt = t % n_tr
         i = triads[tt, 0]
         j = triads[tt, 1]
         k = triads[tt, 2]
+        more = 0 if t < n_tr else free_focal_patterns(b, tol, margin, i, j, k, fpar[14]) - 1
+        looked = t + 1 + extra + more
         out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
                                         kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos,
                                         0.0 if t < n_tr else fpar[14])
@@ -1858,11 +1885,11 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 continue
             seen[state[2]] = key
             state[2] += 1
-            state[3] = max(state[3], t + 1)
+            state[3] = max(state[3], looked)
             code, match, q, dcm, p_false, missing, bright_pred, nm, total, matched, rms = verify_focal(
                 xs, ys, b_all, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, fpar[1], fpar[2],
                 fpar[3], fpar[4], fpar[5], fpar[6], fpar[7], fpar[8], ipar[2], fpar[9], fpar[10], fpar[11], fpar[12],
-                max(state[2], t + 1), fpar[13], fpar[14], sky_cells, sky_ra)
+                max(state[2], looked), fpar[13], fpar[14], sky_cells, sky_ra)
             if code == 0:
                 state[0] = t
                 state[1] = rr + 1
@@ -1886,6 +1913,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 state[1] = rr + 1
                 return 3, code, p_false, nm, total, rms, n_tri
         t += 1
+        extra += more
         row0 = 0
     state[0] = t
     state[1] = 0

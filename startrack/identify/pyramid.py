@@ -55,7 +55,7 @@ _TRIADS: dict = {}      # smart index sequence per number of search stars
 
 
 def _search(ctx, config, quadratic):
-    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack._kernels.identify import free_focal_patterns, pyramid_candidates, smart_triads
 
     db = ctx.db
     n = len(ctx.b)
@@ -76,9 +76,13 @@ def _search(ctx, config, quadratic):
     # The triads at the nominal focal length, then, when the focal length may be off
     # (params.max_focal_error), again with it free within that (pyramid_candidates' focal_error):
     # a field seen through a focal length 1 % off has its long pairs a few tolerances away from
-    # the database's.  The pattern count goes on through the second pass.
+    # the database's.  The pattern count goes on through the second pass, a triad there counting
+    # the scales it tells apart (free_focal_patterns): the look-elsewhere factor of the gate.
     passes = [0.0] + ([float(ctx.params.max_focal_error)] if ctx.params.max_focal_error > 0 else [])
-    for t, (focal_error, (i, j, k)) in enumerate(((f, triad) for f in passes for triad in used), start=1):
+    looked = 0
+    for focal_error, (i, j, k) in ((f, triad) for f in passes for triad in used):
+        # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
+        looked += 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
         out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                         db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
                                         config.max_triangles, 256, *adjacency, focal_error)
@@ -88,9 +92,9 @@ def _search(ctx, config, quadratic):
                 continue
             seen.add(key)
             if r < 0:
-                yield Proposal([i, j, k], [I, J, K], t, {"triangles": int(n_tri)})
+                yield Proposal([i, j, k], [I, J, K], looked, {"triangles": int(n_tri)})
             else:
-                yield Proposal([i, j, k, r], [I, J, K, R], t, {"triangles": int(n_tri)})
+                yield Proposal([i, j, k, r], [I, J, K, R], looked, {"triangles": int(n_tri)})
 
 
 def search_pyramid(ctx, config: PyramidConfig):
