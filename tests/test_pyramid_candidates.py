@@ -47,6 +47,23 @@ def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
     return cand
 
 
+def _triads(setup, cond, count, seed, sigma_px, n_triads):
+    """``(b, tol, margin, i, j, k)`` of the first ``n_triads`` triads (smart index order) of ``count``
+    frames of ``cond``: the search stars' vectors and tolerances as the driver makes them."""
+    from startrack._kernels.identify import smart_triads
+
+    cam, _, stars = setup
+    params = IdentifyParams(sigma_px=sigma_px)
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    for frame, _, _ in make_frames(stars, cam, cond, count, seed, mag_limit=5.5):
+        xs = np.array([s["x"] for s in frame])
+        ys = np.array([s["y"] for s in frame])
+        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
+        tol = params.tolerance_sigma * np.full(len(b), sigma_px) / cam.focal_length_px
+        for i, j, k in smart_triads(len(b))[:n_triads].tolist():
+            yield b, tol, margin, i, j, k
+
+
 def _brute_triangles(db, b, i, j, k, windows):
     """Every catalog triangle (I, J, K) of triad (i, j, k) by brute force: (I, J) a database pair in the
     window of (i, j) (either orientation), (I, K) one in that of (i, k), J-K's cosine in that of
@@ -105,31 +122,23 @@ def test_triangles_match_brute_force(setup):
     (I, J) of the database at theta_ij, K paired with I at theta_ik, the angle J-K within its window
     and the same handedness.  At 20 deg of pair range and 1 px noise windows hold hundreds of
     pairs, so stars left out by any shortcut (the theta_jk pre-filter) would change the count."""
-    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack._kernels.identify import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
-    cam, db, stars = setup
+    _, db, _ = setup
     line = np.asarray(db.line, dtype=np.float64)
     quad = np.asarray(db.quad, dtype=np.float64)
-    sv = db.star_vector
-    params = IdentifyParams(sigma_px=1.0)
-    margin = math.radians(params.margin_arcsec / 3600.0)
-    cond = Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4)
     checked = found = 0
-    for frame, _, _ in make_frames(stars, cam, cond, 15, 3, mag_limit=5.5):
-        xs = np.array([s["x"] for s in frame])
-        ys = np.array([s["y"] for s in frame])
-        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
-        tol = params.tolerance_sigma * np.full(len(b), 1.0) / cam.focal_length_px
-        for i, j, k in smart_triads(len(b))[:8].tolist():
-            _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
-                                          db.kvector, line, db.kquad, quad, False, 10_000, 256,
-                                          *pair_adjacency(db), 0.0)
-            want = sum(1 for _ in _brute_triangles(db, b, i, j, k, [_window(b, tol, margin, u, v)
-                                                                    for u, v in ((i, j), (i, k), (j, k))]))
-            assert n_tri == want, (i, j, k, n_tri, want)
-            checked += 1
-            found += want
+    for b, tol, margin, i, j, k in _triads(setup, Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4),
+                                           15, 3, 1.0, 8):
+        _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
+                                      db.pair_cos, db.kvector, line, db.kquad, quad, False, 10_000, 256,
+                                      *pair_adjacency(db), 0.0)
+        want = sum(1 for _ in _brute_triangles(db, b, i, j, k, [_window(b, tol, margin, u, v)
+                                                                for u, v in ((i, j), (i, k), (j, k))]))
+        assert n_tri == want, (i, j, k, n_tri, want)
+        checked += 1
+        found += want
     assert checked >= 100 and found >= 150, (checked, found)
 
 
@@ -159,40 +168,33 @@ def test_triangles_with_a_free_focal_length_match_brute_force(setup):
     same handedness, and one scale for all three (the scales each side allows, ``[(a - e) / theta,
     (a + e) / theta]``, overlap within ``1 +- f``).  The frames are seen through a focal length 2 %
     off, so the true triangles are found only this way."""
-    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack._kernels.identify import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
-    cam, db, stars = setup
+    _, db, _ = setup
     line = np.asarray(db.line, dtype=np.float64)
     quad = np.asarray(db.quad, dtype=np.float64)
     sv = db.star_vector
     ferr = 0.03
-    params = IdentifyParams(sigma_px=0.3)
-    margin = math.radians(params.margin_arcsec / 3600.0)
-    cond = Condition(sigma_px=0.3, focal_error_pct=2.0, min_catalog_stars=4)
     checked = found = 0
-    for frame, _, _ in make_frames(stars, cam, cond, 6, 5, mag_limit=5.5):
-        xs = np.array([s["x"] for s in frame])
-        ys = np.array([s["y"] for s in frame])
-        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
-        tol = params.tolerance_sigma * np.full(len(b), 0.3) / cam.focal_length_px
-        for i, j, k in smart_triads(len(b))[:4].tolist():
-            _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
-                                          db.kvector, line, db.kquad, quad, False, 100_000, 256,
-                                          *pair_adjacency(db), ferr)
-            sides = []
-            for u, v in ((i, j), (i, k), (j, k)):
-                th = math.acos(min(1.0, float(b[u] @ b[v])))
-                e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
-                sides.append((th, e, (math.cos(min(th * (1 + ferr) + e, math.pi)), math.cos(max(th * (1 - ferr) - e, 0)))))
-            want = 0
-            for I, J, K in _brute_triangles(db, b, i, j, k, [w for _, _, w in sides]):
-                lo, hi = 1 - ferr, 1 + ferr
-                for (th, e, _), (P, Q) in zip(sides, ((I, J), (I, K), (J, K))):
-                    a = math.acos(min(1.0, max(-1.0, float(sv[P] @ sv[Q]))))
-                    lo, hi = max(lo, (a - e) / th), min(hi, (a + e) / th)
-                want += lo <= hi
-            assert n_tri == want, (i, j, k, n_tri, want)
-            checked += 1
-            found += want
+    for b, tol, margin, i, j, k in _triads(setup, Condition(sigma_px=0.3, focal_error_pct=2.0, min_catalog_stars=4),
+                                           6, 5, 0.3, 4):
+        _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
+                                      db.kvector, line, db.kquad, quad, False, 100_000, 256,
+                                      *pair_adjacency(db), ferr)
+        sides = []
+        for u, v in ((i, j), (i, k), (j, k)):
+            th = math.acos(min(1.0, float(b[u] @ b[v])))
+            e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+            sides.append((th, e, (math.cos(min(th * (1 + ferr) + e, math.pi)), math.cos(max(th * (1 - ferr) - e, 0)))))
+        want = 0
+        for I, J, K in _brute_triangles(db, b, i, j, k, [w for _, _, w in sides]):
+            lo, hi = 1 - ferr, 1 + ferr
+            for (th, e, _), (P, Q) in zip(sides, ((I, J), (I, K), (J, K))):
+                a = math.acos(min(1.0, max(-1.0, float(sv[P] @ sv[Q]))))
+                lo, hi = max(lo, (a - e) / th), min(hi, (a + e) / th)
+            want += lo <= hi
+        assert n_tri == want, (i, j, k, n_tri, want)
+        checked += 1
+        found += want
     assert checked >= 20 and found >= 20, (checked, found)
