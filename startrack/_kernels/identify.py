@@ -40,24 +40,29 @@ def _chord_rows(x, i, y, j):
 def _cos_window(th, e):
     """The cosines ``(lo, hi)`` of the angles ``th + e`` (at most pi) and ``th - e`` (at least 0): a pair
     of image stars at angle ``th`` matches a catalog pair whose cosine lies in ``[lo, hi]``."""
-    return math.cos(min(th + e, math.pi)), math.cos(max(th - e, 0.0))
+    return _scaled_window(th, e, 1.0, 1.0)
+
+
+@njit(cache=True, inline="always")
+def _scaled_window(th, e, s_lo, s_hi):
+    """:func:`_cos_window` of a pair whose catalog angle is its image angle ``th`` times a focal-length
+    scale in ``[s_lo, s_hi]``: the cosines of ``th s_hi + e`` and ``th s_lo - e`` (``th * 1.0`` is ``th``:
+    with ``s_lo = s_hi = 1`` the same bits as the nominal window)."""
+    return math.cos(min(th * s_hi + e, math.pi)), math.cos(max(th * s_lo - e, 0.0))
+
+
+@njit(cache=True, inline="always")
+def _side(b, tol, margin, u, v):
+    """``(theta, e)`` of image stars ``u`` and ``v``: their angle and its tolerance
+    ``sqrt(tol_u^2 + tol_v^2) + margin``."""
+    return _angle(b[u], b[v]), math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
 
 
 @njit(cache=True, inline="always")
 def _pair_window(b, tol, margin, u, v):
-    """:func:`_cos_window` of image stars ``u`` and ``v``: their angle, with the tolerance
-    ``sqrt(tol_u^2 + tol_v^2) + margin``."""
-    return _cos_window(_angle(b[u], b[v]), math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin)
-
-
-@njit(cache=True, inline="always")
-def _pair_window_scaled(b, tol, margin, u, v, s_lo, s_hi):
-    """:func:`_pair_window` of image stars ``u`` and ``v`` whose catalog angle is their angle times a
-    focal-length scale in ``[s_lo, s_hi]``: the cosines of ``theta s_hi + e`` and ``theta s_lo - e``
-    (with ``s_lo = s_hi = 1`` the same bits as :func:`_pair_window`)."""
-    th = _angle(b[u], b[v])
-    e = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
-    return math.cos(min(th * s_hi + e, math.pi)), math.cos(max(th * s_lo - e, 0.0))
+    """:func:`_cos_window` of image stars ``u`` and ``v`` (:func:`_side`)."""
+    th, e = _side(b, tol, margin, u, v)
+    return _cos_window(th, e)
 
 
 @njit(cache=True, inline="always")
@@ -203,12 +208,10 @@ def free_focal_patterns(b, tol, margin, i, j, k, focal_error):
     best = -1.0
     e_best = 1.0
     for t in range(3):
-        u = i if t < 2 else j
-        v = j if t == 0 else k
-        th = _angle(b[u], b[v])
+        th, e = _side(b, tol, margin, i if t < 2 else j, j if t == 0 else k)
         if th > best:
             best = th
-            e_best = math.sqrt(tol[u] ** 2 + tol[v] ** 2) + margin
+            e_best = e
     return 1 + int(math.ceil(2.0 * focal_error * best / e_best))
 
 
@@ -244,8 +247,11 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     no = 0
     s_lo = 1.0 - focal_error
     s_hi = 1.0 + focal_error
-    lo_ij, hi_ij = _pair_window_scaled(b, tol, margin, i, j, s_lo, s_hi)
-    lo_ik, hi_ik = _pair_window_scaled(b, tol, margin, i, k, s_lo, s_hi)
+    th_ij, e_ij = _side(b, tol, margin, i, j)
+    th_ik, e_ik = _side(b, tol, margin, i, k)
+    th_jk, e_jk = _side(b, tol, margin, j, k)
+    lo_ij, hi_ij = _scaled_window(th_ij, e_ij, s_lo, s_hi)
+    lo_ik, hi_ik = _scaled_window(th_ik, e_ik, s_lo, s_hi)
     # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
     s2, e2 = _range(kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
     n_cat = star_vec.shape[0]
@@ -271,7 +277,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         return out[:0], 0
     cb = _triple(b[i], b[j], b[k])
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
-    lo_jk, hi_jk = _pair_window_scaled(b, tol, margin, j, k, s_lo, s_hi)
+    lo_jk, hi_jk = _scaled_window(th_jk, e_jk, s_lo, s_hi)
     # J and K of a triangle both have a database pair at theta_jk when that window lies within the
     # database's pairs (every pair of its stars closer than its largest angle is in it, and
     # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
@@ -290,14 +296,6 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     tri_s = np.empty((max_triangles, 2))
     nt = 0
     scaled = focal_error > 0.0
-    th_ij = th_ik = th_jk = e_ij = e_ik = e_jk = 0.0
-    if scaled:
-        th_ij = _angle(b[i], b[j])
-        th_ik = _angle(b[i], b[k])
-        th_jk = _angle(b[j], b[k])
-        e_ij = math.sqrt(tol[i] ** 2 + tol[j] ** 2) + margin
-        e_ik = math.sqrt(tol[i] ** 2 + tol[k] ** 2) + margin
-        e_jk = math.sqrt(tol[j] ** 2 + tol[k] ** 2) + margin
     s, e = _range(kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
     # The pairs at theta_ij (both orientations, in order) whose first star I has a pair at
     # theta_ik, gathered without a branch: about four in five have none, and a branch on that
@@ -368,9 +366,12 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 continue
             if scaled:
                 # The triangle's own scales (a narrower range than the search's).
-                lo, hi = _pair_window_scaled(b, tol, margin, i, r, tri_s[t, 0], tri_s[t, 1])
-                lo_jr, hi_jr = _pair_window_scaled(b, tol, margin, j, r, tri_s[t, 0], tri_s[t, 1])
-                lo_kr, hi_kr = _pair_window_scaled(b, tol, margin, k, r, tri_s[t, 0], tri_s[t, 1])
+                th, e = _side(b, tol, margin, i, r)
+                lo, hi = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
+                th, e = _side(b, tol, margin, j, r)
+                lo_jr, hi_jr = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
+                th, e = _side(b, tol, margin, k, r)
+                lo_kr, hi_kr = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
             else:
                 if not made[r]:
                     win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
@@ -1796,7 +1797,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     tolerance, the margin alone).  ``ipar``: max triads, max triangles, min matches, quadratic
     (0/1), search uses brightness (0/1), max proposals, pause, search stars.
 
-    In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns);
+    In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns, the second
+    pass's patterns beyond one a triad before the next triad);
     ``seen`` (max proposals, 9): each tried proposal's pairs (count, then image/catalog
     indices sorted by image index); ``best`` = (set, code, p_false, missing, bright_pred,
     n_matched, triangles) of the rejected proposal with the lowest false-match probability
@@ -1835,12 +1837,9 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     # The triads at the nominal focal length, then (a focal error allowed) again with the focal
     # length free within it: t counts on through the second pass (the patterns compared).
     passes = 2 if fpar[14] > 0.0 else 1
-    # A triad of the second pass compares free_focal_patterns() patterns: ``extra`` counts those
-    # beyond one of the triads before t (the pattern count is t + 1 + extra).
-    extra = 0
-    for u in range(n_tr, min(t, passes * n_tr)):
-        extra += free_focal_patterns(b, tol, margin, triads[u - n_tr, 0], triads[u - n_tr, 1],
-                                     triads[u - n_tr, 2], fpar[14]) - 1
+    # A triad of the second pass compares free_focal_patterns() patterns: ``extra`` (kept in state[4]
+    # between calls) counts those beyond one of the triads before t (the pattern count is t + 1 + extra).
+    extra = state[4]
     while t < passes * n_tr:
         tt = t % n_tr
         i = triads[tt, 0]
@@ -1893,6 +1892,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             if code == 0:
                 state[0] = t
                 state[1] = rr + 1
+                state[4] = extra
                 _put_verdict(res_i, res_f, match, q, dcm, matched)
                 return 0, code, p_false, nm, total, rms, n_tri
             if best[0] == 0.0 or (not math.isnan(p_false) and (math.isnan(best[2]) or p_false < best[2])):
@@ -1907,16 +1907,19 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             if state[2] >= ipar[5]:
                 state[0] = t
                 state[1] = rr + 1
+                state[4] = extra
                 return 2, code, p_false, nm, total, rms, n_tri
             if rejected >= ipar[6]:
                 state[0] = t
                 state[1] = rr + 1
+                state[4] = extra
                 return 3, code, p_false, nm, total, rms, n_tri
         t += 1
         extra += more
         row0 = 0
     state[0] = t
     state[1] = 0
+    state[4] = extra
     return 1, -1, np.nan, 0, 1.0, np.nan, 0
 
 

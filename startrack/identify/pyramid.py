@@ -135,7 +135,7 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         return _failed(buffers, db, params, "no consistent star pattern found", ReasonCode.NO_PATTERN)
     # Views of this thread's buffers serve the rest of this frame's run(); the quaternion outlives it.
     state, _, _, res_i, res_f = buffers
-    _, _, tried, patterns = state.tolist()
+    _, _, tried, patterns, _ = state.tolist()
     return SearchOutcome(_accepted_verdict(res_i[:n], res_i[n:n + nm], res_f[:4].copy(), dcm, p_false, rms, db),
                          None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {}, tried, patterns,
                          "no consistent star pattern found", ReasonCode.NO_PATTERN)
@@ -145,7 +145,7 @@ def _failed(buffers, db, params, reason, code):
     """:func:`fused_pyramid`'s outcome without an accepted proposal: the best rejected one's verdict
     (the kernel's ``best``), the counts of its ``state``, why the search stopped."""
     state, _, best, _, _ = buffers
-    _, _, tried, patterns = state.tolist()
+    _, _, tried, patterns, _ = state.tolist()
     if not best[0]:
         return SearchOutcome(None, None, {}, None, {}, tried, patterns, reason, code)
     bv = _fused_verdict(int(best[1]), None, None, None, best[2], int(best[3]), int(best[4]), int(best[5]), None, None,
@@ -175,7 +175,7 @@ def _buffers(budget, n):
     the same search, ``res_i``/``res_f`` written with an accepted verdict."""
     got = getattr(_BUFFERS, "arrays", None)
     if got is None or len(got[0][1]) != budget or len(got[0][3]) < 2 * n:
-        arrays = (np.zeros(4, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
+        arrays = (np.zeros(5, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
                   np.empty(max(256, 2 * n), np.int64), np.empty(13))
         got = _BUFFERS.arrays = (arrays, arrays[4][4:13].reshape(3, 3))
     else:
