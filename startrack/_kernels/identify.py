@@ -1787,7 +1787,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     triangles none), and when the focal length may be off (``fpar[14]`` > 0) the triads once
     more with the focal length free within that (``focal_error``; each such triad counts
     :func:`free_focal_patterns` patterns); a proposal whose set of (image, catalog) pairs was tried already is no
-    new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, t + 1)``)
+    new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, patterns)``, the patterns
+    a triad's use - 3 four-star ones: each other search star may complete its pyramid)
     and the first accepted ends the search.  Fluxes count when at least three are finite
     (else all NaN, as the driver passes them).
 
@@ -1840,13 +1841,16 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     # A triad of the second pass compares free_focal_patterns() patterns: ``extra`` (kept in state[4]
     # between calls) counts those beyond one of the triads before t (the pattern count is t + 1 + extra).
     extra = state[4]
+    # A triad's pyramid is completed by whichever other search star matches (the first that does), so a
+    # triad puts use - 3 four-star patterns to the test: the gate's look-elsewhere factor counts them all.
+    fourth = max(1, use - 3)
     while t < passes * n_tr:
         tt = t % n_tr
         i = triads[tt, 0]
         j = triads[tt, 1]
         k = triads[tt, 2]
         more = 0 if t < n_tr else free_focal_patterns(b, tol, margin, i, j, k, fpar[14]) - 1
-        looked = t + 1 + extra + more
+        looked = (t + 1 + extra + more) * fourth
         out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
                                         kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos,
                                         0.0 if t < n_tr else fpar[14])

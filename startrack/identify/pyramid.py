@@ -80,6 +80,8 @@ def _search(ctx, config, quadratic):
     # the scales it tells apart (free_focal_patterns): the look-elsewhere factor of the gate.
     passes = [0.0] + ([float(ctx.params.max_focal_error)] if ctx.params.max_focal_error > 0 else [])
     looked = 0
+    # A triad's pyramid is completed by whichever other search star matches: n - 3 four-star patterns a triad.
+    fourth = max(1, n - 3)
     for focal_error, (i, j, k) in ((f, triad) for f in passes for triad in used):
         # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
         looked += 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
@@ -92,9 +94,9 @@ def _search(ctx, config, quadratic):
                 continue
             seen.add(key)
             if r < 0:
-                yield Proposal([i, j, k], [I, J, K], looked, {"triangles": int(n_tri)})
+                yield Proposal([i, j, k], [I, J, K], looked * fourth, {"triangles": int(n_tri)})
             else:
-                yield Proposal([i, j, k, r], [I, J, K, R], looked, {"triangles": int(n_tri)})
+                yield Proposal([i, j, k, r], [I, J, K, R], looked * fourth, {"triangles": int(n_tri)})
 
 
 def search_pyramid(ctx, config: PyramidConfig):
