@@ -444,6 +444,35 @@ def pair_adjacency(n_stars, pair_i, pair_j, pair_cos):
 
 
 @njit(cache=True)
+def _sort_small(a, n):
+    """``a[:n]`` ascending, in place: an insertion sort up to 24 values (no call; its moves grow as n^2),
+    numba's sort beyond."""
+    if n > 24:
+        a[:n].sort()
+        return
+    for t in range(1, n):
+        v = a[t]
+        u = t - 1
+        while u >= 0 and a[u] > v:
+            a[u + 1] = a[u]
+            u -= 1
+        a[u + 1] = v
+
+
+@njit(cache=True)
+def _median_in_place(a, n):
+    """``np.median(a[:n])`` (the same value; ``n >= 1``, no NaN): up to 24 values sorted in place
+    (:func:`_sort_small`) instead of copied and partitioned, more by ``np.median``."""
+    if n > 24:
+        return np.median(a[:n])
+    _sort_small(a, n)
+    h = n >> 1
+    if n & 1 == 0:
+        return (a[h - 1] + a[h]) / 2
+    return a[h]
+
+
+@njit(cache=True)
 def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, on_stars, on_pv):
     """The verification's bookkeeping after the attitude, in one pass.
 
@@ -529,10 +558,10 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
                 nz += 1
     if nz < 3:
         return out, npred, p_local, 0, 0, np.nan, 1.0, 0, np.nan, np.nan
-    z0 = np.median(zp[:nz])
+    z0 = _median_in_place(zp, nz)
     for t in range(nz):
         zp[t] = abs(zp[t] - z0)
-    scatter = 1.4826 * np.median(zp[:nz])
+    scatter = 1.4826 * _median_in_place(zp, nz)
     delta = max(0.5, 3.0 * scatter)
     cut = faint + z0 - delta
     # Magnitude agreement of the core: a chance pattern has catalog magnitudes drawn from
@@ -1191,7 +1220,7 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
         if mea[t] >= 0.3 * longest and np.isfinite(ratio[t]):
             keep[nk] = ratio[t]
             nk += 1
-    scale = np.median(keep[:nk]) if nk >= 3 else np.nan
+    scale = _median_in_place(keep, nk) if nk >= 3 else np.nan
     return scale, img[:nm], cat[:nm], ang, mea
 
 
@@ -1347,7 +1376,7 @@ def cone_stars(ax, ay, az, cos_r, star_vec, sky_cells, sky_ra, out):
                 if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
                     out[k] = s
                     k += 1
-    out[:k].sort()
+    _sort_small(out, k)
     return k
 
 
