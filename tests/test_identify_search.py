@@ -250,27 +250,58 @@ def test_grid_warm_up_with_the_frames_camera_builds_their_patterns(sensor16):
         assert ("prepare_ms" in first.details) is built
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_pyramid_gate_counts_every_fourth_star_it_tried(catalog, fused, monkeypatch):
-    """A triad's pyramid is completed by whichever other search star matches, so each triad puts n - 3
-    four-star patterns to the test and the gate's look-elsewhere factor counts them all.  Counting the
-    triads alone, these two frames (issue 14's 15 deg sensor, the focal length 2 % and 1 % off, so the
-    true pattern is not there at the nominal focal length) were accepted at 1.9e-7 and 5.0e-7 with a
-    false star or a wrong star in the pyramid, both below the 1e-6 gate; now the nominal pass refuses
-    them and the search goes on to the right answer."""
-    import startrack.identify.base as base
+
+@pytest.fixture(scope="module")
+def sensor15(catalog):
+    """Issue 14's 15 deg 1280x960 sensor: database Hp <= 6 merged for it, stars to 5.5."""
     from startrack.catalog import merge_radius_arcsec
     from startrack.kvector import build_kvector, max_separation_deg
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
     cam = Camera.from_fov(15, 1280, 960)
     db = build_kvector(catalog.filter_magnitude(None, 6.0).merge_close(merge_radius_arcsec(cam)),
                        max_separation_deg(camera=cam))
-    stars = catalog.filter_magnitude(None, 5.5)
+    return cam, db, catalog.filter_magnitude(None, 5.5)
+
+
+def _frame15(sensor15, sigma, false_stars, focal_pct, index):
+    cam, _, stars = sensor15
+    cond = Condition(sigma_px=sigma, false_stars=false_stars, focal_error_pct=focal_pct, min_catalog_stars=4)
+    return make_frames(stars, cam, cond, index + 1, 14, mag_limit=5.5)[index][:2]
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_pyramid_gate_counts_every_fourth_star_it_tried(sensor15, fused, monkeypatch):
+    """A triad's pyramid is completed by whichever other search star matches, so each triad puts n - 3
+    four-star patterns to the test and the gate's look-elsewhere factor counts them all.  Counting the
+    triads alone, these two frames (the focal length 2 % and 1 % off, so the true pattern is not there
+    at the nominal focal length) were accepted at 1.9e-7 and 5.0e-7 with a false star or a wrong star in
+    the pyramid, both below the 1e-6 gate; now the nominal pass refuses them and the search goes on to
+    the right answer."""
+    import startrack.identify.base as base
+
+    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    cam, db, _ = sensor15
     for sigma, false_stars, focal_pct, index in ((0.3, 10, 2.0, 78), (1.0, 3, 1.0, 57)):
-        cond = Condition(sigma_px=sigma, false_stars=false_stars, focal_error_pct=focal_pct, min_catalog_stars=4)
-        frame, truth, _ = make_frames(stars, cam, cond, index + 1, 14, mag_limit=5.5)[index]
+        frame, truth = _frame15(sensor15, sigma, false_stars, focal_pct, index)
         res = identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=sigma))
         assert score(res, truth) == "success", (index, res.matches, res.reason)
         # The patterns compared: every triad tried, times the n - 3 fourth stars of each.
         assert res.details["patterns"] % (min(len(frame), 20) - 3) == 0
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_pyramid_second_pass_keeps_triads_with_triangles_at_many_scales(sensor15, fused, monkeypatch):
+    """With the focal length free, a triad's windows hold its triangles at every scale it tells apart
+    (free_focal_patterns: 16-24 here), so the nominal limit of 64 triangles skipped every triad of this
+    1 px frame (263-971 triangles each, the true pyramid among them) and it failed; the second pass's
+    limit is that many times larger."""
+    import startrack.identify.base as base
+    from startrack.identify.pyramid import PyramidConfig
+
+    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    cam, db, _ = sensor15
+    frame, truth = _frame15(sensor15, 1.0, 3, 1.0, 14)
+    assert PyramidConfig().max_triangles == 64
+    res = identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=1.0))
+    assert score(res, truth) == "success", res.reason
+    assert res.focal_scale == pytest.approx(1 / 1.01, abs=0.003)

@@ -1813,7 +1813,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     unit vectors (:func:`pixels_to_unit`), the search stars' tolerances, then the triads
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
     (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
-    triangles none), and when the focal length may be off (``fpar[14]`` > 0) the triads once
+    triangles none, a second-pass triad with more than that times its patterns), and when the focal length may be off (``fpar[14]`` > 0) the triads once
     more with the focal length free within that (``focal_error``; each such triad counts
     :func:`free_focal_patterns` patterns); a proposal whose set of (image, catalog) pairs was tried already is no
     new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, patterns)``, the patterns
@@ -1880,9 +1880,11 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
         k = triads[tt, 2]
         more = 0 if t < n_tr else free_focal_patterns(b, tol, margin, i, j, k, fpar[14]) - 1
         looked = (t + 1 + extra + more) * fourth
+        # A scale-free triad's windows hold its triangles at each of the 1 + more scales it tells apart:
+        # it is uninformative beyond that many times the nominal limit.
         out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
-                                        kquad, quad, ipar[3] != 0, ipar[1], 256, adj_ptr, adj_other, adj_cos,
-                                        0.0 if t < n_tr else fpar[14])
+                                        kquad, quad, ipar[3] != 0, ipar[1] * (1 + more), 256, adj_ptr, adj_other,
+                                        adj_cos, 0.0 if t < n_tr else fpar[14])
         for rr in range(row0, out.shape[0]):
             img = np.empty(4 if out[rr, 0] >= 0 else 3, dtype=np.int64)
             cat = np.empty(img.shape[0], dtype=np.int64)

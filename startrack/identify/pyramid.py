@@ -48,7 +48,8 @@ class PyramidConfig:
 
     max_triads: int = field(default=300, metadata={"help": "Triads of image stars tried (smart index order)."})
     max_triangles: int = field(default=64, metadata={
-        "help": "Catalog triangles of one triad beyond which the triad is skipped as uninformative."})
+        "help": "Catalog triangles of one triad beyond which the triad is skipped as uninformative (in the "
+                "free-focal-length pass, times the scales the triad tells apart)."})
 
 
 _TRIADS: dict = {}      # smart index sequence per number of search stars
@@ -84,10 +85,13 @@ def _search(ctx, config, quadratic):
     fourth = max(1, n - 3)
     for focal_error, (i, j, k) in ((f, triad) for f in passes for triad in used):
         # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
-        looked += 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
+        scales = 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
+        looked += scales
+        # A scale-free triad's windows hold its triangles at each scale it tells apart: it is uninformative
+        # beyond that many times the nominal limit (max_triangles).
         out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                         db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
-                                        config.max_triangles, 256, *adjacency, focal_error)
+                                        config.max_triangles * scales, 256, *adjacency, focal_error)
         for r, I, J, K, R in out.tolist():
             key = (focal_error, i, j, k, I, J, K)
             if key in seen:
