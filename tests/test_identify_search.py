@@ -305,3 +305,19 @@ def test_pyramid_second_pass_keeps_triads_with_triangles_at_many_scales(sensor15
     res = identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=1.0))
     assert score(res, truth) == "success", res.reason
     assert res.focal_scale == pytest.approx(1 / 1.01, abs=0.003)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_pyramid_nominal_pass_leaves_the_second_half_the_budget(sensor15, fused, monkeypatch):
+    """A dense field (18 stars) seen through a focal length 2 % off at 1 px: the nominal pass found a chance
+    pyramid in triad after triad and spent all 200 proposals on them, so the second pass, which has the
+    true pyramid, never ran.  The nominal pass now has half the budget."""
+    import startrack.identify.base as base
+
+    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    cam, db, _ = sensor15
+    frame, truth = _frame15(sensor15, 1.0, 0, 2.0, 59)
+    assert len(frame) == 18
+    res = identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=1.0))
+    assert score(res, truth) == "success", res.reason
+    assert 100 < res.trials <= 200

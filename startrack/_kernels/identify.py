@@ -1812,12 +1812,14 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     and :func:`verify_focal`, without a Python round trip per triad and proposal: the frame's
     unit vectors (:func:`pixels_to_unit`), the search stars' tolerances, then the triads
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids
-    (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]``
-    triangles none, a second-pass triad with more than that times its patterns), and when the focal length may be off (``fpar[14]`` > 0) the triads once
-    more with the focal length free within that (``focal_error``; each such triad counts
-    :func:`free_focal_patterns` patterns); a proposal whose set of (image, catalog) pairs was tried already is no
-    new trial; each other is verified (:func:`verify_focal`, ``trials = max(tried, patterns)``, the patterns
-    a triad's use - 3 four-star ones: each other search star may complete its pyramid)
+    (:func:`pyramid_candidates`, in the order found; a triad with more than ``ipar[1]`` triangles
+    none), and when the focal length may be off (``fpar[14]`` > 0) the triads once more with the
+    focal length free within that (``focal_error``; each such triad counts :func:`free_focal_patterns`
+    patterns and may have that many times ``ipar[1]`` triangles); a proposal whose set of (image,
+    catalog) pairs was tried already is no new trial (with a second pass, the first has half the
+    ``ipar[5]`` proposals); each other is verified (:func:`verify_focal`, ``trials = max(tried,
+    patterns)``, a triad's patterns its use - 3 four-star ones: each other search star may complete
+    its pyramid)
     and the first accepted ends the search.  Fluxes count when at least three are finite
     (else all NaN, as the driver passes them).
 
@@ -1944,6 +1946,13 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 state[1] = rr + 1
                 state[4] = extra
                 return 2, code, p_false, nm, total, rms, n_tri
+            if t < n_tr and passes == 2 and state[2] >= (ipar[5] + 1) // 2:
+                # The nominal focal length has had half the budget: on to the second pass (a dense field
+                # seen through a focal length a few per cent off can spend it all on chance pyramids here).
+                # The nominal triads after t were not looked at: ``extra`` takes them off the count.
+                extra -= n_tr - 1 - t
+                t = n_tr - 1
+                break
             if rejected >= ipar[6]:
                 state[0] = t
                 state[1] = rr + 1

@@ -81,7 +81,8 @@ class IdentifyParams:
         Largest relative focal-length error measured and corrected; the pyramid searches its
         triads once more with the focal length free within it when the nominal one finds nothing.
     max_proposals : int
-        Proposals verified before giving up (the search budget).
+        Proposals verified before giving up (the search budget; the pyramid's nominal pass has
+        half of it when its free-focal-length pass follows).
     max_time_ms : float
         Search time before giving up, ms.
     reported_sigma_factor : float

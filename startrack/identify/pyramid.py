@@ -83,24 +83,35 @@ def _search(ctx, config, quadratic):
     looked = 0
     # A triad's pyramid is completed by whichever other search star matches: n - 3 four-star patterns a triad.
     fourth = max(1, n - 3)
-    for focal_error, (i, j, k) in ((f, triad) for f in passes for triad in used):
-        # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
-        scales = 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
-        looked += scales
-        # A scale-free triad's windows hold its triangles at each scale it tells apart: it is uninformative
-        # beyond that many times the nominal limit (max_triangles).
-        out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
-                                        db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
-                                        config.max_triangles * scales, 256, *adjacency, focal_error)
-        for r, I, J, K, R in out.tolist():
-            key = (focal_error, i, j, k, I, J, K)
-            if key in seen:
-                continue
-            seen.add(key)
-            if r < 0:
-                yield Proposal([i, j, k], [I, J, K], looked * fourth, {"triangles": int(n_tri)})
-            else:
-                yield Proposal([i, j, k, r], [I, J, K, R], looked * fourth, {"triangles": int(n_tri)})
+    # With a second pass to come, the nominal focal length has half the proposal budget: a dense field seen
+    # through a focal length a few per cent off can spend all of it on chance pyramids there.
+    half = (max(int(ctx.params.max_proposals), 1) + 1) // 2 if len(passes) > 1 else None
+    proposed = 0
+    for focal_error in passes:
+        nominal = focal_error == 0.0 and half is not None
+        for i, j, k in used:
+            if nominal and proposed >= half:
+                break
+            # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
+            scales = 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
+            looked += scales
+            # A scale-free triad's windows hold its triangles at each scale it tells apart: it is uninformative
+            # beyond that many times the nominal limit (max_triangles).
+            out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
+                                            db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
+                                            config.max_triangles * scales, 256, *adjacency, focal_error)
+            for r, I, J, K, R in out.tolist():
+                if nominal and proposed >= half:
+                    break
+                image, catalog = ([i, j, k], [I, J, K]) if r < 0 else ([i, j, k, r], [I, J, K, R])
+                # The driver's test: the same correspondences (another triad of the same stars, or the same
+                # pyramid found again in the second pass) are no new trial, and do not count to ``half``.
+                key = frozenset(zip(image, catalog))
+                if key in seen:
+                    continue
+                seen.add(key)
+                proposed += 1
+                yield Proposal(image, catalog, looked * fourth, {"triangles": int(n_tri)})
 
 
 def search_pyramid(ctx, config: PyramidConfig):
