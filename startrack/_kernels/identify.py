@@ -1869,8 +1869,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     # The triads at the nominal focal length, then (a focal error allowed) again with the focal
     # length free within it: t counts on through the second pass (the patterns compared).
     passes = 2 if fpar[14] > 0.0 else 1
-    # A triad of the second pass compares free_focal_patterns() patterns: ``extra`` (kept in state[4]
-    # between calls) counts those beyond one of the triads before t (the pattern count is t + 1 + extra).
+    # A triad of the second pass compares free_focal_patterns() triads' patterns: ``extra`` (kept in state[4]
+    # between calls) counts those beyond one of the triads before t (the count is (t + 1 + extra) * fourth).
     extra = state[4]
     # A triad's pyramid is completed by whichever other search star matches (the first that does), so a
     # triad puts use - 3 four-star patterns to the test: the gate's look-elsewhere factor counts them all.
