@@ -56,6 +56,24 @@ def catalog():
     return load_catalog()
 
 
+def kvector_sensor(catalog, fov_deg, width, height, db_mag, star_mag):
+    """``(camera, k-vector database to ``db_mag`` merged for the camera, catalog stars to ``star_mag``)``."""
+    from startrack.camera import Camera
+    from startrack.catalog import merge_radius_arcsec
+    from startrack.kvector import build_kvector, max_separation_deg
+
+    cam = Camera.from_fov(fov_deg, width, height)
+    db = build_kvector(catalog.filter_magnitude(None, db_mag).merge_close(merge_radius_arcsec(cam)),
+                       max_separation_deg(camera=cam))
+    return cam, db, catalog.filter_magnitude(None, star_mag)
+
+
+@pytest.fixture(scope="session")
+def sensor15(catalog):
+    """Issue 14's 15 deg 1280x960 sensor: database Hp <= 6 merged for it, stars to 5.5."""
+    return kvector_sensor(catalog, 15, 1280, 960, 6.0, 5.5)
+
+
 def png_pixels(path):
     """The BGR pixels of a PNG (uint8, rows x columns x 3)."""
     import cv2

@@ -8,6 +8,7 @@ focal scale, false-match probability, attitude -- must be the same.
 """
 import numpy as np
 import pytest
+from conftest import kvector_sensor
 
 from startrack.camera import Camera
 from startrack.evaluate import Condition, make_frames
@@ -17,13 +18,7 @@ from startrack.identify import IdentifyParams, base, identify_stars
 @pytest.fixture(scope="module")
 def sensor(catalog):
     """A 14 deg 1200x900 sensor; database Hp <= 5.8 merged for it."""
-    from startrack.catalog import merge_radius_arcsec
-    from startrack.kvector import build_kvector, max_separation_deg
-
-    cam = Camera.from_fov(14, 1200, 900)
-    db = build_kvector(catalog.filter_magnitude(None, 5.8).merge_close(merge_radius_arcsec(cam)),
-                       max_separation_deg(camera=cam))
-    return cam, db, catalog.filter_magnitude(None, 5.4)
+    return kvector_sensor(catalog, 14, 1200, 900, 5.8, 5.4)
 
 
 def _result(res):

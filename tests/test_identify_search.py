@@ -251,18 +251,6 @@ def test_grid_warm_up_with_the_frames_camera_builds_their_patterns(sensor16):
 
 
 
-@pytest.fixture(scope="module")
-def sensor15(catalog):
-    """Issue 14's 15 deg 1280x960 sensor: database Hp <= 6 merged for it, stars to 5.5."""
-    from startrack.catalog import merge_radius_arcsec
-    from startrack.kvector import build_kvector, max_separation_deg
-
-    cam = Camera.from_fov(15, 1280, 960)
-    db = build_kvector(catalog.filter_magnitude(None, 6.0).merge_close(merge_radius_arcsec(cam)),
-                       max_separation_deg(camera=cam))
-    return cam, db, catalog.filter_magnitude(None, 5.5)
-
-
 def _frame15(sensor15, sigma, false_stars, focal_pct, index):
     cam, _, stars = sensor15
     cond = Condition(sigma_px=sigma, false_stars=false_stars, focal_error_pct=focal_pct, min_catalog_stars=4)

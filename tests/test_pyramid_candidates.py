@@ -8,22 +8,9 @@ one.  Frames with 1 px noise and false stars give triads with several catalog tr
 import math
 
 import numpy as np
-import pytest
 
-from startrack.camera import Camera
 from startrack.evaluate import Condition, make_frames
 from startrack.identify import IdentifyParams, base
-
-
-@pytest.fixture(scope="module")
-def setup(catalog):
-    from startrack.catalog import merge_radius_arcsec
-    from startrack.kvector import build_kvector, max_separation_deg
-
-    cam = Camera.from_fov(15, 1280, 960)
-    db = build_kvector(catalog.filter_magnitude(None, 6.0).merge_close(merge_radius_arcsec(cam)),
-                       max_separation_deg(camera=cam))
-    return cam, db, catalog.filter_magnitude(None, 5.5)
 
 
 def _window(b, tol, margin, u, v):
@@ -47,12 +34,12 @@ def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
     return cand
 
 
-def _triads(setup, cond, count, seed, sigma_px, n_triads):
+def _triads(sensor15, cond, count, seed, sigma_px, n_triads):
     """``(b, tol, margin, i, j, k)`` of the first ``n_triads`` triads (smart index order) of ``count``
     frames of ``cond``: the search stars' vectors and tolerances as the driver makes them."""
     from startrack._kernels.identify import smart_triads
 
-    cam, _, stars = setup
+    cam, _, stars = sensor15
     params = IdentifyParams(sigma_px=sigma_px)
     margin = math.radians(params.margin_arcsec / 3600.0)
     for frame, _, _ in make_frames(stars, cam, cond, count, seed, mag_limit=5.5):
@@ -86,11 +73,11 @@ def _brute_triangles(db, b, i, j, k, windows):
                 yield I, J, K
 
 
-def test_fourth_star_confirmation_matches_brute_force(setup):
+def test_fourth_star_confirmation_matches_brute_force(sensor15):
     from startrack._kernels.identify import pyramid_candidates, smart_triads
     from startrack.identify.pyramid import pair_adjacency
 
-    cam, db, stars = setup
+    cam, db, stars = sensor15
     line = np.asarray(db.line, dtype=np.float64)
     quad = np.asarray(db.quad, dtype=np.float64)
     cond = Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4)
@@ -117,7 +104,7 @@ def test_fourth_star_confirmation_matches_brute_force(setup):
     assert rows >= 100 and multi >= 5, (rows, multi)
 
 
-def test_triangles_match_brute_force(setup):
+def test_triangles_match_brute_force(sensor15):
     """The number of catalog triangles of a triad is that of a brute-force search: every ordered pair
     (I, J) of the database at theta_ij, K paired with I at theta_ik, the angle J-K within its window
     and the same handedness.  At 20 deg of pair range and 1 px noise windows hold hundreds of
@@ -125,11 +112,11 @@ def test_triangles_match_brute_force(setup):
     from startrack._kernels.identify import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
-    _, db, _ = setup
+    _, db, _ = sensor15
     line = np.asarray(db.line, dtype=np.float64)
     quad = np.asarray(db.quad, dtype=np.float64)
     checked = found = 0
-    for b, tol, margin, i, j, k in _triads(setup, Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4),
+    for b, tol, margin, i, j, k in _triads(sensor15, Condition(sigma_px=1.0, false_stars=3, min_catalog_stars=4),
                                            15, 3, 1.0, 8):
         _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
                                       db.pair_cos, db.kvector, line, db.kquad, quad, False, 10_000, 256,
@@ -162,7 +149,7 @@ def test_first_at_or_above_is_searchsorted():
         assert _first_at_or_above(arr, 2, 2 + n, x, lo, hi) == 2 + np.searchsorted(a, x)
 
 
-def test_triangles_with_a_free_focal_length_match_brute_force(setup):
+def test_triangles_with_a_free_focal_length_match_brute_force(sensor15):
     """With the focal length free within 3 % (``focal_error``), a triad's triangles are the brute-force
     ones: the three sides within the widened windows ``[theta (1 - f) - e, theta (1 + f) + e]``, the
     same handedness, and one scale for all three (the scales each side allows, ``[(a - e) / theta,
@@ -171,13 +158,13 @@ def test_triangles_with_a_free_focal_length_match_brute_force(setup):
     from startrack._kernels.identify import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
-    _, db, _ = setup
+    _, db, _ = sensor15
     line = np.asarray(db.line, dtype=np.float64)
     quad = np.asarray(db.quad, dtype=np.float64)
     sv = db.star_vector
     ferr = 0.03
     checked = found = 0
-    for b, tol, margin, i, j, k in _triads(setup, Condition(sigma_px=0.3, focal_error_pct=2.0, min_catalog_stars=4),
+    for b, tol, margin, i, j, k in _triads(sensor15, Condition(sigma_px=0.3, focal_error_pct=2.0, min_catalog_stars=4),
                                            6, 5, 0.3, 4):
         _, n_tri = pyramid_candidates(b, tol, margin, i, j, k, sv, db.pair_i, db.pair_j, db.pair_cos,
                                       db.kvector, line, db.kquad, quad, False, 100_000, 256,
