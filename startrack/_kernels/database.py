@@ -144,6 +144,19 @@ def label_sweep(vectors, boresights, radius_cos, stars_per_field, group, scale, 
     return labels, members_out
 
 
+@njit(cache=True, inline="always")
+def bisect_left(a, lo, hi, x):
+    """The first ``p`` in ``[lo, hi)`` with ``a[p] >= x``, else ``hi`` (``a[lo:hi]`` ascending):
+    ``lo + np.searchsorted(a[lo:hi], x)`` without the slice."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 @njit(cache=True)
 def label_search(labels, label, guess, radius):
     """Range ``[start, end)`` of entries equal to ``label`` in the sorted ``labels``.
@@ -154,14 +167,7 @@ def label_search(labels, label, guess, radius):
     n = labels.shape[0]
     lo = max(0, guess - radius)
     hi = min(n, guess + radius + 1)
-    a, b = lo, hi
-    while a < b:
-        mid = (a + b) >> 1
-        if labels[mid] < label:
-            a = mid + 1
-        else:
-            b = mid
-    start = a
+    start = bisect_left(labels, lo, hi, label)
     a, b = start, hi
     while a < b:
         mid = (a + b) >> 1

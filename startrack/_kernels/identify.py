@@ -5,7 +5,7 @@ import numpy as np
 
 from startrack._kernels._jit import njit
 from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest_pairs, refine_from
-from startrack._kernels.database import kvector_range, label_search, quadratic_range
+from startrack._kernels.database import bisect_left, kvector_range, label_search, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 
 
@@ -94,39 +94,6 @@ def _range(kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi):
 
 
 @njit(cache=True)
-def _side_candidates(pair_i, pair_j, pair_cos, s, e, cos_lo, cos_hi):
-    """Both orientations (X, Y) of the pairs in [s, e) whose cosine is in range, sorted by X."""
-    n = 0
-    for t in range(s, e):
-        if pair_cos[t] >= cos_lo and pair_cos[t] <= cos_hi:
-            n += 1
-    out = np.empty((2 * n, 2), dtype=np.int64)
-    k = 0
-    for t in range(s, e):
-        if pair_cos[t] >= cos_lo and pair_cos[t] <= cos_hi:
-            out[k, 0] = pair_i[t]
-            out[k, 1] = pair_j[t]
-            out[k + 1, 0] = pair_j[t]
-            out[k + 1, 1] = pair_i[t]
-            k += 2
-    order = np.argsort(out[:, 0], kind="mergesort")
-    return out[order]
-
-
-@njit(cache=True)
-def _first_at_or_after(sorted_pairs, key):
-    lo = 0
-    hi = sorted_pairs.shape[0]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if sorted_pairs[mid, 0] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@njit(cache=True)
 def _first_at_or_above(a, p0, p1, x, lo, hi):
     """``p0 + np.searchsorted(a[p0:p1], x)`` (the first ``p`` in ``[p0, p1)`` with ``a[p] >= x``, else ``p1``)
     for ``a[p0:p1]`` ascending within ``[lo, hi]``, starting where ``x`` would lie were the values evenly
@@ -164,13 +131,7 @@ def _first_at_or_above(a, p0, p1, x, lo, hi):
             step *= 2
             a_hi = a_lo - 1 + step
         a_hi = min(a_hi, p1)
-    while a_lo < a_hi:
-        mid = (a_lo + a_hi) >> 1
-        if a[mid] < x:
-            a_lo = mid + 1
-        else:
-            a_hi = mid
-    return a_lo
+    return bisect_left(a, a_lo, a_hi, x)
 
 
 @njit(cache=True, inline="always")
@@ -350,7 +311,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             out[no, 3] = tri[t, 2]
             no += 1
         return out[:no], nt
-    # The fourth star's cosine windows to I, J and K, made at its first use (the same for every triangle).
+    # The fourth star's cosine windows to I, J and K (with a free scale, its sides: the windows are the
+    # triangle's), made at its first use (the same for every triangle).
     win = np.empty((n, 6))
     c_min = pair_cos[0] if pair_cos.shape[0] > 0 else -1.0
     c_max = pair_cos[pair_cos.shape[0] - 1] if pair_cos.shape[0] > 0 else 1.0
@@ -364,20 +326,22 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         for r in range(n):
             if r == i or r == j or r == k:
                 continue
+            if not made[r] and scaled:
+                win[r, 0], win[r, 1] = _side(b, tol, margin, i, r)
+                win[r, 2], win[r, 3] = _side(b, tol, margin, j, r)
+                win[r, 4], win[r, 5] = _side(b, tol, margin, k, r)
+                made[r] = True
+            elif not made[r]:
+                win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
+                win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
+                win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
+                made[r] = True
             if scaled:
                 # The triangle's own scales (a narrower range than the search's).
-                th, e = _side(b, tol, margin, i, r)
-                lo, hi = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
-                th, e = _side(b, tol, margin, j, r)
-                lo_jr, hi_jr = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
-                th, e = _side(b, tol, margin, k, r)
-                lo_kr, hi_kr = _scaled_window(th, e, tri_s[t, 0], tri_s[t, 1])
+                lo, hi = _scaled_window(win[r, 0], win[r, 1], tri_s[t, 0], tri_s[t, 1])
+                lo_jr, hi_jr = _scaled_window(win[r, 2], win[r, 3], tri_s[t, 0], tri_s[t, 1])
+                lo_kr, hi_kr = _scaled_window(win[r, 4], win[r, 5], tri_s[t, 0], tri_s[t, 1])
             else:
-                if not made[r]:
-                    win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
-                    win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
-                    win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
-                    made[r] = True
                 lo = win[r, 0]
                 hi = win[r, 1]
                 lo_jr = win[r, 2]
@@ -1927,9 +1891,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 fpar[3], fpar[4], fpar[5], fpar[6], fpar[7], fpar[8], ipar[2], fpar[9], fpar[10], fpar[11], fpar[12],
                 max(state[2], looked), fpar[13], fpar[14], sky_cells, sky_ra)
             if code == 0:
-                state[0] = t
-                state[1] = rr + 1
-                state[4] = extra
+                _keep(state, t, rr + 1, extra)
                 _put_verdict(res_i, res_f, match, q, dcm, matched)
                 return 0, code, p_false, nm, total, rms, n_tri
             if best[0] == 0.0 or (not math.isnan(p_false) and (math.isnan(best[2]) or p_false < best[2])):
@@ -1942,9 +1904,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 best[6] = n_tri
             rejected += 1
             if state[2] >= ipar[5]:
-                state[0] = t
-                state[1] = rr + 1
-                state[4] = extra
+                _keep(state, t, rr + 1, extra)
                 return 2, code, p_false, nm, total, rms, n_tri
             if t < n_tr and passes == 2 and state[2] >= (ipar[5] + 1) // 2:
                 # The nominal focal length has had half the budget: on to the second pass (a dense field
@@ -1954,17 +1914,22 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 t = n_tr - 1
                 break
             if rejected >= ipar[6]:
-                state[0] = t
-                state[1] = rr + 1
-                state[4] = extra
+                _keep(state, t, rr + 1, extra)
                 return 3, code, p_false, nm, total, rms, n_tri
         t += 1
         extra += more
         row0 = 0
-    state[0] = t
-    state[1] = 0
-    state[4] = extra
+    _keep(state, t, 0, extra)
     return 1, -1, np.nan, 0, 1.0, np.nan, 0
+
+
+@njit(cache=True, inline="always")
+def _keep(state, t, row, extra):
+    """:func:`pyramid_identify`'s place for its next call: triad ``t``, its pyramid ``row``, the second pass's
+    extra patterns."""
+    state[0] = t
+    state[1] = row
+    state[4] = extra
 
 
 @njit(cache=True)
