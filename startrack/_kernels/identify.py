@@ -1044,9 +1044,47 @@ def focal_scale(b, img, star_vec, cat):
     return num / den
 
 
+#: A focal-length scale fitted to the matches is applied only when it is this many of its standard
+#: errors (:func:`scale_sigma`) from 1: a smaller one is noise, and a verification at it changes nothing
+#: but the time (at the exact focal length a third of the frames re-verified for one).
+SCALE_Z = 3.0
+
+
 @njit(cache=True)
-def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                sky_ra):
+def scale_sigma(xs, ys, sig_px, idx):
+    """The standard error of a scale fitted to detections ``idx`` (pixel positions ``xs``, ``ys``, per-axis
+    sigmas ``sig_px``): ``1 / sqrt(sum_i |x_i - x_w|^2 / sigma_i^2)``, ``x_w`` their weighted centre.
+
+    That is the scale's variance in a least-squares similarity fit (scale, rotation, shift) of
+    positions with isotropic noise: only the radial part of each error, about the centre, informs the
+    scale.  The chord and median estimates of :func:`focal_scale` and :func:`field_scale` are no more
+    precise than it.  ``inf`` for fewer than two detections or no spread."""
+    n = idx.shape[0]
+    if n < 2:
+        return np.inf
+    ws = 0.0
+    mx = 0.0
+    my = 0.0
+    for t in range(n):
+        w = 1.0 / (sig_px[idx[t]] * sig_px[idx[t]])
+        ws += w
+        mx += w * xs[idx[t]]
+        my += w * ys[idx[t]]
+    mx /= ws
+    my /= ws
+    info = 0.0
+    for t in range(n):
+        dx = xs[idx[t]] - mx
+        dy = ys[idx[t]] - my
+        info += (dx * dx + dy * dy) / (sig_px[idx[t]] * sig_px[idx[t]])
+    if not info > 0.0:
+        return np.inf
+    return 1.0 / math.sqrt(info)
+
+
+@njit(cache=True)
+def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                sky_cells, sky_ra):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
@@ -1055,9 +1093,13 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     detection keeps it); the scale is the median of catalog over measured chord
     (:func:`focal_scale`) over the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see
     :func:`cone_stars`.
+
+    Returns ``(scale, sigma)``: ``sigma`` the scale's standard error from the tentative matches
+    (:func:`scale_sigma` of their positions and ``sig_px``).
     """
-    return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
-                             sky_cells, sky_ra)[0]
+    got = _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                            sky_cells, sky_ra)
+    return got[0], scale_sigma(xs, ys, sig_px, got[1])
 
 
 @njit(cache=True)
@@ -1645,7 +1687,8 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px, max_focal_error, sky_cells,
         sky_ra, near)
     same_b = True       # b is the one the field's scale measured
-    if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
+    if (not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error
+            and abs(step - 1.0) > SCALE_Z * scale_sigma(xs, ys, sig_px, fs_img)):
         same_b = False
         total *= step
         focal = focal0 / total
@@ -1670,7 +1713,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         step = focal_scale_reusing(b, mi, star_vec, mc, fs_img, fs_cat, fs_ang, fs_mea, same_b)
         if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
             break
-        if abs(step - 1.0) * far < 0.1 * rmin:
+        if abs(step - 1.0) * far < 0.1 * rmin or abs(step - 1.0) <= SCALE_Z * scale_sigma(xs, ys, sig_px, mi):
             break
         same_b = False
         total *= step
