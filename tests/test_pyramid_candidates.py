@@ -149,6 +149,21 @@ def test_first_at_or_above_is_searchsorted():
         assert _first_at_or_above(arr, 2, 2 + n, x, lo, hi) == 2 + np.searchsorted(a, x)
 
 
+def test_sort_indices_is_a_sort():
+    """The cone's sort of star indices (insertion up to 24, radix beyond) orders any distinct non-negative
+    integers as ``np.sort`` does, for one to five bytes of value, and leaves the rest of the array alone."""
+    from startrack._kernels.identify import _sort_indices
+
+    rng = np.random.default_rng(3)
+    for _ in range(400):
+        top = int(rng.choice([30, 256, 257, 5000, 117955, 2**33]))
+        n = int(rng.integers(0, min(top, 400)))
+        a = rng.choice(top, size=n, replace=False).astype(np.int64)
+        arr = np.concatenate([a, [-5, 7]])
+        _sort_indices(arr, n)
+        assert np.array_equal(arr[:n], np.sort(a)) and list(arr[n:]) == [-5, 7]
+
+
 def test_triangles_with_a_free_focal_length_match_brute_force(sensor15):
     """With the focal length free within 3 % (``focal_error``), a triad's triangles are the brute-force
     ones: the three sides within the widened windows ``[theta (1 - f) - e, theta (1 + f) + e]``, the
