@@ -48,3 +48,41 @@ def test_scale_sigma_weights_and_degenerate_cases():
     assert scale_sigma(x, y, np.ones(4), idx[:1]) == np.inf
     assert scale_sigma(np.zeros(4), np.zeros(4), np.ones(4), idx) == np.inf
     assert SCALE_Z >= 2.0
+
+
+def _field(rng, n, sigma_true, scale):
+    """Tentative matches of a frame: detections (pixels, noise ``sigma_true``) and their stars' vectors seen
+    through a focal length ``scale`` times the nominal; the pairs' chords in ``_field_scale_of``'s order."""
+    u = rng.uniform(0, 1279, n)
+    v = rng.uniform(0, 959, n)
+    stars = pixels_to_unit(u, v, FOCAL * scale, CX, CY)       # catalog chords = scale x measured ones
+    xs = u + rng.normal(0, sigma_true, n)
+    ys = v + rng.normal(0, sigma_true, n)
+    b = pixels_to_unit(xs, ys, FOCAL, CX, CY)
+    iu = np.triu_indices(n, 1)
+    mea = np.linalg.norm(b[:, None] - b[None, :], axis=2)[iu]
+    ang = np.linalg.norm(stars[:, None] - stars[None, :], axis=2)[iu]
+    return xs, ys, b, stars, np.ascontiguousarray(ang), np.ascontiguousarray(mea)
+
+
+@pytest.mark.parametrize("sigma_true, scale, expect", [
+    (0.3, 1.0, "rarely"),       # the stated noise, the exact focal length
+    (1.0, 1.0, "rarely"),       # stars three times noisier than stated: the scatter says so
+    (0.3, 1.003, "always"),     # 0.3 % off: far beyond the noise
+    (1.0, 1.01, "always"),      # 1 % off with noisy stars: the scatter is measured about the fitted scale
+])
+def test_field_step_significant_only_when_the_matches_tell_the_scale_from_one(sigma_true, scale, expect):
+    from startrack._kernels.identify import _field_step_significant
+
+    rng = np.random.default_rng(11)
+    hits = 0
+    trials = 400
+    for k in range(trials):
+        n = 5 + k % 16
+        xs, ys, b, stars, ang, mea = _field(rng, n, sigma_true, scale)
+        idx = np.arange(n, dtype=np.int64)
+        hits += bool(_field_step_significant(b, xs, ys, np.full(n, 0.3), FOCAL, stars, idx, idx, ang, mea))
+    if expect == "rarely":
+        assert hits <= 0.02 * trials
+    else:
+        assert hits == trials

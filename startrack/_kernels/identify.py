@@ -765,36 +765,29 @@ def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, m
         rmax = max(rmax, radius[i])
     cos_rmax = math.cos(rmax)
     nproj = stars.shape[0]
-    linked = np.zeros(nproj, dtype=np.bool_)
     for u in range(nproj):
         for i in range(n):
             d = b[i, 0] * pv[u, 0] + b[i, 1] * pv[u, 1] + b[i, 2] * pv[u, 2]
             if d < cos_rmax or d < cos_r[i]:
                 continue
-            linked[u] = True
             if ncand[i] < 8:
                 cand[i, ncand[i]] = u
             ncand[i] += 1
     # Zero point and scatter of the frame's magnitudes.
     has_mag = not math.isnan(z0)
     sig_m = max(mag_floor, scatter) if has_mag else mag_floor
-    # Groups: detections sharing a star (union-find over detections).
+    # Groups: detections sharing a star (union-find over detections, each joined to the first detection
+    # that listed the star; a group's root is its lowest detection, so the groups and their roots do not
+    # depend on the order of the joins).
     parent = np.arange(n)
-    for s in range(nproj):
-        if not linked[s]:
-            continue
-        first = -1
-        for i in range(n):
-            hit = False
-            for c in range(min(ncand[i], 8)):
-                if cand[i, c] == s:
-                    hit = True
-            if not hit:
+    first = np.full(nproj, -1, dtype=np.int64)
+    for i in range(n):
+        for c in range(min(ncand[i], 8)):
+            u = cand[i, c]
+            if first[u] < 0:
+                first[u] = i
                 continue
-            if first < 0:
-                first = i
-                continue
-            a = first
+            a = first[u]
             while parent[a] != a:
                 a = parent[a]
             root_i = i
@@ -1126,6 +1119,47 @@ def scale_sigma(xs, ys, sig_px, idx):
 
 
 @njit(cache=True)
+def _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img, cat, ang, mea):
+    """Whether the tentative matches ``img`` -> ``cat`` of :func:`_field_scale_of` (their pairs' chords
+    ``ang``, ``mea``, in its order) tell the field's scale from 1: their least-squares chord scale
+    (:func:`focal_scale`) is more than :data:`SCALE_Z` standard errors from 1.
+
+    The standard error is :func:`scale_sigma`'s, with the detections' stated sigmas or, when larger,
+    the scatter the pairs show about that scale (a chord's error has the variance of two detections'
+    along it): a frame whose stars are noisier than stated, or holds an odd wrong tentative match,
+    would otherwise look scaled.  The scatter is measured after the scale is fitted, so a real
+    focal-length error does not hide itself.  (The field's step itself is the median over the long
+    pairs, robust to a wrong match; tested on its own against the stated sigmas, it asked for a
+    verification at a new scale in one frame in ten at the exact focal length.)"""
+    nm = img.shape[0]
+    npair = ang.shape[0]
+    if nm < 3 or npair < 2:
+        return False
+    ls = focal_scale_reusing(b, img, star_vec, cat, img, cat, ang, mea, True)
+    if math.isnan(ls):
+        return True
+    ss = 0.0
+    for t in range(npair):
+        e = ang[t] - ls * mea[t]
+        ss += e * e
+    sig_emp = focal * math.sqrt(ss / (npair - 1) / 2.0)
+    mx = 0.0
+    my = 0.0
+    for t in range(nm):
+        mx += xs[img[t]]
+        my += ys[img[t]]
+    mx /= nm
+    my /= nm
+    spread = 0.0
+    for t in range(nm):
+        spread += (xs[img[t]] - mx) ** 2 + (ys[img[t]] - my) ** 2
+    sigma = scale_sigma(xs, ys, sig_px, img)
+    if spread > 0.0:
+        sigma = max(sigma, sig_emp / math.sqrt(spread))
+    return abs(ls - 1.0) > SCALE_Z * sigma
+
+
+@njit(cache=True)
 def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
                 sky_cells, sky_ra):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
@@ -1137,12 +1171,12 @@ def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, 
     (:func:`focal_scale`) over the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see
     :func:`cone_stars`.
 
-    Returns ``(scale, sigma)``: ``sigma`` the scale's standard error from the tentative matches
-    (:func:`scale_sigma` of their positions and ``sig_px``).
+    Returns ``(scale, significant)``: ``significant`` whether the tentative matches tell the
+    scale from 1 (:func:`_field_step_significant`).
     """
     got = _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
                             sky_cells, sky_ra)
-    return got[0], scale_sigma(xs, ys, sig_px, got[1])
+    return got[0], _field_step_significant(b, xs, ys, sig_px, focal, star_vec, got[1], got[2], got[3], got[4])
 
 
 @njit(cache=True)
@@ -1731,7 +1765,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         sky_ra, near)
     same_b = True       # b is the one the field's scale measured
     if (not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error
-            and abs(step - 1.0) > SCALE_Z * scale_sigma(xs, ys, sig_px, fs_img)):
+            and _field_step_significant(b, xs, ys, sig_px, focal, star_vec, fs_img, fs_cat, fs_ang, fs_mea)):
         same_b = False
         total *= step
         focal = focal0 / total
