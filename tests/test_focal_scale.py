@@ -86,3 +86,43 @@ def test_field_step_significant_only_when_the_matches_tell_the_scale_from_one(si
         assert hits <= 0.02 * trials
     else:
         assert hits == trials
+
+
+@pytest.mark.parametrize("n, m", [(6, 20), (40, 300)])     # every star looked at; columns of stars
+def test_field_tentative_matches_are_the_brute_force_ones(n, m):
+    """The field's tentative matches (each detection's one projected star within its widened radius, none
+    when two are; a star once) are those of a scan of every star, also when the stars are looked up by
+    columns (many detections and stars): some detections near a star, some between two, some far."""
+    from startrack._kernels.identify import _field_scale_of
+
+    rng = np.random.default_rng(4)
+    dcm = np.eye(3)
+    for _ in range(30):
+        u = rng.uniform(-50, 1330, m)
+        v = rng.uniform(-50, 1010, m)
+        stars = pixels_to_unit(u, v, FOCAL, CX, CY)
+        pick = rng.choice(m, size=n, replace=False)
+        xs = u[pick] + rng.normal(0, rng.choice([0.3, 3.0, 30.0]), n)
+        ys = v[pick] + rng.normal(0, 0.5, n)
+        xs[:2] = rng.uniform(0, 1279, 2)                  # two anywhere
+        b = pixels_to_unit(xs, ys, FOCAL, CX, CY)
+        radius = rng.uniform(1.0, 3.0, n)
+        core = np.arange(min(4, n), dtype=np.int64)
+        front = np.arange(m, dtype=np.int64)
+        got = _field_scale_of(b, xs, ys, np.full(n, 0.3), stars, dcm, FOCAL, CX, CY, 0.0, 0.0, core, radius, 0.02,
+                              front, m)
+        # The scan of every star.
+        allowed = radius + 0.02 * np.hypot(xs - xs[core].mean(), ys - ys[core].mean())
+        d = np.hypot(xs[:, None] - u[None, :], ys[:, None] - v[None, :])
+        srt = np.sort(d, axis=1)
+        img, cat = [], []
+        for i in range(n):
+            if srt[i, 0] <= allowed[i] and srt[i, 1] > allowed[i]:
+                s = int(np.argmin(d[i]))
+                if s not in cat:
+                    img.append(i)
+                    cat.append(s)
+        if len(img) >= 4:
+            assert got[1].tolist() == img and got[2].tolist() == cat
+        else:
+            assert len(got[1]) == 0

@@ -1162,7 +1162,8 @@ def _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img, cat, ang, m
 @njit(cache=True)
 def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
                 sky_cells, sky_ra):
-    """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
+    """The focal-length scale a whole field implies (NaN with fewer than four tentative matches, or when
+    they cannot tell it from 1: :func:`_field_step_significant`).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
@@ -1170,27 +1171,24 @@ def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, 
     detection keeps it); the scale is the median of catalog over measured chord
     (:func:`focal_scale`) over the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see
     :func:`cone_stars`.
-
-    Returns ``(scale, significant)``: ``significant`` whether the tentative matches tell the
-    scale from 1 (:func:`_field_step_significant`).
     """
-    got = _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
-                            sky_cells, sky_ra)
-    return got[0], _field_step_significant(b, xs, ys, sig_px, focal, star_vec, got[1], got[2], got[3], got[4])
+    return _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
+                             max_err, sky_cells, sky_ra)[0]
 
 
 @njit(cache=True)
-def _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                      sky_ra):
+def _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                      sky_cells, sky_ra):
     """:func:`field_scale` with :func:`_field_scale_of`'s matches and pair angles."""
     front = np.empty(star_vec.shape[0], dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+    return _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
+                           nf)
 
 
 @njit(cache=True)
-def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                     sky_ra, near):
+def field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                     sky_cells, sky_ra, near):
     """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core`'s stars near
     the field) when that cone holds it: the same stars in the same order, without a search of
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
@@ -1203,8 +1201,8 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
     fz = dcm[2, 2]
     apart = math.acos(min(1.0, max(-1.0, ax * fx + ay * fy + az * fz)))
     if apart + math.acos(min(1.0, max(-1.0, cos_front))) + 1e-6 > math.acos(min(1.0, max(-1.0, cos_cone))):
-        return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
-                                 max_err, sky_cells, sky_ra)
+        return _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core,
+                                 radius_px, max_err, sky_cells, sky_ra)
     front = np.empty(n_cone, dtype=np.int64)
     nf = 0
     for t in range(n_cone):
@@ -1212,11 +1210,12 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
         if fx * star_vec[s, 0] + fy * star_vec[s, 1] + fz * star_vec[s, 2] > cos_front:
             front[nf] = s
             nf += 1
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+    return _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
+                           nf)
 
 
 @njit(cache=True)
-def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
+def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
     """:func:`field_scale` on the stars ``front[:nf]`` (its cone).
 
     Returns ``(scale, img, cat, pair_cat, pair_mea)``: the tentative matches ``img[u]`` -> ``cat[u]``
@@ -1252,23 +1251,71 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
     my /= core.shape[0]
     img = np.empty(n, dtype=np.int64)
     cat = np.empty(n, dtype=np.int64)
+    allow = np.empty(n)
+    reach = 0.0
+    for i in range(n):
+        allow[i] = radius_px[i] + max_err * math.hypot(xs[i] - mx, ys[i] - my)
+        reach = max(reach, allow[i])
+    # The projected stars by columns of pixels at least ``reach`` wide (a counting sort): a detection's
+    # stars within its radius are in its column or the two beside it.  Only the nearest two within the
+    # radius decide (a third star, or one beyond, changes nothing), so looking at those columns decides
+    # as looking at every star; small frames look at every star.
+    ncol = 0
+    x0 = 0.0
+    width = 1.0
+    if n * k >= 256 and reach > 0.0:
+        x0 = px[0]
+        x1 = px[0]
+        for t in range(k):
+            x0 = min(x0, px[t])
+            x1 = max(x1, px[t])
+        width = max(reach, (x1 - x0) / k)
+        ncol = int((x1 - x0) / width) + 1
+    start = np.zeros(ncol + 1, dtype=np.int64)
+    order = np.empty(k if ncol > 0 else 0, dtype=np.int64)
+    if ncol > 0:
+        for t in range(k):
+            start[int((px[t] - x0) / width) + 1] += 1
+        for q in range(ncol):
+            start[q + 1] += start[q]
+        fill = start[:ncol].copy()
+        for t in range(k):
+            q = int((px[t] - x0) / width)
+            order[fill[q]] = t
+            fill[q] += 1
     nm = 0
     for i in range(n):
-        allowed = radius_px[i] + max_err * math.hypot(xs[i] - mx, ys[i] - my)
+        allowed = allow[i]
         # Squared distances (the nearest two; no square root per star).
         d1 = np.inf
         d2 = np.inf
         a1 = -1
-        for t in range(k):
-            dx = xs[i] - px[t]
-            dy = ys[i] - py[t]
-            d = dx * dx + dy * dy
-            if d < d1:
-                d2 = d1
-                d1 = d
-                a1 = t
-            elif d < d2:
-                d2 = d
+        if ncol == 0:
+            for t in range(k):
+                dx = xs[i] - px[t]
+                dy = ys[i] - py[t]
+                d = dx * dx + dy * dy
+                if d < d1:
+                    d2 = d1
+                    d1 = d
+                    a1 = t
+                elif d < d2:
+                    d2 = d
+        elif np.isfinite(xs[i]):
+            f = (xs[i] - x0) / width
+            if f > -2.0 and f < ncol + 1.0:
+                q = int(math.floor(f))
+                for p in range(start[max(0, q - 1)], start[min(ncol, q + 2)]):
+                    t = order[p]
+                    dx = xs[i] - px[t]
+                    dy = ys[i] - py[t]
+                    d = dx * dx + dy * dy
+                    if d < d1:
+                        d2 = d1
+                        d1 = d
+                        a1 = t
+                    elif d < d2:
+                        d2 = d
         if d1 > allowed * allowed or d2 <= allowed * allowed:
             continue
         s = idx[a1]
@@ -1287,21 +1334,22 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
     npair = nm * (nm - 1) // 2
     mea = np.empty(npair)
     ang = np.empty(npair)
-    ratio = np.empty(npair)
     t = 0
     longest = 0.0
     for u in range(nm):
         for v in range(u + 1, nm):
             mea[t] = _chord_rows(b, img[u], b, img[v])
             ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
-            ratio[t] = ang[t] / mea[t] if mea[t] > 0 else np.nan
             longest = max(longest, mea[t])
             t += 1
+    if not _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img[:nm], cat[:nm], ang, mea):
+        return np.nan, img[:nm], cat[:nm], ang, mea
     keep = np.empty(npair)
     nk = 0
     for t in range(npair):
-        if mea[t] >= 0.3 * longest and np.isfinite(ratio[t]):
-            keep[nk] = ratio[t]
+        ratio = ang[t] / mea[t] if mea[t] > 0 else np.nan
+        if mea[t] >= 0.3 * longest and np.isfinite(ratio):
+            keep[nk] = ratio
             nk += 1
     scale = _median_in_place(keep, nk) if nk >= 3 else np.nan
     return scale, img[:nm], cat[:nm], ang, mea
@@ -1761,11 +1809,11 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
     core = img[:min(4, img.shape[0])].copy()
     step, fs_img, fs_cat, fs_ang, fs_mea = field_scale_near(
-        b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px, max_focal_error, sky_cells,
+        b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px, max_focal_error, sky_cells,
         sky_ra, near)
     same_b = True       # b is the one the field's scale measured
-    if (not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error
-            and _field_step_significant(b, xs, ys, sig_px, focal, star_vec, fs_img, fs_cat, fs_ang, fs_mea)):
+    # (step is NaN also when the tentative matches cannot tell the field's scale from 1.)
+    if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         same_b = False
         total *= step
         focal = focal0 / total

@@ -574,8 +574,8 @@ def _focal_scale(b_all, img, cat, star_vec):
 
 
 def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
-    """The focal-length scale the whole field implies and whether the matches tell it from 1 (None with
-    fewer than four tentative matches).
+    """The focal-length scale the whole field implies (None with fewer than four tentative matches, or
+    when they cannot tell it from 1).
 
     With the attitude of a proposal solved at a wrong focal length, the other stars sit
     off their predictions by up to ``max_err`` times their distance from the core (the
@@ -591,11 +591,10 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
 
     if not (camera.k1 or camera.k2):
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
-        got, significant = field_scale(b_all, xs, ys, sig_px, star_vec, dcm, cos_front,
-                                       float(camera.focal_length_px), float(camera.cx), float(camera.cy), 0.0, 0.0,
-                                       np.asarray(core, dtype=np.int64), np.asarray(radius_px, dtype=np.float64),
-                                       float(max_err), *(zindex or _NO_INDEX))
-        return None if math.isnan(got) else (float(got), bool(significant))
+        got = field_scale(b_all, xs, ys, sig_px, star_vec, dcm, cos_front, float(camera.focal_length_px),
+                          float(camera.cx), float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
+                          np.asarray(radius_px, dtype=np.float64), float(max_err), *(zindex or _NO_INDEX))
+        return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
         return None
@@ -628,10 +627,11 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
     long = mea >= 0.3 * mea.max()
     if np.count_nonzero(long) < 3:
         return None
-    significant = _field_step_significant(b_all, xs, ys, sig_px, float(camera.focal_length_px), star_vec,
-                                          img.astype(np.int64), cat.astype(np.int64), np.ascontiguousarray(ref),
-                                          np.ascontiguousarray(mea))
-    return float(np.median(ref[long] / mea[long])), bool(significant)
+    if not _field_step_significant(b_all, xs, ys, sig_px, float(camera.focal_length_px), star_vec,
+                                   img.astype(np.int64), cat.astype(np.int64), np.ascontiguousarray(ref),
+                                   np.ascontiguousarray(mea)):
+        return None
+    return float(np.median(ref[long] / mea[long]))
 
 
 #: Verify pinhole-camera proposals with one kernel call (:func:`_verify_fused`); False: the
@@ -733,12 +733,10 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
     from startrack._kernels.identify import SCALE_Z, scale_sigma
 
-    got = _field_scale(b_all, xs, ys, sig_px, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-                       params.max_focal_error, _sky_index(db))
-    step, significant = got if got is not None else (None, False)
-    # A scale the matches cannot tell from 1 is noise: verifying at it would change nothing.
-    if (step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error
-            and significant):
+    step = _field_scale(b_all, xs, ys, sig_px, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
+                        params.max_focal_error, _sky_index(db))
+    # (None also when the tentative matches cannot tell the field's scale from 1: noise.)
+    if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
         b_all = _pixels_to_vectors(cam, xs, ys)
