@@ -327,40 +327,25 @@ def _chord(u, v):
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-def test_focal_scale_reusing_the_field_scale_chords_equals_focal_scale():
-    """focal_scale_reusing gives focal_scale's value bit for bit, whichever of its pairs the field
-    scale's list holds: the same detections with the same stars, some with other stars, detections it
-    lacks or has beyond; its measured chords taken only while ``b`` is the same."""
-    from startrack._kernels.identify import focal_scale, focal_scale_reusing
+def test_matched_scale_is_focal_scale():
+    """The loop's scale of the matches (matched_scale: the chords of every pair, then their least-squares
+    sums) is focal_scale's value bit for bit, for any detections and stars (the fused and the Python
+    verification take the one and the other before)."""
+    from startrack._kernels.identify import focal_scale, matched_scale
 
     rng = np.random.default_rng(11)
     sv = rng.normal(size=(300, 3))
     sv /= np.linalg.norm(sv, axis=1)[:, None]
     b = rng.normal(size=(40, 3)) + np.array([0.0, 0.0, 8.0])
     b /= np.linalg.norm(b, axis=1)[:, None]
-    b2 = b + 1e-4 * rng.normal(size=b.shape)
-    b2 /= np.linalg.norm(b2, axis=1)[:, None]
-    reused = 0
-    for trial in range(200):
-        n_fs = int(rng.integers(0, 25))
-        fs_img = np.sort(rng.choice(40, n_fs, replace=False)).astype(np.int64)
-        fs_cat = rng.choice(300, n_fs, replace=False).astype(np.int64)
-        pairs = [(u, v) for u in range(n_fs) for v in range(u + 1, n_fs)]
-        fs_ang = np.array([_chord(sv[fs_cat[u]], sv[fs_cat[v]]) for u, v in pairs]).reshape(-1)
-        fs_mea = np.array([_chord(b[fs_img[u]], b[fs_img[v]]) for u, v in pairs]).reshape(-1)
-        # The verification's matches: part of the field scale's (some with another star) and others.
-        keep = [i for i in range(n_fs) if rng.random() < 0.8]
-        img = {int(fs_img[i]): int(fs_cat[i]) if rng.random() < 0.9 else int(rng.integers(300)) for i in keep}
-        for i in rng.choice(40, int(rng.integers(0, 6)), replace=False):
-            img.setdefault(int(i), int(rng.integers(300)))
-        mi = np.array(sorted(img), dtype=np.int64)
-        mc = np.array([img[i] for i in mi], dtype=np.int64)
-        for same_b, bb in ((True, b), (False, b2)):
-            want = focal_scale(bb, mi, sv, mc)
-            got = focal_scale_reusing(bb, mi, sv, mc, fs_img, fs_cat, fs_ang, fs_mea, same_b)
-            assert (np.isnan(want) and np.isnan(got)) or want == got, (trial, same_b, want, got)
-        reused += len(set(mi) & set(fs_img.tolist())) >= 2
-    assert reused > 100
+    xs, ys = rng.uniform(0, 1000, 40), rng.uniform(0, 800, 40)
+    for trial in range(300):
+        n = int(rng.integers(0, 25))
+        mi = np.sort(rng.choice(40, n, replace=False)).astype(np.int64)
+        mc = rng.choice(300, n, replace=False).astype(np.int64)
+        want = focal_scale(b, mi, sv, mc)
+        got, _ = matched_scale(b, xs, ys, np.full(40, 0.3), 3000.0, sv, mi, mc)
+        assert (np.isnan(want) and np.isnan(got)) or want == got, (trial, want, got)
 
 
 def test_focal_scale_of_chords_measures_a_known_focal_error():

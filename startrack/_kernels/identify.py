@@ -1119,23 +1119,37 @@ def scale_sigma(xs, ys, sig_px, idx):
 
 
 @njit(cache=True)
-def _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img, cat, ang, mea):
-    """Whether the tentative matches ``img`` -> ``cat`` of :func:`_field_scale_of` (their pairs' chords
-    ``ang``, ``mea``, in its order) tell the field's scale from 1: their least-squares chord scale
-    (:func:`focal_scale`) is more than :data:`SCALE_Z` standard errors from 1.
+def _chord_scale(ang, mea):
+    """The least-squares ``s`` with ``ang = s mea`` over the pairs' chords (:func:`focal_scale`'s sums, in
+    the order of the pairs: the same value when the arrays hold its pairs in its order; NaN without
+    pairs)."""
+    num = 0.0
+    den = 0.0
+    for t in range(ang.shape[0]):
+        num += ang[t] * mea[t]
+        den += mea[t] * mea[t]
+    if den <= 0.0:
+        return np.nan
+    return num / den
+
+
+@njit(cache=True)
+def scale_significant(xs, ys, sig_px, focal, img, ang, mea):
+    """Whether the matched detections ``img`` (their pairs' catalog and measured chords ``ang``, ``mea``, in
+    :func:`focal_scale`'s order) tell the focal-length scale from 1: their least-squares chord scale
+    (:func:`_chord_scale`) is more than :data:`SCALE_Z` standard errors from 1.
 
     The standard error is :func:`scale_sigma`'s, with the detections' stated sigmas or, when larger,
     the scatter the pairs show about that scale (a chord's error has the variance of two detections'
-    along it): a frame whose stars are noisier than stated, or holds an odd wrong tentative match,
-    would otherwise look scaled.  The scatter is measured after the scale is fitted, so a real
-    focal-length error does not hide itself.  (The field's step itself is the median over the long
-    pairs, robust to a wrong match; tested on its own against the stated sigmas, it asked for a
-    verification at a new scale in one frame in ten at the exact focal length.)"""
+    along it): a frame whose stars are noisier than stated, or holds an odd wrong match, would
+    otherwise look scaled.  The scatter is measured after the scale is fitted, so a real
+    focal-length error does not hide itself.  (Tested against the stated sigmas alone, the field's
+    scale asked for a verification at a new scale in one frame in ten at the exact focal length.)"""
     nm = img.shape[0]
     npair = ang.shape[0]
     if nm < 3 or npair < 2:
         return False
-    ls = focal_scale_reusing(b, img, star_vec, cat, img, cat, ang, mea, True)
+    ls = _chord_scale(ang, mea)
     if math.isnan(ls):
         return True
     ss = 0.0
@@ -1160,10 +1174,29 @@ def _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img, cat, ang, m
 
 
 @njit(cache=True)
+def matched_scale(b, xs, ys, sig_px, focal, star_vec, img, cat):
+    """The focal-length scale of the matches ``img`` -> ``cat`` (:func:`focal_scale`, the same value) and
+    whether they tell it from 1 (:func:`scale_significant`): ``(scale, significant)``."""
+    n = img.shape[0]
+    npair = n * (n - 1) // 2
+    ang = np.empty(npair)
+    mea = np.empty(npair)
+    t = 0
+    for u in range(n):
+        for v in range(u + 1, n):
+            mea[t] = _chord_rows(b, img[u], b, img[v])
+            ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
+            t += 1
+    if n < 3:
+        return np.nan, False
+    return _chord_scale(ang, mea), scale_significant(xs, ys, sig_px, focal, img, ang, mea)
+
+
+@njit(cache=True)
 def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
                 sky_cells, sky_ra):
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches, or when
-    they cannot tell it from 1: :func:`_field_step_significant`).
+    they cannot tell it from 1: :func:`scale_significant`).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
@@ -1173,13 +1206,13 @@ def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, 
     :func:`cone_stars`.
     """
     return _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
-                             max_err, sky_cells, sky_ra)[0]
+                             max_err, sky_cells, sky_ra)
 
 
 @njit(cache=True)
 def _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
                       sky_cells, sky_ra):
-    """:func:`field_scale` with :func:`_field_scale_of`'s matches and pair angles."""
+    """:func:`field_scale` on the stars of the cone in front of ``dcm`` (:func:`cone_stars`)."""
     front = np.empty(star_vec.shape[0], dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
     return _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
@@ -1194,7 +1227,7 @@ def field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy,
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
     plus the field's radius is within the cone's radius (1e-6 rad to spare for rounding).
 
-    Returns :func:`_field_scale_of`'s tuple (the scale first)."""
+    Returns the scale (:func:`_field_scale_of`)."""
     sub, n_cone, ax, ay, az, cos_cone = near
     fx = dcm[2, 0]
     fy = dcm[2, 1]
@@ -1215,14 +1248,13 @@ def field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy,
 
 
 @njit(cache=True)
-def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
-    """:func:`field_scale` on the stars ``front[:nf]`` (its cone).
-
-    Returns ``(scale, img, cat, pair_cat, pair_mea)``: the tentative matches ``img[u]`` -> ``cat[u]``
-    (ascending detections) and, for their pairs ``u < v`` in order, the catalog and the measured
-    chords (:func:`focal_scale_reusing` takes them; empty when there were fewer than four)."""
-    none_i = np.empty(0, dtype=np.int64)
-    none_f = np.empty(0)
+def field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
+    """The field scale's tentative matches: the stars ``front[:nf]`` projected with ``dcm`` (a pinhole of
+    ``focal``, ``k1``/``k2``), each detection takes the one star within its radius ``radius_px`` widened
+    by ``max_err`` times its distance from the core's centre (none when two are; a star once, the first
+    detection keeps it).  Returns ``(img, cat)``, the detections ascending (empty with fewer than four
+    stars projected)."""
+    none = np.empty(0, dtype=np.int64)
     n = xs.shape[0]
     px = np.empty(nf)
     py = np.empty(nf)
@@ -1241,7 +1273,7 @@ def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, cor
         idx[k] = s
         k += 1
     if k < 4:
-        return np.nan, none_i, none_i, none_f, none_f
+        return none, none
     mx = 0.0
     my = 0.0
     for t in range(core.shape[0]):
@@ -1329,8 +1361,20 @@ def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, cor
         img[nm] = i
         cat[nm] = s
         nm += 1
+    return img[:nm], cat[:nm]
+
+
+@njit(cache=True)
+def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
+    """:func:`field_scale` on the stars ``front[:nf]`` (its cone).
+
+    Returns the scale: NaN with fewer than four tentative matches (:func:`field_tentative_matches`) or
+    when they cannot tell it from 1 (:func:`scale_significant`)."""
+    img, cat = field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
+                                       nf)
+    nm = img.shape[0]
     if nm < 4:
-        return np.nan, none_i, none_i, none_f, none_f
+        return np.nan
     npair = nm * (nm - 1) // 2
     mea = np.empty(npair)
     ang = np.empty(npair)
@@ -1342,8 +1386,8 @@ def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, cor
             ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
             longest = max(longest, mea[t])
             t += 1
-    if not _field_step_significant(b, xs, ys, sig_px, focal, star_vec, img[:nm], cat[:nm], ang, mea):
-        return np.nan, img[:nm], cat[:nm], ang, mea
+    if not scale_significant(xs, ys, sig_px, focal, img, ang, mea):
+        return np.nan
     keep = np.empty(npair)
     nk = 0
     for t in range(npair):
@@ -1351,45 +1395,7 @@ def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, cor
         if mea[t] >= 0.3 * longest and np.isfinite(ratio):
             keep[nk] = ratio
             nk += 1
-    scale = _median_in_place(keep, nk) if nk >= 3 else np.nan
-    return scale, img[:nm], cat[:nm], ang, mea
-
-
-@njit(cache=True)
-def focal_scale_reusing(b, img, star_vec, cat, fs_img, fs_cat, fs_ang, fs_mea, same_b):
-    """:func:`focal_scale` (the same sums in the same order, so the same value), taking the chords of a
-    pair from :func:`_field_scale_of`'s result (``fs_*``) where it holds the pair: the catalog chord
-    when both detections have the same stars there, the measured one too when ``same_b`` (``b`` is
-    the array the field's scale measured).  Most pairs of a verified field are there."""
-    n = img.shape[0]
-    if n < 3:
-        return np.nan
-    nf = fs_img.shape[0]
-    pos = np.full(n, -1, dtype=np.int64)
-    w = 0
-    for u in range(n):
-        while w < nf and fs_img[w] < img[u]:
-            w += 1
-        if w < nf and fs_img[w] == img[u] and fs_cat[w] == cat[u]:
-            pos[u] = w
-    num = 0.0
-    den = 0.0
-    for u in range(n):
-        pu = pos[u]
-        for v in range(u + 1, n):
-            pv = pos[v]
-            if pu >= 0 and pv >= 0:
-                t = pu * (2 * nf - pu - 1) // 2 + pv - pu - 1
-                r = fs_ang[t]
-                m = fs_mea[t] if same_b else _chord_rows(b, img[u], b, img[v])
-            else:
-                m = _chord_rows(b, img[u], b, img[v])
-                r = _chord_rows(star_vec, cat[u], star_vec, cat[v])
-            num += r * m
-            den += m * m
-    if den <= 0.0:
-        return np.nan
-    return num / den
+    return _median_in_place(keep, nk) if nk >= 3 else np.nan
 
 
 @njit(cache=True, inline="always")
@@ -1806,15 +1812,16 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     for i in range(n):
         radius_px[i] = fixed_radius_px if fixed_radius_px > 0 else max(1.0, match_sigma * sig_px[i] + margin_px)
         rmin = min(rmin, radius_px[i])
-    cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
-    core = img[:min(4, img.shape[0])].copy()
-    step, fs_img, fs_cat, fs_ang, fs_mea = field_scale_near(
-        b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px, max_focal_error, sky_cells,
-        sky_ra, near)
-    same_b = True       # b is the one the field's scale measured
+    step = np.nan
+    if nm < n:
+        # (Every detection matched: the whole field speaks through the matches' least-squares scale
+        # below, and the widened search of the field's scale could only find the same stars.)
+        cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
+        core = img[:min(4, img.shape[0])].copy()
+        step = field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
+                                max_focal_error, sky_cells, sky_ra, near)
     # (step is NaN also when the tentative matches cannot tell the field's scale from 1.)
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
-        same_b = False
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
@@ -1835,12 +1842,11 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
                 mc[t] = match[i]
                 far = max(far, math.hypot(xs[i] - cx, ys[i] - cy))
                 t += 1
-        step = focal_scale_reusing(b, mi, star_vec, mc, fs_img, fs_cat, fs_ang, fs_mea, same_b)
+        step, significant = matched_scale(b, xs, ys, sig_px, focal, star_vec, mi, mc)
         if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
             break
-        if abs(step - 1.0) * far < 0.1 * rmin or abs(step - 1.0) <= SCALE_Z * scale_sigma(xs, ys, sig_px, mi):
+        if abs(step - 1.0) * far < 0.1 * rmin or not significant:
             break
-        same_b = False
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
