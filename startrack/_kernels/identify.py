@@ -76,6 +76,14 @@ def _scale_range(cos_cat, th, e, s_lo, s_hi):
 
 
 @njit(cache=True, inline="always")
+def _triple_rows(x, i, j, k):
+    """:func:`_triple` of rows ``i``, ``j``, ``k`` of ``x`` (the same arithmetic, without a view of a row: the
+    ahead-of-time build keeps a view's reference counting, two atomic operations, in the loop)."""
+    return (x[i, 0] * (x[j, 1] * x[k, 2] - x[j, 2] * x[k, 1]) - x[i, 1] * (x[j, 0] * x[k, 2] - x[j, 2] * x[k, 0])
+            + x[i, 2] * (x[j, 0] * x[k, 1] - x[j, 1] * x[k, 0]))
+
+
+@njit(cache=True, inline="always")
 def _triple(a, b, c):
     """Scalar triple product ``a . (b x c)`` (the handedness of a triangle)."""
     return a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0])
@@ -250,7 +258,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         m += 1
     if m == 0:
         return out[:0], 0
-    cb = _triple(b[i], b[j], b[k])
+    cb = _triple_rows(b, i, j, k)
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
     lo_jk, hi_jk = _scaled_window(th_jk, e_jk, s_lo, s_hi)
     # J and K of a triangle both have a database pair at theta_jk when that window lies within the
@@ -276,11 +284,17 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     # ``-1 - t`` the other.
     lead = np.empty(2 * max(e - s, 0), dtype=np.int64)
     nl = 0
+    # (Two passes: the tests first, each pair's independent of the others', then the gathering.)
+    sel = np.empty(2 * max(e - s, 0), dtype=np.bool_)
     for t in range(s, e):
-        lead[nl] = t
-        nl += (head[pair_i[t]] >= 0) & mark[pair_j[t]]
-        lead[nl] = -1 - t
-        nl += (head[pair_j[t]] >= 0) & mark[pair_i[t]]
+        pi_ = pair_i[t]
+        pj_ = pair_j[t]
+        sel[2 * (t - s)] = (head[pi_] >= 0) & mark[pj_]
+        sel[2 * (t - s) + 1] = (head[pj_] >= 0) & mark[pi_]
+    for u in range(2 * (e - s)):
+        t = s + (u >> 1)
+        lead[nl] = t if (u & 1) == 0 else -1 - t
+        nl += sel[u]
     for u in range(nl):
         t = lead[u]
         I = pair_i[t] if t >= 0 else pair_j[-1 - t]
@@ -291,17 +305,17 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             p = nxt[p]
             if K == J or not mark[K]:
                 continue
-            d = _dot(star_vec[J], star_vec[K])
+            d = _dot_rows(star_vec, J, star_vec, K)
             if d < lo_jk or d > hi_jk:
                 continue
-            if (_triple(star_vec[I], star_vec[J], star_vec[K]) > 0) != (cb > 0):
+            if (_triple_rows(star_vec, I, J, K) > 0) != (cb > 0):
                 continue
             t_lo = 1.0
             t_hi = 1.0
             if scaled:
                 # One scale for the three sides (each side's scales within its tolerance).
-                t_lo, t_hi = _scale_range(_dot(star_vec[I], star_vec[J]), th_ij, e_ij, s_lo, s_hi)
-                t_lo, t_hi = _scale_range(_dot(star_vec[I], star_vec[K]), th_ik, e_ik, t_lo, t_hi)
+                t_lo, t_hi = _scale_range(_dot_rows(star_vec, I, star_vec, J), th_ij, e_ij, s_lo, s_hi)
+                t_lo, t_hi = _scale_range(_dot_rows(star_vec, I, star_vec, K), th_ik, e_ik, t_lo, t_hi)
                 t_lo, t_hi = _scale_range(d, th_jk, e_jk, t_lo, t_hi)
                 if t_lo > t_hi:
                     continue
@@ -366,10 +380,10 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 p += 1
                 if R == fJ or R == fK:
                     continue
-                d = _dot(star_vec[fJ], star_vec[R])
+                d = _dot_rows(star_vec, fJ, star_vec, R)
                 if d < lo_jr or d > hi_jr:
                     continue
-                d = _dot(star_vec[fK], star_vec[R])
+                d = _dot_rows(star_vec, fK, star_vec, R)
                 if d < lo_kr or d > hi_kr:
                     continue
                 nR += 1
