@@ -573,9 +573,8 @@ def _focal_scale(b_all, img, cat, star_vec):
     return None if math.isnan(s) else float(s)
 
 
-def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
-    """The focal-length scale the whole field implies (None with fewer than four tentative matches, or
-    when they cannot tell it from 1).
+def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
+    """The focal-length scale the whole field implies (None with fewer than four tentative matches).
 
     With the attitude of a proposal solved at a wrong focal length, the other stars sit
     off their predictions by up to ``max_err`` times their distance from the core (the
@@ -584,16 +583,16 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
     wrong.  Each detection here takes the one predicted star within its radius widened by
     that displacement (none when two are), and the scale is the median of catalog over
     measured chord (angle, :func:`startrack._kernels.identify.focal_scale`) over the long pairs of
-    these tentative matches (robust to the odd wrong one); significant as
-    :func:`startrack._kernels.identify.scale_significant` says.
+    these tentative matches (robust to the odd wrong one).
     """
-    from startrack._kernels.identify import field_scale, scale_significant
-
     if not (camera.k1 or camera.k2):
+        from startrack._kernels.identify import field_scale
+
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
-        got = field_scale(b_all, xs, ys, sig_px, star_vec, dcm, cos_front, float(camera.focal_length_px),
-                          float(camera.cx), float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
-                          np.asarray(radius_px, dtype=np.float64), float(max_err), *(zindex or _NO_INDEX))
+        got = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px), float(camera.cx),
+                          float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
+                          np.asarray(radius_px, dtype=np.float64), float(max_err),
+                          *(zindex or _NO_INDEX))
         return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
@@ -626,9 +625,6 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
     ref = np.linalg.norm(star_vec[cat][:, None, :] - star_vec[cat][None, :, :], axis=2)[iu]
     long = mea >= 0.3 * mea.max()
     if np.count_nonzero(long) < 3:
-        return None
-    if not scale_significant(xs, ys, sig_px, float(camera.focal_length_px), img.astype(np.int64),
-                             np.ascontiguousarray(ref), np.ascontiguousarray(mea)):
         return None
     return float(np.median(ref[long] / mea[long]))
 
@@ -730,13 +726,8 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-    from startrack._kernels.identify import matched_scale
-
-    # Every detection matched: the matches' least-squares scale below speaks for the whole field.
-    step = None if len(v.matches) == len(xs) else _field_scale(
-        b_all, xs, ys, sig_px, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-        params.max_focal_error, _sky_index(db))
-    # (None also when the tentative matches cannot tell the field's scale from 1: noise.)
+    step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
+                        params.max_focal_error, _sky_index(db))
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
@@ -745,15 +736,13 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     for _ in range(4):
         if v.matches is None or len(v.matches) < 3:
             break
-        step, significant = matched_scale(b_all, xs, ys, sig_px, float(cam.focal_length_px), star_vec,
-                                          np.asarray(v.star_index, dtype=np.int64),
-                                          np.asarray(v.cat_index, dtype=np.int64))
-        if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
+        step = _focal_scale(b_all, v.star_index, v.cat_index, star_vec)
+        if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
             break
         # A step that moves the farthest matched star by less than a tenth of the smallest
-        # match radius cannot change a match, nor one the matches cannot tell from 1 (noise).
+        # match radius cannot change a match: the matches cannot tell it from 1 (noise).
         far = float(np.max(np.hypot(xs[v.star_index] - cam.cx, ys[v.star_index] - cam.cy)))
-        if abs(step - 1.0) * far < 0.1 * float(radius_px.min()) or not significant:
+        if abs(step - 1.0) * far < 0.1 * float(radius_px.min()):
             break
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
