@@ -157,6 +157,19 @@ def bisect_left(a, lo, hi, x):
     return lo
 
 
+@njit(cache=True, inline="always")
+def bisect_right(a, lo, hi, x):
+    """The first ``p`` in ``[lo, hi)`` with ``a[p] > x``, else ``hi`` (``a[lo:hi]`` ascending):
+    ``lo + np.searchsorted(a[lo:hi], x, side="right")`` without the slice."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] <= x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 @njit(cache=True)
 def label_search(labels, label, guess, radius):
     """Range ``[start, end)`` of entries equal to ``label`` in the sorted ``labels``.
@@ -168,11 +181,4 @@ def label_search(labels, label, guess, radius):
     lo = max(0, guess - radius)
     hi = min(n, guess + radius + 1)
     start = bisect_left(labels, lo, hi, label)
-    a, b = start, hi
-    while a < b:
-        mid = (a + b) >> 1
-        if labels[mid] <= label:
-            a = mid + 1
-        else:
-            b = mid
-    return start, a
+    return start, bisect_right(labels, start, hi, label)

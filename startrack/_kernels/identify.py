@@ -5,7 +5,7 @@ import numpy as np
 
 from startrack._kernels._jit import njit
 from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest_pairs, refine_from
-from startrack._kernels.database import bisect_left, kvector_range, label_search, quadratic_range
+from startrack._kernels.database import bisect_left, bisect_right, kvector_range, label_search, quadratic_range
 from startrack._kernels.sphere import project_to_pixel
 
 
@@ -108,14 +108,7 @@ def _window(pair_cos, kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi)
     test no cosine (the k-vector's range holds a few more at each end)."""
     s, e = _range(kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi)
     s = bisect_left(pair_cos, s, e, cos_lo)
-    lo = s
-    while lo < e:
-        mid = (lo + e) >> 1
-        if pair_cos[mid] <= cos_hi:
-            lo = mid + 1
-        else:
-            e = mid
-    return s, e
+    return s, bisect_right(pair_cos, s, e, cos_hi)
 
 
 @njit(cache=True)
@@ -1221,32 +1214,27 @@ def field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, 
         d1 = np.inf
         d2 = np.inf
         a1 = -1
-        if ncol == 0:
-            for t in range(k):
-                dx = xs[i] - px[t]
-                dy = ys[i] - py[t]
-                d = dx * dx + dy * dy
-                if d < d1:
-                    d2 = d1
-                    d1 = d
-                    a1 = t
-                elif d < d2:
-                    d2 = d
-        elif np.isfinite(xs[i]):
+        p0 = 0
+        p1 = k
+        if ncol > 0:
+            # The detection's column and the two beside it (none for a NaN or far detection).
             f = (xs[i] - x0) / width
+            p1 = 0
             if f > -2.0 and f < ncol + 1.0:
                 q = int(math.floor(f))
-                for p in range(start[max(0, q - 1)], start[min(ncol, q + 2)]):
-                    t = order[p]
-                    dx = xs[i] - px[t]
-                    dy = ys[i] - py[t]
-                    d = dx * dx + dy * dy
-                    if d < d1:
-                        d2 = d1
-                        d1 = d
-                        a1 = t
-                    elif d < d2:
-                        d2 = d
+                p0 = start[max(0, q - 1)]
+                p1 = start[min(ncol, q + 2)]
+        for p in range(p0, p1):
+            t = order[p] if ncol > 0 else p
+            dx = xs[i] - px[t]
+            dy = ys[i] - py[t]
+            d = dx * dx + dy * dy
+            if d < d1:
+                d2 = d1
+                d1 = d
+                a1 = t
+            elif d < d2:
+                d2 = d
         if d1 > allowed * allowed or d2 <= allowed * allowed:
             continue
         s = idx[a1]
