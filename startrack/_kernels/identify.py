@@ -77,16 +77,10 @@ def _scale_range(cos_cat, th, e, s_lo, s_hi):
 
 @njit(cache=True, inline="always")
 def _triple_rows(x, i, j, k):
-    """:func:`_triple` of rows ``i``, ``j``, ``k`` of ``x`` (the same arithmetic, without a view of a row: the
-    ahead-of-time build keeps a view's reference counting, two atomic operations, in the loop)."""
+    """Scalar triple product ``x[i] . (x[j] x x[k])`` of three rows (the handedness of a triangle), without a
+    view of a row (as :func:`_dot_rows`)."""
     return (x[i, 0] * (x[j, 1] * x[k, 2] - x[j, 2] * x[k, 1]) - x[i, 1] * (x[j, 0] * x[k, 2] - x[j, 2] * x[k, 0])
             + x[i, 2] * (x[j, 0] * x[k, 1] - x[j, 1] * x[k, 0]))
-
-
-@njit(cache=True, inline="always")
-def _triple(a, b, c):
-    """Scalar triple product ``a . (b x c)`` (the handedness of a triangle)."""
-    return a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0])
 
 
 @njit(cache=True)
