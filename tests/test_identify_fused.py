@@ -318,6 +318,27 @@ def test_star_table_is_identified_as_its_star_list(sensor, algorithm, catalog):
     assert seen_ok >= 12
 
 
+def test_matched_scale_is_focal_scale():
+    """The loop's scale of the matches (matched_scale: the chords of every pair, then their least-squares
+    sums) is focal_scale's value bit for bit, for any detections and stars (the fused and the Python
+    verification take the one and the other before)."""
+    from startrack._kernels.identify import focal_scale, matched_scale
+
+    rng = np.random.default_rng(11)
+    sv = rng.normal(size=(300, 3))
+    sv /= np.linalg.norm(sv, axis=1)[:, None]
+    b = rng.normal(size=(40, 3)) + np.array([0.0, 0.0, 8.0])
+    b /= np.linalg.norm(b, axis=1)[:, None]
+    xs, ys = rng.uniform(0, 1000, 40), rng.uniform(0, 800, 40)
+    for trial in range(300):
+        n = int(rng.integers(0, 25))
+        mi = np.sort(rng.choice(40, n, replace=False)).astype(np.int64)
+        mc = rng.choice(300, n, replace=False).astype(np.int64)
+        want = focal_scale(b, mi, sv, mc)
+        got, _ = matched_scale(b, xs, ys, np.full(40, 0.3), 3000.0, sv, mi, mc)
+        assert (np.isnan(want) and np.isnan(got)) or want == got, (trial, want, got)
+
+
 def test_focal_scale_of_chords_measures_a_known_focal_error():
     """A field measured with a focal length 1 % short of the true one (every measured angle about 1 %
     too large) gives the focal scale ``f_used / f_true`` (true f = f / scale) to within the tangent

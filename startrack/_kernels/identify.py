@@ -1081,10 +1081,123 @@ def focal_scale(b, img, star_vec, cat):
     return num / den
 
 
+#: A focal-length scale fitted to the matches is applied only when it is this many of its standard
+#: errors (:func:`scale_sigma`) from 1: a smaller one is noise, and a verification at it changes nothing
+#: but the time (at the exact focal length a third of the frames re-verified for one).
+SCALE_Z = 3.0
+
+
 @njit(cache=True)
-def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                sky_ra):
-    """The focal-length scale a whole field implies (NaN with fewer than four tentative matches).
+def scale_sigma(xs, ys, sig_px, idx):
+    """The standard error of a scale fitted to detections ``idx`` (pixel positions ``xs``, ``ys``, per-axis
+    sigmas ``sig_px``): ``1 / sqrt(sum_i |x_i - x_w|^2 / sigma_i^2)``, ``x_w`` their weighted centre.
+
+    That is the scale's variance in a least-squares similarity fit (scale, rotation, shift) of
+    positions with isotropic noise: only the radial part of each error, about the centre, informs the
+    scale.  The chord and median estimates of :func:`focal_scale` and :func:`field_scale` are no more
+    precise than it.  ``inf`` for fewer than two detections or no spread."""
+    n = idx.shape[0]
+    if n < 2:
+        return np.inf
+    ws = 0.0
+    mx = 0.0
+    my = 0.0
+    for t in range(n):
+        w = 1.0 / (sig_px[idx[t]] * sig_px[idx[t]])
+        ws += w
+        mx += w * xs[idx[t]]
+        my += w * ys[idx[t]]
+    mx /= ws
+    my /= ws
+    info = 0.0
+    for t in range(n):
+        dx = xs[idx[t]] - mx
+        dy = ys[idx[t]] - my
+        info += (dx * dx + dy * dy) / (sig_px[idx[t]] * sig_px[idx[t]])
+    if not info > 0.0:
+        return np.inf
+    return 1.0 / math.sqrt(info)
+
+
+@njit(cache=True)
+def _chord_scale(ang, mea):
+    """The least-squares ``s`` with ``ang = s mea`` over the pairs' chords (:func:`focal_scale`'s sums, in
+    the order of the pairs: the same value when the arrays hold its pairs in its order; NaN without
+    pairs)."""
+    num = 0.0
+    den = 0.0
+    for t in range(ang.shape[0]):
+        num += ang[t] * mea[t]
+        den += mea[t] * mea[t]
+    if den <= 0.0:
+        return np.nan
+    return num / den
+
+
+@njit(cache=True)
+def scale_significant(xs, ys, sig_px, focal, img, ang, mea):
+    """Whether the matched detections ``img`` (their pairs' catalog and measured chords ``ang``, ``mea``, in
+    :func:`focal_scale`'s order) tell the focal-length scale from 1: their least-squares chord scale
+    (:func:`_chord_scale`) is more than :data:`SCALE_Z` standard errors from 1.
+
+    The standard error is :func:`scale_sigma`'s, with the detections' stated sigmas or, when larger,
+    the scatter the pairs show about that scale (a chord's error has the variance of two detections'
+    along it): a frame whose stars are noisier than stated, or holds an odd wrong match, would
+    otherwise look scaled.  The scatter is measured after the scale is fitted, so a real
+    focal-length error does not hide itself.  (Tested against the stated sigmas alone, the field's
+    scale asked for a verification at a new scale in one frame in ten at the exact focal length.)"""
+    nm = img.shape[0]
+    npair = ang.shape[0]
+    if nm < 3 or npair < 2:
+        return False
+    ls = _chord_scale(ang, mea)
+    if math.isnan(ls):
+        return True
+    ss = 0.0
+    for t in range(npair):
+        e = ang[t] - ls * mea[t]
+        ss += e * e
+    sig_emp = focal * math.sqrt(ss / (npair - 1) / 2.0)
+    mx = 0.0
+    my = 0.0
+    for t in range(nm):
+        mx += xs[img[t]]
+        my += ys[img[t]]
+    mx /= nm
+    my /= nm
+    spread = 0.0
+    for t in range(nm):
+        spread += (xs[img[t]] - mx) ** 2 + (ys[img[t]] - my) ** 2
+    sigma = scale_sigma(xs, ys, sig_px, img)
+    if spread > 0.0:
+        sigma = max(sigma, sig_emp / math.sqrt(spread))
+    return abs(ls - 1.0) > SCALE_Z * sigma
+
+
+@njit(cache=True)
+def matched_scale(b, xs, ys, sig_px, focal, star_vec, img, cat):
+    """The focal-length scale of the matches ``img`` -> ``cat`` (:func:`focal_scale`, the same value) and
+    whether they tell it from 1 (:func:`scale_significant`): ``(scale, significant)``."""
+    n = img.shape[0]
+    npair = n * (n - 1) // 2
+    ang = np.empty(npair)
+    mea = np.empty(npair)
+    t = 0
+    for u in range(n):
+        for v in range(u + 1, n):
+            mea[t] = _chord_rows(b, img[u], b, img[v])
+            ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
+            t += 1
+    if n < 3:
+        return np.nan, False
+    return _chord_scale(ang, mea), scale_significant(xs, ys, sig_px, focal, img, ang, mea)
+
+
+@njit(cache=True)
+def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                sky_cells, sky_ra):
+    """The focal-length scale a whole field implies (NaN with fewer than four tentative matches, or when
+    they cannot tell it from 1: :func:`scale_significant`).
 
     See :func:`startrack.identify.base._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
@@ -1093,22 +1206,23 @@ def field_scale(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core
     (:func:`focal_scale`) over the pairs at least 0.3 of the longest.  ``sky_cells``/``sky_ra``: see
     :func:`cone_stars`.
     """
-    return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
-                             sky_cells, sky_ra)
+    return _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
+                             max_err, sky_cells, sky_ra)
 
 
 @njit(cache=True)
-def _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                      sky_ra):
+def _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                      sky_cells, sky_ra):
     """:func:`field_scale` on the stars of the cone in front of ``dcm`` (:func:`cone_stars`)."""
     front = np.empty(star_vec.shape[0], dtype=np.int64)
     nf = cone_stars(dcm[2, 0], dcm[2, 1], dcm[2, 2], cos_front, star_vec, sky_cells, sky_ra, front)
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+    return _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
+                           nf)
 
 
 @njit(cache=True)
-def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err, sky_cells,
-                     sky_ra, near):
+def field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px, max_err,
+                     sky_cells, sky_ra, near):
     """:func:`field_scale`, its cone of stars taken from ``near`` (:func:`verify_core`'s stars near
     the field) when that cone holds it: the same stars in the same order, without a search of
     the database.  The cone of ``near`` holds the field's cone when the angle between their axes
@@ -1121,8 +1235,8 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
     fz = dcm[2, 2]
     apart = math.acos(min(1.0, max(-1.0, ax * fx + ay * fy + az * fz)))
     if apart + math.acos(min(1.0, max(-1.0, cos_front))) + 1e-6 > math.acos(min(1.0, max(-1.0, cos_cone))):
-        return _field_scale_cone(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core, radius_px,
-                                 max_err, sky_cells, sky_ra)
+        return _field_scale_cone(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, k2, core,
+                                 radius_px, max_err, sky_cells, sky_ra)
     front = np.empty(n_cone, dtype=np.int64)
     nf = 0
     for t in range(n_cone):
@@ -1130,7 +1244,8 @@ def field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, k1, k2,
         if fx * star_vec[s, 0] + fy * star_vec[s, 1] + fz * star_vec[s, 2] > cos_front:
             front[nf] = s
             nf += 1
-    return _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf)
+    return _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
+                           nf)
 
 
 @njit(cache=True)
@@ -1246,10 +1361,11 @@ def field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, 
 
 
 @njit(cache=True)
-def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
+def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front, nf):
     """:func:`field_scale` on the stars ``front[:nf]`` (its cone).
 
-    Returns the scale: NaN with fewer than four tentative matches (:func:`field_tentative_matches`)."""
+    Returns the scale: NaN with fewer than four tentative matches (:func:`field_tentative_matches`) or
+    when they cannot tell it from 1 (:func:`scale_significant`)."""
     img, cat = field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
                                        nf)
     nm = img.shape[0]
@@ -1266,6 +1382,8 @@ def _field_scale_of(b, xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radiu
             ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
             longest = max(longest, mea[t])
             t += 1
+    if not scale_significant(xs, ys, sig_px, focal, img, ang, mea):
+        return np.nan
     keep = np.empty(npair)
     nk = 0
     for t in range(npair):
@@ -1406,8 +1524,8 @@ def _to_global(match, sub):
 
 @njit(cache=True)
 def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
-                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells,
-                sky_ra):
+                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate,
+                sky_cells, sky_ra):
     """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine_from``), the
@@ -1539,11 +1657,14 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     window = core_window(b, img, star_vec, cat, nc, math.sqrt(2.0) * smax, eps)
     e_core = pattern_chance(m_all, window, bc)
     if scale_offset > 0.0:
+        # Verified at a fitted focal-length scale: a chance pattern needed to match the core's shape at
+        # any one of the scales the fit could have chosen, one per ``window`` of the core's longest angle
+        # (:func:`scale_cells`).
         gmin = 1.0
         for u in range(nc):
             for v in range(nc):
                 gmin = min(gmin, _dot_rows(bc, u, bc, v))
-        e_core *= 1.0 + scale_offset * math.acos(max(-1.0, min(1.0, gmin))) / window
+        e_core *= scale_cells(math.acos(max(-1.0, min(1.0, gmin))), window, eps, scale_offset, scale_range)
     rs = 0.0
     for i in range(n):
         rs += radius[i] * focal
@@ -1551,6 +1672,23 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     p_hit = max(min(1.0, n_pred * math.pi * mean_r * mean_r / (width * height)), p_local)
     return (0, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, e_core,
             p_hit) + near
+
+
+@njit(cache=True)
+def scale_cells(theta, window, eps, offset, scale_range):
+    """The look-elsewhere factor of a proposal verified at a fitted focal-length scale ``1 +- offset``
+    (:func:`verify_core`): the scales a chance pattern could have been fitted to, told apart by the
+    core's longest angle ``theta`` at the verification's ``window``.
+
+    The fit may take any scale within ``scale_range`` (the stated focal-length error), and the search
+    found the core with its pair windows (half-width at most ``eps``) at the nominal scale, so the
+    scales its longest side allows span ``2 min(eps, scale_range theta)``: ``1 + 2 min(eps,
+    scale_range theta) / window`` cells, and never fewer than ``1 + offset theta / window`` (the
+    fitted scale's own distance from 1; a search with the focal length free reaches beyond ``eps``).
+    The count does not depend on the scale the data fitted: a chance pattern is fitted to whichever
+    scale suits it."""
+    free = 2.0 * min(eps, scale_range * theta)
+    return 1.0 + max(free, offset * theta) / window
 
 
 @njit(cache=True)
@@ -1602,8 +1740,8 @@ def pinhole_cos_fov(focal, cx, cy, width, height):
 
 @njit(cache=True)
 def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
-                    width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset, max_chi2,
-                    mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
+                    width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset,
+                    scale_range, max_chi2, mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
     """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
 
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, near)``: ``code`` 0 =
@@ -1621,7 +1759,8 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
     got = verify_core(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
-        width, height, 0.0, 0.0, min_matches, eps, scale_offset, max_chi2, mag_floor, mag_gate, sky_cells, sky_ra)
+        width, height, 0.0, 0.0, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate, sky_cells,
+        sky_ra)
     code, match, q, dcm, missing, n_bright, p_mag, bright_pred, e_core, p_hit = (
         got[0], got[1], got[2], got[3], got[6], got[7], got[8], got[9], got[10], got[11])
     near = (got[12], got[13], got[14], got[15], got[16], got[17])
@@ -1679,8 +1818,8 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
         offset = abs(scale - 1.0)
     code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
         b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width, height,
-        fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_chi2, mag_floor, mag_gate, trials,
-        max_false, sky_cells, sky_ra)
+        fixed_radius_px, match_sigma, margin_rad, min_matches, eps, offset, max_focal_error, max_chi2, mag_floor,
+        mag_gate, trials, max_false, sky_cells, sky_ra)
     total = 1.0 if math.isnan(scale) else scale
     if code != 0:
         return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
@@ -1690,18 +1829,23 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     for i in range(n):
         radius_px[i] = fixed_radius_px if fixed_radius_px > 0 else max(1.0, match_sigma * sig_px[i] + margin_px)
         rmin = min(rmin, radius_px[i])
-    cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
-    core = img[:min(4, img.shape[0])].copy()
-    step = field_scale_near(b, xs, ys, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
-                            max_focal_error, sky_cells, sky_ra, near)
+    step = np.nan
+    if nm < n:
+        # (Every detection matched: the whole field speaks through the matches' least-squares scale
+        # below, and the widened search of the field's scale could only find the same stars.)
+        cos_front = math.cos(math.acos(pinhole_cos_fov(focal, cx, cy, width, height)) + math.radians(0.5))
+        core = img[:min(4, img.shape[0])].copy()
+        step = field_scale_near(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, 0.0, 0.0, core, radius_px,
+                                max_focal_error, sky_cells, sky_ra, near)
+    # (step is NaN also when the tentative matches cannot tell the field's scale from 1: noise.)
     if not math.isnan(step) and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= max_focal_error:
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
         code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
-            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
+            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_focal_error,
+            max_chi2, mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
     for _ in range(4):
         if code != 0 or nm < 3:
             break
@@ -1715,18 +1859,18 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
                 mc[t] = match[i]
                 far = max(far, math.hypot(xs[i] - cx, ys[i] - cy))
                 t += 1
-        step = focal_scale(b, mi, star_vec, mc)
+        step, significant = matched_scale(b, xs, ys, sig_px, focal, star_vec, mi, mc)
         if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > max_focal_error:
             break
-        if abs(step - 1.0) * far < 0.1 * rmin:
+        if abs(step - 1.0) * far < 0.1 * rmin or not significant:
             break
         total *= step
         focal = focal0 / total
         b = pixels_to_unit(xs, ys, focal, cx, cy)
         code, match, q, dcm, p_false, missing, bright_pred, nm, near = _verify_pinhole(
             b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy, width,
-            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_chi2,
-            mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
+            height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, abs(total - 1.0), max_focal_error,
+            max_chi2, mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra)
     return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
 
 

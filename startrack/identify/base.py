@@ -497,10 +497,11 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     """Attitude, every other detection and the confidence of one proposal (see the module docstring).
 
     ``geom`` is :func:`_geometry` of ``camera`` (computed when not given).  ``scale_offset``
-    is ``|s - 1|`` of a focal-length scale fitted to the data before this call: a random
-    catalog pattern then needs to match the core's shape only up to a scale that close to
-    nominal, which multiplies the chance of a coincidence by ``1 + |s - 1| theta_max / window``
-    (``theta_max`` the core's largest angle; see :func:`_verify_with_focal`).
+    is ``|s - 1|`` of a focal-length scale fitted to the data before this call (0: none): a
+    random catalog pattern then needs to match the core's shape only up to one of the scales
+    the fit could have chosen (within ``params.max_focal_error``), which multiplies the chance
+    of a coincidence by their number (:func:`startrack._kernels.identify.scale_cells`; see
+    :func:`_verify_with_focal`).
     """
     from startrack._kernels.identify import verify_core
 
@@ -527,7 +528,8 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     fl = flux if flux is not None else np.full(n_all, np.nan)
     code, match, q, dcm, n_pred, _, missing, n_bright, p_mag, bright_pred, e_core, p_hit, *_near = verify_core(
         b_all, star_vec, db.star_mag, _sorted_mags(db), img, cat, radius, sig_px / f, fl, bool(use_magnitudes), cos_fov, *geometry,
-        int(params.min_matches), float(eps), float(scale_offset), AMBIGUITY_CHI2, MAG_SIGMA_FLOOR, MAG_GATE, *_sky_index(db))
+        int(params.min_matches), float(eps), float(scale_offset), float(params.max_focal_error), AMBIGUITY_CHI2,
+        MAG_SIGMA_FLOOR, MAG_GATE, *_sky_index(db))
     if code == 1:
         return _Verdict(None, None, None, dcm, None, "a star of the proposal disagrees with the attitude of the others",
                         ReasonCode.VERIFICATION_FAILED)
@@ -562,19 +564,9 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     return _Verdict(out, matched, match[matched], dcm, p_false, None, None, resid, -q if q[3] < 0 else q)
 
 
-def _focal_scale(b_all, img, cat, star_vec):
-    """Least-squares ``s`` with ``c_cat = s c_mea`` over the given pairs' chords (None if < 3 stars;
-    :func:`startrack._kernels.identify.focal_scale`)."""
-    if len(img) < 3:
-        return None
-    from startrack._kernels.identify import focal_scale
-
-    s = focal_scale(b_all, np.asarray(img, dtype=np.int64), star_vec, np.asarray(cat, dtype=np.int64))
-    return None if math.isnan(s) else float(s)
-
-
-def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
-    """The focal-length scale the whole field implies (None with fewer than four tentative matches).
+def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, max_err, zindex=None):
+    """The focal-length scale the whole field implies (None with fewer than four tentative matches, or
+    when they cannot tell it from 1).
 
     With the attitude of a proposal solved at a wrong focal length, the other stars sit
     off their predictions by up to ``max_err`` times their distance from the core (the
@@ -583,16 +575,16 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
     wrong.  Each detection here takes the one predicted star within its radius widened by
     that displacement (none when two are), and the scale is the median of catalog over
     measured chord (angle, :func:`startrack._kernels.identify.focal_scale`) over the long pairs of
-    these tentative matches (robust to the odd wrong one).
+    these tentative matches (robust to the odd wrong one); significant as
+    :func:`startrack._kernels.identify.scale_significant` says.
     """
-    if not (camera.k1 or camera.k2):
-        from startrack._kernels.identify import field_scale
+    from startrack._kernels.identify import field_scale, scale_significant
 
+    if not (camera.k1 or camera.k2):
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
-        got = field_scale(b_all, xs, ys, star_vec, dcm, cos_front, float(camera.focal_length_px), float(camera.cx),
-                          float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
-                          np.asarray(radius_px, dtype=np.float64), float(max_err),
-                          *(zindex or _NO_INDEX))
+        got = field_scale(b_all, xs, ys, sig_px, star_vec, dcm, cos_front, float(camera.focal_length_px),
+                          float(camera.cx), float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
+                          np.asarray(radius_px, dtype=np.float64), float(max_err), *(zindex or _NO_INDEX))
         return None if math.isnan(got) else float(got)
     front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
     if len(front) < 4:
@@ -625,6 +617,9 @@ def _field_scale(b_all, xs, ys, camera, dcm, star_vec, core, radius_px, max_err,
     ref = np.linalg.norm(star_vec[cat][:, None, :] - star_vec[cat][None, :, :], axis=2)[iu]
     long = mea >= 0.3 * mea.max()
     if np.count_nonzero(long) < 3:
+        return None
+    if not scale_significant(xs, ys, sig_px, float(camera.focal_length_px), img.astype(np.int64),
+                             np.ascontiguousarray(ref), np.ascontiguousarray(mea)):
         return None
     return float(np.median(ref[long] / mea[long]))
 
@@ -702,16 +697,23 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
 
     Angles scale as ``1 / f``: the proposal's pairs measure the scale and the frame is
     matched with the corrected focal length.  An accepted match is then checked against
-    the scale the whole field implies (:func:`_field_scale`), and the scale re-estimated
-    from every matched star until it settles; each verification after a scale was fitted
-    pays for the freedom (``scale_offset`` of :func:`verify`), and the identification is
-    refused when the field's scale refuses it.  Without this, a focal-length error left a
+    the scale the whole field implies (:func:`_field_scale`; not searched when every detection
+    matched), and the scale re-estimated from every matched star until it settles, each step
+    taken only when the stars tell it from 1 (:func:`startrack._kernels.identify.scale_significant`:
+    a step within noise changes no match, only the time); each verification at a fitted scale
+    pays for every scale the fit could have chosen (``scale_offset`` of :func:`verify`), and the
+    identification is refused when the field's scale refuses it.  Without this, a focal-length error left a
     few outer stars matched to the wrong neighbour (paper 004 Fig. 7 conditions).
     Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used.
     Returns ``(verdict, focal scale or None)``.
     """
+    from startrack._kernels.identify import matched_scale
+
     star_vec = db.star_vector
-    scale = _focal_scale(b_all, proposal.image, proposal.catalog, star_vec)
+    scale, _ = (np.nan, False) if len(proposal.image) < 3 else matched_scale(
+        b_all, xs, ys, sig_px, float(camera.focal_length_px), star_vec, np.asarray(proposal.image, dtype=np.int64),
+        np.asarray(proposal.catalog, dtype=np.int64))
+    scale = None if math.isnan(scale) else float(scale)
     if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
         scale = None    # within noise (or beyond belief): keep the nominal focal length
     cam = camera
@@ -726,8 +728,11 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-    step = _field_scale(b_all, xs, ys, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
-                        params.max_focal_error, _sky_index(db))
+    # Every detection matched: the matches' least-squares scale below speaks for the whole field.
+    step = None if len(v.matches) == len(xs) else _field_scale(
+        b_all, xs, ys, sig_px, cam, v.dcm, star_vec, np.asarray(proposal.image[:4]), radius_px,
+        params.max_focal_error, _sky_index(db))
+    # (None also when the tentative matches cannot tell the field's scale from 1: noise.)
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
@@ -736,13 +741,15 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     for _ in range(4):
         if v.matches is None or len(v.matches) < 3:
             break
-        step = _focal_scale(b_all, v.star_index, v.cat_index, star_vec)
-        if step is None or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
+        step, significant = matched_scale(b_all, xs, ys, sig_px, float(cam.focal_length_px), star_vec,
+                                          np.asarray(v.star_index, dtype=np.int64),
+                                          np.asarray(v.cat_index, dtype=np.int64))
+        if math.isnan(step) or abs(step - 1.0) < 1e-5 or abs(total * step - 1.0) > params.max_focal_error:
             break
         # A step that moves the farthest matched star by less than a tenth of the smallest
-        # match radius cannot change a match: the matches cannot tell it from 1 (noise).
+        # match radius cannot change a match, nor one the matches cannot tell from 1 (noise).
         far = float(np.max(np.hypot(xs[v.star_index] - cam.cx, ys[v.star_index] - cam.cy)))
-        if abs(step - 1.0) * far < 0.1 * float(radius_px.min()):
+        if abs(step - 1.0) * far < 0.1 * float(radius_px.min()) or not significant:
             break
         total *= step
         cam = camera.with_focal_length(camera.focal_length_px / total)
