@@ -70,6 +70,16 @@ class KVectorDatabase:
     merged_id: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     """Unresolved doubles: star ``merged_id[k]`` is held by the entry of id ``merged_into[k]``."""
 
+    def __setattr__(self, name, value):
+        # What identification derives from the arrays is cached on the database under names starting
+        # with "_" (sorted magnitudes, the sky index, the pyramid's plan, ...): setting a public field drops
+        # them all, so that no cache outlives the arrays it was made from.
+        if not name.startswith("_"):
+            d = self.__dict__
+            for key in [k for k in d if k.startswith("_")]:
+                del d[key]
+        object.__setattr__(self, name, value)
+
     @property
     def n_stars(self) -> int:
         return len(self.star_id)

@@ -359,3 +359,24 @@ def test_focal_scale_of_chords_measures_a_known_focal_error():
         # Angles through a pinhole are not exactly proportional to 1/f (tan): within 1e-3.
         assert abs(s - f_used / f_true) < 1e-3, s
         assert abs(focal_scale(b_true, idx, sv, idx) - 1.0) < 1e-12
+
+
+def test_database_caches_follow_its_arrays(sensor):
+    """What identification caches on a k-vector database (the pyramid's plan, sorted magnitudes, the sky
+    index) is dropped when one of its arrays is set: the pyramid's next plan holds the new array."""
+    import copy
+
+    from startrack.identify import pyramid
+
+    cam, db, stars = sensor
+    db = copy.copy(db)
+    db.__dict__ = {k: v for k, v in db.__dict__.items() if not k.startswith("_")}
+    frame = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=5), 1, 5, mag_limit=5.4)[0][0]
+    params = IdentifyParams(sigma_px=0.3)
+    assert identify_stars(frame, cam, db, "pyramid", params).status == "ok"
+    plan = db.__dict__["_pyramid_plan"]
+    assert pyramid._plan(db) is plan and "_mags_sorted" in db.__dict__
+    db.star_mag = np.full(len(db.star_mag), 1.0)
+    assert not [k for k in db.__dict__ if k.startswith("_")]
+    assert pyramid._plan(db) is not plan
+    assert pyramid._plan(db)[2][8] is db.star_mag

@@ -1960,7 +1960,8 @@ def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, thres
 @njit(cache=True)
 def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, best, res_i, res_f, star_vec, pair_i,
                      pair_j, pair_cos,
-                     kvector, line, kquad, quad, star_mag, mag_sorted, sky_cells, sky_ra, adj_ptr, adj_other, adj_cos):
+                     kvector, line, kquad, quad, star_mag, mag_sorted, sky_cells, sky_ra, adj_ptr, adj_other, adj_cos,
+                     star_id):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
     What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
@@ -1998,8 +1999,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     caller looks at its clock in between).  The verdict's arrays go to the caller's buffers
     (a new array returned to Python costs more than the rest of a small frame's bookkeeping):
     ``res_i[:n]`` the match of every detection (-1: none), ``res_i[n:n + n_matched]`` the matched
-    detections; ``res_f[:4]`` the quaternion, ``res_f[4:13]`` the attitude matrix by rows
-    (``res_i`` holds at least ``2 n``, ``res_f`` 13).
+    detections, the next ``n_matched`` their stars' ``star_id`` and the next their database indices; ``res_f[:4]`` the quaternion, ``res_f[4:13]`` the attitude matrix by rows
+    (``res_i`` holds at least ``4 n``, ``res_f`` 13).
     """
     n_tr = min(triads.shape[0], ipar[0])
     n = xs.shape[0]
@@ -2083,7 +2084,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 max(state[2], looked), fpar[13], fpar[14], sky_cells, sky_ra)
             if code == 0:
                 _keep(state, t, rr + 1, extra)
-                _put_verdict(res_i, res_f, match, q, dcm, matched)
+                _put_verdict(res_i, res_f, match, q, dcm, matched, star_id)
                 return 0, code, p_false, nm, total, rms, n_tri
             if best[0] == 0.0 or (not math.isnan(p_false) and (math.isnan(best[2]) or p_false < best[2])):
                 best[0] = 1.0
@@ -2124,13 +2125,16 @@ def _keep(state, t, row, extra):
 
 
 @njit(cache=True)
-def _put_verdict(res_i, res_f, match, q, dcm, matched):
+def _put_verdict(res_i, res_f, match, q, dcm, matched, star_id):
     """:func:`pyramid_identify`'s verdict arrays into the caller's buffers (see there)."""
     n = match.shape[0]
+    nm = matched.shape[0]
     for i in range(n):
         res_i[i] = match[i]
-    for t in range(matched.shape[0]):
+    for t in range(nm):
         res_i[n + t] = matched[t]
+        res_i[n + nm + t] = star_id[match[matched[t]]]
+        res_i[n + 2 * nm + t] = match[matched[t]]
     for u in range(4):
         res_f[u] = q[u]
     for u in range(3):

@@ -23,6 +23,7 @@ import operator
 import threading
 import time
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
@@ -34,12 +35,14 @@ from startrack.identify.base import (
     Algorithm,
     Proposal,
     SearchOutcome,
-    _accepted_verdict,
     _fused_verdict,
+    _new_tuple,
+    _Verdict,
     _sky_index,
     _sorted_mags,
 )
-from startrack.records import ReasonCode
+from startrack.kvector import KVectorDatabase
+from startrack.records import Match, ReasonCode
 
 
 @dataclass(frozen=True)
@@ -150,10 +153,14 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
             return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
     if status == 1:
         return _failed(buffers, db, params, "no consistent star pattern found", ReasonCode.NO_PATTERN)
-    # Views of this thread's buffers serve the rest of this frame's run(); the quaternion outlives it.
+    # Views of this thread's buffers serve the rest of this frame's run(); the quaternion and the matches
+    # outlive it.  res_i: every detection's match, the matched detections, their ids, their database indices.
     state, _, _, res_i, res_f = buffers
     _, _, tried, patterns, _ = state.tolist()
-    return SearchOutcome(_accepted_verdict(res_i[:n], res_i[n:n + nm], res_f[:4].copy(), dcm, p_false, rms, db),
+    matched = res_i[n:n + nm]
+    matches = list(map(_new_tuple, repeat(Match), zip(matched.tolist(), res_i[n + nm:n + 2 * nm].tolist())))
+    return SearchOutcome(_Verdict(matches, matched, res_i[n + 2 * nm:n + 3 * nm], dcm, float(p_false), None, None,
+                                  None, res_f[:4].copy(), rms),
                          None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {}, tried, patterns,
                          "no consistent star pattern found", ReasonCode.NO_PATTERN)
 
@@ -191,9 +198,9 @@ def _buffers(budget, n):
     frames: ``state`` and ``best`` zeroed, ``seen``'s rows read by the kernel only after it wrote them in
     the same search, ``res_i``/``res_f`` written with an accepted verdict."""
     got = getattr(_BUFFERS, "arrays", None)
-    if got is None or len(got[0][1]) != budget or len(got[0][3]) < 2 * n:
+    if got is None or len(got[0][1]) != budget or len(got[0][3]) < 4 * n:
         arrays = (np.zeros(5, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
-                  np.empty(max(256, 2 * n), np.int64), np.empty(13))
+                  np.empty(max(512, 4 * n), np.int64), np.empty(13))
         got = _BUFFERS.arrays = (arrays, arrays[4][4:13].reshape(3, 3))
     else:
         got[0][0].fill(0)
@@ -208,22 +215,30 @@ def _inputs(plan, config, frame, camera, params, n):
 
     Kept with the database's plan per value of the settings (the last 64) and used again while the
     thread's buffers are the same and large enough: one look-up instead of those of :func:`_settings`
-    and :func:`_buffers` and a new tuple."""
-    key = (_CAMERA_KEY(camera), _PARAMS_KEY(params), config.max_triads, config.max_triangles, frame.margin,
-           frame.eps, frame.use)
+    and :func:`_buffers` and a new tuple.  The thread's last frame's are compared first, the camera and
+    the configuration (frozen) by identity, the settings (which may change between frames) by value."""
+    pkey = _PARAMS_KEY(params)
+    margin, eps, use = frame.margin, frame.eps, frame.use
     buffers, dcm = getattr(_BUFFERS, "arrays", (None, None))
-    memo = plan[4]
-    rest = memo.get(key)
+    last = getattr(_BUFFERS, "last", None)
+    if (last is not None and last[0] is plan and last[1] is camera and last[2] is config and last[3] == pkey
+            and last[4] == margin and last[5] == eps and last[6] == use):
+        rest = last[7]
+    else:
+        rest = plan[4].get((_CAMERA_KEY(camera), pkey, config.max_triads, config.max_triangles, margin, eps, use))
     # rest[3] is the state array of the buffers it was made with
-    if rest is not None and buffers is not None and rest[3] is buffers[0] and len(buffers[3]) >= 2 * n:
+    if rest is None or buffers is None or rest[3] is not buffers[0] or len(buffers[3]) < 4 * n:
+        fpar, ipar, budget, triads = _settings(config, frame, camera, params)
+        buffers, dcm = _buffers(budget, n)
+        memo = plan[4]
+        if len(memo) > 64:
+            memo.clear()
+        rest = memo[(_CAMERA_KEY(camera), pkey, config.max_triads, config.max_triangles, margin, eps, use)] = (
+            triads, fpar, ipar, *buffers, *plan[2])
+    else:
         buffers[0].fill(0)
         buffers[2].fill(0)
-        return buffers, rest, dcm
-    fpar, ipar, budget, triads = _settings(config, frame, camera, params)
-    buffers, dcm = _buffers(budget, n)
-    if len(memo) > 64:
-        memo.clear()
-    rest = memo[key] = (triads, fpar, ipar, *buffers, *plan[2])
+    _BUFFERS.last = (plan, camera, config, pkey, margin, eps, use, rest)
     return buffers, rest, dcm
 
 
@@ -275,16 +290,20 @@ def _settings(config, frame, camera, params):
 
 
 _PLAN_SOURCES = operator.attrgetter("star_vector", "pair_i", "pair_j", "pair_cos", "kvector", "line", "kquad", "quad",
-                                    "star_mag")
+                                    "star_mag", "star_id")
 
 
 def _plan(db):
     """The database's arrays as :func:`fused_pyramid`'s kernel takes them, and the kernel's entry for
     them (resolved at the first call), cached on the database while its arrays (and the kernel) are
-    the same objects: ``[kernel, source arrays, arrays, entry, the last frame's inputs]`` (:func:`_inputs`)."""
+    the same objects: ``[kernel, source arrays, arrays, entry, the last frame's inputs]`` (:func:`_inputs`).
+    A :class:`~startrack.kvector.KVectorDatabase` drops the cache itself when an array is set; another
+    database's arrays are compared each time."""
     kernel = _kernels.pyramid_identify
-    src = _PLAN_SOURCES(db)
     plan = db.__dict__.get("_pyramid_plan")
+    if plan is not None and plan[0] is kernel and type(db) is KVectorDatabase:
+        return plan
+    src = _PLAN_SOURCES(db)
     if plan is not None and plan[0] is kernel and all(map(operator.is_, plan[1], src)):
         return plan
     z_order, z_sorted = _sky_index(db)
@@ -292,7 +311,8 @@ def _plan(db):
               np.ascontiguousarray(db.pair_j), np.ascontiguousarray(db.pair_cos, dtype=np.float64),
               np.ascontiguousarray(db.kvector), np.asarray(db.line, dtype=np.float64), np.ascontiguousarray(db.kquad),
               np.asarray(db.quad, dtype=np.float64), np.ascontiguousarray(db.star_mag, dtype=np.float64),
-              _sorted_mags(db), z_order, z_sorted) + pair_adjacency(db)
+              _sorted_mags(db), z_order, z_sorted) + pair_adjacency(db) + (
+                  np.ascontiguousarray(db.star_id, dtype=np.int64),)
     plan = db.__dict__["_pyramid_plan"] = [kernel, src, arrays, None, {}]
     return plan
 
