@@ -110,8 +110,7 @@ def test_a_fitted_scale_pays_the_same_whatever_its_value(sensor15):
     choose), at least three (the window never exceeds the search tolerance): a chance pattern is
     fitted to whichever scale suits it, so a small offset buys no confidence."""
     from startrack.evaluate import Condition, make_frames
-    from startrack.identify import IdentifyParams, identify_stars
-    from startrack.identify import base
+    from startrack.identify import IdentifyParams, base, identify_stars
 
     cam, db, stars = sensor15
     params = IdentifyParams(sigma_px=0.3)

@@ -37,9 +37,9 @@ from startrack.identify.base import (
     SearchOutcome,
     _fused_verdict,
     _new_tuple,
-    _Verdict,
     _sky_index,
     _sorted_mags,
+    _Verdict,
 )
 from startrack.kvector import KVectorDatabase
 from startrack.records import Match, ReasonCode
