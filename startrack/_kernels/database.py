@@ -6,7 +6,7 @@ import numpy as np
 from startrack._kernels._jit import njit, prange
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def kvector_range(kvector, m, q, y_lo, y_hi):
     """Candidate range ``[start, end)`` (0-based) for ``y_lo <= y <= y_hi`` (Mortari & Neta 2000).
 
@@ -24,7 +24,7 @@ def kvector_range(kvector, m, q, y_lo, y_hi):
     return kvector[jb], kvector[jt]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quadratic_range(kquad, p1, p2, p3, y_lo, y_hi):
     """Candidate range for the quadratic search of paper 000 (Eqs. 10-12).
 

@@ -83,7 +83,7 @@ def _triple_rows(x, i, j, k):
             + x[i, 2] * (x[j, 0] * x[k, 1] - x[j, 1] * x[k, 0]))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _range(kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi):
     s, e = kvector_range(kvector, line[0], line[1], cos_lo, cos_hi)
     if use_quadratic:
@@ -95,7 +95,7 @@ def _range(kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi):
     return s, e
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _window(pair_cos, kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi):
     """The pairs with ``cos_lo <= pair_cos <= cos_hi``, exactly: ``[start, end)`` of :func:`_range`'s
     candidates narrowed by bisection (``pair_cos`` is ascending), so that the loops over a window
@@ -105,7 +105,7 @@ def _window(pair_cos, kvector, line, kquad, quad, use_quadratic, cos_lo, cos_hi)
     return s, bisect_right(pair_cos, s, e, cos_hi)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _first_at_or_above(a, p0, p1, x, lo, hi):
     """``p0 + np.searchsorted(a[p0:p1], x)`` (the first ``p`` in ``[p0, p1)`` with ``a[p] >= x``, else ``p1``)
     for ``a[p0:p1]`` ascending within ``[lo, hi]``, starting where ``x`` would lie were the values evenly
@@ -525,8 +525,12 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
             out[i] = -1
     hit_sum = 0.0
     n_others = 0
+    r_last = np.nan
+    cos_l = 1.0
     for i in range(n):
-        cos_l = math.cos(10.0 * radius[i])
+        if radius[i] != r_last:     # (the radii are mostly equal: one cosine for a run of them)
+            r_last = radius[i]
+            cos_l = math.cos(10.0 * r_last)
         best = -1
         near = 0
         for u in range(npred):
@@ -1589,7 +1593,8 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     cos_r = np.empty(n)
     inst = np.empty(n)
     for i in range(n):
-        cos_r[i] = math.cos(radius[i])
+        # (the radii are mostly equal: one cosine for a run of them)
+        cos_r[i] = cos_r[i - 1] if i > 0 and radius[i] == radius[i - 1] else math.cos(radius[i])
         inst[i] = -2.5 * math.log10(flux[i]) if (np.isfinite(flux[i]) and flux[i] > 0) else np.nan
     match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred, z0, scatter = check_matches(
         b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, lists[2 * ns:2 * ns + counts[2]],
@@ -1802,8 +1807,8 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, scale, matched, resid_rms)``:
     ``code`` 0 = accepted, 1-5 as :func:`_verify_pinhole`; ``q`` normalised, scalar part
     >= 0; ``scale`` the focal-length scale used (1.0: none); ``matched`` the matched
-    detections (ascending); ``resid_rms`` the rms angle (arcsec) between them and their
-    stars at the final attitude and scale.
+    detections (ascending) and ``resid_rms`` the rms angle (arcsec) between them and their
+    stars at the final attitude and scale, of an accepted verdict (else none and NaN).
     """
     n = xs.shape[0]
     scale = focal_scale(b0, img, star_vec, cat)
@@ -1877,24 +1882,31 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
 @njit(cache=True)
 def _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec):
     """:func:`verify_focal`'s result: the quaternion normalised (scalar part >= 0), the matched
-    detections and their rms residual (arcsec)."""
+    detections and their rms residual (arcsec; an accepted verdict's only, else NaN and no detections).
+
+    A residual is the angle of the chord between detection and predicted star, ``2 asin(c / 2)``:
+    ``acos`` of their dot product loses half the digits at arcsecond angles (the dot is 1 - 1e-11)."""
     norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     sign = -1.0 if q[3] < 0 else 1.0
     qn = np.empty(4)
     for u in range(4):
         qn[u] = sign * q[u] / norm
-    matched = np.empty(nm, dtype=np.int64)
+    matched = np.empty(nm if code == 0 else 0, dtype=np.int64)
     t = 0
     ss = 0.0
     for i in range(match.shape[0]):
-        if match[i] >= 0 and t < nm:
+        if match[i] >= 0 and t < matched.shape[0]:
             matched[t] = i
             t += 1
             c = match[i]
-            d = 0.0
+            c2 = 0.0
             for u in range(3):
-                d += b[i, u] * (dcm[u, 0] * star_vec[c, 0] + dcm[u, 1] * star_vec[c, 1] + dcm[u, 2] * star_vec[c, 2])
-            r = math.degrees(math.acos(min(1.0, max(-1.0, d)))) * 3600.0
+                e = b[i, u] - (dcm[u, 0] * star_vec[c, 0] + dcm[u, 1] * star_vec[c, 1] + dcm[u, 2] * star_vec[c, 2])
+                c2 += e * e
+            ch = math.sqrt(c2)
+            # 2 asin(c / 2) by its series below 0.01 rad (the next term is 5 c^7 / 7168: < 1e-17)
+            ang = ch * (1.0 + c2 / 24.0 + 3.0 * c2 * c2 / 640.0) if ch < 0.01 else 2.0 * math.asin(min(1.0, ch / 2.0))
+            r = math.degrees(ang) * 3600.0
             ss += r * r
     rms = math.sqrt(ss / t) if t > 0 else np.nan
     return code, match, qn, dcm, p_false, missing, bright_pred, nm, total, matched[:t], rms
