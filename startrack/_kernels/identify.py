@@ -594,6 +594,10 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
         worst = max(worst, frac)
     if worst > 0.0:
         p_mag /= worst
+    matched = np.zeros(star_vec.shape[0], dtype=np.bool_)
+    for i in range(n):
+        if out[i] >= 0:
+            matched[out[i]] = True
     missing = 0
     bright = 0
     for u in range(npred):
@@ -601,12 +605,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
         if star_mag[s] > cut:
             continue
         bright += 1
-        found = False
-        for i in range(n):
-            if out[i] == s:
-                found = True
-                break
-        if not found:
+        if not matched[s]:
             missing += 1
     n_bright = np.searchsorted(mag_sorted, cut, side="right")
     return out, npred, p_local, missing, n_bright, cut, p_mag, bright, z0, scatter
