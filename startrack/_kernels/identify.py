@@ -480,7 +480,7 @@ def _median_in_place(a, n):
     return a[h]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, on_stars, on_pv):
     """The verification's bookkeeping after the attitude, in one pass.
 
@@ -611,7 +611,7 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
     return out, npred, p_local, missing, n_bright, cut, p_mag, bright, z0, scatter
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def core_window(b, img, r, cat, nc, floor, cap):
     """``max |theta_b - theta_r|`` over the pairs of the core (the first ``nc`` of ``b[img]``,
     ``r[cat]``; rad), clipped to ``[floor, cap]``."""
@@ -640,7 +640,7 @@ def _inner(p, q, r):
     return math.acos(min(1.0, max(-1.0, (u0 * v0 + u1 * v1 + u2 * v2) / (nu * nv))))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def pattern_chance(n_cat, eps, v):
     """Expected catalog patterns matching directions ``v`` (2-4 rows) within ``eps`` by chance.
 
@@ -730,7 +730,7 @@ def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps,
     return identity, votes1, votes2
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, max_chi2, z0, scatter, mag_floor,
                       mag_gate, stars, pv):
     """Make every match unambiguous within its tolerance, and magnitude-consistent.
@@ -1516,7 +1516,7 @@ def cone_stars(ax, ay, az, cos_r, star_vec, sky_cells, sky_ra, out):
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _to_global(match, sub):
     out = np.full(match.shape[0], -1, dtype=np.int64)
     for i in range(match.shape[0]):
@@ -1742,7 +1742,7 @@ def pinhole_cos_fov(focal, cx, cy, width, height):
     return math.cos(math.radians(off_axis + 0.5))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
                     width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset,
                     scale_range, max_chi2, mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
@@ -1878,7 +1878,7 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     return _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, star_vec):
     """:func:`verify_focal`'s result: the quaternion normalised (scalar part >= 0), the matched
     detections and their rms residual (arcsec; an accepted verdict's only, else NaN and no detections).

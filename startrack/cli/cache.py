@@ -89,7 +89,7 @@ def _build_kernels(quiet: bool, index) -> None:
         if os.path.exists(path):
             return
         # Always visible, like the index's notice: a minute of silence looks like a hang.
-        sys.stderr.write(f"startrack: compiling the solver's kernels ahead of time once, ~60 s, into "
+        sys.stderr.write(f"startrack: compiling the solver's kernels ahead of time once, 1-2 min, into "
                          f"{os.path.dirname(path)}\n")
         sys.stderr.flush()
         t0 = time.perf_counter()
