@@ -216,7 +216,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     then skipped as uninformative).
     """
     n = b.shape[0]
-    out = np.full((max_out, 5), -1, dtype=np.int64)
+    out = np.empty((max_out, 5), dtype=np.int64)     # every row returned is written whole
     no = 0
     s_lo = 1.0 - focal_error
     s_hi = 1.0 + focal_error
@@ -253,13 +253,15 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
     # passed over before their vectors are read.  The window is widened by 1e-12 so that no
     # cosine rounding can drop a star the exact test below would keep.
-    mark = np.ones(n_cat, dtype=np.bool_)
+    mark = np.empty(n_cat, dtype=np.bool_)
     if pair_cos.shape[0] > 0 and lo_jk - 1e-12 >= pair_cos[0] + 1e-9:
         mark[:] = False
         s3, e3 = _window(pair_cos, kvector, line, kquad, quad, False, lo_jk - 1e-12, hi_jk + 1e-12)
         for t in range(s3, e3):
             mark[pair_i[t]] = True
             mark[pair_j[t]] = True
+    else:
+        mark[:] = True
     tri = np.empty((max_triangles, 3), dtype=np.int64)
     tri_s = np.empty((max_triangles, 2))
     nt = 0
@@ -316,6 +318,8 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
             nt += 1
     if n == 3:
         for t in range(min(nt, max_out)):
+            out[no, 0] = -1
+            out[no, 4] = -1
             out[no, 1] = tri[t, 0]
             out[no, 2] = tri[t, 1]
             out[no, 3] = tri[t, 2]
