@@ -702,17 +702,16 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     taken only when the stars tell it from 1 (:func:`startrack._kernels.identify.scale_significant`:
     a step within noise changes no match, only the time); each verification at a fitted scale
     pays for every scale the fit could have chosen (``scale_offset`` of :func:`verify`), and the
-    identification is refused when the field's scale refuses it.  Without this, a focal-length error left a
-    few outer stars matched to the wrong neighbour (paper 004 Fig. 7 conditions).
+    identification is refused when the field's scale refuses it.  Without this, a focal-length
+    error left a few outer stars matched to the wrong neighbour (paper 004 Fig. 7 conditions).
     Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used.
     Returns ``(verdict, focal scale or None)``.
     """
-    from startrack._kernels.identify import matched_scale
+    from startrack._kernels.identify import focal_scale, matched_scale
 
     star_vec = db.star_vector
-    scale, _ = (np.nan, False) if len(proposal.image) < 3 else matched_scale(
-        b_all, xs, ys, sig_px, float(camera.focal_length_px), star_vec, np.asarray(proposal.image, dtype=np.int64),
-        np.asarray(proposal.catalog, dtype=np.int64))
+    scale = focal_scale(b_all, np.asarray(proposal.image, dtype=np.int64), star_vec,
+                        np.asarray(proposal.catalog, dtype=np.int64))     # NaN with fewer than 3 stars
     scale = None if math.isnan(scale) else float(scale)
     if scale is not None and (abs(scale - 1.0) > params.max_focal_error or abs(scale - 1.0) < 5e-4):
         scale = None    # within noise (or beyond belief): keep the nominal focal length

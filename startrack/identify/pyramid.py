@@ -216,7 +216,8 @@ def _inputs(plan, config, frame, camera, params, n):
     Kept with the database's plan per value of the settings (the last 64) and used again while the
     thread's buffers are the same and large enough: one look-up instead of those of :func:`_settings`
     and :func:`_buffers` and a new tuple.  The thread's last frame's are compared first, the camera and
-    the configuration (frozen) by identity, the settings (which may change between frames) by value."""
+    the configuration (frozen) by identity, the settings (which may change between frames) by value (so the
+    thread holds its last database's arrays until its next frame)."""
     pkey = _PARAMS_KEY(params)
     margin, eps, use = frame.margin, frame.eps, frame.use
     buffers, dcm = getattr(_BUFFERS, "arrays", (None, None))
