@@ -1072,20 +1072,27 @@ def focal_scale(b, img, star_vec, cat):
     The chord ratio is the angle ratio to a relative ``(s^2 - 1) theta^2 / 24`` (2e-4 for a 1 % scale
     over 30 deg: the focal loop's next step takes it up) and needs no ``acos``; at the true focal length
     both are 1 up to the noise."""
-    n = img.shape[0]
-    if n < 3:
+    if img.shape[0] < 3:
         return np.nan
-    num = 0.0
-    den = 0.0
+    ang, mea = _pair_chords(b, img, star_vec, cat)
+    return _chord_scale(ang, mea)
+
+
+@njit(cache=True, inline="always")
+def _pair_chords(b, img, star_vec, cat):
+    """``(ang, mea)``: the catalog and the measured chords (:func:`_chord_rows`) of the pairs ``u < v`` of
+    ``img`` -> ``cat``, in the order ``(0, 1), (0, 2), ..., (1, 2), ...`` (the scale estimates' order)."""
+    n = img.shape[0]
+    npair = n * (n - 1) // 2
+    ang = np.empty(npair)
+    mea = np.empty(npair)
+    t = 0
     for u in range(n):
         for v in range(u + 1, n):
-            m = _chord_rows(b, img[u], b, img[v])
-            r = _chord_rows(star_vec, cat[u], star_vec, cat[v])
-            num += r * m
-            den += m * m
-    if den <= 0.0:
-        return np.nan
-    return num / den
+            mea[t] = _chord_rows(b, img[u], b, img[v])
+            ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
+            t += 1
+    return ang, mea
 
 
 #: A focal-length scale fitted to the matches is applied only when it is this many of its standard
@@ -1126,11 +1133,9 @@ def scale_sigma(xs, ys, sig_px, idx):
     return 1.0 / math.sqrt(info)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _chord_scale(ang, mea):
-    """The least-squares ``s`` with ``ang = s mea`` over the pairs' chords (:func:`focal_scale`'s sums, in
-    the order of the pairs: the same value when the arrays hold its pairs in its order; NaN without
-    pairs)."""
+    """The least-squares ``s`` with ``ang = s mea`` over the pairs' chords (NaN without pairs)."""
     num = 0.0
     den = 0.0
     for t in range(ang.shape[0]):
@@ -1185,18 +1190,9 @@ def scale_significant(xs, ys, sig_px, focal, img, ang, mea):
 def matched_scale(b, xs, ys, sig_px, focal, star_vec, img, cat):
     """The focal-length scale of the matches ``img`` -> ``cat`` (:func:`focal_scale`, the same value) and
     whether they tell it from 1 (:func:`scale_significant`): ``(scale, significant)``."""
-    n = img.shape[0]
-    npair = n * (n - 1) // 2
-    ang = np.empty(npair)
-    mea = np.empty(npair)
-    t = 0
-    for u in range(n):
-        for v in range(u + 1, n):
-            mea[t] = _chord_rows(b, img[u], b, img[v])
-            ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
-            t += 1
-    if n < 3:
+    if img.shape[0] < 3:
         return np.nan, False
+    ang, mea = _pair_chords(b, img, star_vec, cat)
     return _chord_scale(ang, mea), scale_significant(xs, ys, sig_px, focal, img, ang, mea)
 
 
@@ -1375,20 +1371,11 @@ def _field_scale_of(b, xs, ys, sig_px, star_vec, dcm, focal, cx, cy, k1, k2, cor
     when they cannot tell it from 1 (:func:`scale_significant`)."""
     img, cat = field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, radius_px, max_err, front,
                                        nf)
-    nm = img.shape[0]
-    if nm < 4:
+    if img.shape[0] < 4:
         return np.nan
-    npair = nm * (nm - 1) // 2
-    mea = np.empty(npair)
-    ang = np.empty(npair)
-    t = 0
-    longest = 0.0
-    for u in range(nm):
-        for v in range(u + 1, nm):
-            mea[t] = _chord_rows(b, img[u], b, img[v])
-            ang[t] = _chord_rows(star_vec, cat[u], star_vec, cat[v])
-            longest = max(longest, mea[t])
-            t += 1
+    ang, mea = _pair_chords(b, img, star_vec, cat)
+    npair = mea.shape[0]
+    longest = mea.max()
     if not scale_significant(xs, ys, sig_px, focal, img, ang, mea):
         return np.nan
     keep = np.empty(npair)
@@ -2014,8 +2001,9 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     caller looks at its clock in between).  The verdict's arrays go to the caller's buffers
     (a new array returned to Python costs more than the rest of a small frame's bookkeeping):
     ``res_i[:n]`` the match of every detection (-1: none), ``res_i[n:n + n_matched]`` the matched
-    detections, the next ``n_matched`` their stars' ``star_id`` and the next their database indices; ``res_f[:4]`` the quaternion, ``res_f[4:13]`` the attitude matrix by rows
-    (``res_i`` holds at least ``4 n``, ``res_f`` 13).
+    detections, the next ``n_matched`` their stars' ``star_id`` and the next their database indices;
+    ``res_f[:4]`` the quaternion, ``res_f[4:13]`` the attitude matrix by rows (``res_i`` holds at least
+    ``4 n``, ``res_f`` 13).
     """
     n_tr = min(triads.shape[0], ipar[0])
     n = xs.shape[0]
