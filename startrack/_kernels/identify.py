@@ -189,35 +189,13 @@ def free_focal_patterns(b, tol, margin, i, j, k, focal_error):
 
 
 @njit(cache=True)
-def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
-                       use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos, focal_error):
-    """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
+def pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad,
+                      quad, use_quadratic, max_triangles, focal_error):
+    """The catalog triangles of image triad ``(i, j, k)``: :func:`pyramid_candidates`' first step.
 
-    The triad's catalog triangles come from k-vector (or paper 000 quadratic)
-    range look-ups on its angles ``theta_ij`` and ``theta_ik``, the third angle
-    and the specular (handedness) test.  Each triangle is confirmed by the
-    first other image star ``r`` (brightest first) whose three angles to it
-    match exactly one catalog star ``R``; with three image stars the triangle
-    itself is the candidate.  The tolerance of pair ``(u, v)`` is
-    ``sqrt(tol_u^2 + tol_v^2) + margin``.  The fourth star's candidates ``R`` are the
-    database pairs of ``I`` at the angle ``theta_ir``: a search of ``I``'s pairs sorted by
-    cosine (:func:`_first_at_or_above`; ``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
-
-    ``focal_error`` > 0: the focal length is known to that fraction only, so every catalog
-    angle is the image angle times one common scale ``s`` in ``[1 - focal_error, 1 + focal_error]``
-    (up to each pair's tolerance): the three windows are widened to that, a triangle is kept
-    when one scale fits its three sides (the scales each side allows overlap), and the fourth
-    star's windows are those of the triangle's scales.  0: the nominal focal length (the
-    published search).
-
-    Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
-    a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
-    triangles found (``max_triangles + 1`` when there were more: the triad is
-    then skipped as uninformative).
-    """
-    n = b.shape[0]
-    out = np.empty((max_out, 5), dtype=np.int64)     # every row returned is written whole
-    no = 0
+    Returns ``(tri, tri_s, n_triangles)``: the triangles ``(I, J, K)`` in the order found and the
+    focal-length scales each allows (``(1, 1)`` at the nominal focal length); none and
+    ``max_triangles + 1`` when there are more than ``max_triangles``."""
     s_lo = 1.0 - focal_error
     s_hi = 1.0 + focal_error
     th_ij, e_ij = _side(b, tol, margin, i, j)
@@ -244,7 +222,7 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
         head[z] = m
         m += 1
     if m == 0:
-        return out[:0], 0
+        return np.empty((0, 3), dtype=np.int64), np.empty((0, 2)), 0
     cb = _triple_rows(b, i, j, k)
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
     lo_jk, hi_jk = _scaled_window(th_jk, e_jk, s_lo, s_hi)
@@ -309,15 +287,120 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
                 if t_lo > t_hi:
                     continue
             if nt >= max_triangles:
-                return out[:0], nt + 1
+                return tri[:0], tri_s[:0], nt + 1
             tri[nt, 0] = I
             tri[nt, 1] = J
             tri[nt, 2] = K
             tri_s[nt, 0] = t_lo
             tri_s[nt, 1] = t_hi
             nt += 1
+    return tri[:nt], tri_s[:nt], nt
+
+
+@njit(cache=True, inline="always")
+def pyramid_fourth(b, tol, margin, i, j, k, tri, tri_s, t, star_vec, pair_cos, adj_ptr, adj_other, adj_cos,
+                   focal_error, win, made):
+    """The fourth star of triangle ``tri[t]`` of image triad ``(i, j, k)`` (:func:`pyramid_triangles`):
+    ``(r, R)``, the first other image star ``r`` (in index order) whose three angles to the triangle
+    match exactly one catalog star ``R``, else ``(-1, -1)`` (:func:`pyramid_candidates`' second step).
+
+    ``win`` (n, 6) and ``made`` (n, bool, False at the triad's first triangle): the other stars'
+    cosine windows, made at their first use and kept for the triad's next triangles."""
+    n = b.shape[0]
+    scaled = focal_error > 0.0
+    c_min = pair_cos[0] if pair_cos.shape[0] > 0 else -1.0
+    c_max = pair_cos[pair_cos.shape[0] - 1] if pair_cos.shape[0] > 0 else 1.0
+    fI = tri[t, 0]
+    fJ = tri[t, 1]
+    fK = tri[t, 2]
+    a0 = adj_ptr[fI]
+    a1 = adj_ptr[fI + 1]
+    for r in range(n):
+        if r == i or r == j or r == k:
+            continue
+        if not made[r] and scaled:
+            win[r, 0], win[r, 1] = _side(b, tol, margin, i, r)
+            win[r, 2], win[r, 3] = _side(b, tol, margin, j, r)
+            win[r, 4], win[r, 5] = _side(b, tol, margin, k, r)
+            made[r] = True
+        elif not made[r]:
+            win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
+            win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
+            win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
+            made[r] = True
+        if scaled:
+            # The triangle's own scales (a narrower range than the search's).
+            lo, hi = _scaled_window(win[r, 0], win[r, 1], tri_s[t, 0], tri_s[t, 1])
+            lo_jr, hi_jr = _scaled_window(win[r, 2], win[r, 3], tri_s[t, 0], tri_s[t, 1])
+            lo_kr, hi_kr = _scaled_window(win[r, 4], win[r, 5], tri_s[t, 0], tri_s[t, 1])
+        else:
+            lo = win[r, 0]
+            hi = win[r, 1]
+            lo_jr = win[r, 2]
+            hi_jr = win[r, 3]
+            lo_kr = win[r, 4]
+            hi_kr = win[r, 5]
+        # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
+        p = _first_at_or_above(adj_cos, a0, a1, lo, c_min, c_max)
+        nR = 0
+        fR = -1
+        while p < a1 and adj_cos[p] <= hi:
+            R = adj_other[p]
+            p += 1
+            if R == fJ or R == fK:
+                continue
+            d = _dot_rows(star_vec, fJ, star_vec, R)
+            if d < lo_jr or d > hi_jr:
+                continue
+            d = _dot_rows(star_vec, fK, star_vec, R)
+            if d < lo_kr or d > hi_kr:
+                continue
+            nR += 1
+            fR = R
+            if nR > 1:
+                break
+        if nR == 1:
+            return r, fR
+    return -1, -1
+
+
+@njit(cache=True)
+def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line, kquad, quad,
+                       use_quadratic, max_triangles, max_out, adj_ptr, adj_other, adj_cos, focal_error):
+    """The catalog pyramids of image triad ``(i, j, k)`` (Mortari et al. 2004, as one step of a generator).
+
+    The triad's catalog triangles come from k-vector (or paper 000 quadratic)
+    range look-ups on its angles ``theta_ij`` and ``theta_ik``, the third angle
+    and the specular (handedness) test.  Each triangle is confirmed by the
+    first other image star ``r`` (brightest first) whose three angles to it
+    match exactly one catalog star ``R``; with three image stars the triangle
+    itself is the candidate.  The tolerance of pair ``(u, v)`` is
+    ``sqrt(tol_u^2 + tol_v^2) + margin``.  The fourth star's candidates ``R`` are the
+    database pairs of ``I`` at the angle ``theta_ir``: a search of ``I``'s pairs sorted by
+    cosine (:func:`_first_at_or_above`; ``adj_ptr``, ``adj_other``, ``adj_cos``: :func:`pair_adjacency`).
+
+    ``focal_error`` > 0: the focal length is known to that fraction only, so every catalog
+    angle is the image angle times one common scale ``s`` in ``[1 - focal_error, 1 + focal_error]``
+    (up to each pair's tolerance): the three windows are widened to that, a triangle is kept
+    when one scale fits its three sides (the scales each side allows overlap), and the fourth
+    star's windows are those of the triangle's scales.  0: the nominal focal length (the
+    published search).
+
+    The two steps are :func:`pyramid_triangles` and :func:`pyramid_fourth` (the fused search takes a
+    triangle's fourth star only when it comes to that triangle).
+
+    Returns ``(out, n_triangles)``: rows ``(r, I, J, K, R)`` (``r = R = -1`` for
+    a bare triangle), at most ``max_out``; ``n_triangles`` the catalog
+    triangles found (``max_triangles + 1`` when there were more: the triad is
+    then skipped as uninformative).
+    """
+    n = b.shape[0]
+    out = np.empty((max_out, 5), dtype=np.int64)     # every row returned is written whole
+    tri, tri_s, nt = pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
+                                       kquad, quad, use_quadratic, max_triangles, focal_error)
+    no = 0
     if n == 3:
-        for t in range(min(nt, max_out)):
+        for t in range(min(tri.shape[0], max_out)):
             out[no, 0] = -1
             out[no, 4] = -1
             out[no, 1] = tri[t, 0]
@@ -328,67 +411,19 @@ def pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_c
     # The fourth star's cosine windows to I, J and K (with a free scale, its sides: the windows are the
     # triangle's), made at its first use (the same for every triangle).
     win = np.empty((n, 6))
-    c_min = pair_cos[0] if pair_cos.shape[0] > 0 else -1.0
-    c_max = pair_cos[pair_cos.shape[0] - 1] if pair_cos.shape[0] > 0 else 1.0
     made = np.zeros(n, dtype=np.bool_)
-    for t in range(nt):
-        fI = tri[t, 0]
-        fJ = tri[t, 1]
-        fK = tri[t, 2]
-        a0 = adj_ptr[fI]
-        a1 = adj_ptr[fI + 1]
-        for r in range(n):
-            if r == i or r == j or r == k:
-                continue
-            if not made[r] and scaled:
-                win[r, 0], win[r, 1] = _side(b, tol, margin, i, r)
-                win[r, 2], win[r, 3] = _side(b, tol, margin, j, r)
-                win[r, 4], win[r, 5] = _side(b, tol, margin, k, r)
-                made[r] = True
-            elif not made[r]:
-                win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
-                win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
-                win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
-                made[r] = True
-            if scaled:
-                # The triangle's own scales (a narrower range than the search's).
-                lo, hi = _scaled_window(win[r, 0], win[r, 1], tri_s[t, 0], tri_s[t, 1])
-                lo_jr, hi_jr = _scaled_window(win[r, 2], win[r, 3], tri_s[t, 0], tri_s[t, 1])
-                lo_kr, hi_kr = _scaled_window(win[r, 4], win[r, 5], tri_s[t, 0], tri_s[t, 1])
-            else:
-                lo = win[r, 0]
-                hi = win[r, 1]
-                lo_jr = win[r, 2]
-                hi_jr = win[r, 3]
-                lo_kr = win[r, 4]
-                hi_kr = win[r, 5]
-            # I's pairs with lo <= cos <= hi (its cosines ascending): the first at or above lo.
-            p = _first_at_or_above(adj_cos, a0, a1, lo, c_min, c_max)
-            nR = 0
-            fR = -1
-            while p < a1 and adj_cos[p] <= hi:
-                R = adj_other[p]
-                p += 1
-                if R == fJ or R == fK:
-                    continue
-                d = _dot_rows(star_vec, fJ, star_vec, R)
-                if d < lo_jr or d > hi_jr:
-                    continue
-                d = _dot_rows(star_vec, fK, star_vec, R)
-                if d < lo_kr or d > hi_kr:
-                    continue
-                nR += 1
-                fR = R
-                if nR > 1:
-                    break
-            if nR == 1 and no < max_out:
-                out[no, 0] = r
-                out[no, 1] = fI
-                out[no, 2] = fJ
-                out[no, 3] = fK
-                out[no, 4] = fR
-                no += 1
-                break
+    for t in range(tri.shape[0]):
+        if no >= max_out:
+            break
+        r, R = pyramid_fourth(b, tol, margin, i, j, k, tri, tri_s, t, star_vec, pair_cos, adj_ptr, adj_other, adj_cos,
+                              focal_error, win, made)
+        if r >= 0:
+            out[no, 0] = r
+            out[no, 1] = tri[t, 0]
+            out[no, 2] = tri[t, 1]
+            out[no, 3] = tri[t, 2]
+            out[no, 4] = R
+            no += 1
     return out[:no], nt
 
 
@@ -2025,6 +2060,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     t = state[0]
     row0 = state[1]
     key = np.empty(9, dtype=np.int64)
+    win = np.empty((use, 6))
     # The triads at the nominal focal length, then (a focal error allowed) again with the focal
     # length free within it: t counts on through the second pass (the patterns compared).
     passes = 2 if fpar[14] > 0.0 else 1
@@ -2043,21 +2079,37 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
         looked = (t + 1 + extra + more) * fourth
         # A scale-free triad's windows hold its triangles at each of the 1 + more scales it tells apart:
         # it is uninformative beyond that many times the nominal limit.
-        out, n_tri = pyramid_candidates(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector, line,
-                                        kquad, quad, ipar[3] != 0, ipar[1] * (1 + more), 256, adj_ptr, adj_other,
-                                        adj_cos, 0.0 if t < n_tr else fpar[14])
-        for rr in range(row0, out.shape[0]):
-            img = np.empty(4 if out[rr, 0] >= 0 else 3, dtype=np.int64)
+        focal_error = 0.0 if t < n_tr else fpar[14]
+        tri, tri_s, n_tri = pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_cos, kvector,
+                                              line, kquad, quad, ipar[3] != 0, ipar[1] * (1 + more), focal_error)
+        # pyramid_candidates' rows (at most 256), each triangle's fourth star looked for when the search
+        # comes to it: the triangles after an accepted proposal's are never completed.
+        made = np.zeros(use, dtype=np.bool_)
+        rr = -1
+        for tn in range(tri.shape[0]):
+            r4 = -1
+            R4 = -1
+            if use > 3:
+                r4, R4 = pyramid_fourth(b, tol, margin, i, j, k, tri, tri_s, tn, star_vec, pair_cos, adj_ptr, adj_other,
+                                        adj_cos, focal_error, win, made)
+                if r4 < 0:
+                    continue
+            rr += 1
+            if rr >= 256:
+                break
+            if rr < row0:
+                continue
+            img = np.empty(4 if r4 >= 0 else 3, dtype=np.int64)
             cat = np.empty(img.shape[0], dtype=np.int64)
             img[0] = i
             img[1] = j
             img[2] = k
-            cat[0] = out[rr, 1]
-            cat[1] = out[rr, 2]
-            cat[2] = out[rr, 3]
+            cat[0] = tri[tn, 0]
+            cat[1] = tri[tn, 1]
+            cat[2] = tri[tn, 2]
             if img.shape[0] == 4:
-                img[3] = out[rr, 0]
-                cat[3] = out[rr, 4]
+                img[3] = r4
+                cat[3] = R4
             # The set of pairs, sorted by image index (the image indices are distinct).
             order = np.argsort(img)
             key[0] = img.shape[0]
