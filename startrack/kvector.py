@@ -116,6 +116,25 @@ class KVectorDatabase:
         start, end = max(s1, s2), min(e1, e2)
         return (start, end) if end > start else (start, start)
 
+    def pairs_subset(self, keep: np.ndarray) -> "KVectorDatabase":
+        """The database with the pairs where ``keep`` (a boolean per pair) is true, the same stars (the
+        star arrays are shared; star indices mean the same), its own k-vector, quadratic fit and
+        neighbour lists."""
+        keep = np.asarray(keep, dtype=bool)
+        pair_i = np.ascontiguousarray(self.pair_i[keep])
+        pair_j = np.ascontiguousarray(self.pair_j[keep])
+        pair_cos = np.ascontiguousarray(self.pair_cos[keep])
+        if len(pair_cos) == 0:
+            raise ParameterError("keep", "keeps no pair: the database would be empty")
+        kvec, line = _kvector_line(pair_cos)
+        quad = _quadratic_fit(pair_cos)
+        kquad, coeffs = (quad if quad is not None else (kvec.copy(), (0.0, line[0], line[1])))
+        neighbor_ptr, neighbor_idx = _neighbours(pair_i, pair_j, len(self.star_id))
+        params = dict(self.params, n_pairs=int(len(pair_cos)), quadratic_monotonic=quad is not None)
+        return KVectorDatabase(self.star_id, self.star_vector, self.star_mag, pair_i, pair_j, pair_cos, kvec, line,
+                               kquad, coeffs, neighbor_ptr, neighbor_idx, self.max_angle_deg, self.catalog_sha256,
+                               params, self.path, self.merged_into, self.merged_id)
+
     def pairs_between(self, angle_lo: float, angle_hi: float, method: str = "linear"):
         """Indices of the pairs whose angle (radians) lies in ``[angle_lo, angle_hi]``."""
         cos_lo, cos_hi = math.cos(min(angle_hi, math.pi)), math.cos(max(angle_lo, 0.0))
@@ -135,6 +154,16 @@ def _kvector_line(y: np.ndarray):
     q = y[0] - xi
     k = np.arange(n + 1, dtype=np.float64)
     return count_at_or_below(y, m * k + q), (float(m), float(q))
+
+
+def _neighbours(pair_i: np.ndarray, pair_j: np.ndarray, n: int):
+    """Neighbour lists (CSR) of ``n`` stars, each star's neighbours sorted by index: ``(ptr, idx)``."""
+    # One sort of the combined key a * n + b (faster than a two-key lexsort on millions of pairs).
+    key = np.concatenate([pair_i.astype(np.int64) * n + pair_j, pair_j.astype(np.int64) * n + pair_i])
+    key.sort()
+    neighbor_idx = (key % n).astype(np.int32)
+    neighbor_ptr = np.r_[0, np.cumsum(np.bincount(key // n, minlength=n))].astype(np.int64)
+    return neighbor_ptr, neighbor_idx
 
 
 def _quadratic_fit(y: np.ndarray):
@@ -204,14 +233,8 @@ def build_kvector(catalog, max_angle_deg: float, progress=None, params: dict | N
     kvec, line = _kvector_line(pair_cos)
     quad = _quadratic_fit(pair_cos)
     kquad, coeffs = (quad if quad is not None else (kvec.copy(), (0.0, line[0], line[1])))
-    # Neighbour lists (CSR), each star's neighbours sorted by index.
     n = len(cat)
-    # One sort of the combined key a * n + b (faster than a two-key lexsort on millions of pairs).
-    key = np.concatenate([pair_i.astype(np.int64) * n + pair_j, pair_j.astype(np.int64) * n + pair_i])
-    key.sort()
-    neighbor_idx = (key % n).astype(np.int32)
-    neighbor_ptr = np.r_[0, np.cumsum(np.bincount(key // n, minlength=n))].astype(np.int64)
-    del key
+    neighbor_ptr, neighbor_idx = _neighbours(pair_i, pair_j, n)
     if progress:
         progress(3, 3)
     all_params = dict(params or {})

@@ -13,6 +13,16 @@ rejected one (the shared verification decides), which is what a sparse field
 of four or five stars needs.  When the triads give no accepted proposal and the
 focal length may be off (``max_focal_error``), they are searched once more with
 the focal length free within that (one scale for a triangle's three sides).
+
+The search has two tiers when they differ enough (:func:`pattern_database`): first
+the pairs of the database's *pattern stars* -- those with fewer than
+:data:`PATTERN_STARS` brighter database stars within half the sensor's short side,
+the stars a field shows among its brightest (tetra3 makes its patterns of the ten
+brightest stars of each field-sized patch) -- with a quarter of the proposal budget,
+then, when that found nothing, every pair.  A wide field's pair windows hold several
+times fewer chance triangles in the first tier; the second keeps every field the full
+database identifies.  Verification is the same in both (every database star), and the
+false-match gate counts the patterns of both tiers.
 Paper 000's quadratic search on its triangle database is
 :mod:`startrack.identify.modified_pyramid`.
 """
@@ -57,18 +67,89 @@ class PyramidConfig:
 
 _TRIADS: dict = {}      # smart index sequence per number of search stars
 
+#: A pattern star has fewer than this many brighter database stars within half the sensor's short side of
+#: it (:func:`pattern_database`).
+PATTERN_STARS = 10
+#: The first tier is searched when it holds at most this fraction of the database's pairs (else it would
+#: save little and double the search of a frame it cannot identify).
+PATTERN_PAIRS_MAX = 0.5
+
+
+def pattern_budget(max_proposals: int) -> int:
+    """The proposals the first tier may verify: a quarter of the budget (at least one)."""
+    return max(1, max(int(max_proposals), 1) // 4)
+
+
+def pattern_database(db, camera):
+    """The first tier of the pyramid's search for ``camera``: ``db``'s pairs whose two stars are pattern
+    stars (:meth:`~startrack.kvector.KVectorDatabase.pairs_subset`, the same stars), or None when that
+    would keep more than :data:`PATTERN_PAIRS_MAX` of the pairs (or none).
+
+    A star's brighter neighbours within ``r`` = half the field's short side are counted from the
+    database's own pairs (every pair up to its largest angle; a database made for a narrower field
+    counts fewer, keeping more stars); a pattern star has fewer than :data:`PATTERN_STARS`.  Made once
+    per database and camera model (cached on the database, which drops it when its arrays are set)."""
+    if type(db) is not KVectorDatabase:
+        return None
+    d = db.__dict__
+    last = d.get("_pattern_last")
+    if last is not None and last[0] is camera:
+        return last[1]
+    key = _PATTERN_KEY(camera)
+    cache = d.get("_pattern_dbs")
+    if cache is None:
+        cache = d["_pattern_dbs"] = {}
+    if key in cache:
+        first = cache[key]
+    else:
+        first = cache[key] = _pattern_database(db, math.radians(min(camera.fov_deg)) / 2.0)
+    d["_pattern_last"] = (camera, first)
+    return first
+
+
+_PATTERN_KEY = operator.attrgetter("focal_length_px", "cx", "cy", "width", "height", "k1", "k2")
+
+
+def _pattern_database(db, r):
+    """:func:`pattern_database` of the stars' brighter neighbours within ``r`` (rad)."""
+    pair_cos = np.asarray(db.pair_cos)
+    pair_i, pair_j = np.asarray(db.pair_i), np.asarray(db.pair_j)
+    near = int(np.searchsorted(pair_cos, math.cos(r)))
+    mag = np.asarray(db.star_mag, dtype=np.float64)
+    pi, pj = pair_i[near:], pair_j[near:]
+    mi, mj = mag[pi], mag[pj]
+    n = len(mag)
+    brighter = np.bincount(pj[mi < mj], minlength=n) + np.bincount(pi[mj < mi], minlength=n)
+    pattern = brighter < PATTERN_STARS
+    keep = pattern[pair_i] & pattern[pair_j]
+    kept = int(np.count_nonzero(keep))
+    if kept == 0 or kept > PATTERN_PAIRS_MAX * len(pair_cos):
+        return None
+    first = db.pairs_subset(keep)
+    first.params["pattern_stars"] = int(np.count_nonzero(pattern))
+    return first
+
+
+def prepare_pyramid(config, camera, db, eps):
+    """:attr:`Algorithm.prepare`: the first tier's database for this camera (:func:`pattern_database`)
+    and its kernel arrays, made before the frame's clock starts.  True when they were made now."""
+    if type(db) is not KVectorDatabase:
+        return False
+    last = db.__dict__.get("_pattern_last")
+    if last is not None and last[0] is camera:
+        return False
+    cache = db.__dict__.get("_pattern_dbs")
+    made = cache is None or _PATTERN_KEY(camera) not in cache
+    first = pattern_database(db, camera)
+    if made and first is not None:
+        _plan(first)
+    return made
+
 
 def _search(ctx, config, quadratic):
     from startrack._kernels.identify import free_focal_patterns, pyramid_candidates, smart_triads
 
-    db = ctx.db
     n = len(ctx.b)
-    arrays = db.__dict__.get("_pyramid_arrays")
-    if arrays is None:
-        arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
-                                                   np.asarray(db.quad, dtype=np.float64))
-    line, quad = arrays
-    adjacency = pair_adjacency(db)
     tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
     triads = _TRIADS.get(n)
     if triads is None:
@@ -77,44 +158,66 @@ def _search(ctx, config, quadratic):
         triads = _TRIADS[n] = [tuple(r) for r in smart_triads(n).tolist()]
     seen = set()
     used = triads[:config.max_triads]
+    budget = max(int(ctx.params.max_proposals), 1)
+    first = pattern_database(ctx.db, ctx.camera)
+    # The pattern stars' pairs first (a quarter of the budget), then every pair (module docstring).
+    tiers = [(first, pattern_budget(budget)), (ctx.db, budget)] if first is not None else [(ctx.db, budget)]
     # The triads at the nominal focal length, then, when the focal length may be off
     # (params.max_focal_error), again with it free within that (pyramid_candidates' focal_error):
     # a field seen through a focal length 1 % off has its long pairs a few tolerances away from
-    # the database's.  The pattern count goes on through the second pass, a triad there counting
-    # the scales it tells apart (free_focal_patterns): the look-elsewhere factor of the gate.
+    # the database's.  The pattern count goes on through the second pass and the second tier, a triad in a
+    # free-focal-length pass counting the scales it tells apart (free_focal_patterns): the look-elsewhere
+    # factor of the gate.
     passes = [0.0] + ([float(ctx.params.max_focal_error)] if ctx.params.max_focal_error > 0 else [])
     looked = 0
     # A triad's pyramid is completed by whichever other search star matches: n - 3 four-star patterns a triad.
     fourth = max(1, n - 3)
-    # With a second pass to come, the nominal focal length has half the proposal budget: a dense field seen
-    # through a focal length a few per cent off can spend all of it on chance pyramids there.
-    half = (max(int(ctx.params.max_proposals), 1) + 1) // 2 if len(passes) > 1 else None
     proposed = 0
-    for focal_error in passes:
-        nominal = focal_error == 0.0 and half is not None
-        for i, j, k in used:
-            if nominal and proposed >= half:
+    for tier, (db, tier_budget) in enumerate(tiers):
+        arrays = db.__dict__.get("_pyramid_arrays")
+        if arrays is None:
+            arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
+                                                       np.asarray(db.quad, dtype=np.float64))
+        line, quad = arrays
+        adjacency = pair_adjacency(db)
+        last = tier == len(tiers) - 1
+        # With a second pass to come, the nominal focal length has half the tier's budget: a dense field seen
+        # through a focal length a few per cent off can spend all of it on chance pyramids there.
+        half = (tier_budget + 1) // 2 if len(passes) > 1 else None
+        spent = False
+        for focal_error in passes:
+            if spent:
                 break
-            # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
-            scales = 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k, focal_error)
-            looked += scales
-            # A scale-free triad's windows hold its triangles at each scale it tells apart: it is uninformative
-            # beyond that many times the nominal limit (max_triangles).
-            out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i, db.pair_j,
-                                            db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
-                                            config.max_triangles * scales, 256, *adjacency, focal_error)
-            for r, I, J, K, R in out.tolist():
-                if nominal and proposed >= half:
+            nominal = focal_error == 0.0 and half is not None
+            for i, j, k in used:
+                if spent or (nominal and proposed >= half):
                     break
-                image, catalog = ([i, j, k], [I, J, K]) if r < 0 else ([i, j, k, r], [I, J, K, R])
-                # The driver's test: the same correspondences (another triad of the same stars, or the same
-                # pyramid found again in the second pass) are no new trial, and do not count to ``half``.
-                key = frozenset(zip(image, catalog))
-                if key in seen:
-                    continue
-                seen.add(key)
-                proposed += 1
-                yield Proposal(image, catalog, looked * fourth, {"triangles": int(n_tri)})
+                # The patterns compared so far: one a triad, a scale-free triad as many as it tells scales apart.
+                scales = 1 if focal_error == 0.0 else free_focal_patterns(ctx.b, tol, ctx.margin, i, j, k,
+                                                                           focal_error)
+                looked += scales
+                # A scale-free triad's windows hold its triangles at each scale it tells apart: it is uninformative
+                # beyond that many times the nominal limit (max_triangles).
+                out, n_tri = pyramid_candidates(ctx.b, tol, ctx.margin, i, j, k, db.star_vector, db.pair_i,
+                                                db.pair_j, db.pair_cos, db.kvector, line, db.kquad, quad, quadratic,
+                                                config.max_triangles * scales, 256, *adjacency, focal_error)
+                for r, I, J, K, R in out.tolist():
+                    if nominal and proposed >= half:
+                        break
+                    image, catalog = ([i, j, k], [I, J, K]) if r < 0 else ([i, j, k, r], [I, J, K, R])
+                    # The driver's test: the same correspondences (another triad of the same stars, or the same
+                    # pyramid found again in the second pass or tier) are no new trial, and do not count to
+                    # ``half`` or the budgets.
+                    key = frozenset(zip(image, catalog))
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                    proposed += 1
+                    yield Proposal(image, catalog, looked * fourth, {"triangles": int(n_tri)})
+                    if not last and proposed >= tier_budget:
+                        # The first tier's budget is spent (the driver stops at the whole budget).
+                        spent = True
+                        break
 
 
 def search_pyramid(ctx, config: PyramidConfig):
@@ -131,28 +234,70 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.base.Algorithm.fused`).
 
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
-    between them (every proposal in the Python loop)."""
-    plan = _plan(db)
+    between them (every proposal in the Python loop).  With two tiers (:func:`pattern_database`) the
+    kernel searches the first with :func:`pattern_budget` proposals, then, when it found nothing, the
+    whole database on the same state: the proposals tried (and their pairs), the patterns compared (the
+    second tier's count starts where the first's ended) and the best rejected verdict go on."""
     xs = frame.xs
     n = len(xs)
-    buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
-    # The frame's arrays are float64 and contiguous (FusedFrame), the types the kernel's entry was resolved for.
-    args = (xs, frame.ys, frame.sig_px, frame.flux, *rest)
+    first = pattern_database(db, camera)
+    if first is not None:
+        plan = _plan(first)
+        buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
+        got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
+        if got is None:
+            return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
+        if got[0] == 0:
+            return _accepted(buffers, dcm, n, got)
+        state, best = buffers[0], buffers[2]
+        if state[2] >= max(int(params.max_proposals), 1):
+            return _failed(buffers, db, params, f"search budget of {params.max_proposals} proposals spent",
+                           ReasonCode.NO_PATTERN)
+        # The patterns the first tier compared, in triads (pyramid_identify's count is (t + 1 + extra) x
+        # fourth): all its triads when it searched them all, else those to the triad of its last proposal.
+        fourth = max(1, frame.use - 3)
+        extra = int(state[0] + state[4]) if got[0] == 1 else int(state[3]) // fourth
+        keep_state, keep_best = state.copy(), best.copy()
+        plan = _plan(db)
+        buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
+        state, best = buffers[0], buffers[2]
+        state[:] = keep_state
+        best[:] = keep_best
+        state[0] = state[1] = 0
+        state[4] = extra
+    else:
+        plan = _plan(db)
+        buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
+    got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
+    if got is None:
+        return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
+    status = got[0]
+    if status == 2:
+        return _failed(buffers, db, params, f"search budget of {params.max_proposals} proposals spent",
+                       ReasonCode.NO_PATTERN)
+    if status == 1:
+        return _failed(buffers, db, params, "no consistent star pattern found", ReasonCode.NO_PATTERN)
+    return _accepted(buffers, dcm, n, got)
+
+
+def _drive(plan, args, frame):
+    """The kernel's calls on ``args`` until it accepts a proposal (status 0), searched every triad (1) or
+    spent its budget (2): its last return, or None when the frame's time budget ran out at a pause."""
     fn = plan[3]
     if fn is None:
         kernel = plan[0]
         fn = plan[3] = kernel.resolve(args) if hasattr(kernel, "resolve") else kernel
     while True:
-        status, _, p_false, nm, total, rms, n_tri = fn(*args)
-        if status <= 1:
-            break
-        if status == 2:
-            return _failed(buffers, db, params, f"search budget of {params.max_proposals} proposals spent",
-                           ReasonCode.NO_PATTERN)
+        got = fn(*args)
+        if got[0] <= 2:
+            return got
         if time.perf_counter() > frame.deadline:
-            return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
-    if status == 1:
-        return _failed(buffers, db, params, "no consistent star pattern found", ReasonCode.NO_PATTERN)
+            return None
+
+
+def _accepted(buffers, dcm, n, got):
+    """:func:`fused_pyramid`'s outcome of an accepted proposal (the kernel's return ``got``)."""
+    _, _, p_false, nm, total, rms, n_tri = got
     # Views of this thread's buffers serve the rest of this frame's run(); the quaternion and the matches
     # outlive it.  res_i: every detection's match, the matched detections, their ids, their database indices.
     state, _, _, res_i, res_f = buffers
@@ -208,10 +353,12 @@ def _buffers(budget, n):
     return got
 
 
-def _inputs(plan, config, frame, camera, params, n):
+def _inputs(plan, config, frame, camera, params, n, first=False):
     """``(buffers, rest, dcm)``: the thread's buffers (:func:`_buffers`; ``state`` and ``best`` zeroed), the
     kernel's arguments after the frame's four arrays (the triads, ``fpar`` and ``ipar`` of :func:`_settings`,
     the buffers, the database's arrays of ``plan``) and the attitude matrix's view of the buffers.
+    ``first``: ``plan`` is the first tier's (:func:`pattern_database`), whose ``ipar`` holds
+    :func:`pattern_budget` proposals.
 
     Kept with the database's plan per value of the settings (the last 64) and used again while the
     thread's buffers are the same and large enough: one look-up instead of those of :func:`_settings`
@@ -230,6 +377,9 @@ def _inputs(plan, config, frame, camera, params, n):
     # rest[3] is the state array of the buffers it was made with
     if rest is None or buffers is None or rest[3] is not buffers[0] or len(buffers[3]) < 4 * n:
         fpar, ipar, budget, triads = _settings(config, frame, camera, params)
+        if first:
+            ipar = ipar.copy()
+            ipar[5] = pattern_budget(budget)
         buffers, dcm = _buffers(budget, n)
         memo = plan[4]
         if len(memo) > 64:
@@ -322,4 +472,5 @@ _TRIAD_ARRAYS: dict = {}    # smart index sequence per number of search stars, a
 
 
 PYRAMID = Algorithm("pyramid", search_pyramid, PyramidConfig, "kvector",
-                    "Mortari's pyramid on the k-vector pair database.", fused=fused_pyramid)
+                    "Mortari's pyramid on the k-vector pair database.", fused=fused_pyramid,
+                    prepare=prepare_pyramid)
