@@ -82,7 +82,8 @@ class IdentifyParams:
         triads once more with the focal length free within it when the nominal one finds nothing.
     max_proposals : int
         Proposals verified before giving up (the search budget; the pyramid's nominal pass has
-        half of it when its free-focal-length pass follows).
+        half of it when its free-focal-length pass follows, and its first tier, the pattern stars'
+        pairs, a quarter: :func:`startrack.identify.pyramid.pattern_database`).
     max_time_ms : float
         Search time before giving up, ms.
     reported_sigma_factor : float
