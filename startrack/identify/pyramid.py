@@ -23,6 +23,7 @@ then, when that found nothing, every pair.  A wide field's pair windows hold sev
 times fewer chance triangles in the first tier; the second keeps every field the full
 database identifies.  Verification is the same in both (every database star), and the
 false-match gate counts the patterns of both tiers.
+
 Paper 000's quadratic search on its triangle database is
 :mod:`startrack.identify.modified_pyramid`.
 """
