@@ -80,6 +80,12 @@ class KVectorDatabase:
                 del d[key]
         object.__setattr__(self, name, value)
 
+    def __getstate__(self):
+        # Pickled (a process pool, a cluster's workers) without what identification derived from the arrays
+        # ("_" names: the kernels' plans, which hold compiled functions, the sky index, the pyramid's tiers):
+        # the receiver makes them again when it needs them.
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
     @property
     def n_stars(self) -> int:
         return len(self.star_id)

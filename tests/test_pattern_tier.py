@@ -123,3 +123,21 @@ def test_second_tier_identifies_what_the_first_cannot(wide, monkeypatch):
         assert score(a, truth) == "success" and score(b, truth) == "success"
         assert b.details["patterns"] >= a.details["patterns"]
     assert sum(b.details["patterns"] > a.details["patterns"] for a, b in zip(one, two)) >= 5
+
+
+def test_a_used_database_pickles_without_its_caches(wide):
+    """A database that identified frames (its kernel plans hold compiled functions, its tiers other databases)
+    pickles to a process pool or a cluster without them, and the copy identifies as the original."""
+    import pickle
+
+    cam, db, stars = wide
+    params = IdentifyParams(sigma_px=0.3)
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=4), 3, 9, mag_limit=5.5)
+    before = [identify_stars(f, cam, db, "pyramid", params) for f, _, _ in frames]
+    assert any(k.startswith("_") for k in db.__dict__)
+    copy = pickle.loads(pickle.dumps(db))
+    assert not [k for k in copy.__dict__ if k.startswith("_")]
+    assert np.array_equal(copy.pair_cos, db.pair_cos) and copy.max_angle_deg == db.max_angle_deg
+    after = [identify_stars(f, cam, copy, "pyramid", params) for f, _, _ in frames]
+    for a, b in zip(before, after):
+        assert (a.status, [tuple(m) for m in a.matches], a.trials) == (b.status, [tuple(m) for m in b.matches], b.trials)
