@@ -70,7 +70,7 @@ def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
         return drive(plan, args, frame)
 
     monkeypatch.setattr(P, "_drive", counted)
-    seen = {"first": 0, "second": 0, "ok": 0}
+    seen = {"first": 0, "second": 0, "ok": 0, "one tier": 0}
     conds = [Condition(sigma_px=0.3, min_catalog_stars=4), Condition(sigma_px=1.0, false_stars=6, min_catalog_stars=4),
              Condition(sigma_px=0.5, focal_error_pct=1.0, false_stars=3, min_catalog_stars=4)]
     for k, (cond, few) in enumerate([(c, few) for few in (False, True) for c in conds]):
@@ -95,7 +95,10 @@ def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
                     assert a.false_match_probability == pytest.approx(b.false_match_probability, rel=1e-12)
                 if a.quaternion_estimate is not None:
                     assert np.array_equal(a.quaternion_estimate, b.quaternion_estimate)
-                assert ran[0] is False          # the first tier first
+                # The first tier first, for a frame of more search stars than PATTERN_STARS; else one tier.
+                use = min(len(frame), params.max_stars)
+                assert ran[0] is (use <= P.PATTERN_STARS), (use, ran)
+                seen["one tier"] += use <= P.PATTERN_STARS
                 assert score(a, truth) != "wrong"
                 seen["ok"] += a.ok
                 seen["first"] += a.ok and ran == [False]
@@ -141,3 +144,26 @@ def test_a_used_database_pickles_without_its_caches(wide):
     after = [identify_stars(f, cam, copy, "pyramid", params) for f, _, _ in frames]
     for a, b in zip(before, after):
         assert (a.status, [tuple(m) for m in a.matches], a.trials) == (b.status, [tuple(m) for m in b.matches], b.trials)
+
+
+def test_a_frame_of_few_stars_has_one_tier(wide, monkeypatch):
+    """A frame of at most PATTERN_STARS search stars is searched over every pair only: its few patterns would
+    make the proposals a first tier verified in vain weigh on its gate."""
+    cam, db, stars = wide
+    drive = P._drive
+    plans = []
+
+    def counted(plan, args, frame):
+        plans.append(plan[1][1] is db.pair_i)
+        return drive(plan, args, frame)
+
+    monkeypatch.setattr(P, "_drive", counted)
+    params = IdentifyParams(sigma_px=0.3)
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=12), 5, 12, mag_limit=5.5)
+    for frame, truth, _ in frames:
+        for keep in (P.PATTERN_STARS, P.PATTERN_STARS + 2):
+            plans.clear()
+            few = frame[:keep]
+            r = identify_stars(few, cam, db, "pyramid", params)
+            assert plans[0] is (keep <= P.PATTERN_STARS)
+            assert score(r, truth) != "wrong" and r.ok

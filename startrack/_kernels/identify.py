@@ -2076,7 +2076,9 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
         j = triads[tt, 1]
         k = triads[tt, 2]
         more = 0 if t < n_tr else free_focal_patterns(b, tol, margin, i, j, k, fpar[14]) - 1
-        looked = (t + 1 + extra + more) * fourth
+        # (never fewer than the patterns compared before: state[3], which a caller searching the same triads a
+        # second time against more of the database sets to the first search's count)
+        looked = max(state[3], (t + 1 + extra + more) * fourth)
         # A scale-free triad's windows hold its triangles at each of the 1 + more scales it tells apart:
         # it is uninformative beyond that many times the nominal limit.
         focal_error = 0.0 if t < n_tr else fpar[14]

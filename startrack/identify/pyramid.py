@@ -14,15 +14,17 @@ of four or five stars needs.  When the triads give no accepted proposal and the
 focal length may be off (``max_focal_error``), they are searched once more with
 the focal length free within that (one scale for a triangle's three sides).
 
-The search has two tiers when they differ enough (:func:`pattern_database`): first
+The search has two tiers when they differ enough (:func:`pattern_database`) and the
+frame has more than :data:`PATTERN_STARS` search stars: first
 the pairs of the database's *pattern stars* -- those with fewer than
 :data:`PATTERN_STARS` brighter database stars within half the sensor's short side,
 the stars a field shows among its brightest (tetra3 makes its patterns of the ten
 brightest stars of each field-sized patch) -- with a quarter of the proposal budget,
 then, when that found nothing, every pair.  A wide field's pair windows hold several
 times fewer chance triangles in the first tier; the second keeps every field the full
-database identifies.  Verification is the same in both (every database star), and the
-false-match gate counts the patterns of both tiers.
+database identifies.  Verification is the same in both (every database star).  The
+second tier compares the same image patterns again, against every pair, so the
+false-match gate counts the more of the two tiers' patterns (and every proposal of both).
 
 Paper 000's quadratic search on its triangle database is
 :mod:`startrack.identify.modified_pyramid`.
@@ -69,7 +71,9 @@ class PyramidConfig:
 _TRIADS: dict = {}      # smart index sequence per number of search stars
 
 #: A pattern star has fewer than this many brighter database stars within half the sensor's short side of
-#: it (:func:`pattern_database`).
+#: it (:func:`pattern_database`).  A frame of at most this many search stars is searched in one tier: it has
+#: few patterns to compare, so the proposals a first tier verified in vain (a star of its pattern not a
+#: pattern star) would weigh on its false-match gate, where a dense frame's patterns outnumber them.
 PATTERN_STARS = 10
 #: The first tier is searched when it holds at most this fraction of the database's pairs (else it would
 #: save little and double the search of a frame it cannot identify).
@@ -160,7 +164,7 @@ def _search(ctx, config, quadratic):
     seen = set()
     used = triads[:config.max_triads]
     budget = max(int(ctx.params.max_proposals), 1)
-    first = pattern_database(ctx.db, ctx.camera)
+    first = pattern_database(ctx.db, ctx.camera) if n > PATTERN_STARS else None
     # The pattern stars' pairs first (a quarter of the budget), then every pair (module docstring).
     tiers = [(first, pattern_budget(budget)), (ctx.db, budget)] if first is not None else [(ctx.db, budget)]
     # The triads at the nominal focal length, then, when the focal length may be off
@@ -174,7 +178,12 @@ def _search(ctx, config, quadratic):
     # A triad's pyramid is completed by whichever other search star matches: n - 3 four-star patterns a triad.
     fourth = max(1, n - 3)
     proposed = 0
+    floor = 0
     for tier, (db, tier_budget) in enumerate(tiers):
+        if tier > 0:
+            # The second tier compares the same image patterns again, against every pair: the patterns compared
+            # are the more of the two tiers' counts, not their sum (fused_pyramid's floor).
+            floor, looked = looked * fourth, 0
         arrays = db.__dict__.get("_pyramid_arrays")
         if arrays is None:
             arrays = db.__dict__["_pyramid_arrays"] = (np.asarray(db.line, dtype=np.float64),
@@ -214,7 +223,7 @@ def _search(ctx, config, quadratic):
                         continue
                     seen.add(key)
                     proposed += 1
-                    yield Proposal(image, catalog, looked * fourth, {"triangles": int(n_tri)})
+                    yield Proposal(image, catalog, max(floor, looked * fourth), {"triangles": int(n_tri)})
                     if not last and proposed >= tier_budget:
                         # The first tier's budget is spent (the driver stops at the whole budget).
                         spent = True
@@ -237,11 +246,12 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
     between them (every proposal in the Python loop).  With two tiers (:func:`pattern_database`) the
     kernel searches the first with :func:`pattern_budget` proposals, then, when it found nothing, the
-    whole database on the same state: the proposals tried (and their pairs), the patterns compared (the
-    second tier's count starts where the first's ended) and the best rejected verdict go on."""
+    whole database on the same state: the proposals tried (and their pairs) and the best rejected verdict go
+    on, and the patterns compared are the more of the two tiers' counts (the second compares the same image
+    patterns against every pair: the kernel's count never falls below the first tier's)."""
     xs = frame.xs
     n = len(xs)
-    first = pattern_database(db, camera)
+    first = pattern_database(db, camera) if frame.use > PATTERN_STARS else None
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
@@ -254,18 +264,21 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
         if state[2] >= max(int(params.max_proposals), 1):
             return _failed(buffers, db, params, f"search budget of {params.max_proposals} proposals spent",
                            ReasonCode.NO_PATTERN)
-        # The patterns the first tier compared, in triads (pyramid_identify's count is (t + 1 + extra) x
-        # fourth): all its triads when it searched them all, else those to the triad of its last proposal.
+        # The patterns the first tier compared (pyramid_identify's count is (t + 1 + extra) x fourth): all its
+        # triads when it searched them all, else those to the triad of its last proposal.  The second tier
+        # compares the same image patterns again, against every pair: its count starts at its own first triad
+        # and never falls below the first tier's (the kernel's floor state[3]), the patterns compared being
+        # the more of the two, not their sum.
         fourth = max(1, frame.use - 3)
-        extra = int(state[0] + state[4]) if got[0] == 1 else int(state[3]) // fourth
+        first_patterns = int(state[0] + state[4]) * fourth if got[0] == 1 else int(state[3])
         keep_state, keep_best = state.copy(), best.copy()
         plan = _plan(db)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
         state, best = buffers[0], buffers[2]
         state[:] = keep_state
         best[:] = keep_best
-        state[0] = state[1] = 0
-        state[4] = extra
+        state[0] = state[1] = state[4] = 0
+        state[3] = max(int(state[3]), first_patterns)
     else:
         plan = _plan(db)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
