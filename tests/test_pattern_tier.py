@@ -56,12 +56,9 @@ def test_no_first_tier_where_it_would_keep_most_pairs(catalog):
     assert P.pattern_budget(200) == 50 and P.pattern_budget(3) == 1 and P.pattern_budget(0) == 1
 
 
-def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
-    """With two tiers the fused search (one kernel call a tier) and the driver's Python loop over
-    search_pyramid's proposals give the same result, trials, patterns and attitude; some frames are
-    identified in the first tier and some only in the second (a small budget leaves the first tier two
-    proposals, and with pattern stars made rare the first tier often finds nothing)."""
-    cam, db, stars = wide
+def _tiers_run(db, monkeypatch):
+    """The list to which each kernel search of the fused pyramid appends whether it searched ``db``'s own pairs
+    (True: the second tier, or the only one) or the first tier's."""
     drive = P._drive
     tiers = []
 
@@ -70,6 +67,16 @@ def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
         return drive(plan, args, frame)
 
     monkeypatch.setattr(P, "_drive", counted)
+    return tiers
+
+
+def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
+    """With two tiers the fused search (one kernel call a tier) and the driver's Python loop over
+    search_pyramid's proposals give the same result, trials, patterns and attitude; some frames are
+    identified in the first tier and some only in the second (a small budget leaves the first tier two
+    proposals, and with pattern stars made rare the first tier often finds nothing)."""
+    cam, db, stars = wide
+    tiers = _tiers_run(db, monkeypatch)
     seen = {"first": 0, "second": 0, "ok": 0, "one tier": 0}
     conds = [Condition(sigma_px=0.3, min_catalog_stars=4), Condition(sigma_px=1.0, false_stars=6, min_catalog_stars=4),
              Condition(sigma_px=0.5, focal_error_pct=1.0, false_stars=3, min_catalog_stars=4)]
@@ -150,14 +157,7 @@ def test_a_frame_of_few_stars_has_one_tier(wide, monkeypatch):
     """A frame of at most PATTERN_STARS search stars is searched over every pair only: its few patterns would
     make the proposals a first tier verified in vain weigh on its gate."""
     cam, db, stars = wide
-    drive = P._drive
-    plans = []
-
-    def counted(plan, args, frame):
-        plans.append(plan[1][1] is db.pair_i)
-        return drive(plan, args, frame)
-
-    monkeypatch.setattr(P, "_drive", counted)
+    plans = _tiers_run(db, monkeypatch)
     params = IdentifyParams(sigma_px=0.3)
     frames = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=12), 5, 12, mag_limit=5.5)
     for frame, truth, _ in frames:
