@@ -94,22 +94,33 @@ def pattern_database(db, camera):
     database's own pairs (every pair up to its largest angle; a database made for a narrower field
     counts fewer, keeping more stars); a pattern star has fewer than :data:`PATTERN_STARS`.  Made once
     per database and camera model (cached on the database, which drops it when its arrays are set)."""
+    return _pattern_tier(db, camera)[0]
+
+
+def _first_tier(db, camera, use):
+    """The first tier a frame of ``use`` search stars is searched with (:func:`pattern_database`), or None: a
+    frame of at most :data:`PATTERN_STARS` search stars has one tier."""
+    return _pattern_tier(db, camera)[0] if use > PATTERN_STARS else None
+
+
+def _pattern_tier(db, camera):
+    """``(pattern_database(db, camera), made now)``."""
     if type(db) is not KVectorDatabase:
-        return None
+        return None, False
     d = db.__dict__
     last = d.get("_pattern_last")
     if last is not None and last[0] is camera:
-        return last[1]
+        return last[1], False
     key = _PATTERN_KEY(camera)
     cache = d.get("_pattern_dbs")
     if cache is None:
         cache = d["_pattern_dbs"] = {}
-    if key in cache:
-        first = cache[key]
-    else:
-        first = cache[key] = _pattern_database(db, math.radians(min(camera.fov_deg)) / 2.0)
+    made = key not in cache
+    if made:
+        cache[key] = _pattern_database(db, math.radians(min(camera.fov_deg)) / 2.0)
+    first = cache[key]
     d["_pattern_last"] = (camera, first)
-    return first
+    return first, made
 
 
 _PATTERN_KEY = operator.attrgetter("focal_length_px", "cx", "cy", "width", "height", "k1", "k2")
@@ -138,14 +149,7 @@ def _pattern_database(db, r):
 def prepare_pyramid(config, camera, db, eps):
     """:attr:`Algorithm.prepare`: the first tier's database for this camera (:func:`pattern_database`)
     and its kernel arrays, made before the frame's clock starts.  True when they were made now."""
-    if type(db) is not KVectorDatabase:
-        return False
-    last = db.__dict__.get("_pattern_last")
-    if last is not None and last[0] is camera:
-        return False
-    cache = db.__dict__.get("_pattern_dbs")
-    made = cache is None or _PATTERN_KEY(camera) not in cache
-    first = pattern_database(db, camera)
+    first, made = _pattern_tier(db, camera)
     if made and first is not None:
         _plan(first)
     return made
@@ -164,7 +168,7 @@ def _search(ctx, config, quadratic):
     seen = set()
     used = triads[:config.max_triads]
     budget = max(int(ctx.params.max_proposals), 1)
-    first = pattern_database(ctx.db, ctx.camera) if n > PATTERN_STARS else None
+    first = _first_tier(ctx.db, ctx.camera, n)
     # The pattern stars' pairs first (a quarter of the budget), then every pair (module docstring).
     tiers = [(first, pattern_budget(budget)), (ctx.db, budget)] if first is not None else [(ctx.db, budget)]
     # The triads at the nominal focal length, then, when the focal length may be off
@@ -251,7 +255,7 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     patterns against every pair: the kernel's count never falls below the first tier's)."""
     xs = frame.xs
     n = len(xs)
-    first = pattern_database(db, camera) if frame.use > PATTERN_STARS else None
+    first = _first_tier(db, camera, frame.use)
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
