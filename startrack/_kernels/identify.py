@@ -1531,8 +1531,8 @@ def cone_stars(ax, ay, az, cos_r, star_vec, sky_cells, sky_ra, out):
             hi = hi1 if part == 0 else hi2
             if hi < lo:
                 continue
-            q0 = p0 + np.searchsorted(sky_ra[p0:p1], lo)
-            q1 = p0 + np.searchsorted(sky_ra[p0:p1], hi, side="right")
+            q0 = bisect_left(sky_ra, p0, p1, lo)
+            q1 = bisect_right(sky_ra, q0, p1, hi)
             for t in range(q0, q1):
                 s = sky_cells[base + t]
                 if ax * star_vec[s, 0] + ay * star_vec[s, 1] + az * star_vec[s, 2] > cos_r:
@@ -2060,6 +2060,9 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     t = state[0]
     row0 = state[1]
     key = np.empty(9, dtype=np.int64)
+    # A proposal's image and catalog stars (3 or 4: views of these, which the verification only reads).
+    img4 = np.empty(4, dtype=np.int64)
+    cat4 = np.empty(4, dtype=np.int64)
     win = np.empty((use, 6))
     # The triads at the nominal focal length, then (a focal error allowed) again with the focal
     # length free within it: t counts on through the second pass (the patterns compared).
@@ -2101,25 +2104,33 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                 break
             if rr < row0:
                 continue
-            img = np.empty(4 if r4 >= 0 else 3, dtype=np.int64)
-            cat = np.empty(img.shape[0], dtype=np.int64)
+            size = 4 if r4 >= 0 else 3
+            img = img4[:size]
+            cat = cat4[:size]
             img[0] = i
             img[1] = j
             img[2] = k
             cat[0] = tri[tn, 0]
             cat[1] = tri[tn, 1]
             cat[2] = tri[tn, 2]
-            if img.shape[0] == 4:
+            if size == 4:
                 img[3] = r4
                 cat[3] = R4
-            # The set of pairs, sorted by image index (the image indices are distinct).
-            order = np.argsort(img)
-            key[0] = img.shape[0]
+            # The set of pairs, sorted by image index (the image indices are distinct: an insertion sort
+            # of the (image, catalog) pairs into the key).
+            key[0] = size
             for u in range(8):
                 key[1 + u] = -1
-            for u in range(img.shape[0]):
-                key[1 + 2 * u] = img[order[u]]
-                key[2 + 2 * u] = cat[order[u]]
+            for u in range(size):
+                a = img[u]
+                c = cat[u]
+                v = u
+                while v > 0 and key[2 * v - 1] > a:
+                    key[2 * v + 1] = key[2 * v - 1]
+                    key[2 * v + 2] = key[2 * v]
+                    v -= 1
+                key[2 * v + 1] = a
+                key[2 * v + 2] = c
             dup = False
             for s in range(state[2]):
                 same = True
