@@ -2023,7 +2023,9 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     (0/1), search uses brightness (0/1), max proposals, pause, search stars.
 
     In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns, the second
-    pass's patterns beyond one a triad before the next triad);
+    pass's patterns beyond one a triad before the next triad, the trials of earlier searches of the frame
+    (a search of more stars after one of fewer found nothing: added to this search's count of trials,
+    ``max(tried, patterns)``, in the false-match probability; read only));
     ``seen`` (max proposals, 9): each tried proposal's pairs (count, then image/catalog
     indices sorted by image index); ``best`` = (set, code, p_false, missing, bright_pred,
     n_matched, triangles) of the rejected proposal with the lowest false-match probability
@@ -2149,7 +2151,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
             code, match, q, dcm, p_false, missing, bright_pred, nm, total, matched, rms = verify_focal(
                 xs, ys, b_all, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, fpar[1], fpar[2],
                 fpar[3], fpar[4], fpar[5], fpar[6], fpar[7], fpar[8], ipar[2], fpar[9], fpar[10], fpar[11], fpar[12],
-                max(state[2], looked), fpar[13], fpar[14], sky_cells, sky_ra)
+                state[5] + max(state[2], looked), fpar[13], fpar[14], sky_cells, sky_ra)
             if code == 0:
                 _keep(state, t, rr + 1, extra)
                 _put_verdict(res_i, res_f, match, q, dcm, matched, star_id)

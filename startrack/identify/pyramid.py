@@ -259,6 +259,8 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
+        if frame.trials0:
+            buffers[0][5] = frame.trials0
         got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
         if got is None:
             return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
@@ -286,6 +288,8 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     else:
         plan = _plan(db)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
+        if frame.trials0:
+            buffers[0][5] = frame.trials0
     got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
     if got is None:
         return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
@@ -319,7 +323,7 @@ def _accepted(buffers, dcm, n, got):
     # Views of this thread's buffers serve the rest of this frame's run(); the quaternion and the matches
     # outlive it.  res_i: every detection's match, the matched detections, their ids, their database indices.
     state, _, _, res_i, res_f = buffers
-    _, _, tried, patterns, _ = state.tolist()
+    _, _, tried, patterns, _, _ = state.tolist()
     matched = res_i[n:n + nm]
     matches = list(map(_new_tuple, repeat(Match), zip(matched.tolist(), res_i[n + nm:n + 2 * nm].tolist())))
     return SearchOutcome(_Verdict(matches, matched, res_i[n + 2 * nm:n + 3 * nm], dcm, float(p_false), None, None,
@@ -332,7 +336,7 @@ def _failed(buffers, db, params, reason, code):
     """:func:`fused_pyramid`'s outcome without an accepted proposal: the best rejected one's verdict
     (the kernel's ``best``), the counts of its ``state``, why the search stopped."""
     state, _, best, _, _ = buffers
-    _, _, tried, patterns, _ = state.tolist()
+    _, _, tried, patterns, _, _ = state.tolist()
     if not best[0]:
         return SearchOutcome(None, None, {}, None, {}, tried, patterns, reason, code)
     bv = _fused_verdict(int(best[1]), None, None, None, best[2], int(best[3]), int(best[4]), int(best[5]), None, None,
@@ -362,7 +366,7 @@ def _buffers(budget, n):
     the same search, ``res_i``/``res_f`` written with an accepted verdict."""
     got = getattr(_BUFFERS, "arrays", None)
     if got is None or len(got[0][1]) != budget or len(got[0][3]) < 4 * n:
-        arrays = (np.zeros(5, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
+        arrays = (np.zeros(6, np.int64), np.empty((budget, 9), np.int64), np.zeros(7),
                   np.empty(max(512, 4 * n), np.int64), np.empty(13))
         got = _BUFFERS.arrays = (arrays, arrays[4][4:13].reshape(3, 3))
     else:
