@@ -309,3 +309,44 @@ def test_pyramid_nominal_pass_leaves_the_second_half_the_budget(sensor15, fused,
     res = identify_stars(frame, cam, db, "pyramid", IdentifyParams(sigma_px=1.0))
     assert score(res, truth) == "success", res.reason
     assert 100 < res.trials <= 200
+
+
+def test_search_levels():
+    """The search stars of each search: max_stars, doubled while the one before found nothing, up to
+    max_search_stars and the frame's count."""
+    from startrack.identify.base import search_levels
+
+    p = IdentifyParams()
+    assert (p.max_stars, p.max_search_stars) == (20, 80)
+    assert search_levels(10, p) == [10]
+    assert search_levels(20, p) == [20]
+    assert search_levels(30, p) == [20, 30]
+    assert search_levels(500, p) == [20, 40, 80]
+    assert search_levels(500, IdentifyParams(max_search_stars=20)) == [20]
+    assert search_levels(500, IdentifyParams(max_search_stars=10)) == [20]
+    assert search_levels(500, IdentifyParams(max_stars=30, max_search_stars=100)) == [30, 60, 100]
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_pyramid_searches_deeper_when_the_brightest_are_not_stars(sensor15, fused, monkeypatch):
+    """Forty false stars as bright as the stars: the 20 brightest detections hold few catalog stars, and
+    their pyramids are chance ones; the search of the 40 brightest (then 80) finds the field.  The gate
+    counts the trials of every search: no wrong identity either way."""
+    import startrack.identify.base as base
+
+    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    cam, db, stars = sensor15
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=40, min_catalog_stars=6), 24, 31,
+                         mag_limit=5.5)
+    deep = [identify_stars(s, cam, db, "pyramid", IdentifyParams(sigma_px=0.3)) for s, _, _ in frames]
+    one = [identify_stars(s, cam, db, "pyramid", IdentifyParams(sigma_px=0.3, max_search_stars=20))
+           for s, _, _ in frames]
+    deep_scores = [score(r, t) for r, (_, t, _) in zip(deep, frames)]
+    one_scores = [score(r, t) for r, (_, t, _) in zip(one, frames)]
+    assert deep_scores.count("bad") == 0 and one_scores.count("bad") == 0
+    assert deep_scores.count("success") >= one_scores.count("success") + 8, (deep_scores, one_scores)
+    went = [(r, len(s)) for r, (s, _, _) in zip(deep, frames) if r.ok and "search_stars" in r.details]
+    assert went and all(r.details["search_stars"] in (40, min(n, 80)) for r, n in went)
+    # The trials of the searches before count: more than the accepted search's own.
+    assert all(r.trials > 1 for r, _ in went)
+    assert all("search_stars" not in r.details for r in one)

@@ -75,6 +75,10 @@ def _algorithm_choice():
               help="Inter-star angle tolerance (arcsec), overriding the one derived from --sigma-px.")
 @click.option("--max-stars", type=Int(3, 1000), default=20, show_default=True,
               help="Brightest stars the pattern search uses (all are matched at the end).")
+@click.option("--max-search-stars", type=Int(3, 100000), default=80, show_default=True,
+              help="When the search of the --max-stars brightest finds nothing, search again with twice as many, "
+                   "up to this many (a field whose brightest detections are not catalog stars); "
+                   "--max-search-stars equal to --max-stars: one search.")
 @click.option("--max-false-probability", type=FiniteFloat(0, 1, min_open=True), default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
 @click.option("--max-proposals", type=int, default=200, show_default=True,
@@ -96,8 +100,8 @@ def _algorithm_choice():
 @resume_option
 @quiet_option
 @handle_errors
-def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_false_probability,
-            max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output, jobs, resume, quiet,
+def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_search_stars,
+            max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output, jobs, resume, quiet,
             **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
@@ -173,7 +177,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     warm_up(algorithm, db, params_for_warm_up, override)
     load_ms = (time.perf_counter() - t_load) * 1000
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
-                            max_false_probability=max_false_probability, max_proposals=max_proposals,
+                            max_search_stars=max_search_stars, max_false_probability=max_false_probability, max_proposals=max_proposals,
                             max_time_ms=max_time_ms)
     checked = {}
     from startrack.imageio import check_plot_output

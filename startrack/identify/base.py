@@ -73,6 +73,13 @@ class IdentifyParams:
         Fixed match radius (px), overriding the sigma-based one.
     max_stars : int
         Brightest detections the pattern search uses (all are matched at the end).
+    max_search_stars : int
+        When the search of the ``max_stars`` brightest ends without a proposal that passes
+        (every pattern compared, the budget not spent), it searches again with twice as many
+        detections, and so on up to this many (:func:`search_levels`): a field whose brightest
+        detections are mostly not catalog stars (nebulae, halos, false stars, stars beyond the
+        database) is found among the fainter ones, as astrometry.net deepens its field stars.
+        The trials of every search count in the false-match probability.
     min_matches : int
         Matched stars needed (three when the frame has only three).
     max_false_probability : float
@@ -104,6 +111,7 @@ class IdentifyParams:
     margin_arcsec: float = 2.0
     match_radius_px: float | None = None
     max_stars: int = 20
+    max_search_stars: int = 80
     min_matches: int = 4
     max_false_probability: float = 1e-6
     max_focal_error: float = 0.05
@@ -246,7 +254,9 @@ class FusedFrame:
     ``xs``, ``ys``, ``flux`` (NaN where unknown; the fluxes count when at least three are
     finite), ``sig_px``: float64 arrays of every star; ``use``: the search stars (the first);
     ``eps``, ``margin``: the angle tolerances (rad) of :class:`SearchContext`; ``deadline``: the
-    end of the time budget (``time.perf_counter()``)."""
+    end of the time budget (``time.perf_counter()``); ``trials0``: the trials of this frame's earlier
+    searches of fewer stars (:func:`search_levels`), added to this search's in the false-match
+    probability."""
 
     xs: np.ndarray
     ys: np.ndarray
@@ -256,6 +266,7 @@ class FusedFrame:
     eps: float
     margin: float
     deadline: float
+    trials0: int = 0
 
 
 @dataclass(slots=True)
@@ -911,15 +922,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     else:
         xs, ys, flux = _frame_arrays(frame_stars)
         sig_px = star_sigmas_px(frame_stars, params)
-    f = camera.focal_length_px
     use = min(n_all, params.max_stars)
-    if params.tolerance_arcsec is not None:
-        margin = eps = math.radians(params.tolerance_arcsec / 3600.0)
-    else:
-        margin = math.radians(params.margin_arcsec / 3600.0)
-        # The largest per-star tolerance (its product and quotient are monotonic in sigma).
-        smax = float(params.sigma_px) if params.sigma_px is not None else float(np.maximum.reduce(sig_px[:use]))
-        eps = float(math.sqrt(2.0) * (params.tolerance_sigma * smax / f) + margin)
+    margin, eps = _tolerances(params, sig_px, use, camera.focal_length_px)
     prepare_ms = None
     if algorithm.prepare is not None:
         tp = time.perf_counter()
@@ -936,13 +940,22 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
     b_all = None
-    if fused and FUSED_SEARCH and algorithm.fused is not None and not debug:
+    in_kernel = fused and FUSED_SEARCH and algorithm.fused is not None and not debug
+    if in_kernel:
         out = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline), camera, db,
                               params)
     else:
         b_all = _pixels_to_vectors(camera, xs, ys)
         out = _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline,
                            fused, camera, db, params)
+    searched = use
+    if out.accepted is None and use < min(n_all, params.max_search_stars):
+        out, searched, eps, pause = _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px,
+                                            deadline, fused, in_kernel, camera, db, params)
+        if pause:
+            prepare_ms = (prepare_ms or 0.0) + pause * 1000
+            t0 += pause
+            deadline += pause
     accepted, reason, code = out.accepted, out.reason, out.code
     if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
         # The search itself stopped at the deadline (ctx.expired) between proposals.
@@ -962,9 +975,12 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         return Identification.failed(name, reason, code, time_ms=elapsed, trials=tried, tolerance_arcsec=tol_arcsec,
                                      false_match_probability=best.p_false if best is not None else None,
                                      details={**out.best_details, "patterns": int(patterns),
+                                              **({"search_stars": searched} if searched > use else {}),
                                               **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
     details = out.details
     details["patterns"] = int(patterns)
+    if searched > use:
+        details["search_stars"] = searched
     if prepare_ms:
         details["prepare_ms"] = round(prepare_ms, 1)
     rms = accepted.residual_rms if accepted.residual_rms is not None else \
@@ -1003,10 +1019,88 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                           quaternion_estimate=quaternion, details=details)
 
 
+def _tolerances(params, sig_px, use, f):
+    """``(margin, eps)``: the angle margin and the search's largest inter-star angle tolerance (rad) of a
+    search of the first ``use`` stars (:class:`SearchContext`)."""
+    if params.tolerance_arcsec is not None:
+        eps = math.radians(params.tolerance_arcsec / 3600.0)
+        return eps, eps
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    # The largest per-star tolerance (its product and quotient are monotonic in sigma).
+    smax = float(params.sigma_px) if params.sigma_px is not None else float(np.maximum.reduce(sig_px[:use]))
+    return margin, float(math.sqrt(2.0) * (params.tolerance_sigma * smax / f) + margin)
+
+
+def search_levels(n_stars: int, params: IdentifyParams) -> list:
+    """The search stars of each search of a frame of ``n_stars`` detections: ``max_stars``, then twice as many
+    each time the one before ended without a proposal that passes, up to ``max_search_stars`` (and the
+    frame's count); e.g. 20, 40, 80.  (:func:`run` searches the next only while the budget lasts.)"""
+    use = min(n_stars, max(int(params.max_stars), 3))
+    deep = min(n_stars, int(params.max_search_stars))
+    levels = [use]
+    while use < deep:
+        use = min(deep, 2 * use)
+        levels.append(use)
+    return levels
+
+
+def _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, deadline, fused, in_kernel,
+            camera, db, params):
+    """:func:`run`'s searches of more stars (:func:`search_levels`) after the search of the first ``use`` found
+    nothing (``out``): while a search ends with every pattern compared (not its proposal budget spent,
+    nor the time), the next searches twice as many stars with the same budgets, its trials on top of the
+    earlier ones' (the false-match probability's look-elsewhere factor counts every search).
+
+    Returns ``(outcome, search stars of the last search, its tolerance eps, seconds spent preparing)``:
+    the outcome has the last search's verdict, reason and code, every search's proposals and patterns
+    (summed) and the best rejected verdict of them all."""
+    f = camera.focal_length_px
+    pause = 0.0
+    trials0 = 0
+    last = out
+    eps = None
+    for deeper in search_levels(len(xs), params):
+        if deeper <= use:
+            continue
+        if last.accepted is not None or last.tried >= max(int(params.max_proposals), 1) or \
+                last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
+            break
+        trials0 += max(last.tried, last.patterns)
+        margin, eps_d = _tolerances(params, sig_px, deeper, f)
+        if algorithm.prepare is not None:
+            tp = time.perf_counter()
+            if algorithm.prepare(config, camera, db, eps_d):
+                dt = time.perf_counter() - tp
+                pause += dt
+                deadline += dt
+        log.debug("%s: nothing among the %d brightest stars: searching the %d brightest", algorithm.name, use, deeper)
+        if in_kernel:
+            last = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, deeper, eps_d, margin, deadline, trials0),
+                                   camera, db, params)
+        else:
+            last = _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, deeper, eps_d, margin,
+                                deadline, fused, camera, db, params, trials0)
+        out = _after(out, last)
+        use, eps = deeper, eps_d
+    if eps is None:
+        eps = _tolerances(params, sig_px, use, f)[1]
+    return out, use, eps, pause
+
+
+def _after(first, then):
+    """The outcome of search ``then`` after search ``first`` of the same frame (:func:`_deepen`)."""
+    keep_first = first.best is not None and (then.best is None or (
+        first.best.p_false is not None and (then.best.p_false is None or first.best.p_false < then.best.p_false)))
+    best, best_details = (first.best, first.best_details) if keep_first else (then.best, then.best_details)
+    return SearchOutcome(then.accepted, then.scale, then.details, best, best_details, first.tried + then.tried,
+                         first.patterns + then.patterns, then.reason, then.code)
+
+
 def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline, fused,
-                 camera, db, params) -> SearchOutcome:
+                 camera, db, params, trials0=0) -> SearchOutcome:
     """:func:`run`'s loop in Python: ``algorithm.search``'s proposals, each verified (:func:`_verify_fused`
-    when ``fused``, else :func:`_verify_with_focal`), until one passes or the budget ends."""
+    when ``fused``, else :func:`_verify_with_focal`), until one passes or the budget ends.  ``trials0``: the
+    trials of the frame's earlier searches (:attr:`FusedFrame.trials0`)."""
     name = algorithm.name
     has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     if params.tolerance_arcsec is not None:
@@ -1036,10 +1130,10 @@ def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, us
         patterns = max(patterns, proposal.patterns)
         if fused and len(proposal.image) >= 2:
             v, scale = _verify_fused(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db, eps,
-                                     params, max(tried, proposal.patterns), use_mags)
+                                     params, trials0 + max(tried, proposal.patterns), use_mags)
         else:
             v, scale = _verify_with_focal(proposal, xs, ys, b_all, flux if has_flux else None, sig_px, camera, db,
-                                          eps, params, max(tried, proposal.patterns), use_mags, geom)
+                                          eps, params, trials0 + max(tried, proposal.patterns), use_mags, geom)
         if v.matches is not None:
             accepted = v
             details = dict(proposal.details)
