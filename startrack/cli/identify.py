@@ -82,7 +82,8 @@ def _algorithm_choice():
 @click.option("--max-false-probability", type=FiniteFloat(0, 1, min_open=True), default=1e-6, show_default=True,
               help="Refuse an identification more likely than this to be a coincidence.")
 @click.option("--max-proposals", type=int, default=200, show_default=True,
-              help="Search budget: proposals verified per frame before giving up.")
+              help="Search budget: proposals verified before giving up (each deeper search of --max-search-stars "
+                   "has its own).")
 @click.option("--max-time-ms", type=float, default=2000.0, show_default=True,
               help="Search budget: milliseconds per frame before giving up.")
 @catalog_option

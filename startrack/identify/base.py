@@ -75,8 +75,9 @@ class IdentifyParams:
         Brightest detections the pattern search uses (all are matched at the end).
     max_search_stars : int
         When the search of the ``max_stars`` brightest ends without a proposal that passes
-        (every pattern compared, the budget not spent), it searches again with twice as many
-        detections, and so on up to this many (:func:`search_levels`): a field whose brightest
+        (every pattern compared or the proposal budget spent, within ``max_time_ms``), it searches
+        again with twice as many detections and a proposal budget of its own, and so on up to this
+        many (:func:`search_levels`): a field whose brightest
         detections are mostly not catalog stars (nebulae, halos, false stars, stars beyond the
         database) is found among the fainter ones, as astrometry.net deepens its field stars.
         The trials of every search count in the false-match probability.
@@ -88,9 +89,10 @@ class IdentifyParams:
         Largest relative focal-length error measured and corrected; the pyramid searches its
         triads once more with the focal length free within it when the nominal one finds nothing.
     max_proposals : int
-        Proposals verified before giving up (the search budget; the pyramid's nominal pass has
-        half of it when its free-focal-length pass follows, and its first tier, the pattern stars'
-        pairs, a quarter: :func:`startrack.identify.pyramid.pattern_database`).
+        Proposals verified before giving up (the budget of each search, see ``max_search_stars``;
+        the pyramid's nominal pass has half of it when its free-focal-length pass follows, and its
+        first tier, the pattern stars' pairs, a quarter:
+        :func:`startrack.identify.pyramid.pattern_database`).
     max_time_ms : float
         Search time before giving up, ms.
     reported_sigma_factor : float
@@ -1047,9 +1049,10 @@ def search_levels(n_stars: int, params: IdentifyParams) -> list:
 def _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, deadline, fused, in_kernel,
             camera, db, params):
     """:func:`run`'s searches of more stars (:func:`search_levels`) after the search of the first ``use`` found
-    nothing (``out``): while a search ends with every pattern compared (not its proposal budget spent,
-    nor the time), the next searches twice as many stars with the same budgets, its trials on top of the
-    earlier ones' (the false-match probability's look-elsewhere factor counts every search).
+    nothing (``out``): while a search ends without an accepted proposal and within the frame's time (every
+    pattern compared, or its proposal budget spent on chance patterns of false detections), the next
+    searches twice as many stars with a proposal budget of its own, its trials on top of the earlier
+    ones' (the false-match probability's look-elsewhere factor counts every search).
 
     Returns ``(outcome, search stars of the last search, its tolerance eps, seconds spent preparing)``:
     the outcome has the last search's verdict, reason and code, every search's proposals and patterns
@@ -1062,8 +1065,7 @@ def _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_p
     for deeper in search_levels(len(xs), params):
         if deeper <= use:
             continue
-        if last.accepted is not None or last.tried >= max(int(params.max_proposals), 1) or \
-                last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
+        if last.accepted is not None or last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
             break
         trials0 += max(last.tried, last.patterns)
         margin, eps_d = _tolerances(params, sig_px, deeper, f)

@@ -89,3 +89,26 @@ def test_render_default_depth_is_the_sensor_detection_limit():
     assert max(mags) <= limit and max(mags) > limit - 0.1
     deeper, mags = render("--exposure-ms", "1000")
     assert deeper > limit + 1.0 and max(mags) <= deeper
+
+
+def test_identify_searches_fainter_detections_when_the_brightest_are_false(db15):
+    """Thirty false stars as bright as the stars: the 20 brightest detections hold a few catalog stars,
+    and the search of their patterns spends its proposals on chance ones; the search of the 40 brightest
+    (--max-search-stars, default 80) finds every frame, none wrong.  With --max-search-stars 20 (one
+    search) every frame fails, exit status 1."""
+    frames = run_cli("render", "--stars-only", *SENSOR, "--mag-max", "5.5", "--sigma-px", "0.3", "--false-stars", "30",
+                     "--count", "4", "--seed", "3", check=True).stdout
+    deep = run_cli("identify", "-d", db15, input=frames)
+    assert deep.returncode == 0, deep.stderr
+    for line in deep.stdout.splitlines():
+        doc = json.loads(line)
+        ident, ids = doc["identification"], doc["truth"]["star_ids"]
+        assert ident["status"] == "ok"
+        assert 20 < ident["search_stars"] <= len(doc["stars"])
+        assert len(ident["matches"]) >= 5
+        assert all(ids[m["star"]] == m["id"] for m in ident["matches"])
+    one = run_cli("identify", "-d", db15, "--max-search-stars", "20", input=frames)
+    assert one.returncode == 1
+    docs = [json.loads(line)["identification"] for line in one.stdout.splitlines()]
+    assert [d["status"] for d in docs] == ["failed"] * 4
+    assert all("search_stars" not in d for d in docs)
