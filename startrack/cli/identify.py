@@ -102,8 +102,8 @@ def _algorithm_choice():
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_search_stars,
-            max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output, jobs, resume, quiet,
-            **settings):
+            max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output,
+            jobs, resume, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
@@ -178,8 +178,8 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     warm_up(algorithm, db, params_for_warm_up, override)
     load_ms = (time.perf_counter() - t_load) * 1000
     params = IdentifyParams(sigma_px=sigma_px, tolerance_arcsec=tolerance_arcsec, max_stars=max_stars,
-                            max_search_stars=max_search_stars, max_false_probability=max_false_probability, max_proposals=max_proposals,
-                            max_time_ms=max_time_ms)
+                            max_search_stars=max_search_stars, max_false_probability=max_false_probability,
+                            max_proposals=max_proposals, max_time_ms=max_time_ms)
     checked = {}
     from startrack.imageio import check_plot_output
 

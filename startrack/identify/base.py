@@ -77,9 +77,9 @@ class IdentifyParams:
         When the search of the ``max_stars`` brightest ends without a proposal that passes
         (every pattern compared or the proposal budget spent, within ``max_time_ms``), it searches
         again with twice as many detections and a proposal budget of its own, and so on up to this
-        many (:func:`search_levels`): a field whose brightest
-        detections are mostly not catalog stars (nebulae, halos, false stars, stars beyond the
-        database) is found among the fainter ones, as astrometry.net deepens its field stars.
+        many (:func:`search_levels`): a field whose brightest detections are mostly not catalog
+        stars (nebulae, halos, false stars, stars beyond the database) is found among the fainter
+        ones, as astrometry.net deepens its field stars.
         The trials of every search count in the false-match probability.
     min_matches : int
         Matched stars needed (three when the frame has only three).
