@@ -10,6 +10,7 @@ from conftest import assert_refused, run_cli
 from startrack.camera import Camera
 from startrack.evaluate import Condition, make_frames, score
 from startrack.identify import IdentifyParams, algorithm_names, config_fields, identify_stars, make_config, register
+from startrack.identify.base import search_levels
 from startrack.kvector import build_kvector, max_separation_deg
 
 # A toy algorithm: every catalog pair at the angle of the two brightest stars, both ways round.
@@ -74,10 +75,20 @@ def test_registered_toy_runs_through_the_driver(setup20):
     assert outcomes.count("bad") == 0 and outcomes.count("success") >= 18
     # The driver kept looking: most frames needed many proposals, and says so.
     assert max(r.trials for r in results) > 10
-    # A proposal budget is honoured and reported.
+    # A proposal budget is honoured and reported: one search verifies at most max_proposals; after a
+    # spent budget the search of more stars (max_search_stars) has a budget of its own.
+    one = identify_stars(frames[0][0], cam, db, "toy-pair",
+                         IdentifyParams(sigma_px=0.2, max_proposals=1, max_search_stars=20),
+                         make_config("toy-pair", {"max_pairs": 10}))
+    assert one.trials == 1 and "search_stars" not in one.details
     tight = identify_stars(frames[0][0], cam, db, "toy-pair", IdentifyParams(sigma_px=0.2, max_proposals=1),
                            make_config("toy-pair", {"max_pairs": 10}))
-    assert tight.trials <= 1
+    searches = search_levels(len(frames[0][0]), IdentifyParams())
+    assert len(searches) > 1 and tight.trials <= len(searches)
+    if one.status == "failed":
+        assert one.reason.startswith("search budget of 1 proposals spent")
+        # (this frame's first proposal is rejected: the deeper search had its own)
+        assert tight.trials == 2 and tight.details["search_stars"] == searches[-1]
     if tight.status == "failed":
         assert tight.reason_code is not None
 
