@@ -928,10 +928,10 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     margin, eps = _tolerances(params, sig_px, use, camera.focal_length_px)
     prepare_ms = None
     if algorithm.prepare is not None:
-        tp = time.perf_counter()
-        if algorithm.prepare(config, camera, db, eps):
-            prepare_ms = (time.perf_counter() - tp) * 1000
-            t0 += prepare_ms / 1000.0       # loading for this sensor, not identification: not in time_ms
+        pause = _prepare(algorithm, config, camera, db, eps)
+        if pause:
+            prepare_ms = pause * 1000
+            t0 += pause       # loading for this sensor, not identification: not in time_ms
     deadline = t0 + params.max_time_ms / 1000.0
     info = log.isEnabledFor(logging.INFO)
     debug = info and log.isEnabledFor(logging.DEBUG)
@@ -941,19 +941,13 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                   getattr(db, "path", None) or type(db).__name__)
     fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
-    b_all = None
     in_kernel = fused and FUSED_SEARCH and algorithm.fused is not None and not debug
-    if in_kernel:
-        out = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline), camera, db,
-                              params)
-    else:
-        b_all = _pixels_to_vectors(camera, xs, ys)
-        out = _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline,
-                           fused, camera, db, params)
+    b_all = None if in_kernel else _pixels_to_vectors(camera, xs, ys)
+    frame = (algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)
+    out = _search(frame, use, eps, margin, deadline)
     searched = use
     if out.accepted is None and use < min(n_all, params.max_search_stars):
-        out, searched, eps, pause = _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px,
-                                            deadline, fused, in_kernel, camera, db, params)
+        out, searched, eps, pause = _deepen(frame, out, use, eps, deadline)
         if pause:
             prepare_ms = (prepare_ms or 0.0) + pause * 1000
             t0 += pause
@@ -1037,65 +1031,72 @@ def search_levels(n_stars: int, params: IdentifyParams) -> list:
     """The search stars of each search of a frame of ``n_stars`` detections: ``max_stars``, then twice as many
     each time the one before ended without a proposal that passes, up to ``max_search_stars`` (and the
     frame's count); e.g. 20, 40, 80.  (:func:`run` searches the next only while the budget lasts.)"""
-    use = min(n_stars, max(int(params.max_stars), 3))
-    deep = min(n_stars, int(params.max_search_stars))
+    use = min(n_stars, params.max_stars)
+    deep = min(n_stars, params.max_search_stars)
     levels = [use]
-    while use < deep:
+    while 0 < use < deep:
         use = min(deep, 2 * use)
         levels.append(use)
     return levels
 
 
-def _deepen(out, use, algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, deadline, fused, in_kernel,
-            camera, db, params):
+def _prepare(algorithm, config, camera, db, eps):
+    """Seconds ``algorithm.prepare`` spent building for this database, sensor and tolerance (0: built before):
+    loading, which :func:`run` keeps out of ``time_ms`` and the time budget."""
+    tp = time.perf_counter()
+    return time.perf_counter() - tp if algorithm.prepare(config, camera, db, eps) else 0.0
+
+
+def _search(frame, use, eps, margin, deadline, trials0=0):
+    """One search of the first ``use`` stars: the algorithm's fused kernel or :func:`_search_loop`.
+    ``frame``: :func:`run`'s ``(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused,
+    in_kernel, camera, db, params)``."""
+    algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params = frame
+    if in_kernel:
+        return algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline, trials0), camera,
+                               db, params)
+    return _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline,
+                        fused, camera, db, params, trials0)
+
+
+def _deepen(frame, out, use, eps, deadline):
     """:func:`run`'s searches of more stars (:func:`search_levels`) after the search of the first ``use`` found
-    nothing (``out``): while a search ends without an accepted proposal and within the frame's time (every
-    pattern compared, or its proposal budget spent on chance patterns of false detections), the next
-    searches twice as many stars with a proposal budget of its own, its trials on top of the earlier
-    ones' (the false-match probability's look-elsewhere factor counts every search).
+    nothing (``out``; ``frame``: see :func:`_search`): while a search ends without an accepted proposal and
+    within the frame's time (every pattern compared, or its proposal budget spent on chance patterns of
+    false detections), the next searches twice as many stars with a proposal budget of its own, its trials
+    on top of the earlier ones' (the false-match probability's look-elsewhere factor counts every search).
 
     Returns ``(outcome, search stars of the last search, its tolerance eps, seconds spent preparing)``:
     the outcome has the last search's verdict, reason and code, every search's proposals and patterns
     (summed) and the best rejected verdict of them all."""
-    f = camera.focal_length_px
+    algorithm, config, _, xs, _, _, _, sig_px, _, _, camera, db, params = frame
     pause = 0.0
     trials0 = 0
     last = out
-    eps = None
-    for deeper in search_levels(len(xs), params):
-        if deeper <= use:
-            continue
+    for deeper in search_levels(len(xs), params)[1:]:
         if last.accepted is not None or last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
             break
         trials0 += max(last.tried, last.patterns)
-        margin, eps_d = _tolerances(params, sig_px, deeper, f)
+        margin, eps = _tolerances(params, sig_px, deeper, camera.focal_length_px)
         if algorithm.prepare is not None:
-            tp = time.perf_counter()
-            if algorithm.prepare(config, camera, db, eps_d):
-                dt = time.perf_counter() - tp
-                pause += dt
-                deadline += dt
+            dt = _prepare(algorithm, config, camera, db, eps)
+            pause += dt
+            deadline += dt
         log.debug("%s: nothing among the %d brightest stars: searching the %d brightest", algorithm.name, use, deeper)
-        if in_kernel:
-            last = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, deeper, eps_d, margin, deadline, trials0),
-                                   camera, db, params)
-        else:
-            last = _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, deeper, eps_d, margin,
-                                deadline, fused, camera, db, params, trials0)
-        out = _after(out, last)
-        use, eps = deeper, eps_d
-    if eps is None:
-        eps = _tolerances(params, sig_px, use, f)[1]
+        last = _search(frame, deeper, eps, margin, deadline, trials0)
+        best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
+            (out.best, out.best_details)
+        out = SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
+                            out.patterns + last.patterns, last.reason, last.code)
+        use = deeper
     return out, use, eps, pause
 
 
-def _after(first, then):
-    """The outcome of search ``then`` after search ``first`` of the same frame (:func:`_deepen`)."""
-    keep_first = first.best is not None and (then.best is None or (
-        first.best.p_false is not None and (then.best.p_false is None or first.best.p_false < then.best.p_false)))
-    best, best_details = (first.best, first.best_details) if keep_first else (then.best, then.best_details)
-    return SearchOutcome(then.accepted, then.scale, then.details, best, best_details, first.tried + then.tried,
-                         first.patterns + then.patterns, then.reason, then.code)
+def _better(v, best):
+    """A rejected verdict ``v`` to keep as the search's best instead of ``best``: the first, or one with a
+    lower false-match probability."""
+    return v is not None and (best is None or (v.p_false is not None and (best.p_false is None or
+                                                                          v.p_false < best.p_false)))
 
 
 def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline, fused,
@@ -1143,7 +1144,7 @@ def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, us
         if tried <= _LOGGED_PROPOSALS:
             log.debug("%s: proposal %d (stars %s = catalog %s) rejected: %s", name, tried, list(proposal.image),
                       list(proposal.catalog), v.reason)
-        if best is None or (v.p_false is not None and (best.p_false is None or v.p_false < best.p_false)):
+        if _better(v, best):
             best = v
             best_details = dict(proposal.details)
         if tried >= params.max_proposals:

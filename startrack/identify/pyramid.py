@@ -259,8 +259,6 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
-        if frame.trials0:
-            buffers[0][5] = frame.trials0
         got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
         if got is None:
             return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
@@ -288,8 +286,6 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     else:
         plan = _plan(db)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n)
-        if frame.trials0:
-            buffers[0][5] = frame.trials0
     got = _drive(plan, (xs, frame.ys, frame.sig_px, frame.flux, *rest), frame)
     if got is None:
         return _failed(buffers, db, params, f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT)
@@ -376,7 +372,8 @@ def _buffers(budget, n):
 
 
 def _inputs(plan, config, frame, camera, params, n, first=False):
-    """``(buffers, rest, dcm)``: the thread's buffers (:func:`_buffers`; ``state`` and ``best`` zeroed), the
+    """``(buffers, rest, dcm)``: the thread's buffers (:func:`_buffers`; ``state`` and ``best`` zeroed but
+    ``state[5]``, the frame's ``trials0``), the
     kernel's arguments after the frame's four arrays (the triads, ``fpar`` and ``ipar`` of :func:`_settings`,
     the buffers, the database's arrays of ``plan``) and the attitude matrix's view of the buffers.
     ``first``: ``plan`` is the first tier's (:func:`pattern_database`), whose ``ipar`` holds
@@ -411,6 +408,8 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
     else:
         buffers[0].fill(0)
         buffers[2].fill(0)
+    if frame.trials0:
+        buffers[0][5] = frame.trials0       # the kernel's trials of the frame's earlier searches
     _BUFFERS.last = (plan, camera, config, pkey, margin, eps, use, rest)
     return buffers, rest, dcm
 
