@@ -104,6 +104,9 @@ def test_fused_pyramid_search_decides_as_the_python_loop(sensor, monkeypatch):
         return fused(*args)
 
     monkeypatch.setattr(kernels, "pyramid_identify", counted)
+    # The pattern-star tier is built once per database and camera, by the first frame either path sees
+    # (``prepare_ms`` in its details): built here, so the comparison does not depend on the tests before.
+    identify_stars(make_frames(stars, cam, CONDITIONS[0], 1, 39, mag_limit=5.4)[0][0], cam, db, "pyramid")
     outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0, "budget": 0}
     for k, cond in enumerate(CONDITIONS):
         for budget in (200, 2):
