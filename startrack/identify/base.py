@@ -476,6 +476,10 @@ def _table_arrays(table, params: IdentifyParams):
     xs = np.ascontiguousarray(table.x, dtype=np.float64)
     ys = np.ascontiguousarray(table.y, dtype=np.float64)
     flux = np.ascontiguousarray(table.flux, dtype=np.float64)
+    if params.sigma_px is not None:
+        sig = np.empty(len(xs))
+        sig.fill(float(params.sigma_px))
+        return xs, ys, flux, sig
     sig = _sigmas(len(xs), params,
                   lambda: None if table.sigma_px is None else np.asarray(table.sigma_px, dtype=np.float64))
     return xs, ys, flux, sig
@@ -915,13 +919,16 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
 
         algorithm, config = Algorithm(name_, search), NoConfig()
     name = algorithm.name
-    n_all = len(frame_stars)
+    table = type(frame_stars) is StarTable or isinstance(frame_stars, StarTable)
+    if table:
+        xs, ys, flux, sig_px = _table_arrays(frame_stars, params)
+        n_all = len(xs)
+    else:
+        n_all = len(frame_stars)
     if n_all < 3:
         return Identification.failed(name, f"{n_all} star(s): at least 3 are needed", ReasonCode.TOO_FEW_STARS,
                                      time_ms=(time.perf_counter() - t0) * 1000, trials=0)
-    if isinstance(frame_stars, StarTable):
-        xs, ys, flux, sig_px = _table_arrays(frame_stars, params)
-    else:
+    if not table:
         xs, ys, flux = _frame_arrays(frame_stars)
         sig_px = star_sigmas_px(frame_stars, params)
     use = min(n_all, params.max_stars)
@@ -957,7 +964,11 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         # The search itself stopped at the deadline (ctx.expired) between proposals.
         reason, code = f"search time of {params.max_time_ms:g} ms spent", ReasonCode.TIMEOUT
     elapsed = (time.perf_counter() - t0) * 1000
-    tol_arcsec = round(math.degrees(eps) * 3600, 3)
+    tol_arcsec = _TOL_ARCSEC.get(eps)
+    if tol_arcsec is None:
+        if len(_TOL_ARCSEC) > 256:
+            _TOL_ARCSEC.clear()
+        tol_arcsec = _TOL_ARCSEC[eps] = round(math.degrees(eps) * 3600, 3)
     tried, patterns = out.tried, out.patterns
     if accepted is None:
         best = out.best
@@ -1013,6 +1024,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                           trials=tried, tolerance_arcsec=tol_arcsec,
                           focal_scale=None if scale is None else round(float(scale), 7),
                           quaternion_estimate=quaternion, details=details)
+
+
+_TOL_ARCSEC: dict = {}      # the reported tolerance (arcsec, 3 decimals) per eps: round() costs a string conversion
 
 
 def _tolerances(params, sig_px, use, f):

@@ -381,17 +381,23 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
 
     Kept with the database's plan per value of the settings (the last 64) and used again while the
     thread's buffers are the same and large enough: one look-up instead of those of :func:`_settings`
-    and :func:`_buffers` and a new tuple.  The thread's last frame's are compared first, the camera and
-    the configuration (frozen) by identity, the settings (which may change between frames) by value (so the
-    thread holds its last database's arrays until its next frame)."""
+    and :func:`_buffers` and a new tuple.  The thread's last frame's plan, camera and configuration
+    (frozen; by identity), settings (which may change between frames; by value) and tolerances are
+    compared first; when they are the same, the arguments are looked up by the frame's number of search
+    stars alone, without hashing the settings (so the thread holds its last database's arrays until its
+    next frame)."""
     pkey = _PARAMS_KEY(params)
     margin, eps, use = frame.margin, frame.eps, frame.use
     buffers, dcm = getattr(_BUFFERS, "arrays", (None, None))
     last = getattr(_BUFFERS, "last", None)
     if (last is not None and last[0] is plan and last[1] is camera and last[2] is config and last[3] == pkey
-            and last[4] == margin and last[5] == eps and last[6] == use):
-        rest = last[7]
+            and last[4] == margin and last[5] == eps):
+        by_use = last[6]
+        rest = by_use.get(use)
     else:
+        by_use = {}
+        rest = None
+    if rest is None:
         rest = plan[4].get((_CAMERA_KEY(camera), pkey, config.max_triads, config.max_triangles, margin, eps, use))
     # rest[3] is the state array of the buffers it was made with
     if rest is None or buffers is None or rest[3] is not buffers[0] or len(buffers[3]) < 4 * n:
@@ -410,7 +416,11 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
         buffers[2].fill(0)
     if frame.trials0:
         buffers[0][5] = frame.trials0       # the kernel's trials of the frame's earlier searches
-    _BUFFERS.last = (plan, camera, config, pkey, margin, eps, use, rest)
+    if by_use.get(use) is not rest:
+        if len(by_use) > 64:
+            by_use.clear()
+        by_use[use] = rest
+        _BUFFERS.last = (plan, camera, config, pkey, margin, eps, by_use)
     return buffers, rest, dcm
 
 
