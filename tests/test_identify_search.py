@@ -347,6 +347,46 @@ def test_pyramid_searches_deeper_when_the_brightest_are_not_stars(sensor15, fuse
     assert deep_scores.count("success") >= one_scores.count("success") + 8, (deep_scores, one_scores)
     went = [(r, len(s)) for r, (s, _, _) in zip(deep, frames) if r.ok and "search_stars" in r.details]
     assert went and all(r.details["search_stars"] in (40, min(n, 80)) for r, n in went)
-    # The trials of the searches before count: more than the accepted search's own.
-    assert all(r.trials > 1 for r, _ in went)
-    assert all("search_stars" not in r.details for r in one)
+    # Each deeper search is counted; at the nominal focal length the nominal searches of 20, 40 and 80 stars
+    # come first (search_plan): the frames are found there, without the free-focal-length passes.
+    assert all(r.details["searches"] >= 2 for r, _ in went)
+    assert sum(r.details["searches"] <= 3 for r, _ in went) >= 0.8 * len(went)
+    assert all("search_stars" not in r.details and "searches" not in r.details for r in one)
+
+
+def test_search_plan():
+    """Every depth at the nominal focal length first, then the free focal length's passes, for a search that
+    has them and a frame deeper than one search; both passes in each search otherwise."""
+    from startrack.identify.base import BOTH_PASSES as B
+    from startrack.identify.base import FREE_PASS as F
+    from startrack.identify.base import NOMINAL_PASS as N
+    from startrack.identify.base import search_plan
+
+    p = IdentifyParams()
+    assert search_plan(15, p, True) == [(15, B)]
+    assert search_plan(30, p, True) == [(20, N), (30, N), (20, F), (30, F)]
+    assert search_plan(500, p, True) == [(20, N), (40, N), (80, N), (20, F), (40, F), (80, F)]
+    assert search_plan(500, p, False) == [(20, B), (40, B), (80, B)]
+    assert search_plan(500, IdentifyParams(max_focal_error=0.0), True) == [(20, B), (40, B), (80, B)]
+    assert search_plan(500, IdentifyParams(max_search_stars=20), True) == [(20, B)]
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_focal_length_off_is_found_after_the_nominal_searches(sensor15, fused, monkeypatch):
+    """A focal length 1.5 % off and 15 false stars: more than 20 detections, so the nominal searches of 20 and
+    more stars come first (search_plan) and find nothing; the free focal length's pass then finds the field,
+    measures the scale, and names no wrong star although every search's trials count."""
+    import startrack.identify.base as base
+
+    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    cam, db, stars = sensor15
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=15, min_catalog_stars=6,
+                                               focal_error_pct=1.5), 12, 8, mag_limit=5.5)
+    assert all(len(s) > 20 for s, _, _ in frames)
+    got = [identify_stars(s, cam, db, "pyramid", IdentifyParams(sigma_px=0.3)) for s, _, _ in frames]
+    scores = [score(r, t) for r, (_, t, _) in zip(got, frames)]
+    assert scores.count("bad") == 0 and scores.count("success") >= 9, scores
+    free = [r for r, (s, _, _) in zip(got, frames)
+            if r.ok and r.details.get("searches", 1) > len(base.search_levels(len(s), IdentifyParams()))]
+    assert len(free) >= 8
+    assert all(r.focal_scale is not None and abs(r.focal_scale - 1.0) > 0.01 for r in free)

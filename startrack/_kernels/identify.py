@@ -2020,7 +2020,8 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     none), match sigma, match-radius margin (rad), eps, max chi2, magnitude floor, magnitude
     gate, max false-match probability, max focal error, tolerance sigma (< 0: no per-star
     tolerance, the margin alone).  ``ipar``: max triads, max triangles, min matches, quadratic
-    (0/1), search uses brightness (0/1), max proposals, pause, search stars.
+    (0/1), search uses brightness (0/1), max proposals, pause, search stars, focal-length passes (0 = both,
+    1 = the nominal focal length's alone, 2 = the free focal length's alone).
 
     In/out: ``state`` = (next triad, next row of its pyramids, proposals tried, patterns, the second
     pass's patterns beyond one a triad before the next triad, the trials of earlier searches of the frame
@@ -2061,17 +2062,22 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     rejected = 0
     t = state[0]
     row0 = state[1]
+    # The triads at the nominal focal length, then (a focal error allowed) again with the focal
+    # length free within it: t counts on through the second pass (the patterns compared).  ipar[8]: 1 = the
+    # first pass alone, 2 = the second alone (t starts there, and ``extra`` takes the first pass's triads off
+    # the count: this search compares the second pass's patterns only).
+    passes = 2 if fpar[14] > 0.0 and ipar[8] != 1 else 1
+    extra = state[4]
+    if ipar[8] == 2 and t < n_tr:
+        extra -= n_tr - t
+        t = n_tr
     key = np.empty(9, dtype=np.int64)
     # A proposal's image and catalog stars (3 or 4: views of these, which the verification only reads).
     img4 = np.empty(4, dtype=np.int64)
     cat4 = np.empty(4, dtype=np.int64)
     win = np.empty((use, 6))
-    # The triads at the nominal focal length, then (a focal error allowed) again with the focal
-    # length free within it: t counts on through the second pass (the patterns compared).
-    passes = 2 if fpar[14] > 0.0 else 1
     # A triad of the second pass compares free_focal_patterns() triads' patterns: ``extra`` (kept in state[4]
     # between calls) counts those beyond one of the triads before t (the count is (t + 1 + extra) * fourth).
-    extra = state[4]
     # A triad's pyramid is completed by whichever other search star matches (the first that does), so a
     # triad puts use - 3 four-star patterns to the test: the gate's look-elsewhere factor counts them all.
     fourth = max(1, use - 3)

@@ -79,7 +79,9 @@ class IdentifyParams:
         again with twice as many detections and a proposal budget of its own, and so on up to this
         many (:func:`search_levels`): a field whose brightest detections are mostly not catalog
         stars (nebulae, halos, false stars, stars beyond the database) is found among the fainter
-        ones, as astrometry.net deepens its field stars.
+        ones, as astrometry.net deepens its field stars.  A search with a free-focal-length pass
+        (the pyramid, ``max_focal_error`` > 0) searches every depth at the nominal focal length
+        before the free focal length's (:func:`search_plan`).
         The trials of every search count in the false-match probability.
     min_matches : int
         Matched stars needed (three when the frame has only three).
@@ -87,7 +89,8 @@ class IdentifyParams:
         Refuse an identification more likely than this to be a coincidence.
     max_focal_error : float
         Largest relative focal-length error measured and corrected; the pyramid searches its
-        triads once more with the focal length free within it when the nominal one finds nothing.
+        triads once more with the focal length free within it when the nominal one finds nothing
+        (in the same search, or, when deeper searches are to come, after them: :func:`search_plan`).
     max_proposals : int
         Proposals verified before giving up (the budget of each search, see ``max_search_stars``;
         the pyramid's nominal pass has half of it when its free-focal-length pass follows, and its
@@ -152,6 +155,11 @@ class Proposal:
     details: dict = field(default_factory=dict)
 
 
+#: :attr:`SearchContext.focal_pass`: a search with focal-length passes (:attr:`Algorithm.focal_passes`)
+#: searches the nominal focal length, then the free one (both, one search); the nominal alone; the free alone.
+BOTH_PASSES, NOMINAL_PASS, FREE_PASS = 0, 1, 2
+
+
 @dataclass
 class SearchContext:
     """What a proposal generator gets for one frame.
@@ -177,6 +185,9 @@ class SearchContext:
     deadline : float
         ``time.perf_counter()`` value at which the driver's time budget ends: a search
         with long steps between proposals stops there too (:meth:`expired`).
+    focal_pass : int
+        For a search with focal-length passes (:attr:`Algorithm.focal_passes`): :data:`BOTH_PASSES`,
+        :data:`NOMINAL_PASS` or :data:`FREE_PASS` (:func:`search_plan`); others ignore it.
     """
 
     b: np.ndarray
@@ -189,6 +200,7 @@ class SearchContext:
     params: IdentifyParams
     flux: np.ndarray | None = None
     deadline: float = math.inf
+    focal_pass: int = 0
 
     def expired(self) -> bool:
         """True once the driver's time budget (``params.max_time_ms``) is spent."""
@@ -237,6 +249,11 @@ class Algorithm:
         database for this sensor and tolerance, built once (e.g. the grid's catalog
         patterns); :func:`run` calls it before the frame's clock starts and reports
         a build's time as ``details["prepare_ms"]`` (True: it built now).
+    focal_passes : bool
+        True when the search has a second pass with the focal length free within
+        ``params.max_focal_error`` (after the nominal focal length's) and searches one of the
+        two alone when :attr:`SearchContext.focal_pass` (:attr:`FusedFrame.focal_pass`) says so:
+        :func:`search_plan` then searches every depth at the nominal focal length first.
     """
 
     name: str
@@ -247,6 +264,7 @@ class Algorithm:
     uses_brightness: bool = False
     fused: Callable | None = None
     prepare: Callable | None = None
+    focal_passes: bool = False
 
 
 @dataclass(slots=True)
@@ -257,8 +275,8 @@ class FusedFrame:
     finite), ``sig_px``: float64 arrays of every star; ``use``: the search stars (the first);
     ``eps``, ``margin``: the angle tolerances (rad) of :class:`SearchContext`; ``deadline``: the
     end of the time budget (``time.perf_counter()``); ``trials0``: the trials of this frame's earlier
-    searches of fewer stars (:func:`search_levels`), added to this search's in the false-match
-    probability."""
+    searches (:func:`search_plan`), added to this search's in the false-match probability;
+    ``focal_pass``: :attr:`SearchContext.focal_pass`."""
 
     xs: np.ndarray
     ys: np.ndarray
@@ -269,6 +287,7 @@ class FusedFrame:
     margin: float
     deadline: float
     trials0: int = 0
+    focal_pass: int = 0
 
 
 @dataclass(slots=True)
@@ -951,10 +970,11 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     in_kernel = fused and FUSED_SEARCH and algorithm.fused is not None and not debug
     b_all = None if in_kernel else _pixels_to_vectors(camera, xs, ys)
     frame = (algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)
-    out = _search(frame, use, eps, margin, deadline)
-    searched = use
-    if out.accepted is None and use < min(n_all, params.max_search_stars):
-        out, searched, eps, pause = _deepen(frame, out, use, eps, deadline)
+    plan = search_plan(n_all, params, algorithm.focal_passes) if use < n_all else None
+    out = _search(frame, use, eps, margin, deadline, 0, plan[0][1] if plan else BOTH_PASSES)
+    searched, searches = use, 1
+    if out.accepted is None and plan is not None and len(plan) > 1:
+        out, searched, searches, eps, pause = _deepen(frame, out, plan, eps, deadline)
         if pause:
             prepare_ms = (prepare_ms or 0.0) + pause * 1000
             t0 += pause
@@ -983,11 +1003,14 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                                      false_match_probability=best.p_false if best is not None else None,
                                      details={**out.best_details, "patterns": int(patterns),
                                               **({"search_stars": searched} if searched > use else {}),
+                                              **({"searches": searches} if searches > 1 else {}),
                                               **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
     details = out.details
     details["patterns"] = int(patterns)
     if searched > use:
         details["search_stars"] = searched
+    if searches > 1:
+        details["searches"] = searches
     if prepare_ms:
         details["prepare_ms"] = round(prepare_ms, 1)
     rms = accepted.residual_rms if accepted.residual_rms is not None else \
@@ -1054,6 +1077,25 @@ def search_levels(n_stars: int, params: IdentifyParams) -> list:
     return levels
 
 
+def search_plan(n_stars: int, params: IdentifyParams, focal_passes: bool = False) -> list:
+    """The searches of a frame of ``n_stars`` detections, in order, while none finds a proposal that passes:
+    ``(search stars, focal_pass)`` each (:attr:`SearchContext.focal_pass`).
+
+    The depths are :func:`search_levels`'.  For a search with a free-focal-length pass
+    (:attr:`Algorithm.focal_passes`, ``params.max_focal_error`` > 0) and more than one depth, every depth
+    is searched at the nominal focal length first (:data:`NOMINAL_PASS`), then at the free focal length
+    (:data:`FREE_PASS`), e.g. (20, nominal), (40, nominal), (80, nominal), (20, free), (40, free),
+    (80, free): the free pass compares each triad at every scale it tells apart, many times the nominal
+    pass's work, and a frame whose brightest detections are not stars is found by a deeper nominal search
+    at a fraction of its cost; a camera whose focal length is off pays the nominal searches (and their
+    trials) before its free pass.  Otherwise each depth searches both passes (:data:`BOTH_PASSES`), as a
+    frame of one depth always does."""
+    levels = search_levels(n_stars, params)
+    if focal_passes and params.max_focal_error > 0 and len(levels) > 1:
+        return [(u, NOMINAL_PASS) for u in levels] + [(u, FREE_PASS) for u in levels]
+    return [(u, BOTH_PASSES) for u in levels]
+
+
 def _prepare(algorithm, config, camera, db, eps):
     """Seconds ``algorithm.prepare`` spent building for this database, sensor and tolerance (0: built before):
     loading, which :func:`run` keeps out of ``time_ms`` and the time budget."""
@@ -1061,33 +1103,36 @@ def _prepare(algorithm, config, camera, db, eps):
     return time.perf_counter() - tp if algorithm.prepare(config, camera, db, eps) else 0.0
 
 
-def _search(frame, use, eps, margin, deadline, trials0=0):
-    """One search of the first ``use`` stars: the algorithm's fused kernel or :func:`_search_loop`.
-    ``frame``: :func:`run`'s ``(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused,
-    in_kernel, camera, db, params)``."""
+def _search(frame, use, eps, margin, deadline, trials0=0, focal_pass=0):
+    """One search of the first ``use`` stars (``focal_pass``: :attr:`SearchContext.focal_pass`): the
+    algorithm's fused kernel or :func:`_search_loop`.  ``frame``: :func:`run`'s ``(algorithm, config,
+    frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)``."""
     algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params = frame
     if in_kernel:
-        return algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline, trials0), camera,
-                               db, params)
+        return algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline, trials0,
+                                                  focal_pass), camera, db, params)
     return _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline,
-                        fused, camera, db, params, trials0)
+                        fused, camera, db, params, trials0, focal_pass)
 
 
-def _deepen(frame, out, use, eps, deadline):
-    """:func:`run`'s searches of more stars (:func:`search_levels`) after the search of the first ``use`` found
-    nothing (``out``; ``frame``: see :func:`_search`): while a search ends without an accepted proposal and
-    within the frame's time (every pattern compared, or its proposal budget spent on chance patterns of
-    false detections), the next searches twice as many stars with a proposal budget of its own, its trials
-    on top of the earlier ones' (the false-match probability's look-elsewhere factor counts every search).
+def _deepen(frame, out, plan, eps, deadline):
+    """:func:`run`'s searches after the first of ``plan`` (:func:`search_plan`) found nothing (``out``;
+    ``frame``: see :func:`_search`): while a search ends without an accepted proposal and within the
+    frame's time (every pattern compared, or its proposal budget spent on chance patterns of false
+    detections), the next of the plan searches (more stars, or the other focal-length pass) with a proposal
+    budget of its own, its trials on top of the earlier ones' (the false-match probability's look-elsewhere
+    factor counts every search).
 
-    Returns ``(outcome, search stars of the last search, its tolerance eps, seconds spent preparing)``:
-    the outcome has the last search's verdict, reason and code, every search's proposals and patterns
-    (summed) and the best rejected verdict of them all."""
+    Returns ``(outcome, search stars of the last search, searches run, its tolerance eps, seconds spent
+    preparing)``: the outcome has the last search's verdict, reason and code, every search's proposals and
+    patterns (summed) and the best rejected verdict of them all."""
     algorithm, config, _, xs, _, _, _, sig_px, _, _, camera, db, params = frame
     pause = 0.0
     trials0 = 0
     last = out
-    for deeper in search_levels(len(xs), params)[1:]:
+    use = plan[0][0]
+    searches = 1
+    for deeper, focal_pass in plan[1:]:
         if last.accepted is not None or last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
             break
         trials0 += max(last.tried, last.patterns)
@@ -1096,14 +1141,16 @@ def _deepen(frame, out, use, eps, deadline):
             dt = _prepare(algorithm, config, camera, db, eps)
             pause += dt
             deadline += dt
-        log.debug("%s: nothing among the %d brightest stars: searching the %d brightest", algorithm.name, use, deeper)
-        last = _search(frame, deeper, eps, margin, deadline, trials0)
+        log.debug("%s: nothing found searching the %d brightest stars: searching the %d brightest%s",
+                  algorithm.name, use, deeper, " with the focal length free" if focal_pass == FREE_PASS else "")
+        last = _search(frame, deeper, eps, margin, deadline, trials0, focal_pass)
         best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
             (out.best, out.best_details)
         out = SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
                             out.patterns + last.patterns, last.reason, last.code)
         use = deeper
-    return out, use, eps, pause
+        searches += 1
+    return out, use, searches, eps, pause
 
 
 def _better(v, best):
@@ -1114,10 +1161,11 @@ def _better(v, best):
 
 
 def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline, fused,
-                 camera, db, params, trials0=0) -> SearchOutcome:
+                 camera, db, params, trials0=0, focal_pass=0) -> SearchOutcome:
     """:func:`run`'s loop in Python: ``algorithm.search``'s proposals, each verified (:func:`_verify_fused`
     when ``fused``, else :func:`_verify_with_focal`), until one passes or the budget ends.  ``trials0``: the
-    trials of the frame's earlier searches (:attr:`FusedFrame.trials0`)."""
+    trials of the frame's earlier searches (:attr:`FusedFrame.trials0`); ``focal_pass``:
+    :attr:`SearchContext.focal_pass`."""
     name = algorithm.name
     has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     if params.tolerance_arcsec is not None:
@@ -1127,7 +1175,7 @@ def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, us
     if isinstance(frame_stars, StarTable):
         frame_stars = frame_stars.to_list()     # the searches read stars as dicts
     ctx = SearchContext(np.ascontiguousarray(b_all[:use]), frame_stars[:use], camera, db, eps, tol, margin, params,
-                        flux[:use] if has_flux else None, deadline)
+                        flux[:use] if has_flux else None, deadline, focal_pass)
     use_mags = has_flux and not algorithm.uses_brightness
     geom = None if fused else _geometry(camera)
     tried = patterns = 0

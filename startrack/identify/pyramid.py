@@ -43,8 +43,10 @@ import numpy as np
 from startrack._kernels import identify as _kernels
 from startrack.identify.base import (
     AMBIGUITY_CHI2,
+    FREE_PASS,
     MAG_GATE,
     MAG_SIGMA_FLOOR,
+    NOMINAL_PASS,
     Algorithm,
     Proposal,
     SearchOutcome,
@@ -177,7 +179,12 @@ def _search(ctx, config, quadratic):
     # the database's.  The pattern count goes on through the second pass and the second tier, a triad in a
     # free-focal-length pass counting the scales it tells apart (free_focal_patterns): the look-elsewhere
     # factor of the gate.
+    # (ctx.focal_pass: the driver's choice of one pass alone, see FusedFrame.focal_pass.)
     passes = [0.0] + ([float(ctx.params.max_focal_error)] if ctx.params.max_focal_error > 0 else [])
+    if ctx.focal_pass == NOMINAL_PASS:
+        passes = passes[:1]
+    elif ctx.focal_pass == FREE_PASS:
+        passes = passes[1:]
     looked = 0
     # A triad's pyramid is completed by whichever other search star matches: n - 3 four-star patterns a triad.
     fourth = max(1, n - 3)
@@ -384,10 +391,11 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
     and :func:`_buffers` and a new tuple.  The thread's last frame's plan, camera and configuration
     (frozen; by identity), settings (which may change between frames; by value) and tolerances are
     compared first; when they are the same, the arguments are looked up by the frame's number of search
-    stars alone, without hashing the settings (so the thread holds its last database's arrays until its
-    next frame)."""
+    stars and focal-length passes (:attr:`~startrack.identify.base.FusedFrame.focal_pass`) alone, without
+    hashing the settings (so the thread holds its last database's arrays until its next frame)."""
     pkey = _PARAMS_KEY(params)
-    margin, eps, use = frame.margin, frame.eps, frame.use
+    margin, eps = frame.margin, frame.eps
+    use = 4 * frame.use + frame.focal_pass       # the search stars and the focal-length passes, one int
     buffers, dcm = getattr(_BUFFERS, "arrays", (None, None))
     last = getattr(_BUFFERS, "last", None)
     if (last is not None and last[0] is plan and last[1] is camera and last[2] is config and last[3] == pkey
@@ -448,18 +456,18 @@ def _settings(config, frame, camera, params):
                          MAG_GATE, params.max_false_probability, params.max_focal_error,
                          -1.0 if params.tolerance_arcsec is not None else params.tolerance_sigma], dtype=np.float64)
         budget = max(int(params.max_proposals), 1)
-        ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, 0, budget, PAUSE, 0],
+        ipar = np.array([config.max_triads, config.max_triangles, params.min_matches, 0, 0, budget, PAUSE, 0, 0],
                         dtype=np.int64)
         if len(_SETTINGS) > 64:
             _SETTINGS.clear()
         level = _SETTINGS[key] = (fpar, ipar, budget, {})
     frames = level[3]
     use = frame.use
-    fkey = (frame.margin, frame.eps, use)
+    fkey = (frame.margin, frame.eps, use, frame.focal_pass)
     got = frames.get(fkey)
     if got is None:
         fpar, ipar = level[0].copy(), level[1].copy()
-        fpar[0], fpar[9], ipar[7] = frame.margin, frame.eps, use
+        fpar[0], fpar[9], ipar[7], ipar[8] = frame.margin, frame.eps, use, frame.focal_pass
         triads = _TRIAD_ARRAYS.get(use)
         if triads is None:
             if len(_TRIAD_ARRAYS) > 64:
@@ -504,4 +512,4 @@ _TRIAD_ARRAYS: dict = {}    # smart index sequence per number of search stars, a
 
 PYRAMID = Algorithm("pyramid", search_pyramid, PyramidConfig, "kvector",
                     "Mortari's pyramid on the k-vector pair database.", fused=fused_pyramid,
-                    prepare=prepare_pyramid)
+                    prepare=prepare_pyramid, focal_passes=True)
