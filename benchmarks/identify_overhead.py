@@ -11,7 +11,7 @@ trees decide alike.  Run it from each tree to compare, alternating:
 
     PYTHONPATH=. .venv/bin/python benchmarks/identify_overhead.py --conditions 0.3:0,1.0:0 --count 1000
 
-``--reported-sigmas``: the stars carry their own ``sigma_px`` (as ``centroid`` writes them) instead of
+``--tables``: the stars as :class:`startrack.records.StarTable` columns.  ``--reported-sigmas``: the stars carry their own ``sigma_px`` (as ``centroid`` writes them) instead of
 one fixed value.
 """
 from __future__ import annotations
@@ -47,12 +47,15 @@ def main(argv=None):
     ap.add_argument("--reported-sigmas", action="store_true",
                     help="every star carries its own sigma_px (the condition's sigma times 0.5-1.5, drawn per star) "
                          "and IdentifyParams.sigma_px is None: the tolerance is the frame's")
+    ap.add_argument("--tables", action="store_true",
+                    help="give the stars as StarTables (the columns, as identify_speed.py's StarTable input)")
     args = ap.parse_args(argv)
 
     import startrack
     from startrack.evaluate import Condition, make_frames
     from startrack.identify import IdentifyParams, get_algorithm, identify_stars
     from startrack.kvector import build_kvector, max_separation_deg
+    from startrack.records import StarTable
 
     cam, _, db_cat, star_cat = sensor_setup(args)
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
@@ -68,6 +71,7 @@ def main(argv=None):
             frames = [([dict(s, sigma_px=float(sigma) * u) for s, u in zip(stars, rng.uniform(0.5, 1.5, len(stars)))],
                        truth, rest) for stars, truth, rest in frames]
             params = IdentifyParams()
+        inputs = [StarTable.from_list(s) if args.tables else s for s, _, _ in frames]
         identify_stars(frames[0][0], cam, kv, "pyramid", params)      # loads the kernels, makes the plan
         plan = kv.__dict__["_pyramid_plan"]
         kernel, fused = plan[3], alg.fused
@@ -80,7 +84,7 @@ def main(argv=None):
         results = []
         try:
             for rep in range(args.reps):
-                for f, (stars, _, _) in enumerate(frames):
+                for f, stars in enumerate(inputs):
                     spent[0] = spent[1] = 0.0
                     r = identify_stars(stars, cam, kv, "pyramid", params)
                     t_ms[rep, f], t_kernel[rep, f], t_fused[rep, f] = r.time_ms / 1000, spent[0], spent[1]

@@ -12,7 +12,10 @@ search also proposes the pyramids of ambiguous triads and goes on after a
 rejected one (the shared verification decides), which is what a sparse field
 of four or five stars needs.  When the triads give no accepted proposal and the
 focal length may be off (``max_focal_error``), they are searched once more with
-the focal length free within that (one scale for a triangle's three sides).
+the focal length free within that (one scale for a triangle's three sides): in the
+same search, or, for a frame that the driver searches again with more stars, after
+the nominal searches of every depth (:func:`startrack.identify.base.search_plan`;
+the driver says which pass in ``SearchContext.focal_pass``).
 
 The search has two tiers when they differ enough (:func:`pattern_database`) and the
 frame has more than :data:`PATTERN_STARS` search stars: first
