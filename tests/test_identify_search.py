@@ -390,3 +390,41 @@ def test_focal_length_off_is_found_after_the_nominal_searches(sensor15, fused, m
             if r.ok and r.details.get("searches", 1) > len(base.search_levels(len(s), IdentifyParams()))]
     assert len(free) >= 8
     assert all(r.focal_scale is not None and abs(r.focal_scale - 1.0) > 0.01 for r in free)
+
+
+def test_focal_scales():
+    """Scales 2 eps / theta apart (theta the widest angle of the search stars), nearest first, within the error."""
+    import math
+
+    import numpy as np
+
+    from startrack.identify.base import focal_scales
+
+    theta = math.radians(10.0)
+    b = np.array([[0.0, 0.0, 1.0], [math.sin(theta), 0.0, math.cos(theta)], [0.0, math.sin(0.1), math.cos(0.1)]])
+    theta = math.acos(float(b[1] @ b[2]))      # the widest angle of the three
+    eps = 1e-4
+    got = focal_scales(b, eps, 0.05)
+    d = 2 * eps / theta
+    assert got[:4] == pytest.approx([1 + d, 1 - d, 1 + 2 * d, 1 - 2 * d], rel=1e-9)
+    assert len(got) == 2 * int(0.05 / d) and max(abs(s - 1) for s in got) <= 0.05
+    assert focal_scales(b, eps, 0.0) == [] and focal_scales(b[:1], eps, 0.05) == []
+
+
+@pytest.mark.parametrize("algorithm", ["brightness", "voting"])
+def test_focal_length_off_is_swept_for_nominal_searches(sensor15, algorithm):
+    """Brightness and voting compare angles at the focal length they are given: 1.5 % off, their searches
+    find nothing, and the driver searches again at the scales the tolerance tells apart (focal_scales).  The
+    frames are found, the scale measured, no star named wrong; with no focal error allowed, not found."""
+    cam, db, stars = sensor15
+    frames = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=6, focal_error_pct=1.5), 12, 5,
+                         mag_limit=5.5)
+    swept = [identify_stars(s, cam, db, algorithm, IdentifyParams(sigma_px=0.3)) for s, _, _ in frames]
+    scores = [score(r, t) for r, (_, t, _) in zip(swept, frames)]
+    assert scores.count("bad") == 0 and scores.count("success") >= 10, scores
+    went = [r for r in swept if r.ok and r.details.get("searches", 1) >= 2]
+    assert len(went) >= 8, [(r.status, r.details.get("searches"), r.focal_scale) for r in swept]
+    assert all(abs(r.focal_scale - 0.985) < 0.003 for r in went), [r.focal_scale for r in went]
+    fixed = [identify_stars(s, cam, db, algorithm, IdentifyParams(sigma_px=0.3, max_focal_error=0.0))
+             for s, _, _ in frames]
+    assert sum(r.ok for r in fixed) <= 3

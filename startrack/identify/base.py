@@ -254,6 +254,12 @@ class Algorithm:
         ``params.max_focal_error`` (after the nominal focal length's) and searches one of the
         two alone when :attr:`SearchContext.focal_pass` (:attr:`FusedFrame.focal_pass`) says so:
         :func:`search_plan` then searches every depth at the nominal focal length first.
+    focal_sweep : bool
+        True when the search compares angles at the focal length it is given and has no pass of
+        its own with the focal length free: when every search of the plan found nothing and
+        ``params.max_focal_error`` > 0, :func:`run` searches the first depth again at each
+        focal-length scale the tolerance tells apart (:func:`focal_scales`), a camera of that
+        focal length each time.
     """
 
     name: str
@@ -265,6 +271,7 @@ class Algorithm:
     fused: Callable | None = None
     prepare: Callable | None = None
     focal_passes: bool = False
+    focal_sweep: bool = False
 
 
 @dataclass(slots=True)
@@ -973,12 +980,25 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     plan = search_plan(n_all, params, algorithm.focal_passes) if use < n_all else None
     out = _search(frame, use, eps, margin, deadline, 0, plan[0][1] if plan else BOTH_PASSES)
     searched, searches = use, 1
+    trials0 = max(out.tried, out.patterns)
     if out.accepted is None and plan is not None and len(plan) > 1:
-        out, searched, searches, eps, pause = _deepen(frame, out, plan, eps, deadline)
+        out, searched, searches, eps, pause, trials0 = _deepen(frame, out, plan, eps, deadline)
         if pause:
             prepare_ms = (prepare_ms or 0.0) + pause * 1000
             t0 += pause
             deadline += pause
+    swept = None
+    if (out.accepted is None and out.code == ReasonCode.NO_PATTERN and algorithm.focal_sweep
+            and params.max_focal_error > 0 and time.perf_counter() <= deadline):
+        out, swept, more, pause = _sweep(frame, out, use, deadline, trials0)
+        searches += more
+        if pause:
+            prepare_ms = (prepare_ms or 0.0) + pause * 1000
+            t0 += pause
+            deadline += pause
+        if swept is not None:
+            searched = use
+            eps = _tolerances(params, sig_px, use, camera.focal_length_px / swept)[1]
     accepted, reason, code = out.accepted, out.reason, out.code
     if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
         # The search itself stopped at the deadline (ctx.expired) between proposals.
@@ -1017,6 +1037,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
     details["residual_arcsec_rms"] = round(rms, 3)
     matches, quaternion, scale = accepted.matches, accepted.quaternion, out.scale
+    if swept is not None:
+        # The verification's scale is of the swept camera's focal length: the frame's is their product.
+        scale = swept * (1.0 if scale is None else scale)
     if catalog is not None:
         if not isinstance(catalog, CatalogStars):
             catalog = CatalogStars.from_catalog(catalog)
@@ -1124,8 +1147,8 @@ def _deepen(frame, out, plan, eps, deadline):
     factor counts every search).
 
     Returns ``(outcome, search stars of the last search, searches run, its tolerance eps, seconds spent
-    preparing)``: the outcome has the last search's verdict, reason and code, every search's proposals and
-    patterns (summed) and the best rejected verdict of them all."""
+    preparing, the trials of every search run)``: the outcome has the last search's verdict, reason and
+    code, every search's proposals and patterns (summed) and the best rejected verdict of them all."""
     algorithm, config, _, xs, _, _, _, sig_px, _, _, camera, db, params = frame
     pause = 0.0
     trials0 = 0
@@ -1150,7 +1173,65 @@ def _deepen(frame, out, plan, eps, deadline):
                             out.patterns + last.patterns, last.reason, last.code)
         use = deeper
         searches += 1
-    return out, use, searches, eps, pause
+    return out, use, searches, eps, pause, trials0 + max(last.tried, last.patterns)
+
+
+def focal_scales(b, eps: float, max_error: float) -> list:
+    """The focal-length scales (``theta_catalog / theta_measured``) a search at the nominal focal length
+    does not reach, nearest first: ``1 + d, 1 - d, 1 + 2 d, ...`` within ``1 +- max_error``.
+
+    A pattern of the search stars ``b`` (unit vectors) seen at scale ``s`` has its longest side, at most
+    their widest angle ``theta``, off by ``theta |s - 1|``; the search's windows (half-width ``eps``) hold
+    it while that is at most ``eps``, so searches at scales ``d = 2 eps / theta`` apart leave no scale
+    between them uncovered."""
+    b = np.asarray(b, dtype=np.float64)
+    if len(b) < 2 or eps <= 0 or max_error <= 0:
+        return []
+    theta = math.acos(max(-1.0, min(1.0, float(np.min(b @ b.T)))))
+    d = 2.0 * eps / max(theta, eps)
+    out = []
+    k = 1
+    while k * d <= max_error:
+        out += [1.0 + k * d, 1.0 - k * d]
+        k += 1
+    return out
+
+
+def _sweep(frame, out, use, deadline, trials0):
+    """:func:`run`'s searches of the first ``use`` stars at each of :func:`focal_scales` (an algorithm with
+    :attr:`Algorithm.focal_sweep`), after every search of the plan found nothing (``out``; ``trials0``
+    their trials): a camera of focal length ``f / s`` for scale ``s``, the same verification, each search's
+    trials on top of the earlier ones', until one accepts, the time runs out or the scales do.
+
+    Returns ``(outcome, the accepted search's scale or None, searches run, seconds spent preparing)``."""
+    algorithm, config, frame_stars, xs, ys, _, flux, sig_px, fused, _, camera, db, params = frame
+    f = camera.focal_length_px
+    margin, eps = _tolerances(params, sig_px, use, f)
+    scales = focal_scales(_pixels_to_vectors(camera, xs[:use], ys[:use]), eps, params.max_focal_error)
+    pause = 0.0
+    n = 0
+    for s in scales:
+        if time.perf_counter() > deadline:
+            break
+        cam = camera.with_focal_length(f / s)
+        margin, eps = _tolerances(params, sig_px, use, cam.focal_length_px)
+        if algorithm.prepare is not None:
+            dt = _prepare(algorithm, config, cam, db, eps)
+            pause += dt
+            deadline += dt
+        last = _search((algorithm, config, frame_stars, xs, ys, _pixels_to_vectors(cam, xs, ys), flux, sig_px,
+                        fused, False, cam, db, params), use, eps, margin, deadline, trials0)
+        n += 1
+        trials0 += max(last.tried, last.patterns)
+        best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
+            (out.best, out.best_details)
+        out = SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
+                            out.patterns + last.patterns, last.reason, last.code)
+        if last.accepted is not None:
+            return out, s, n, pause
+        if last.code != ReasonCode.NO_PATTERN:
+            break
+    return out, None, n, pause
 
 
 def _better(v, best):

@@ -225,4 +225,5 @@ _MODES = {1: "reference-star", 2: "four-star", 3: "triangle"}
 
 
 BRIGHTNESS = Algorithm("brightness", search_brightness, BrightnessConfig, "kvector",
-                       "Paper 003's brightness-referenced search on the k-vector pair database.")
+                       "Paper 003's brightness-referenced search on the k-vector pair database.",
+                       focal_sweep=True)

@@ -144,4 +144,5 @@ def _clusters(ctx, config, b, keep, identity, votes2, top, seen, patterns):
 
 
 VOTING = Algorithm("voting", search_voting, VotingConfig, "kvector",
-                   "Kolomenkin et al.'s geometric voting on the k-vector pair database.")
+                   "Kolomenkin et al.'s geometric voting on the k-vector pair database.",
+                   focal_sweep=True)
