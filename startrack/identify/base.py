@@ -90,7 +90,9 @@ class IdentifyParams:
     max_focal_error : float
         Largest relative focal-length error measured and corrected; the pyramid searches its
         triads once more with the focal length free within it when the nominal one finds nothing
-        (in the same search, or, when deeper searches are to come, after them: :func:`search_plan`).
+        (in the same search, or, when deeper searches are to come, after them: :func:`search_plan`);
+        brightness and voting are searched again at the scales within it that their tolerance tells
+        apart (:attr:`Algorithm.focal_sweep`).
     max_proposals : int
         Proposals verified before giving up (the budget of each search, see ``max_search_stars``;
         the pyramid's nominal pass has half of it when its free-focal-length pass follows, and its
