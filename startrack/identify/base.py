@@ -1169,10 +1169,7 @@ def _deepen(frame, out, plan, eps, deadline):
         log.debug("%s: nothing found searching the %d brightest stars: searching the %d brightest%s",
                   algorithm.name, use, deeper, " with the focal length free" if focal_pass == FREE_PASS else "")
         last = _search(frame, deeper, eps, margin, deadline, trials0, focal_pass)
-        best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
-            (out.best, out.best_details)
-        out = SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
-                            out.patterns + last.patterns, last.reason, last.code)
+        out = _after(out, last)
         use = deeper
         searches += 1
     return out, use, searches, eps, pause, trials0 + max(last.tried, last.patterns)
@@ -1221,19 +1218,27 @@ def _sweep(frame, out, use, deadline, trials0):
             dt = _prepare(algorithm, config, cam, db, eps)
             pause += dt
             deadline += dt
+        log.debug("%s: nothing found at the nominal focal length: searching at scale %.4f", algorithm.name, s)
         last = _search((algorithm, config, frame_stars, xs, ys, _pixels_to_vectors(cam, xs, ys), flux, sig_px,
                         fused, False, cam, db, params), use, eps, margin, deadline, trials0)
         n += 1
         trials0 += max(last.tried, last.patterns)
-        best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
-            (out.best, out.best_details)
-        out = SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
-                            out.patterns + last.patterns, last.reason, last.code)
+        out = _after(out, last)
         if last.accepted is not None:
             return out, s, n, pause
         if last.code != ReasonCode.NO_PATTERN:
             break
     return out, None, n, pause
+
+
+def _after(out, last):
+    """The outcome of the searches of ``out`` and then ``last``: the last one's verdict, reason and code, both
+    searches' proposals and patterns, the better of their best rejected verdicts (:func:`_better`; on a tie
+    the earlier)."""
+    best, best_details = (last.best, last.best_details) if _better(last.best, out.best) else \
+        (out.best, out.best_details)
+    return SearchOutcome(last.accepted, last.scale, last.details, best, best_details, out.tried + last.tried,
+                         out.patterns + last.patterns, last.reason, last.code)
 
 
 def _better(v, best):
