@@ -215,11 +215,9 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         ``ok`` with matches (star index -> catalog id) or ``failed`` with a
         reason.  Never raises for an unidentifiable frame.
     """
-    alg = _registered.get(algorithm)        # (get_algorithm's look-up once the registry is loaded)
-    if alg is None:
-        alg = get_algorithm(algorithm)
+    alg = get_algorithm(algorithm)
     if config is None:
-        config = _DEFAULT_CONFIGS.get(alg.config) or _default_config(alg.config)
+        config = _default_config(alg.config)
     elif not isinstance(config, alg.config):
         from startrack.errors import BadInputError
 

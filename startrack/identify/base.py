@@ -260,8 +260,8 @@ class Algorithm:
         True when the search compares angles at the focal length it is given and has no pass of
         its own with the focal length free: when every search of the plan found nothing and
         ``params.max_focal_error`` > 0, :func:`run` searches the first depth again at each
-        focal-length scale the tolerance tells apart (:func:`focal_scales`), a camera of that
-        focal length each time.
+        focal-length scale the tolerance tells apart (:func:`focal_scales`, :func:`_steps`), a camera
+        of that focal length each time.
     """
 
     name: str
@@ -504,10 +504,6 @@ def _table_arrays(table, params: IdentifyParams):
     xs = np.ascontiguousarray(table.x, dtype=np.float64)
     ys = np.ascontiguousarray(table.y, dtype=np.float64)
     flux = np.ascontiguousarray(table.flux, dtype=np.float64)
-    if params.sigma_px is not None:
-        sig = np.empty(len(xs))
-        sig.fill(float(params.sigma_px))
-        return xs, ys, flux, sig
     sig = _sigmas(len(xs), params,
                   lambda: None if table.sigma_px is None else np.asarray(table.sigma_px, dtype=np.float64))
     return xs, ys, flux, sig
@@ -947,7 +943,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
 
         algorithm, config = Algorithm(name_, search), NoConfig()
     name = algorithm.name
-    table = type(frame_stars) is StarTable or isinstance(frame_stars, StarTable)
+    table = isinstance(frame_stars, StarTable)
     if table:
         xs, ys, flux, sig_px = _table_arrays(frame_stars, params)
         n_all = len(xs)
@@ -981,26 +977,14 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     frame = (algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)
     plan = search_plan(n_all, params, algorithm.focal_passes) if use < n_all else None
     out = _search(frame, use, eps, margin, deadline, 0, plan[0][1] if plan else BOTH_PASSES)
-    searched, searches = use, 1
-    trials0 = max(out.tried, out.patterns)
-    if out.accepted is None and plan is not None and len(plan) > 1:
-        out, searched, searches, eps, pause, trials0 = _deepen(frame, out, plan, eps, deadline)
+    searched, searches, swept = use, 1, None
+    if out.accepted is None:
+        out, searched, searches, eps, pause, swept = _deepen(frame, out, plan or [(use, BOTH_PASSES)], eps,
+                                                             deadline)
         if pause:
             prepare_ms = (prepare_ms or 0.0) + pause * 1000
             t0 += pause
             deadline += pause
-    swept = None
-    if (out.accepted is None and out.code == ReasonCode.NO_PATTERN and algorithm.focal_sweep
-            and params.max_focal_error > 0 and time.perf_counter() <= deadline):
-        out, swept, more, pause = _sweep(frame, out, use, deadline, trials0)
-        searches += more
-        if pause:
-            prepare_ms = (prepare_ms or 0.0) + pause * 1000
-            t0 += pause
-            deadline += pause
-        if swept is not None:
-            searched = use
-            eps = _tolerances(params, sig_px, use, camera.focal_length_px / swept)[1]
     accepted, reason, code = out.accepted, out.reason, out.code
     if accepted is None and code == ReasonCode.NO_PATTERN and time.perf_counter() > deadline:
         # The search itself stopped at the deadline (ctx.expired) between proposals.
@@ -1142,37 +1126,59 @@ def _search(frame, use, eps, margin, deadline, trials0=0, focal_pass=0):
 
 def _deepen(frame, out, plan, eps, deadline):
     """:func:`run`'s searches after the first of ``plan`` (:func:`search_plan`) found nothing (``out``;
-    ``frame``: see :func:`_search`): while a search ends without an accepted proposal and within the
-    frame's time (every pattern compared, or its proposal budget spent on chance patterns of false
-    detections), the next of the plan searches (more stars, or the other focal-length pass) with a proposal
-    budget of its own, its trials on top of the earlier ones' (the false-match probability's look-elsewhere
-    factor counts every search).
+    ``frame``: see :func:`_search`; ``eps``: the first search's tolerance): while a search ends without an
+    accepted proposal and within the frame's time (every pattern compared, or its proposal budget spent on
+    chance patterns of false detections), the next one searches (:func:`_steps`: more stars, the other
+    focal-length pass, or the first depth at another focal length) with a proposal budget of its own, its
+    trials on top of the earlier ones' (the false-match probability's look-elsewhere factor counts every
+    search).
 
     Returns ``(outcome, search stars of the last search, searches run, its tolerance eps, seconds spent
-    preparing, the trials of every search run)``: the outcome has the last search's verdict, reason and
+    preparing, its focal-length scale or None)``: the outcome has the last search's verdict, reason and
     code, every search's proposals and patterns (summed) and the best rejected verdict of them all."""
-    algorithm, config, _, xs, _, _, _, sig_px, _, _, camera, db, params = frame
+    algorithm, config, frame_stars, xs, ys, _, flux, sig_px, fused, in_kernel, camera, db, params = frame
     pause = 0.0
     trials0 = 0
     last = out
     use = plan[0][0]
     searches = 1
-    for deeper, focal_pass in plan[1:]:
+    swept = None
+    for deeper, focal_pass, scale in _steps(frame, plan, eps):
         if last.accepted is not None or last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
             break
         trials0 += max(last.tried, last.patterns)
-        margin, eps = _tolerances(params, sig_px, deeper, camera.focal_length_px)
+        cam, fr = camera, frame
+        if scale is not None:
+            cam = camera.with_focal_length(camera.focal_length_px / scale)
+            fr = (algorithm, config, frame_stars, xs, ys, None if in_kernel else _pixels_to_vectors(cam, xs, ys),
+                  flux, sig_px, fused, in_kernel, cam, db, params)
+        margin, eps = _tolerances(params, sig_px, deeper, cam.focal_length_px)
         if algorithm.prepare is not None:
-            dt = _prepare(algorithm, config, camera, db, eps)
+            dt = _prepare(algorithm, config, cam, db, eps)
             pause += dt
             deadline += dt
-        log.debug("%s: nothing found searching the %d brightest stars: searching the %d brightest%s",
-                  algorithm.name, use, deeper, " with the focal length free" if focal_pass == FREE_PASS else "")
-        last = _search(frame, deeper, eps, margin, deadline, trials0, focal_pass)
+        log.debug("%s: nothing found searching the %d brightest stars: searching the %d brightest%s", algorithm.name,
+                  use, deeper, " with the focal length free" if focal_pass == FREE_PASS else
+                  "" if scale is None else f" at focal-length scale {scale:.4f}")
+        last = _search(fr, deeper, eps, margin, deadline, trials0, focal_pass)
         out = _after(out, last)
-        use = deeper
+        use, swept = deeper, scale
         searches += 1
-    return out, use, searches, eps, pause, trials0 + max(last.tried, last.patterns)
+    return out, use, searches, eps, pause, swept if out.accepted is not None else None
+
+
+def _steps(frame, plan, eps):
+    """The searches :func:`_deepen` may run after the first, ``(search stars, focal_pass, focal-length scale or
+    None)`` each: the rest of ``plan``, then, for an algorithm with :attr:`Algorithm.focal_sweep` and
+    ``params.max_focal_error`` > 0, the first depth at each of :func:`focal_scales` (``eps``: the first
+    search's tolerance), made only when the plan is through."""
+    for use, focal_pass in plan[1:]:
+        yield use, focal_pass, None
+    algorithm, _, _, xs, ys, _, _, _, _, _, camera, _, params = frame
+    if algorithm.focal_sweep and params.max_focal_error > 0:
+        use = plan[0][0]
+        for s in focal_scales(_pixels_to_vectors(camera, xs[:use], ys[:use]), eps, params.max_focal_error):
+            yield use, BOTH_PASSES, s
 
 
 def focal_scales(b, eps: float, max_error: float) -> list:
@@ -1194,41 +1200,6 @@ def focal_scales(b, eps: float, max_error: float) -> list:
         out += [1.0 + k * d, 1.0 - k * d]
         k += 1
     return out
-
-
-def _sweep(frame, out, use, deadline, trials0):
-    """:func:`run`'s searches of the first ``use`` stars at each of :func:`focal_scales` (an algorithm with
-    :attr:`Algorithm.focal_sweep`), after every search of the plan found nothing (``out``; ``trials0``
-    their trials): a camera of focal length ``f / s`` for scale ``s``, the same verification, each search's
-    trials on top of the earlier ones', until one accepts, the time runs out or the scales do.
-
-    Returns ``(outcome, the accepted search's scale or None, searches run, seconds spent preparing)``."""
-    algorithm, config, frame_stars, xs, ys, _, flux, sig_px, fused, _, camera, db, params = frame
-    f = camera.focal_length_px
-    margin, eps = _tolerances(params, sig_px, use, f)
-    scales = focal_scales(_pixels_to_vectors(camera, xs[:use], ys[:use]), eps, params.max_focal_error)
-    pause = 0.0
-    n = 0
-    for s in scales:
-        if time.perf_counter() > deadline:
-            break
-        cam = camera.with_focal_length(f / s)
-        margin, eps = _tolerances(params, sig_px, use, cam.focal_length_px)
-        if algorithm.prepare is not None:
-            dt = _prepare(algorithm, config, cam, db, eps)
-            pause += dt
-            deadline += dt
-        log.debug("%s: nothing found at the nominal focal length: searching at scale %.4f", algorithm.name, s)
-        last = _search((algorithm, config, frame_stars, xs, ys, _pixels_to_vectors(cam, xs, ys), flux, sig_px,
-                        fused, False, cam, db, params), use, eps, margin, deadline, trials0)
-        n += 1
-        trials0 += max(last.tried, last.patterns)
-        out = _after(out, last)
-        if last.accepted is not None:
-            return out, s, n, pause
-        if last.code != ReasonCode.NO_PATTERN:
-            break
-    return out, None, n, pause
 
 
 def _after(out, last):
