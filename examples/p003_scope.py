@@ -111,8 +111,16 @@ def main(argv=None):
     from startrack.camera import Camera
     from startrack.catalog import load_catalog, merge_radius_arcsec
     from startrack.evaluate import Condition, make_frames, score
-    from startrack.identify import IdentifyParams, get_algorithm, identify_stars, make_config, register, warm_up
-    from startrack.identify.base import SearchContext, star_sigmas_px
+    from startrack.identify import (
+        IdentifyParams,
+        SearchContext,
+        get_algorithm,
+        identify_stars,
+        make_config,
+        register,
+        warm_up,
+    )
+    from startrack.identify.params import star_sigmas_px
     from startrack.kvector import build_kvector, load_kvector, max_separation_deg
 
     cam = Camera.from_fov(20, 1024, 1024)

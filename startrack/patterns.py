@@ -30,7 +30,7 @@ scale instead of one field of view; the key is probed over all bins within the
 measured tolerance; the correspondence is the best of 24 over all six edges; the
 focal length range is a property of the level.  From astrometry.net: several
 scales, uniform thinning.  Verification (attitude, every star matched, false-match
-probability) is :func:`startrack.identify.base.verify`, shared with the other
+probability) is :func:`startrack.identify.verify.verify`, shared with the other
 identification algorithms.
 """
 from __future__ import annotations

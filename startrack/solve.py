@@ -399,16 +399,16 @@ def warm_for_build(index=None) -> None:
     # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too): its
     # one-kernel search, and the driver's Python loop with the fused verification, through which every
     # other algorithm verifies its proposals (pixels_to_unit, verify_focal).
-    from startrack.identify import base, warm_up
+    from startrack.identify import driver, warm_up
     from startrack.kvector import build_kvector
 
     db = build_kvector(catalog.filter_magnitude(mag_max=5.0), 17.0)
     warm_up("pyramid", db)
-    saved, base.FUSED_SEARCH = base.FUSED_SEARCH, False
+    saved, driver.FUSED_SEARCH = driver.FUSED_SEARCH, False
     try:
         warm_up("pyramid", db)
     finally:
-        base.FUSED_SEARCH = saved
+        driver.FUSED_SEARCH = saved
 
 
 def _notice(text: str) -> None:

@@ -9,7 +9,7 @@ inverted to give the index range (Eqs. 10-12), which the paper reports 3x
 shorter (Table 5) and 14x faster (Table 6).  Four stars give four triangles;
 a triangle's candidates are confirmed by a fourth star (the pyramid's
 confirmation, Mortari et al. 2004), and the four-star pattern goes to the
-shared verification of :mod:`startrack.identify.base`.
+shared verification of :mod:`startrack.identify.verify`.
 
 Eq. 2 is applied to the stars' unit direction vectors (paper 000 Eq. 13 for
 image stars, Eq. 14 for catalog stars): the chord triangle's angles are the

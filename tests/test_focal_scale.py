@@ -110,7 +110,8 @@ def test_a_fitted_scale_pays_the_same_whatever_its_value(sensor15):
     choose), at least three (the window never exceeds the search tolerance): a chance pattern is
     fitted to whichever scale suits it, so a small offset buys no confidence."""
     from startrack.evaluate import Condition, make_frames
-    from startrack.identify import IdentifyParams, base, identify_stars
+    from startrack.identify import IdentifyParams, Proposal, identify_stars, verify
+    from startrack.identify import params as identify_params
 
     cam, db, stars = sensor15
     params = IdentifyParams(sigma_px=0.3)
@@ -121,12 +122,12 @@ def test_a_fitted_scale_pays_the_same_whatever_its_value(sensor15):
         if res.status != "ok" or res.focal_scale is not None:
             continue
         img = [m.star for m in res.matches[:4]]
-        prop = base.Proposal(img, [index[m.id] for m in res.matches[:4]])
-        xs, ys, flux = base._frame_arrays(frame)
-        sig = base.star_sigmas_px(frame, params)
-        b_all = base._pixels_to_vectors(cam, xs, ys)
+        prop = Proposal(img, [index[m.id] for m in res.matches[:4]])
+        xs, ys, flux = identify_params._frame_arrays(frame)
+        sig = identify_params.star_sigmas_px(frame, params)
+        b_all = verify._pixels_to_vectors(cam, xs, ys)
         eps = float(np.sqrt(2.0) * 4.0 * 0.3 / cam.focal_length_px + np.radians(2.0 / 3600))
-        p = [base.verify(prop, b_all, flux, sig, cam, db, eps, params, 1, True, None, off).p_false
+        p = [verify.verify(prop, b_all, flux, sig, cam, db, eps, params, 1, True, None, off).p_false
              for off in (0.0, 1e-4, 6e-4)]
         assert None not in p
         assert p[1] == pytest.approx(p[2], rel=1e-12)

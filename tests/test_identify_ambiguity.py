@@ -6,7 +6,8 @@ import pytest
 
 from startrack.camera import Camera
 from startrack.identify import IdentifyParams, identify_stars
-from startrack.identify.base import Algorithm, NoConfig, Proposal, run
+from startrack.identify.algorithm import Algorithm, NoConfig, Proposal
+from startrack.identify.driver import run
 from startrack.kvector import build_kvector, max_separation_deg
 from startrack.rotations import radec_roll_to_dcm, vector_to_radec
 

@@ -1,4 +1,4 @@
-"""The fast paths decide exactly as the general ones: the one-kernel verification (``base._verify_fused``,
+"""The fast paths decide exactly as the general ones: the one-kernel verification (``verify._verify_fused``,
 with the database's sky index) as the step-by-step Python path scanning every database star, and the
 voting clusters grown in a kernel as the Python loops.
 
@@ -12,7 +12,7 @@ from conftest import kvector_sensor
 
 from startrack.camera import Camera
 from startrack.evaluate import Condition, make_frames
-from startrack.identify import IdentifyParams, base, identify_stars
+from startrack.identify import IdentifyParams, driver, identify_stars, verify
 
 
 @pytest.fixture(scope="module")
@@ -61,20 +61,20 @@ def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypat
         return fused(*args)
 
     monkeypatch.setattr(kernels, "verify_focal", counted)
-    monkeypatch.setattr(base, "FUSED_SEARCH", False)     # each proposal verified from Python (compared below)
-    index = base._sky_index
+    monkeypatch.setattr(driver, "FUSED_SEARCH", False)     # each proposal verified from Python (compared below)
+    index = verify._sky_index
     outcomes = {"ok": 0, "failed": 0, "scaled": 0, "retried": 0}
     for k, cond in enumerate(CONDITIONS):
         params = IdentifyParams(sigma_px=max(cond.sigma_px, 0.3))
         for frame, _, _ in make_frames(stars, cam, cond, 25, 40 + k, mag_limit=5.4):
-            monkeypatch.setattr(base, "FUSED_VERIFY", True)
-            monkeypatch.setattr(base, "_sky_index", index)
+            monkeypatch.setattr(driver, "FUSED_VERIFY", True)
+            monkeypatch.setattr(verify, "_sky_index", index)
             before = len(calls)
             a = identify_stars(frame, cam, db, algorithm, params)
             assert len(calls) - before == a.trials       # every proposal went through the kernel
             # The reference: the Python path, every database star scanned (no sky index).
-            monkeypatch.setattr(base, "FUSED_VERIFY", False)
-            monkeypatch.setattr(base, "_sky_index", lambda _db: base._NO_INDEX)
+            monkeypatch.setattr(driver, "FUSED_VERIFY", False)
+            monkeypatch.setattr(verify, "_sky_index", lambda _db: verify._NO_INDEX)
             b = identify_stars(frame, cam, db, algorithm, params)
             assert len(calls) - before == a.trials       # ... and none of the Python path's
             assert _result(a) == _result(b)
@@ -112,11 +112,11 @@ def test_fused_pyramid_search_decides_as_the_python_loop(sensor, monkeypatch):
         for budget in (200, 2):
             params = IdentifyParams(sigma_px=max(cond.sigma_px, 0.3), max_proposals=budget)
             for frame, _, _ in make_frames(stars, cam, cond, 25, 40 + k, mag_limit=5.4):
-                monkeypatch.setattr(base, "FUSED_SEARCH", True)
+                monkeypatch.setattr(driver, "FUSED_SEARCH", True)
                 before = len(calls)
                 a = identify_stars(frame, cam, db, "pyramid", params)
                 assert len(calls) > before
-                monkeypatch.setattr(base, "FUSED_SEARCH", False)
+                monkeypatch.setattr(driver, "FUSED_SEARCH", False)
                 b = identify_stars(frame, cam, db, "pyramid", params)
                 assert _exact(a) == _exact(b)
                 assert a.details == b.details and a.tolerance_arcsec == b.tolerance_arcsec

@@ -10,7 +10,7 @@ from conftest import assert_refused, run_cli
 from startrack.camera import Camera
 from startrack.evaluate import Condition, make_frames, score
 from startrack.identify import IdentifyParams, algorithm_names, config_fields, identify_stars, make_config, register
-from startrack.identify.base import search_levels
+from startrack.identify.driver import search_levels
 from startrack.kvector import build_kvector, max_separation_deg
 
 # A toy algorithm: every catalog pair at the angle of the two brightest stars, both ways round.
@@ -142,7 +142,7 @@ def test_sparse_four_star_frames_are_identified(catalog):
 
 def test_match_everything_against_a_deeper_catalog(catalog):
     """Detections fainter than the database are matched to the catalog with the attitude (0 wrong)."""
-    from startrack.identify.base import CatalogStars
+    from startrack.identify.catalog_match import CatalogStars
 
     cam = Camera.from_fov(14, 1000, 800)                     # a sensor the other tests do not use
     db = build_kvector(catalog.filter_magnitude(None, 5.5), max_separation_deg(camera=cam))

@@ -128,8 +128,8 @@ def test_brightness_counts_magnitude_agreement_in_its_confidence(sensor16):
     Leaving it out (``uses_brightness``) refused every one of these frames."""
     import dataclasses
 
-    from startrack.identify.base import run
     from startrack.identify.brightness import BRIGHTNESS
+    from startrack.identify.driver import run
     from startrack.kvector import build_kvector, max_separation_deg
 
     cam, cat, stars = sensor16
@@ -265,9 +265,9 @@ def test_pyramid_gate_counts_every_fourth_star_it_tried(sensor15, fused, monkeyp
     at the nominal focal length) were accepted at 1.9e-7 and 5.0e-7 with a false star or a wrong star in
     the pyramid, both below the 1e-6 gate; now the nominal pass refuses them and the search goes on to
     the right answer."""
-    import startrack.identify.base as base
+    import startrack.identify.driver as driver
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    monkeypatch.setattr(driver, "FUSED_SEARCH", fused)
     cam, db, _ = sensor15
     for sigma, false_stars, focal_pct, index in ((0.3, 10, 2.0, 78), (1.0, 3, 1.0, 57)):
         frame, truth = _frame15(sensor15, sigma, false_stars, focal_pct, index)
@@ -283,10 +283,10 @@ def test_pyramid_second_pass_keeps_triads_with_triangles_at_many_scales(sensor15
     (free_focal_patterns: 16-24 here), so the nominal limit of 64 triangles skipped every triad of this
     1 px frame (263-971 triangles each, the true pyramid among them) and it failed; the second pass's
     limit is that many times larger."""
-    import startrack.identify.base as base
+    import startrack.identify.driver as driver
     from startrack.identify.pyramid import PyramidConfig
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    monkeypatch.setattr(driver, "FUSED_SEARCH", fused)
     cam, db, _ = sensor15
     frame, truth = _frame15(sensor15, 1.0, 3, 1.0, 14)
     assert PyramidConfig().max_triangles == 64
@@ -300,9 +300,9 @@ def test_pyramid_nominal_pass_leaves_the_second_half_the_budget(sensor15, fused,
     """A dense field (18 stars) seen through a focal length 2 % off at 1 px: the nominal pass found a chance
     pyramid in triad after triad and spent all 200 proposals on them, so the second pass, which has the
     true pyramid, never ran.  The nominal pass now has half the budget."""
-    import startrack.identify.base as base
+    import startrack.identify.driver as driver
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    monkeypatch.setattr(driver, "FUSED_SEARCH", fused)
     cam, db, _ = sensor15
     frame, truth = _frame15(sensor15, 1.0, 0, 2.0, 59)
     assert len(frame) == 18
@@ -314,7 +314,7 @@ def test_pyramid_nominal_pass_leaves_the_second_half_the_budget(sensor15, fused,
 def test_search_levels():
     """The search stars of each search: max_stars, doubled while the one before found nothing, up to
     max_search_stars and the frame's count."""
-    from startrack.identify.base import search_levels
+    from startrack.identify.driver import search_levels
 
     p = IdentifyParams()
     assert (p.max_stars, p.max_search_stars) == (20, 80)
@@ -332,9 +332,9 @@ def test_pyramid_searches_deeper_when_the_brightest_are_not_stars(sensor15, fuse
     """Forty false stars as bright as the stars: the 20 brightest detections hold few catalog stars, and
     their pyramids are chance ones; the search of the 40 brightest (then 80) finds the field.  The gate
     counts the trials of every search: no wrong identity either way."""
-    import startrack.identify.base as base
+    import startrack.identify.driver as driver
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    monkeypatch.setattr(driver, "FUSED_SEARCH", fused)
     cam, db, stars = sensor15
     frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=40, min_catalog_stars=6), 24, 31,
                          mag_limit=5.5)
@@ -357,10 +357,10 @@ def test_pyramid_searches_deeper_when_the_brightest_are_not_stars(sensor15, fuse
 def test_search_plan():
     """Every depth at the nominal focal length first, then the free focal length's passes, for a search that
     has them and a frame deeper than one search; both passes in each search otherwise."""
-    from startrack.identify.base import BOTH_PASSES as B
-    from startrack.identify.base import FREE_PASS as F
-    from startrack.identify.base import NOMINAL_PASS as N
-    from startrack.identify.base import search_plan
+    from startrack.identify.driver import BOTH_PASSES as B
+    from startrack.identify.driver import FREE_PASS as F
+    from startrack.identify.driver import NOMINAL_PASS as N
+    from startrack.identify.driver import search_plan
 
     p = IdentifyParams()
     assert search_plan(15, p, True) == [(15, B)]
@@ -376,9 +376,9 @@ def test_focal_length_off_is_found_after_the_nominal_searches(sensor15, fused, m
     """A focal length 1.5 % off and 15 false stars: more than 20 detections, so the nominal searches of 20 and
     more stars come first (search_plan) and find nothing; the free focal length's pass then finds the field,
     measures the scale, and names no wrong star although every search's trials count."""
-    import startrack.identify.base as base
+    import startrack.identify.driver as driver
 
-    monkeypatch.setattr(base, "FUSED_SEARCH", fused)
+    monkeypatch.setattr(driver, "FUSED_SEARCH", fused)
     cam, db, stars = sensor15
     frames = make_frames(stars, cam, Condition(sigma_px=0.3, false_stars=15, min_catalog_stars=6,
                                                focal_error_pct=1.5), 12, 8, mag_limit=5.5)
@@ -387,7 +387,7 @@ def test_focal_length_off_is_found_after_the_nominal_searches(sensor15, fused, m
     scores = [score(r, t) for r, (_, t, _) in zip(got, frames)]
     assert scores.count("bad") == 0 and scores.count("success") >= 9, scores
     free = [r for r, (s, _, _) in zip(got, frames)
-            if r.ok and r.details.get("searches", 1) > len(base.search_levels(len(s), IdentifyParams()))]
+            if r.ok and r.details.get("searches", 1) > len(driver.search_levels(len(s), IdentifyParams()))]
     assert len(free) >= 8
     assert all(r.focal_scale is not None and abs(r.focal_scale - 1.0) > 0.01 for r in free)
 
@@ -398,7 +398,7 @@ def test_focal_scales():
 
     import numpy as np
 
-    from startrack.identify.base import focal_scales
+    from startrack.identify.driver import focal_scales
 
     theta = math.radians(10.0)
     b = np.array([[0.0, 0.0, 1.0], [math.sin(theta), 0.0, math.cos(theta)], [0.0, math.sin(0.1), math.cos(0.1)]])

@@ -1,8 +1,8 @@
-"""The per-star centroid sigma rule of identification (startrack.identify.base.star_sigmas_px)."""
+"""The per-star centroid sigma rule of identification (startrack.identify.params.star_sigmas_px)."""
 import numpy as np
 
 from startrack.identify import IdentifyParams
-from startrack.identify.base import _table_arrays, star_sigmas_px
+from startrack.identify.params import _table_arrays, star_sigmas_px
 from startrack.records import StarTable
 
 

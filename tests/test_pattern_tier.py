@@ -6,7 +6,7 @@ import pytest
 from conftest import kvector_sensor
 
 from startrack.evaluate import Condition, make_frames, score
-from startrack.identify import IdentifyParams, base, identify_stars
+from startrack.identify import IdentifyParams, driver, identify_stars
 from startrack.identify import pyramid as P
 
 
@@ -87,11 +87,11 @@ def test_two_tiers_fused_decide_as_the_python_loop(wide, monkeypatch):
         for budget in (200, 8):
             params = IdentifyParams(sigma_px=cond.sigma_px, max_proposals=budget)
             for frame, truth, _ in make_frames(stars, cam, cond, 20, 70 + k, mag_limit=5.5):
-                monkeypatch.setattr(base, "FUSED_SEARCH", True)
+                monkeypatch.setattr(driver, "FUSED_SEARCH", True)
                 tiers.clear()
                 a = identify_stars(frame, cam, db, "pyramid", params)
                 ran = list(tiers)
-                monkeypatch.setattr(base, "FUSED_SEARCH", False)
+                monkeypatch.setattr(driver, "FUSED_SEARCH", False)
                 b = identify_stars(frame, cam, db, "pyramid", params)
                 assert (a.status, a.reason, a.trials, [tuple(m) for m in a.matches], a.focal_scale) == \
                        (b.status, b.reason, b.trials, [tuple(m) for m in b.matches], b.focal_scale)

@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from startrack.evaluate import Condition, make_frames
-from startrack.identify import IdentifyParams, base
+from startrack.identify import IdentifyParams, verify
 
 
 def _window(b, tol, margin, u, v):
@@ -45,7 +45,7 @@ def _triads(sensor15, cond, count, seed, sigma_px, n_triads):
     for frame, _, _ in make_frames(stars, cam, cond, count, seed, mag_limit=5.5):
         xs = np.array([s["x"] for s in frame])
         ys = np.array([s["y"] for s in frame])
-        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
+        b = np.ascontiguousarray(verify._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
         tol = params.tolerance_sigma * np.full(len(b), sigma_px) / cam.focal_length_px
         for i, j, k in smart_triads(len(b))[:n_triads].tolist():
             yield b, tol, margin, i, j, k
@@ -87,7 +87,7 @@ def test_fourth_star_confirmation_matches_brute_force(sensor15):
     for frame, _, _ in make_frames(stars, cam, cond, 40, 7, mag_limit=5.5):
         xs = np.array([s["x"] for s in frame])
         ys = np.array([s["y"] for s in frame])
-        b = np.ascontiguousarray(base._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
+        b = np.ascontiguousarray(verify._pixels_to_vectors(cam, xs, ys)[:params.max_stars])
         n = len(b)
         tol = params.tolerance_sigma * np.full(n, 1.0) / cam.focal_length_px
         for i, j, k in smart_triads(n)[:6].tolist():

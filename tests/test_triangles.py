@@ -119,7 +119,8 @@ def test_modified_pyramid_identifies_star_lists(catalog):
     """Paper 000's sensor reading 8 x 8 deg, stars 2.5 to 5.5 (kept small for the suite): no wrong answer."""
     from startrack.camera import Camera
     from startrack.evaluate import Condition, make_frames, score
-    from startrack.identify.base import IdentifyParams, run
+    from startrack.identify import IdentifyParams
+    from startrack.identify.driver import run
     from startrack.identify.modified_pyramid import propose_modified_pyramid
     from startrack.triangles import build_triangles
 

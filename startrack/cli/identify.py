@@ -168,7 +168,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     deep = None
     if match_all:
         from startrack.catalog import load_catalog
-        from startrack.identify.base import CatalogStars
+        from startrack.identify.catalog_match import CatalogStars
 
         deep = CatalogStars.from_catalog(load_catalog(catalog))
     override = None

@@ -1,9 +1,9 @@
 """Lost-in-space star identification: a registry of algorithms and one search driver.
 
-Every algorithm is an :class:`~startrack.identify.base.Algorithm`: a generator
+Every algorithm is an :class:`~startrack.identify.algorithm.Algorithm`: a generator
 of proposals in its paper's order, a configuration dataclass and the kind of
 database it needs.  :func:`identify_stars` runs it through the shared driver
-(:func:`startrack.identify.base.run`), which verifies each proposal until one
+(:func:`startrack.identify.driver.run`), which verifies each proposal until one
 passes the false-match gate.
 
 Adding an algorithm is one module defining an ``Algorithm`` and one line in
@@ -16,7 +16,9 @@ from __future__ import annotations
 import dataclasses
 import importlib
 
-from startrack.identify.base import Algorithm, IdentifyParams, NoConfig, Proposal, SearchContext, run
+from startrack.identify.algorithm import Algorithm, NoConfig, Proposal, SearchContext
+from startrack.identify.driver import run
+from startrack.identify.params import IdentifyParams
 from startrack.records import Identification, Match
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
@@ -112,7 +114,7 @@ def warm_up(algorithm: str, db, params: IdentifyParams | None = None, camera=Non
     stars = [{"x": float(a), "y": float(b), "flux": 1.0e4 * 10 ** (-0.4 * float(m))}
              for a, b, m in zip(x[inside], y[inside], db.star_mag[front][inside])]
     stars.sort(key=lambda s: -s["flux"])
-    from startrack.identify.base import WARMING_UP
+    from startrack.identify.driver import WARMING_UP
 
     token = WARMING_UP.set(True)
     try:
@@ -207,7 +209,7 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         The algorithm's own settings (default: its defaults).
     catalog : Catalog, optional
         Match the detections the database does not hold against this catalog
-        once the attitude is known (:func:`startrack.identify.base.match_catalog`).
+        once the attitude is known (:func:`startrack.identify.catalog_match.match_catalog`).
 
     Returns
     -------

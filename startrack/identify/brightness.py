@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Algorithm, Proposal
+from startrack.identify.algorithm import Algorithm, Proposal
 
 BAND_WIDTH_MAG = 0.5    # magnitude bands of the oriented pair catalog fainter than the reference stars
 

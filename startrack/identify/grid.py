@@ -73,7 +73,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Algorithm, Proposal
+from startrack.identify.algorithm import Algorithm, Proposal
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import IdentifyParams, _binomial_sf, tolerance_rad
+from startrack.identify.params import IdentifyParams, tolerance_rad
+from startrack.identify.verify import _binomial_sf
 from startrack.records import Identification, ReasonCode, Status
 
 __all__ = ["IdentifyParams", "IdentifyResult", "Proposal", "centroid_sigma_px", "tolerance_rad", "verify"]

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Algorithm, Proposal
+from startrack.identify.algorithm import Algorithm, Proposal
 
 MAX_CANDIDATES = 4096      # catalog triangles kept per look-up
 

@@ -14,7 +14,7 @@ of four or five stars needs.  When the triads give no accepted proposal and the
 focal length may be off (``max_focal_error``), they are searched once more with
 the focal length free within that (one scale for a triangle's three sides): in the
 same search, or, for a frame that the driver searches again with more stars, after
-the nominal searches of every depth (:func:`startrack.identify.base.search_plan`;
+the nominal searches of every depth (:func:`startrack.identify.driver.search_plan`;
 the driver says which pass in ``SearchContext.focal_pass``).
 
 The search has two tiers when they differ enough (:func:`pattern_database`) and the
@@ -44,15 +44,11 @@ from itertools import repeat
 import numpy as np
 
 from startrack._kernels import identify as _kernels
-from startrack.identify.base import (
+from startrack.identify.algorithm import FREE_PASS, NOMINAL_PASS, Algorithm, Proposal, SearchOutcome
+from startrack.identify.verify import (
     AMBIGUITY_CHI2,
-    FREE_PASS,
     MAG_GATE,
     MAG_SIGMA_FLOOR,
-    NOMINAL_PASS,
-    Algorithm,
-    Proposal,
-    SearchOutcome,
     _fused_verdict,
     _new_tuple,
     _sky_index,
@@ -255,7 +251,7 @@ PAUSE = 8
 
 def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     """:func:`search_pyramid` with the driver's verification of each proposal, in one kernel call
-    (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.base.Algorithm.fused`).
+    (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.algorithm.Algorithm.fused`).
 
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
     between them (every proposal in the Python loop).  With two tiers (:func:`pattern_database`) the
@@ -394,7 +390,7 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
     and :func:`_buffers` and a new tuple.  The thread's last frame's plan, camera and configuration
     (frozen; by identity), settings (which may change between frames; by value) and tolerances are
     compared first; when they are the same, the arguments are looked up by the frame's number of search
-    stars and focal-length passes (:attr:`~startrack.identify.base.FusedFrame.focal_pass`) alone, without
+    stars and focal-length passes (:attr:`~startrack.identify.algorithm.FusedFrame.focal_pass`) alone, without
     hashing the settings (so the thread holds its last database's arrays until its next frame)."""
     pkey = _PARAMS_KEY(params)
     margin, eps = frame.margin, frame.eps

@@ -19,7 +19,7 @@ right when true identities out-vote chance ones; with a catalog of a few thousan
 and 4-6 stars in the field, or among false stars, hundreds of chance identities tie
 with or beat the true one (measured on the 15 deg 1280x960 sensor, Hp <= 6: 1 px
 noise or 10 false stars), and its clusters never form.  The verification of every
-proposal stays the shared one (:mod:`startrack.identify.base`).
+proposal stays the shared one (:mod:`startrack.identify.verify`).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from startrack.identify.base import Algorithm, Proposal
+from startrack.identify.algorithm import Algorithm, Proposal
 
 
 @dataclass(frozen=True)

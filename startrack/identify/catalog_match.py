@@ -1,0 +1,155 @@
+"""The final catalog match: the detections the database does not hold, matched to a (deeper) catalog once the
+identification's attitude is known (:func:`match_catalog`), and the attitude refined with them."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from startrack.records import Match
+
+__all__ = ["CatalogStars", "match_catalog", "match_identified"]
+
+
+@dataclass
+class CatalogStars:
+    """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes."""
+
+    vectors: np.ndarray
+    id: np.ndarray
+    mag: np.ndarray
+
+    @classmethod
+    def from_catalog(cls, catalog) -> CatalogStars:
+        """From a :class:`startrack.catalog.Catalog` (vectors computed once)."""
+        return cls(np.ascontiguousarray(catalog.vectors()), np.asarray(catalog.id), np.asarray(catalog.mag))
+
+
+def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
+                  stars: CatalogStars, max_chance: float, cos_fov: float, mag_limit: float | None = None,
+                  sigma: np.ndarray | None = None):
+    """Match every detection left over to a (deeper) catalog with the identification's attitude.
+
+    Each unmatched detection takes the nearest catalog star projected into the
+    image within its own radius (``radius``, rad), when no other catalog star
+    is within twice the radius (an unresolved neighbour -- closer to it than
+    the radius -- is taken only when it is the brighter), the catalog star is
+    not matched already (one-to-one, the nearer detection wins), and the
+    chance of a catalog star as close by accident, ``1 - exp(-lambda)``, is
+    below ``max_chance``: ``lambda`` is the density of catalog stars around the
+    detection (the others within ten radii, at least the image average) times
+    the disc of radius ``max(offset, sigma)`` (the observed offset, at least
+    the detection's 1-sigma ``sigma``, rad; a p-value of the distance).
+    Only catalog stars at or brighter than ``mag_limit`` take part (the
+    sensor's depth: a deeper catalog only adds chance neighbours).  The
+    attitude is then refined with every match (QUEST, weights ``1 / radius^2``).
+
+    Parameters
+    ----------
+    matches : list of Match
+        The identification's matches; ``ref`` their ICRS unit vectors.
+
+    Returns
+    -------
+    (matches, quaternion or None)
+        ``None`` when nothing was added.
+    """
+    from startrack._kernels.attitude import quest
+
+    vec = stars.vectors
+    front = np.flatnonzero((vec @ dcm[2] > cos_fov) & (stars.mag <= (np.inf if mag_limit is None else mag_limit)))
+    pc = vec[front] @ dcm.T
+    x, y = camera.vectors_to_pixels(pc)
+    keep = camera.in_image(x, y)
+    idx, pc = front[keep], pc[keep]
+    done = np.zeros(len(b_all), dtype=bool)
+    done[[m.star for m in matches]] = True
+    todo = np.flatnonzero(~done)
+    if len(idx) < 1 or len(todo) == 0:
+        return matches, None
+    taken = {int(m.id) for m in matches}
+    dots = b_all[todo] @ pc.T                                   # (detections, predicted)
+    order = np.argsort(-dots, axis=1)[:, :2]
+    r = radius[todo]
+    lam_floor = len(idx) * math.pi * (r * camera.focal_length_px) ** 2 / float(camera.width * camera.height)
+    n_local = np.count_nonzero(dots >= np.cos(10 * r)[:, None], axis=1) - 1
+    cand = {}
+    for row, i in enumerate(todo.tolist()):
+        best = int(order[row, 0])
+        if dots[row, best] < math.cos(r[row]):
+            continue
+        if order.shape[1] > 1 and dots[row, order[row, 1]] >= math.cos(2 * r[row]):
+            other = int(order[row, 1])
+            if float(pc[best] @ pc[other]) < math.cos(r[row]):
+                continue                                        # two distinct stars near it: ambiguous
+            if stars.mag[idx[other]] < stars.mag[idx[best]]:
+                best = other                                    # an unresolved pair: the brighter
+        offset = math.acos(min(1.0, float(dots[row, best])))
+        closest = max(offset, float(sigma[i]) if sigma is not None else r[row]) / r[row]
+        if 1.0 - math.exp(-max(n_local[row] / 100.0, lam_floor[row]) * min(1.0, closest) ** 2) > max_chance:
+            continue
+        cid = int(stars.id[idx[best]])
+        if cid in taken:
+            continue
+        if cid not in cand or dots[row, best] > cand[cid][1]:
+            cand[cid] = (i, float(dots[row, best]), int(idx[best]))
+    if not cand:
+        return matches, None
+    new = sorted(cand.items(), key=lambda kv: kv[1][0])
+    out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
+    body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
+    ref_all = np.vstack([ref, vec[[k for _, (_, _, k) in new]]])
+    w = 1.0 / radius[[m.star for m in out]] ** 2
+    q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref_all), w / w.sum())
+    q = q / math.sqrt(float(q @ q))
+    out.sort(key=lambda m: m.star)
+    return out, (-q if q[3] < 0 else q)
+
+
+def _frame_depth(flux, star_index, mags, margin: float = 1.0):
+    """The faintest catalog magnitude the frame can hold: its faintest detection by the zero point
+    (median of catalog magnitude + 2.5 log10 flux over the identified stars) plus ``margin``; None
+    without fluxes."""
+    if flux is None:
+        return None
+    f = flux[star_index]
+    ok = np.isfinite(f) & (f > 0)
+    fl = flux[np.isfinite(flux) & (flux > 0)]
+    if ok.sum() < 3 or len(fl) == 0:
+        return None
+    zp = float(np.median(mags[ok] + 2.5 * np.log10(f[ok])))
+    return float(-2.5 * np.log10(fl.min()) + zp + margin)
+
+
+def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db, params):
+    """:func:`match_catalog` of an accepted identification (:func:`startrack.identify.driver.run`'s ``catalog``).
+
+    ``accepted`` is the verification's verdict (its matches, database indices and attitude), ``scale`` the
+    focal-length scale it measured (None: the nominal one), ``b_all`` the detections' unit vectors at the
+    nominal focal length (None: computed here), ``flux`` NaN where unknown.  Each detection's radius is the
+    verification's (``match_sigma`` of its centroid sigma plus the margin, or ``match_radius_px``); only
+    catalog stars down to the frame's depth (:func:`_frame_depth`) take part.
+
+    Returns
+    -------
+    (matches, quaternion or None, depth or None)
+        ``quaternion`` None when nothing was added; ``depth`` the magnitude limit used.
+    """
+    from startrack.identify.verify import _geometry, _pixels_to_vectors
+
+    if not isinstance(catalog, CatalogStars):
+        catalog = CatalogStars.from_catalog(catalog)
+    has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+    if b_all is None:
+        b_all = _pixels_to_vectors(camera, xs, ys)
+    cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
+    b = b_all if scale is None else _pixels_to_vectors(cam, xs, ys)
+    margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
+    radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
+        np.maximum(1.0, params.match_sigma * sig_px + margin_px)
+    depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
+    matches, q = match_catalog(accepted.matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
+                               radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
+                               _geometry(camera if scale is None else cam)[0], depth, sig_px / cam.focal_length_px)
+    return matches, q, depth
