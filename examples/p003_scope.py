@@ -41,7 +41,7 @@ import numpy as np
 
 def pyramid_scope(b, eps_pairs, db, triads_tried):
     """Oriented entries in the k-vector ranges of theta_ij and theta_ik of the first triads (smart order)."""
-    from startrack._kernels.identify import smart_triads
+    from startrack._kernels.pyramid import smart_triads
 
     total = 0
     for i, j, k in smart_triads(len(b))[:triads_tried].tolist():
@@ -61,7 +61,7 @@ def time_kernels():
     """Wrap the compiled search kernels (brightness's and the pyramid's) so that the time inside them accumulates in
     ``KERNEL_S``: the search time less this is the Python around them."""
     import startrack._kernels.brightness as kb
-    import startrack._kernels.identify as ki
+    import startrack._kernels.pyramid as ki
 
     def wrap(module, name):
         inner = getattr(module, name)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from startrack._kernels.identify import pixels_to_unit
+from startrack._kernels.common import pixels_to_unit
 
 FOCAL, CX, CY = 6000.0, 639.5, 479.5
 
@@ -12,7 +12,7 @@ def test_field_tentative_matches_are_the_brute_force_ones(n, m):
     """The field's tentative matches (each detection's one projected star within its widened radius, none
     when two are; a star once) are those of a scan of every star, also when the stars are looked up by
     columns (many detections and stars): some detections near a star, some between two, some far."""
-    from startrack._kernels.identify import field_tentative_matches
+    from startrack._kernels.focal import field_tentative_matches
 
     rng = np.random.default_rng(4)
     dcm = np.eye(3)

@@ -3,7 +3,8 @@ re-verifying only for a scale its matches can tell from 1, and what a fitted sca
 import numpy as np
 import pytest
 
-from startrack._kernels.identify import SCALE_Z, focal_scale, pixels_to_unit, scale_sigma
+from startrack._kernels.common import pixels_to_unit
+from startrack._kernels.focal import SCALE_Z, focal_scale, scale_sigma
 
 FOCAL, CX, CY = 6000.0, 639.5, 479.5
 
@@ -72,7 +73,7 @@ def _field(rng, n, sigma_true, scale):
     (1.0, 1.01, "always"),      # 1 % off with noisy stars: the scatter is measured about the fitted scale
 ])
 def test_scale_significant_only_when_the_matches_tell_the_scale_from_one(sigma_true, scale, expect):
-    from startrack._kernels.identify import scale_significant
+    from startrack._kernels.focal import scale_significant
 
     rng = np.random.default_rng(11)
     hits = 0
@@ -92,7 +93,7 @@ def test_scale_cells_counts_the_scales_a_fit_could_choose():
     """The look-elsewhere factor of a proposal verified at a fitted focal-length scale: one cell per
     ``window`` over the scales the nominal search's windows allow the core's longest angle (at most the
     stated focal error), whatever scale the data fitted; never fewer than the fitted offset's own cells."""
-    from startrack._kernels.identify import scale_cells
+    from startrack._kernels.focal import scale_cells
 
     theta, window, eps = 0.2, 7e-5, 3e-4
     want = 1.0 + 2.0 * eps / window

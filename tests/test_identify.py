@@ -20,7 +20,7 @@ def setup20(catalog):
 
 
 def test_smart_triads_cover_every_triad_once():
-    from startrack._kernels.identify import smart_triads
+    from startrack._kernels.pyramid import smart_triads
 
     for n in (3, 4, 6, 10):
         t = smart_triads(n)

@@ -50,7 +50,7 @@ CONDITIONS = [Condition(sigma_px=0.3, min_catalog_stars=4),
 
 @pytest.mark.parametrize("algorithm", ["pyramid", "brightness"])
 def test_fused_and_python_verification_decide_alike(sensor, algorithm, monkeypatch):
-    from startrack._kernels import identify as kernels
+    from startrack._kernels import verify as kernels
 
     cam, db, stars = sensor
     calls = []
@@ -93,7 +93,7 @@ def test_fused_pyramid_search_decides_as_the_python_loop(sensor, monkeypatch):
     """The pyramid's search and verification in one kernel (``Algorithm.fused``) as the driver's Python loop
     over the search's proposals, each verified by the fused verification: the same result, trials and
     details, the same attitude to the bit; with a budget of a few proposals, the same refusal."""
-    from startrack._kernels import identify as kernels
+    from startrack._kernels import pyramid as kernels
 
     cam, db, stars = sensor
     calls = []
@@ -132,7 +132,8 @@ def test_fused_pyramid_search_decides_as_the_python_loop(sensor, monkeypatch):
 
 def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch):
     """A distorted camera takes the Python path (the kernels project through a pinhole)."""
-    from startrack._kernels import identify as kernels
+    from startrack._kernels import pyramid as pyramid_kernels
+    from startrack._kernels import verify as kernels
 
     cam, db, stars = sensor
     frame = make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=5), 1, 3, mag_limit=5.4)[0][0]
@@ -141,7 +142,7 @@ def test_fused_verification_is_used_for_pinhole_cameras_only(sensor, monkeypatch
         raise AssertionError("the fused kernel was called")
 
     monkeypatch.setattr(kernels, "verify_focal", refuse)
-    monkeypatch.setattr(kernels, "pyramid_identify", refuse)
+    monkeypatch.setattr(pyramid_kernels, "pyramid_identify", refuse)
     distorted = Camera(cam.width, cam.height, cam.focal_length_px, cam.cx, cam.cy, 1e-9, 0.0)
     assert identify_stars(frame, distorted, db, "pyramid", IdentifyParams(sigma_px=0.3)).status == "ok"
     with pytest.raises(AssertionError, match="fused kernel"):
@@ -210,7 +211,7 @@ def test_sky_index_cones_hold_the_stars_of_a_full_scan(catalog):
     some straddling right ascension 0, for several band counts."""
     import math
 
-    from startrack._kernels.identify import cone_stars, sky_index
+    from startrack._kernels.sky_index import cone_stars, sky_index
 
     sv = np.ascontiguousarray(catalog.filter_magnitude(None, 6.5).vectors())
     rng = np.random.default_rng(5)
@@ -325,7 +326,7 @@ def test_matched_scale_is_focal_scale():
     """The loop's scale of the matches (matched_scale: the chords of every pair, then their least-squares
     sums) is focal_scale's value bit for bit, for any detections and stars (the fused and the Python
     verification take the one and the other before)."""
-    from startrack._kernels.identify import focal_scale, matched_scale
+    from startrack._kernels.focal import focal_scale, matched_scale
 
     rng = np.random.default_rng(11)
     sv = rng.normal(size=(300, 3))
@@ -346,7 +347,8 @@ def test_focal_scale_of_chords_measures_a_known_focal_error():
     """A field measured with a focal length 1 % short of the true one (every measured angle about 1 %
     too large) gives the focal scale ``f_used / f_true`` (true f = f / scale) to within the tangent
     projection's departure from proportional angles, whichever attitude; 1 at the true focal length."""
-    from startrack._kernels.identify import focal_scale, pixels_to_unit
+    from startrack._kernels.common import pixels_to_unit
+    from startrack._kernels.focal import focal_scale
     from startrack.rotations import quaternion_to_dcm, random_quaternions
 
     rng = np.random.default_rng(5)

@@ -1,6 +1,6 @@
 """The pyramid kernel's confirmation by a fourth star, against a brute-force search of the database.
 
-Every row ``(r, I, J, K, R)`` of :func:`startrack._kernels.identify.pyramid_candidates` must name
+Every row ``(r, I, J, K, R)`` of :func:`startrack._kernels.pyramid.pyramid_candidates` must name
 the first fourth star ``r`` (after ``i, j, k``) for which exactly one catalog star ``R`` has its three
 angles to ``I, J, K`` within the tolerances, and that ``R``; no earlier fourth star may have exactly
 one.  Frames with 1 px noise and false stars give triads with several catalog triangles.
@@ -37,7 +37,7 @@ def _unique_r(db, b, tol, margin, i, j, k, r, I, J, K):
 def _triads(sensor15, cond, count, seed, sigma_px, n_triads):
     """``(b, tol, margin, i, j, k)`` of the first ``n_triads`` triads (smart index order) of ``count``
     frames of ``cond``: the search stars' vectors and tolerances as the driver makes them."""
-    from startrack._kernels.identify import smart_triads
+    from startrack._kernels.pyramid import smart_triads
 
     cam, _, stars = sensor15
     params = IdentifyParams(sigma_px=sigma_px)
@@ -74,7 +74,7 @@ def _brute_triangles(db, b, i, j, k, windows):
 
 
 def test_fourth_star_confirmation_matches_brute_force(sensor15):
-    from startrack._kernels.identify import pyramid_candidates, smart_triads
+    from startrack._kernels.pyramid import pyramid_candidates, smart_triads
     from startrack.identify.pyramid import pair_adjacency
 
     cam, db, stars = sensor15
@@ -109,7 +109,7 @@ def test_triangles_match_brute_force(sensor15):
     (I, J) of the database at theta_ij, K paired with I at theta_ik, the angle J-K within its window
     and the same handedness.  At 20 deg of pair range and 1 px noise windows hold hundreds of
     pairs, so stars left out by any shortcut (the theta_jk pre-filter) would change the count."""
-    from startrack._kernels.identify import pyramid_candidates
+    from startrack._kernels.pyramid import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
     _, db, _ = sensor15
@@ -134,7 +134,7 @@ def test_first_at_or_above_is_searchsorted():
     left index for any ascending values, query, and spread bounds (true ones, wrong ones, equal ones),
     with ties, values outside the bounds and empty ranges; the neighbours outside the range are never
     taken."""
-    from startrack._kernels.identify import _first_at_or_above
+    from startrack._kernels.common import _first_at_or_above
 
     rng = np.random.default_rng(1)
     for _ in range(5000):
@@ -152,7 +152,7 @@ def test_first_at_or_above_is_searchsorted():
 def test_sort_indices_is_a_sort():
     """The cone's sort of star indices (insertion up to 24, radix beyond) orders any distinct non-negative
     integers as ``np.sort`` does, for one to five bytes of value, and leaves the rest of the array alone."""
-    from startrack._kernels.identify import _sort_indices
+    from startrack._kernels.common import _sort_indices
 
     rng = np.random.default_rng(3)
     for _ in range(400):
@@ -170,7 +170,7 @@ def test_triangles_with_a_free_focal_length_match_brute_force(sensor15):
     same handedness, and one scale for all three (the scales each side allows, ``[(a - e) / theta,
     (a + e) / theta]``, overlap within ``1 +- f``).  The frames are seen through a focal length 2 %
     off, so the true triangles are found only this way."""
-    from startrack._kernels.identify import pyramid_candidates
+    from startrack._kernels.pyramid import pyramid_candidates
     from startrack.identify.pyramid import pair_adjacency
 
     _, db, _ = sensor15

@@ -196,7 +196,7 @@ def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, 
     rows ``[0, k)`` every star in front, ``[m, m + n_near)`` those projected on the sensor or
     within ``margin_px`` pixels of it, ``[2 m, 2 m + n_on)`` those on the sensor.  The matching
     (:func:`match_projected`) and the verification's checks
-    (:func:`startrack._kernels.identify.check_matches`, ``resolve_conflicts``) read the same
+    (:func:`startrack._kernels.verify.check_matches`, ``resolve_conflicts``) read the same
     projection of an attitude instead of each projecting the stars again, each from a
     contiguous list (a slice of ``lists`` and ``pv``: indices that need no check for
     negative values).  Returns ``(k, n_near, n_on)``.

@@ -24,8 +24,8 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
+from startrack._kernels.common import _angle, _cos_window
 from startrack._kernels.database import kvector_range
-from startrack._kernels.identify import vote_once
 
 
 @njit(cache=True)
@@ -260,3 +260,134 @@ def voting_clusters(b, tol, margin, n_cat, pair_i, pair_j, pair_cos, kvector, li
         score[nc] = tri[h0]
         nc += 1
     return out_s[:nc], out_c[:nc], sizes[:nc], score[:nc], nh, n_edges
+
+
+@njit(cache=True, inline="always")
+def vote_once(votes, stamp, i, c, key):
+    """One vote for hypothesis ``(i, c)`` per ``key`` (an image pair): ``stamp`` remembers the last key."""
+    if stamp[i, c] != key:
+        stamp[i, c] = key
+        votes[i, c] += 1
+
+
+@njit(cache=True)
+def geometric_voting_top(b, n_cat, pair_i, pair_j, pair_cos, kvector, line, eps, star_vec, top):
+    """Kolomenkin et al. (2008) voting, keeping each image star's ``top`` most-voted identities.
+
+    First step (each image pair votes for both
+    stars of every catalog pair at its angle within ``eps``, once per image
+    pair).  Each image star keeps its ``top`` most-voted catalog stars (ties
+    by index).  Second (verification) step over these hypotheses: hypothesis
+    ``(i, a)`` gets a vote from every hypothesis ``(j, c)`` of another star
+    whose catalog angle agrees with the image angle within ``eps``.
+
+    Returns ``(identity[n, top], votes1[n, top], votes2[n, top])``, identity -1
+    where fewer candidates were voted for.
+    """
+    n = b.shape[0]
+    votes = np.zeros((n, n_cat), dtype=np.int32)
+    stamp = np.full((n, n_cat), -1, dtype=np.int64)
+    pair_id = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            th = _angle(b[i], b[j])
+            lo, hi = _cos_window(th, eps)
+            s, e = kvector_range(kvector, line[0], line[1], lo, hi)
+            for t in range(s, e):
+                c = pair_cos[t]
+                if c < lo or c > hi:
+                    continue
+                k = pair_i[t]
+                l = pair_j[t]
+                vote_once(votes, stamp, i, k, pair_id)
+                vote_once(votes, stamp, i, l, pair_id)
+                vote_once(votes, stamp, j, k, pair_id)
+                vote_once(votes, stamp, j, l, pair_id)
+            pair_id += 1
+    identity = np.full((n, top), -1, dtype=np.int64)
+    votes1 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for c in range(n_cat):
+            v = votes[i, c]
+            if v == 0 or v <= votes1[i, top - 1]:
+                continue
+            # insert into the sorted top list
+            p = top - 1
+            while p > 0 and votes1[i, p - 1] < v:
+                votes1[i, p] = votes1[i, p - 1]
+                identity[i, p] = identity[i, p - 1]
+                p -= 1
+            votes1[i, p] = v
+            identity[i, p] = c
+    votes2 = np.zeros((n, top), dtype=np.int64)
+    for i in range(n):
+        for a in range(top):
+            ci = identity[i, a]
+            if ci < 0:
+                continue
+            for j in range(i + 1, n):
+                th = _angle(b[i], b[j])
+                for c in range(top):
+                    cj = identity[j, c]
+                    if cj < 0 or cj == ci:
+                        continue
+                    if abs(_angle(star_vec[ci], star_vec[cj]) - th) <= eps:
+                        votes2[i, a] += 1
+                        votes2[j, c] += 1
+    return identity, votes1, votes2
+
+
+@njit(cache=True)
+def grow_clusters(b, keep, tol, margin, star_vec, fi, fc, fv, start, stop, threshold):
+    """Geometric voting's clusters (:func:`startrack.identify.voting._clusters`) of seeds ``start`` to ``stop``.
+
+    ``fi``, ``fc``, ``fv``: the hypotheses (image star, catalog star, support), strongest
+    first.  Each seed with support >= ``threshold`` grows greedily through the list: a
+    hypothesis joins when neither its image star nor its catalog star is in the cluster
+    and its image angle to every member agrees with the catalog angle within the pair
+    tolerance ``hypot(tol[keep[i]], tol[keep[m]]) + margin``.
+
+    Returns ``(members, sizes, end)``: row ``s - start`` of ``members`` holds the flat
+    indices of seed ``s``'s cluster (its first ``sizes`` entries); ``end`` the first seed
+    not grown (below the threshold, or ``stop``).
+    """
+    nf = fi.shape[0]
+    n = b.shape[0]
+    stop = min(stop, nf)
+    members = np.full((max(stop - start, 0), n), -1, dtype=np.int64)
+    sizes = np.zeros(max(stop - start, 0), dtype=np.int64)
+    end = start
+    for s in range(start, stop):
+        if fv[s] < threshold:
+            break
+        end = s + 1
+        row = s - start
+        members[row, 0] = s
+        k = 1
+        for f in range(nf):
+            i = fi[f]
+            c = fc[f]
+            clash = False
+            for u in range(k):
+                g = members[row, u]
+                if fi[g] == i or fc[g] == c:
+                    clash = True
+                    break
+            if clash:
+                continue
+            ok = True
+            for u in range(k):
+                g = members[row, u]
+                m = fi[g]
+                th = math.acos(min(1.0, b[i, 0] * b[m, 0] + b[i, 1] * b[m, 1] + b[i, 2] * b[m, 2]))
+                d = fc[g]
+                tc = math.acos(min(1.0, star_vec[c, 0] * star_vec[d, 0] + star_vec[c, 1] * star_vec[d, 1]
+                                   + star_vec[c, 2] * star_vec[d, 2]))
+                if abs(th - tc) > math.hypot(tol[keep[i]], tol[keep[m]]) + margin:
+                    ok = False
+                    break
+            if ok and k < n:
+                members[row, k] = f
+                k += 1
+        sizes[row] = k
+    return members, sizes, end

@@ -79,9 +79,9 @@ def search_labelling(ctx, config: LabellingConfig):
     hide the true ones -- the search goes on with groups that add the next
     star, and the next (``group_stars`` caps how far), within the driver's
     budget.  The scan itself is one kernel
-    (:func:`startrack._kernels.identify.labelling_scan`).
+    (:func:`startrack._kernels.labelling.labelling_scan`).
     """
-    from startrack._kernels.identify import labelling_scan
+    from startrack._kernels.labelling import labelling_scan
 
     b, db, eps = ctx.b, ctx.db, ctx.eps
     group = db.group_size

@@ -2,7 +2,7 @@
 
 Triads of image stars are taken in Mortari's smart index sequence (every
 triad once, bright stars early, spikes spread out); for each, the kernel
-(:func:`startrack._kernels.identify.pyramid_candidates`) finds the catalog
+(:func:`startrack._kernels.pyramid.pyramid_candidates`) finds the catalog
 triangles through k-vector range look-ups on the inter-star angles, the
 third angle and the specular (handedness) test, and confirms each triangle
 with a fourth image star matching exactly one catalog star (the pyramid).
@@ -43,7 +43,7 @@ from itertools import repeat
 
 import numpy as np
 
-from startrack._kernels import identify as _kernels
+from startrack._kernels import pyramid as _kernels
 from startrack.identify.algorithm import FREE_PASS, NOMINAL_PASS, Algorithm, Proposal, SearchOutcome
 from startrack.identify.verify import (
     AMBIGUITY_CHI2,
@@ -157,7 +157,7 @@ def prepare_pyramid(config, camera, db, eps):
 
 
 def _search(ctx, config, quadratic):
-    from startrack._kernels.identify import free_focal_patterns, pyramid_candidates, smart_triads
+    from startrack._kernels.pyramid import free_focal_patterns, pyramid_candidates, smart_triads
 
     n = len(ctx.b)
     tol = np.ascontiguousarray(ctx.tol, dtype=np.float64)
@@ -251,7 +251,7 @@ PAUSE = 8
 
 def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     """:func:`search_pyramid` with the driver's verification of each proposal, in one kernel call
-    (:func:`startrack._kernels.identify.pyramid_identify`; :attr:`startrack.identify.algorithm.Algorithm.fused`).
+    (:func:`startrack._kernels.pyramid.pyramid_identify`; :attr:`startrack.identify.algorithm.Algorithm.fused`).
 
     The kernel returns after :data:`PAUSE` rejected proposals so that the time budget is looked at
     between them (every proposal in the Python loop).  With two tiers (:func:`pattern_database`) the
@@ -347,7 +347,7 @@ def _failed(buffers, db, params, reason, code):
 
 
 def pair_adjacency(db):
-    """Every database star's pairs sorted by cosine (:func:`startrack._kernels.identify.pair_adjacency`),
+    """Every database star's pairs sorted by cosine (:func:`startrack._kernels.pyramid.pair_adjacency`),
     built once per database (the fourth star's look-up of :func:`pyramid_candidates`)."""
     got = db.__dict__.get("_pair_adjacency")
     if got is None or got[0] is not db.pair_cos:

@@ -55,7 +55,7 @@ def pattern_chance(n_cat: int, eps: float, vecs) -> float:
     ``phi`` the triangle's inner angles.  ``eps`` is the angle window (rad),
     ``N`` the stars of the database, ``vecs`` the first two to four unit vectors.
     """
-    from startrack._kernels.identify import pattern_chance as kernel
+    from startrack._kernels.verify import pattern_chance as kernel
 
     return float(kernel(int(n_cat), float(eps), np.ascontiguousarray(vecs, dtype=np.float64)))
 
@@ -66,7 +66,7 @@ def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float
     With the attitude, the catalog stars predicted in the image that are
     clearly brighter than the faintest detection (by the frame's own
     flux-magnitude zero point, less three times its scatter and at least
-    0.5 mag; :func:`startrack._kernels.identify.check_matches`) should all be
+    0.5 mag; :func:`startrack._kernels.verify.check_matches`) should all be
     detected.  A coincidental match puts the pattern at a random place of the
     sky, where such stars appear at the catalog's average density: Poisson with
     mean ``lambda`` = ``n_bright`` (database stars brighter than the cut) x
@@ -74,7 +74,7 @@ def _missing_probability(missing: int, n_bright: int, area_frac: float) -> float
     Returns ``P(K <= missing)``; 1 without magnitudes (``n_bright`` = 0).  The fused verification
     calls the same kernel.
     """
-    from startrack._kernels.identify import missing_probability
+    from startrack._kernels.verify import missing_probability
 
     return float(missing_probability(int(missing), int(n_bright), float(area_frac)))
 
@@ -116,7 +116,7 @@ def false_match_probability(e_core: float, trials: int, n_others_matched: int, n
     that a random field lacks the bright stars this one lacks
     (:func:`_missing_probability`) times the chance that random catalog stars
     agree with the core's fluxes as well as these do
-    (:func:`startrack._kernels.identify.check_matches`); 1 without fluxes and
+    (:func:`startrack._kernels.verify.check_matches`); 1 without fluxes and
     for algorithms whose search already chose by brightness.
     """
     return min(1.0, e_core * max(trials, 1)) * _binomial_sf(n_others_matched, n_others, p_hit) * p_mags
@@ -158,12 +158,12 @@ _NO_INDEX = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64))
 
 
 def _sky_index(db):
-    """The database's sky index (:func:`startrack._kernels.identify.sky_index`: bands of z, right
+    """The database's sky index (:func:`startrack._kernels.sky_index.sky_index`: bands of z, right
     ascension within a band), cached on the database: the verification looks at the stars that can be
-    in the field only (:func:`startrack._kernels.identify.cone_stars`).  About sqrt(N) bands."""
+    in the field only (:func:`startrack._kernels.sky_index.cone_stars`).  About sqrt(N) bands."""
     got = db.__dict__.get("_sky_index")
     if got is None or got[0] is not db.star_vector:
-        from startrack._kernels.identify import sky_index
+        from startrack._kernels.sky_index import sky_index
 
         sv = np.ascontiguousarray(db.star_vector, dtype=np.float64)
         got = db.__dict__["_sky_index"] = (db.star_vector, sky_index(sv, max(8, min(1024, int(math.sqrt(len(sv)))))))
@@ -174,7 +174,7 @@ def _pixels_to_vectors(camera, xs, ys):
     """``camera.pixels_to_vectors`` (one kernel call without distortion)."""
     if camera.k1 or camera.k2:
         return camera.pixels_to_vectors(xs, ys)
-    from startrack._kernels.identify import pixels_to_unit
+    from startrack._kernels.common import pixels_to_unit
 
     return pixels_to_unit(xs, ys, float(camera.focal_length_px), float(camera.cx), float(camera.cy))
 
@@ -187,10 +187,10 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     is ``|s - 1|`` of a focal-length scale fitted to the data before this call (0: none): a
     random catalog pattern then needs to match the core's shape only up to one of the scales
     the fit could have chosen (within ``params.max_focal_error``), which multiplies the chance
-    of a coincidence by their number (:func:`startrack._kernels.identify.scale_cells`; see
+    of a coincidence by their number (:func:`startrack._kernels.focal.scale_cells`; see
     :func:`_verify_with_focal`).
     """
-    from startrack._kernels.identify import verify_core
+    from startrack._kernels.verify import verify_core
 
     star_vec = db.star_vector
     img = np.asarray(proposal.image, dtype=np.int64)
@@ -261,11 +261,11 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
     misses the outer ones and a scale fitted to the few matched near the core stays
     wrong.  Each detection here takes the one predicted star within its radius widened by
     that displacement (none when two are), and the scale is the median of catalog over
-    measured chord (angle, :func:`startrack._kernels.identify.focal_scale`) over the long pairs of
+    measured chord (angle, :func:`startrack._kernels.focal.focal_scale`) over the long pairs of
     these tentative matches (robust to the odd wrong one); significant as
-    :func:`startrack._kernels.identify.scale_significant` says.
+    :func:`startrack._kernels.focal.scale_significant` says.
     """
-    from startrack._kernels.identify import field_scale, scale_significant
+    from startrack._kernels.focal import field_scale, scale_significant
 
     if not (camera.k1 or camera.k2):
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
@@ -317,9 +317,9 @@ _REASONS = {1: ("a star of the proposal disagrees with the attitude of the other
 
 def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params, trials, use_mags):
     """:func:`_verify_with_focal` for a distortion-free camera in one kernel call
-    (:func:`startrack._kernels.identify.verify_focal`): the same steps and checks on the same
+    (:func:`startrack._kernels.verify.verify_focal`): the same steps and checks on the same
     kernels, the same verdict.  Returns ``(verdict, focal scale or None)``."""
-    from startrack._kernels import identify as kernels
+    from startrack._kernels import verify as kernels
 
     # Every argument's type is fixed here (fresh int64 and float64 arrays, Python scalars) or by the
     # database: the kernel's entry is resolved once per database (LazyKernel.resolve).
@@ -344,7 +344,7 @@ def _verify_fused(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, params
 
 
 def _fused_verdict(code, match, q, dcm, p_false, missing, bright_pred, n_matched, matched, rms, db, params):
-    """The :class:`_Verdict` of :func:`startrack._kernels.identify.verify_focal`'s result."""
+    """The :class:`_Verdict` of :func:`startrack._kernels.verify.verify_focal`'s result."""
     if code != 0:
         if code in _REASONS:
             reason, rc = _REASONS[code]
@@ -379,7 +379,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     matched with the corrected focal length.  An accepted match is then checked against
     the scale the whole field implies (:func:`_field_scale`; not searched when every detection
     matched), and the scale re-estimated from every matched star until it settles, each step
-    taken only when the stars tell it from 1 (:func:`startrack._kernels.identify.scale_significant`:
+    taken only when the stars tell it from 1 (:func:`startrack._kernels.focal.scale_significant`:
     a step within noise changes no match, only the time); each verification at a fitted scale
     pays for every scale the fit could have chosen (``scale_offset`` of :func:`verify`), and the
     identification is refused when the field's scale refuses it.  Without this, a focal-length
@@ -387,7 +387,7 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     Scales beyond ``params.max_focal_error`` (the stated uncertainty) are never used.
     Returns ``(verdict, focal scale or None)``.
     """
-    from startrack._kernels.identify import focal_scale, matched_scale
+    from startrack._kernels.focal import focal_scale, matched_scale
 
     star_vec = db.star_vector
     scale = focal_scale(b_all, np.asarray(proposal.image, dtype=np.int64), star_vec,

@@ -1,7 +1,7 @@
 """Geometric voting (Kolomenkin, Pollak, Shimshoni & Lindenbaum 2008), extended to every candidate.
 
 The paper: every image pair votes for both stars of each catalog pair at its angle
-(kernel :func:`startrack._kernels.identify.geometric_voting_top`), each image star takes
+(kernel :func:`startrack._kernels.voting.geometric_voting_top`), each image star takes
 its most-voted identity, and a validation vote (pairs of identities whose catalog angle
 agrees with the image angle support each other) separates the correct identities, which
 support each other, from the wrong ones; the stars whose validation votes reach
@@ -69,7 +69,7 @@ def search_voting(ctx, config: VotingConfig):
     paper's single winner, or any fixed list, misses; the clusters of every
     candidate hold it.
     """
-    from startrack._kernels.identify import geometric_voting_top
+    from startrack._kernels.voting import geometric_voting_top
 
     db = ctx.db
     top = max(1, int(config.identities_per_star))
@@ -107,10 +107,10 @@ def search_voting(ctx, config: VotingConfig):
 def _clusters(ctx, config, b, keep, identity, votes2, top, seen, patterns):
     """Proposals grown from the voted hypotheses, strongest first (indices mapped back through ``keep``).
 
-    The clusters grow in a kernel (:func:`startrack._kernels.identify.grow_clusters`), a
+    The clusters grow in a kernel (:func:`startrack._kernels.voting.grow_clusters`), a
     few seeds a call (the driver may accept the first), until the driver's deadline.
     """
-    from startrack._kernels.identify import grow_clusters
+    from startrack._kernels.voting import grow_clusters
 
     db = ctx.db
     best = int(votes2.max(initial=0))
