@@ -30,8 +30,10 @@ scale instead of one field of view; the key is probed over all bins within the
 measured tolerance; the correspondence is the best of 24 over all six edges; the
 focal length range is a property of the level.  From astrometry.net: several
 scales, uniform thinning.  Verification (attitude, every star matched, false-match
-probability) is :func:`startrack.identify.verify.verify`, shared with the other
-identification algorithms.
+probability) is the blind search's own (:func:`_verify_blind`: one match radius for
+every star, no magnitudes), combined as :func:`startrack.identify.verify.false_match_probability`
+does; the result is the same :class:`~startrack.records.Identification` as every
+identification algorithm's.
 """
 from __future__ import annotations
 
@@ -357,20 +359,13 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
 
     Returns
     -------
-    (camera, IdentifyResult, info dict)
+    (camera, Identification, info dict)
         ``camera`` is None when nothing was identified; ``info`` counts the
-        patterns and candidates tried.
+        patterns and candidates tried and, when identified, holds ``rows``:
+        the index row of each match, in the order of the matches.
     """
     from startrack._kernels.patterns import query_patterns
-    from startrack.camera import Camera
-    from startrack.identify.legacy import (
-        IdentifyParams,
-        IdentifyResult,
-        Proposal,
-        centroid_sigma_px,
-        tolerance_rad,
-        verify,
-    )
+    from startrack.identify.params import IdentifyParams
 
     opts = options or BlindOptions()
     warm_kernels(index)
@@ -380,7 +375,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     info = {"patterns": 0, "candidates": 0, "verified": 0}
     n_all = len(stars)
     if n_all < 4:
-        return None, IdentifyResult("failed", "patterns", [], 0.0, f"{n_all} star(s): at least 4 are needed"), info
+        return None, _blind_result(None, 0.0, f"{n_all} star(s): at least 4 are needed"), info
     # Rank by peak (flux breaks ties): compact sources first.  In a photograph with nebulae, a
     # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
     # stars of one PSF the order is the flux order.
@@ -396,7 +391,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     f_lo = (width / 2.0) / math.tan(math.radians(opts.fov_max_deg) / 2.0)
     f_hi = (width / 2.0) / math.tan(math.radians(opts.fov_min_deg) / 2.0)
     params = IdentifyParams(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability)
-    sigma = centroid_sigma_px(stars[:m], params)
+    sigma = _centroid_sigma_px(stars[:m], params)
     combos = _combos(n_pat)
     log.debug("pattern search: %d stars (%d in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all, n_pat,
               len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
@@ -430,7 +425,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             seen.add(key)
             info["verified"] += 1
             res = _verify_candidate(stars[:m], xy_all, img, cat_rows, f, width, height, index, params, sigma,
-                                    info["verified"], f_lo, f_hi, opts, Camera, Proposal, tolerance_rad, verify)
+                                    info["verified"], f_lo, f_hi, opts)
             if res is not None:
                 cam, matches, dcm, p_false = res
                 matches = [dict(mm, star=ranked[mm["star"]]) for mm in matches]
@@ -440,11 +435,28 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                          "verified": info["verified"]}
                 log.info("pattern search: field %.3f deg wide, %d stars matched after %d patterns and %d candidates "
                          "verified, %.0f ms", cam.fov_deg[0], len(matches), info["patterns"], info["verified"], elapsed)
-                return cam, IdentifyResult("ok", "patterns", matches, elapsed, None, p_false, dcm, extra), info
+                info["rows"] = [mm["index"] for mm in matches]
+                return cam, _blind_result(matches, elapsed, None, p_false, dcm, extra), info
     elapsed = (time.perf_counter() - t0) * 1000
     reason = f"{reason} ({info['patterns']} patterns, {info['verified']} candidates verified)"
     log.info("pattern search: %s, %.0f ms", reason, elapsed)
-    return None, IdentifyResult("failed", "patterns", [], elapsed, reason, extra=dict(info)), info
+    return None, _blind_result(None, elapsed, reason, extra=dict(info)), info
+
+
+def _blind_result(matches, time_ms, reason, false_probability=None, dcm=None, extra=None):
+    """The :class:`~startrack.records.Identification` of a blind search: ``ok`` with ``matches``
+    (``{"star", "id"}`` each) and the attitude ``dcm``, else ``failed`` with ``reason``; ``extra`` becomes
+    ``details``."""
+    from startrack.records import Identification, Match, ReasonCode, Status
+    from startrack.rotations import dcm_to_quaternion
+
+    extra = dict(extra or {})
+    ok = matches is not None
+    return Identification(Status.OK if ok else Status.FAILED, "patterns",
+                          [Match(int(m["star"]), int(m["id"])) for m in matches or []], time_ms=time_ms,
+                          reason=reason, reason_code=None if ok else ReasonCode.NO_PATTERN,
+                          false_match_probability=false_probability, focal_scale=extra.pop("focal_scale", None),
+                          quaternion_estimate=None if dcm is None else dcm_to_quaternion(dcm), details=extra)
 
 
 #: Relative focal-length step below which the fit-and-verify rounds of :func:`_verify_candidate` stop (when
@@ -454,9 +466,11 @@ _F_CONVERGED = 1e-5
 
 
 def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params, sigma, n_verified, f_lo, f_hi,
-                      opts, Camera, Proposal, tolerance_rad, verify):
+                      opts):
     """Verify one candidate strictly; fit the focal length (and k1 for wide fields) and verify again."""
     from startrack._kernels.patterns import quick_check
+    from startrack.camera import Camera
+    from startrack.identify.params import tolerance_rad
 
     # Pinhole geometry from f alone (cheap: most candidates end at the screen below).
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
@@ -489,8 +503,8 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
 
         vparams = replace(params, match_radius_px=r_px)
     eps = tolerance_rad(cam, sigma, params)
-    prop = Proposal(img, cat_rows, trials=int(n_verified * n_scales))
-    matches, dcm, p_false, reason = verify(prop, b, stars, cam, star_vec, star_id, eps, sigma, vparams)
+    matches, dcm, p_false, reason = _verify_blind(img, cat_rows, int(n_verified * n_scales), b, cam, star_vec, star_id,
+                                                  eps, sigma, vparams)
     if matches is None:
         return None
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
@@ -510,14 +524,135 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
             break
         previous = pairs
         b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
-        prop = Proposal([mm["star"] for mm in matches], [mm["index"] for mm in matches],
-                        trials=int(n_verified * n_scales))
         eps = tolerance_rad(cam, sigma, params)
-        m2, dcm2, p2, _ = verify(prop, b, stars, cam, star_vec, star_id, eps, sigma,
-                                 params if not wide else vparams)
+        m2, dcm2, p2, _ = _verify_blind([mm["star"] for mm in matches], [mm["index"] for mm in matches],
+                                        int(n_verified * n_scales), b, cam, star_vec, star_id, eps, sigma,
+                                        params if not wide else vparams)
         if m2 is None:
             break
         matches, dcm, p_false = m2, dcm2, p2
         if wide:
             vparams = params
     return cam, matches, dcm, p_false
+
+
+def _centroid_sigma_px(stars: list, params) -> float:
+    """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
+    if params.sigma_px is not None:
+        return float(params.sigma_px)
+    reported = [s.get("sigma_px") for s in stars if isinstance(s.get("sigma_px"), (int, float))]
+    reported = [v for v in reported if v is not None and math.isfinite(v) and v > 0]
+    if reported:
+        return float(max(0.05, min(2.0, np.median(reported) * 1.5)))
+    return 0.5
+
+
+def _pattern_chance(n_cat: int, eps: float, vecs) -> float:
+    """Expected number of catalog pyramids matching four measured directions by chance (Mortari 2004; LOST)."""
+    if len(vecs) < 3:
+        # A lone pair: E = N (N - 1) / 2 * eps * sin(theta) chance pairs at that angle.
+        th = math.acos(max(-1.0, min(1.0, float(vecs[0] @ vecs[1])))) if len(vecs) == 2 else math.pi / 2
+        return float(n_cat * (n_cat - 1) / 2 * eps * math.sin(th))
+    a, b, c = vecs[0], vecs[1], vecs[2]
+    th_ij = math.acos(max(-1.0, min(1.0, float(a @ b))))
+
+    def cross(p, q):
+        return (p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0])
+
+    def inner(p, q, r):
+        """Spherical angle at vertex p between the arcs to q and r."""
+        u = cross(p, q)
+        v = cross(p, r)
+        nu = math.sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2)
+        nv = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+        if nu == 0 or nv == 0:
+            return 0.0
+        return math.acos(max(-1.0, min(1.0, (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]) / (nu * nv))))
+
+    phis = [inner(a, b, c), inner(b, a, c), inner(c, a, b)]
+    if len(vecs) < 4:
+        # A lone triangle: E = N^3 eps^3 sin(theta_ij) / (pi sin(phi_k)).
+        return float(n_cat**3 * eps**3 * math.sin(th_ij) / (math.pi * max(math.sin(phis[2]), 1e-6)))
+    denom = 2 * math.pi**2 * max(math.sin(phis[2]), 1e-6) * max(max(math.sin(p) for p in phis), 1e-6)
+    return float(n_cat**4 * eps**5 * math.sin(th_ij) / denom)
+
+
+def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray, camera, star_vec, star_id,
+                  eps: float, sigma_px: float, params):
+    """Attitude, remaining stars and confidence of a candidate: image stars ``image`` are the index's rows
+    ``catalog``, after ``trials`` candidates (look-elsewhere).  Returns ``(matches, dcm, p_false, reason)``,
+    ``matches`` a list of ``{"star", "id", "index"}`` (``index``: the row).
+
+    The blind solver's verification with one match radius for every star (from the frame's centroid
+    sigma, :func:`_centroid_sigma_px`): the attitude refined on every star within it, the candidate's stars
+    agreeing with the refined attitude, and the chance of a coincidence (:func:`_pattern_chance`, times the
+    chance of the other stars landing on predicted ones by accident, :func:`_local_hit_probability`,
+    combined by :func:`startrack.identify.verify.false_match_probability` without magnitudes).  Not the
+    identification algorithms' :func:`startrack.identify.verify.verify`: this index holds no magnitudes and
+    its candidates come with a focal length still to fit.
+    """
+    from startrack._kernels.attitude import quat_to_dcm, refine
+    from startrack.identify.verify import false_match_probability
+
+    img = np.array(image, dtype=np.int64)
+    cat = np.array(catalog, dtype=np.int64)
+    if len(img) < 2:
+        return None, None, None, "fewer than two stars identified"
+    radius_px = params.match_radius_px if params.match_radius_px is not None else \
+        max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
+    radius = radius_px / camera.focal_length_px
+    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
+    match, q, n_pred = refine(np.ascontiguousarray(b_vectors), star_vec, img, cat, cos_fov,
+                              float(camera.focal_length_px), float(camera.cx), float(camera.cy),
+                              float(camera.width), float(camera.height), float(camera.k1), float(camera.k2),
+                              radius, 2)
+    dcm = quat_to_dcm(q)
+    n_matched = int(np.sum(match >= 0))
+    # A proposal star agrees when the refined attitude puts its catalog star
+    # within the match radius of it (whether or not the star-by-star matching,
+    # which refuses ambiguous neighbours, kept it).
+    predicted = star_vec[cat] @ dcm.T
+    agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[img], predicted) >= math.cos(radius)))
+    if agree < min(len(img), params.min_matches):
+        return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
+    if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
+        return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})"
+    # Confidence: the chance that a pattern of the proposal's first four stars
+    # (three when that is all) matches by coincidence, times the chance that the
+    # other stars fall on predicted catalog stars by accident.
+    core = img[:4]
+    p_hit = _local_hit_probability(b_vectors, np.delete(np.arange(len(b_vectors)), core), star_vec, dcm, camera,
+                                   radius, cos_fov, n_pred, radius_px)
+    others = len(b_vectors) - len(core)
+    core_pred = star_vec[cat[:4]] @ dcm.T
+    core_agree = int(np.sum(np.einsum("ij,ij->i", b_vectors[core], core_pred) >= math.cos(radius)))
+    e_pyr = _pattern_chance(len(star_vec), eps, b_vectors[core])
+    p_false = false_match_probability(e_pyr, trials, n_matched - core_agree, others, p_hit)
+    if p_false > params.max_false_probability:
+        return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
+                                    f"{params.max_false_probability:g}")
+    out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in enumerate(match) if c >= 0]
+    return out, dcm, p_false, None
+
+
+def _local_hit_probability(b_vectors, others, star_vec, dcm, camera, radius, cos_fov, n_pred, radius_px):
+    """Mean chance that one of ``others`` lands within ``radius`` of a predicted catalog star by accident.
+
+    The density of catalog stars is taken around each image star (within ten
+    match radii), not over the whole image: in a cluster (the Hyades, the
+    Pleiades) chance coincidences are far more likely than the field average
+    suggests.  The global average is the floor.
+    """
+    floor = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
+    if len(others) == 0:
+        return floor
+    front = star_vec @ dcm[2] > cos_fov
+    # The rows by their indices: the same rows, ~10x faster than a boolean mask on ~5e4 rows.
+    pred = star_vec[np.flatnonzero(front)] @ dcm.T
+    if len(pred) == 0:
+        return floor
+    local = 10.0 * radius
+    cos_local = math.cos(local)
+    counts = np.sum((b_vectors[others] @ pred.T) >= cos_local, axis=1)
+    p_each = np.minimum(1.0, counts * (radius / local) ** 2)
+    return float(max(floor, np.mean(p_each)))

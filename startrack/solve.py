@@ -277,7 +277,8 @@ def _pyramid_config(algorithm, max_triads):
 def _identify_in_band(stars, camera, band, databases, algorithm, params, clock, config=None):
     """Identify ``stars`` with each k-vector database of FOV band ``band`` in turn.
 
-    Returns ``((camera, database, result) or None, databases tried)``.
+    Returns ``((camera, database, result, None) or None, databases tried)`` (the last: no pattern index rows,
+    as :func:`_solve_with_patterns` returns).
     """
     from startrack.identify import identify_stars
 
@@ -287,7 +288,7 @@ def _identify_in_band(stars, camera, band, databases, algorithm, params, clock, 
         log.debug("%s with k-vector database %d of FOV band %d (%s)", algorithm, which, band, getattr(db, "path", ""))
         res = clock.first_use(algorithm, identify_stars, stars, camera, db, algorithm, params, config)
         if res.status == "ok":
-            return (camera, db, res), which + 1
+            return (camera, db, res, None), which + 1
     return None, n
 
 
@@ -308,7 +309,9 @@ def pointing(dcm, camera) -> dict:
 
 
 def _solve_with_patterns(stars, w, h, opts, index, clock):
-    """Blind identification with the scale-invariant pattern index (:mod:`startrack.patterns`)."""
+    """Blind identification with the scale-invariant pattern index (:mod:`startrack.patterns`).
+
+    Returns ``((camera, index, identification, {catalog id: index row}) or None, candidates verified)``."""
     from startrack.patterns import BlindOptions, solve_blind
 
     if index is None:
@@ -322,7 +325,7 @@ def _solve_with_patterns(stars, w, h, opts, index, clock):
     cam, res, info = solve_blind(stars, w, h, index, bo)
     if cam is None:
         return None, info["verified"]
-    return (cam, index, res), info["verified"]
+    return (cam, index, res, dict(zip((m.id for m in res.matches), info["rows"]))), info["verified"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -560,13 +563,13 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         log.info("not solved: %s", reason)
         return _failed(reason, code, t0, stars, centroid, hypotheses=tried,
                        identification=Identification.failed(opts.algorithm, reason, code))
-    cam, db, res = result
+    cam, db, res, index_rows = result
     scale = res.focal_scale
     if scale:
         cam = cam.with_focal_length(cam.focal_length_px / scale)
-    if db is not None and hasattr(db, "star_vec") and opts.epoch is None and catalog is None:
-        vec = db.star_vec
-        rows = {int(m["id"]): int(m["index"]) for m in res.matches}
+    if index_rows is not None and opts.epoch is None and catalog is None:
+        vec = db.star_vec        # the pattern index's rows of the matches (solve_blind)
+        rows = {int(k): int(v) for k, v in index_rows.items()}
     else:
         cat = databases.catalog if opts.epoch is None else databases.catalog.propagate(opts.epoch)
         rows = cat.rows_by_id()

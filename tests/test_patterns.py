@@ -6,6 +6,7 @@ import pytest
 
 from startrack.camera import Camera
 from startrack.patterns import BlindOptions, build_index, open_index, save_index, solve_blind
+from startrack.records import Identification, Match
 from startrack.render import Scene, Sensor, star_list
 from startrack.rotations import _attitude_error_rad, quaternion_to_dcm, random_quaternions
 
@@ -51,13 +52,15 @@ def test_blind_identification_measures_the_focal_length(index, catalog, fov):
         # Every match is the true star; the focal length is right to 0.1 % (0.3 % above 25 deg,
         # where k1 is fitted with it).
         # (or its unresolved neighbour, within 2 px, when the centroid is a blend of the two).
+        # The one identification type of every path (issue 42): an Identification of Match(star, id).
+        assert type(res) is Identification and all(type(m) is Match for m in res.matches)
         ids = truth["star_ids"]
         for m in res.matches:
-            if ids[m["star"]] != m["id"]:
-                a, b = vec[rows[m["id"]]], vec[rows[ids[m["star"]]]]
+            if ids[m.star] != m.id:
+                a, b = vec[rows[m.id]], vec[rows[ids[m.star]]]
                 assert math.acos(min(1.0, float(a @ b))) * cam.focal_length_px < 2.0
         assert fitted.focal_length_px == pytest.approx(cam.focal_length_px, rel=1e-3 if fov < 25 else 3e-3)
-        _, cross, roll = _attitude_error_rad(res.dcm, dcm)
+        _, cross, roll = _attitude_error_rad(quaternion_to_dcm(res.quaternion_estimate), dcm)
         assert math.degrees(cross) * 3600 < 30 and abs(math.degrees(roll)) * 3600 < 300
     assert tried >= 5 and solved >= 0.8 * tried
 

@@ -13,6 +13,7 @@ import startrack
 from startrack.camera import Camera
 from startrack.errors import BadInputError, ParameterError
 from startrack.kvector import build_kvector, max_separation_deg
+from startrack.records import Match
 from startrack.render import RenderRun, Scene, Sensor
 from startrack.rotations import _attitude_error_rad, quaternion_to_dcm, radec_roll_to_dcm
 
@@ -60,6 +61,9 @@ def test_solve_identify_attitude_return_typed_records(world, tmp_path):
     result = solver.solve(image, saturation=65535)
     assert isinstance(result, startrack.SolveResult)
     assert result.status == startrack.Status.OK and result.reason is None
+    # One identification type for solve and identify (issue 42): Identification of Match(star, id).
+    assert type(result.identification) is startrack.Identification
+    assert result.identification.matches and all(type(m) is Match for m in result.identification.matches)
     cross, roll = _error_arcsec(result.attitude, doc["truth"]["quaternion"])
     assert cross < 5 and roll < 60
     # ... and a path give the same answer.
