@@ -85,7 +85,7 @@ class SearchContext:
         with long steps between proposals stops there too (:meth:`expired`).
     focal_pass : int
         For a search with focal-length passes (:attr:`Algorithm.focal_passes`): :data:`BOTH_PASSES`,
-        :data:`NOMINAL_PASS` or :data:`FREE_PASS` (:func:`search_plan`); others ignore it.
+        :data:`NOMINAL_PASS` or :data:`FREE_PASS` (:func:`~startrack.identify.driver.search_plan`); others ignore it.
     """
 
     b: np.ndarray
@@ -137,26 +137,26 @@ class Algorithm:
     fused : callable or None
         The search *and* the driver's verification loop in compiled code, for a
         distortion-free camera: ``fused(config, frame, camera, db, params) -> SearchOutcome``
-        (``frame``: a :class:`FusedFrame`), deciding exactly as :func:`run` does
-        with ``search`` and :func:`_verify_fused` (one kernel call per frame
-        instead of a Python round trip per proposal).  :func:`run` uses it when
+        (``frame``: a :class:`FusedFrame`), deciding exactly as :func:`~startrack.identify.driver.run` does
+        with ``search`` and :func:`~startrack.identify.verify._verify_fused` (one kernel call per frame
+        instead of a Python round trip per proposal).  :func:`~startrack.identify.driver.run` uses it when
         set, the camera has no distortion and debug logging (which reports each
         rejected proposal) is off.
     prepare : callable or None
         ``prepare(config, camera, db, eps) -> bool``: what the search needs of the
         database for this sensor and tolerance, built once (e.g. the grid's catalog
-        patterns); :func:`run` calls it before the frame's clock starts and reports
+        patterns); :func:`~startrack.identify.driver.run` calls it before the frame's clock starts and reports
         a build's time as ``details["prepare_ms"]`` (True: it built now).
     focal_passes : bool
         True when the search has a second pass with the focal length free within
         ``params.max_focal_error`` (after the nominal focal length's) and searches one of the
         two alone when :attr:`SearchContext.focal_pass` (:attr:`FusedFrame.focal_pass`) says so:
-        :func:`search_plan` then searches every depth at the nominal focal length first.
+        :func:`~startrack.identify.driver.search_plan` then searches every depth at the nominal focal length first.
     focal_sweep : bool
         True when the search compares angles at the focal length it is given and has no pass of
         its own with the focal length free: when every search of the plan found nothing and
-        ``params.max_focal_error`` > 0, :func:`run` searches the first depth again at each
-        focal-length scale the tolerance tells apart (:func:`focal_scales`, :func:`_steps`), a camera
+        ``params.max_focal_error`` > 0, :func:`~startrack.identify.driver.run` searches the first depth again at each
+        focal-length scale the tolerance tells apart (:func:`~startrack.identify.driver.focal_scales`, :func:`~startrack.identify.driver._steps`), a camera
         of that focal length each time.
     """
 
@@ -174,13 +174,13 @@ class Algorithm:
 
 @dataclass(slots=True)
 class FusedFrame:
-    """What :attr:`Algorithm.fused` gets: the frame as :func:`run` read it.
+    """What :attr:`Algorithm.fused` gets: the frame as :func:`~startrack.identify.driver.run` read it.
 
     ``xs``, ``ys``, ``flux`` (NaN where unknown; the fluxes count when at least three are
     finite), ``sig_px``: float64 arrays of every star; ``use``: the search stars (the first);
     ``eps``, ``margin``: the angle tolerances (rad) of :class:`SearchContext`; ``deadline``: the
     end of the time budget (``time.perf_counter()``); ``trials0``: the trials of this frame's earlier
-    searches (:func:`search_plan`), added to this search's in the false-match probability;
+    searches (:func:`~startrack.identify.driver.search_plan`), added to this search's in the false-match probability;
     ``focal_pass``: :attr:`SearchContext.focal_pass`."""
 
     xs: np.ndarray

@@ -48,10 +48,10 @@ _LOGGED_PROPOSALS = 20      # rejected proposals logged one by one (debug) befor
 WARMING_UP = contextvars.ContextVar("startrack_identify_warming_up", default=False)
 log.addFilter(lambda _record: not WARMING_UP.get())
 
-#: Verify pinhole-camera proposals with one kernel call (:func:`_verify_fused`); False: the
-#: step-by-step Python path (:func:`_verify_with_focal`), which the tests compare it with.
+#: Verify pinhole-camera proposals with one kernel call (:func:`~startrack.identify.verify._verify_fused`); False: the
+#: step-by-step Python path (:func:`~startrack.identify.verify._verify_with_focal`), which the tests compare it with.
 FUSED_VERIFY = True
-#: Run an algorithm's search and verification loop in one kernel (:attr:`Algorithm.fused`) where it has
+#: Run an algorithm's search and verification loop in one kernel (:attr:`~startrack.identify.algorithm.Algorithm.fused`) where it has
 #: one and :data:`FUSED_VERIFY` applies; False: the Python loop over its proposals (the tests compare them).
 FUSED_SEARCH = True
 
@@ -71,7 +71,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     params : IdentifyParams
     catalog : CatalogStars or Catalog, optional
         A catalog to match the detections the database does not hold against
-        (:func:`match_catalog`), e.g. the full catalog behind a shallow database.
+        (:func:`~startrack.identify.catalog_match.match_catalog`), e.g. the full catalog behind a shallow database.
 
     Returns
     -------
@@ -209,16 +209,16 @@ def search_levels(n_stars: int, params: IdentifyParams) -> list:
 
 def search_plan(n_stars: int, params: IdentifyParams, focal_passes: bool = False) -> list:
     """The searches of a frame of ``n_stars`` detections, in order, while none finds a proposal that passes:
-    ``(search stars, focal_pass)`` each (:attr:`SearchContext.focal_pass`).
+    ``(search stars, focal_pass)`` each (:attr:`~startrack.identify.algorithm.SearchContext.focal_pass`).
 
     The depths are :func:`search_levels`'.  For a search with a free-focal-length pass
-    (:attr:`Algorithm.focal_passes`, ``params.max_focal_error`` > 0) and more than one depth, every depth
-    is searched at the nominal focal length first (:data:`NOMINAL_PASS`), then at the free focal length
-    (:data:`FREE_PASS`), e.g. (20, nominal), (40, nominal), (80, nominal), (20, free), (40, free),
+    (:attr:`~startrack.identify.algorithm.Algorithm.focal_passes`, ``params.max_focal_error`` > 0) and more than one depth, every depth
+    is searched at the nominal focal length first (:data:`~startrack.identify.algorithm.NOMINAL_PASS`), then at the free focal length
+    (:data:`~startrack.identify.algorithm.FREE_PASS`), e.g. (20, nominal), (40, nominal), (80, nominal), (20, free), (40, free),
     (80, free): the free pass compares each triad at every scale it tells apart, many times the nominal
     pass's work, and a frame whose brightest detections are not stars is found by a deeper nominal search
     at a fraction of its cost; a camera whose focal length is off pays the nominal searches (and their
-    trials) before its free pass.  Otherwise each depth searches both passes (:data:`BOTH_PASSES`), as a
+    trials) before its free pass.  Otherwise each depth searches both passes (:data:`~startrack.identify.algorithm.BOTH_PASSES`), as a
     frame of one depth always does."""
     levels = search_levels(n_stars, params)
     if focal_passes and params.max_focal_error > 0 and len(levels) > 1:
@@ -234,7 +234,7 @@ def _prepare(algorithm, config, camera, db, eps):
 
 
 def _search(frame, use, eps, margin, deadline, trials0=0, focal_pass=0):
-    """One search of the first ``use`` stars (``focal_pass``: :attr:`SearchContext.focal_pass`): the
+    """One search of the first ``use`` stars (``focal_pass``: :attr:`~startrack.identify.algorithm.SearchContext.focal_pass`): the
     algorithm's fused kernel or :func:`_search_loop`.  ``frame``: :func:`run`'s ``(algorithm, config,
     frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)``."""
     algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params = frame
@@ -290,7 +290,7 @@ def _deepen(frame, out, plan, eps, deadline):
 
 def _steps(frame, plan, eps):
     """The searches :func:`_deepen` may run after the first, ``(search stars, focal_pass, focal-length scale or
-    None)`` each: the rest of ``plan``, then, for an algorithm with :attr:`Algorithm.focal_sweep` and
+    None)`` each: the rest of ``plan``, then, for an algorithm with :attr:`~startrack.identify.algorithm.Algorithm.focal_sweep` and
     ``params.max_focal_error`` > 0, the first depth at each of :func:`focal_scales` (``eps``: the first
     search's tolerance), made only when the plan is through."""
     for use, focal_pass in plan[1:]:
@@ -342,10 +342,10 @@ def _better(v, best):
 
 def _search_loop(algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, use, eps, margin, deadline, fused,
                  camera, db, params, trials0=0, focal_pass=0) -> SearchOutcome:
-    """:func:`run`'s loop in Python: ``algorithm.search``'s proposals, each verified (:func:`_verify_fused`
-    when ``fused``, else :func:`_verify_with_focal`), until one passes or the budget ends.  ``trials0``: the
+    """:func:`run`'s loop in Python: ``algorithm.search``'s proposals, each verified (:func:`~startrack.identify.verify._verify_fused`
+    when ``fused``, else :func:`~startrack.identify.verify._verify_with_focal`), until one passes or the budget ends.  ``trials0``: the
     trials of the frame's earlier searches (:attr:`FusedFrame.trials0`); ``focal_pass``:
-    :attr:`SearchContext.focal_pass`."""
+    :attr:`~startrack.identify.algorithm.SearchContext.focal_pass`."""
     name = algorithm.name
     has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     if params.tolerance_arcsec is not None:

@@ -40,11 +40,11 @@ class IdentifyParams:
         When the search of the ``max_stars`` brightest ends without a proposal that passes
         (every pattern compared or the proposal budget spent, within ``max_time_ms``), it searches
         again with twice as many detections and a proposal budget of its own, and so on up to this
-        many (:func:`search_levels`): a field whose brightest detections are mostly not catalog
+        many (:func:`~startrack.identify.driver.search_levels`): a field whose brightest detections are mostly not catalog
         stars (nebulae, halos, false stars, stars beyond the database) is found among the fainter
         ones, as astrometry.net deepens its field stars.  A search with a free-focal-length pass
         (the pyramid, ``max_focal_error`` > 0) searches every depth at the nominal focal length
-        before the free focal length's (:func:`search_plan`).
+        before the free focal length's (:func:`~startrack.identify.driver.search_plan`).
         The trials of every search count in the false-match probability.
     min_matches : int
         Matched stars needed (three when the frame has only three).
@@ -53,9 +53,9 @@ class IdentifyParams:
     max_focal_error : float
         Largest relative focal-length error measured and corrected; the pyramid searches its
         triads once more with the focal length free within it when the nominal one finds nothing
-        (in the same search, or, when deeper searches are to come, after them: :func:`search_plan`);
+        (in the same search, or, when deeper searches are to come, after them: :func:`~startrack.identify.driver.search_plan`);
         brightness and voting are searched again at the scales within it that their tolerance tells
-        apart (:attr:`Algorithm.focal_sweep`).
+        apart (:attr:`~startrack.identify.algorithm.Algorithm.focal_sweep`).
     max_proposals : int
         Proposals verified before giving up (the budget of each search, see ``max_search_stars``;
         the pyramid's nominal pass has half of it when its free-focal-length pass follows, and its
@@ -69,7 +69,7 @@ class IdentifyParams:
         Triads for 0.x-style proposers (paper 000's modified pyramid); the
         pyramid's own setting is :class:`startrack.identify.pyramid.PyramidConfig`.
     max_chance_match : float
-        With a catalog to match everything against (:func:`run`'s ``catalog``), a
+        With a catalog to match everything against (:func:`~startrack.identify.driver.run`'s ``catalog``), a
         detection is matched only when the chance that a catalog star lies within
         its radius by accident is below this.
     """
@@ -166,7 +166,7 @@ def _floats(values: list) -> np.ndarray:
 
 def _tolerances(params, sig_px, use, f):
     """``(margin, eps)``: the angle margin and the search's largest inter-star angle tolerance (rad) of a
-    search of the first ``use`` stars (:class:`SearchContext`)."""
+    search of the first ``use`` stars (:class:`~startrack.identify.algorithm.SearchContext`)."""
     if params.tolerance_arcsec is not None:
         eps = math.radians(params.tolerance_arcsec / 3600.0)
         return eps, eps
