@@ -148,7 +148,7 @@ def field_scale(b, xs, ys, sig_px, star_vec, dcm, cos_front, focal, cx, cy, k1, 
     """The focal-length scale a whole field implies (NaN with fewer than four tentative matches, or when
     they cannot tell it from 1: :func:`scale_significant`).
 
-    See :func:`startrack.identify.base._field_scale`: each detection takes the one
+    See :func:`startrack.identify.verify._field_scale`: each detection takes the one
     catalog star projected (``dcm``) within its radius widened by ``max_err`` times its
     distance from the core's centre (none when two are; each star once, the first
     detection keeps it); the scale is the median of catalog over measured chord

@@ -330,7 +330,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                      star_id):
     """The pyramid's search and the verification of its proposals in one call (a pinhole camera).
 
-    What :func:`startrack.identify.base.run` does with :func:`startrack.identify.pyramid.search_pyramid`
+    What :func:`startrack.identify.driver.run` does with :func:`startrack.identify.pyramid.search_pyramid`
     and :func:`verify_focal`, without a Python round trip per triad and proposal: the frame's
     unit vectors (:func:`pixels_to_unit`), the search stars' tolerances, then the triads
     ``triads[t]`` (smart index sequence; the first ``ipar[0]``) give their pyramids

@@ -385,7 +385,7 @@ def _to_global(match, sub):
 def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
                 cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate,
                 sky_cells, sky_ra):
-    """The shared verification of one proposal in one call (:func:`startrack.identify.base.verify`).
+    """The shared verification of one proposal in one call (:func:`startrack.identify.verify.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine_from``), the
     bookkeeping of :func:`check_matches`, unambiguous and magnitude-consistent
@@ -536,7 +536,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
 
 @njit(cache=True)
 def binomial_sf(m, n, p):
-    """``P(X >= m)`` for ``X ~ Binomial(n, p)`` (:func:`startrack.identify.base._binomial_sf`: exact
+    """``P(X >= m)`` for ``X ~ Binomial(n, p)`` (:func:`startrack.identify.verify._binomial_sf`: exact
     binomial coefficients up to ``n = 60``, then their floating-point product)."""
     if m <= 0:
         return 1.0
@@ -559,7 +559,7 @@ def binomial_sf(m, n, p):
 
 @njit(cache=True)
 def missing_probability(missing, n_bright, area_frac):
-    """:func:`startrack.identify.base._missing_probability`: ``P(K <= missing)``, Poisson of mean
+    """:func:`startrack.identify.verify._missing_probability`: ``P(K <= missing)``, Poisson of mean
     ``0.5 n_bright area_frac``."""
     lam = 0.5 * n_bright * area_frac
     if lam <= 0:
@@ -574,7 +574,7 @@ def missing_probability(missing, n_bright, area_frac):
 
 @njit(cache=True)
 def pinhole_cos_fov(focal, cx, cy, width, height):
-    """``cos`` of the farthest corner's off-axis angle plus 0.5 deg (:func:`startrack.identify.base._geometry`)."""
+    """``cos`` of the farthest corner's off-axis angle plus 0.5 deg (:func:`startrack.identify.verify._geometry`)."""
     dx = max(abs(-0.5 - cx), abs(width - 0.5 - cx))
     dy = max(abs(-0.5 - cy), abs(height - 0.5 - cy))
     off_axis = math.degrees(math.atan(math.hypot(dx, dy) / focal))
@@ -585,7 +585,7 @@ def pinhole_cos_fov(focal, cx, cy, width, height):
 def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal, cx, cy,
                     width, height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, scale_offset,
                     scale_range, max_chi2, mag_floor, mag_gate, trials, max_false, sky_cells, sky_ra):
-    """:func:`startrack.identify.base.verify` of one proposal at focal length ``focal`` (a pinhole camera).
+    """:func:`startrack.identify.verify.verify` of one proposal at focal length ``focal`` (a pinhole camera).
 
     Returns ``(code, match, q, dcm, p_false, missing, bright_pred, n_matched, near)``: ``code`` 0 =
     accepted, 1-4 as :func:`verify_core`, 5 = false-match probability above ``max_false``; ``near``
@@ -636,7 +636,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
 def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, use_mags, focal0, cx, cy, width,
                  height, fixed_radius_px, match_sigma, margin_rad, min_matches, eps, max_chi2, mag_floor, mag_gate,
                  trials, max_false, max_focal_error, sky_cells, sky_ra):
-    """:func:`startrack.identify.base._verify_with_focal` in one call, for a distortion-free camera.
+    """:func:`startrack.identify.verify._verify_with_focal` in one call, for a distortion-free camera.
 
     The same steps as the Python driver (focal scale of the proposal, verification, the
     field's scale, re-estimates from the matches), on the same kernels, without a
