@@ -120,23 +120,23 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
 
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
     arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``).
+    Each level and noise is the normal core of the tile's (or the frame's)
+    sampled pixels (:func:`startrack._kernels.centroid.core_stats_of_sorted`):
+    it holds on frames clipped at zero after a dark subtraction, on 8-bit
+    frames of a few grey levels and under stars, where a median and MAD do not.
+    The noise is the normal's sigma; on whole DN the caller adds the rounding's
+    1/12 DN^2 where a pixel's noise is meant.
     """
-    from startrack._kernels.centroid import (
-        background_mesh,
-        clipped_stats_of_sorted,
-        mesh_samples,
-        mesh_stats,
-    )
+    from startrack._kernels.centroid import background_mesh, core_stats_of_sorted, mesh_core_stats, mesh_samples
 
     h, w = image.shape
     step = max(1, int(round(math.sqrt(h * w / 10000.0))))
     sample = np.ascontiguousarray(image[::step, ::step], dtype=np.float64).ravel()
-    # ~10^4 values: numpy's sort, then medians by look-up (the same numbers as the selections of
-    # _clipped_stats).  NaN and infinite pixels are no data.
+    # ~10^4 values, sorted by numpy.  NaN and infinite pixels are no data.
     ordered = np.sort(sample)
     if ordered.size and not (np.isfinite(ordered[0]) and np.isfinite(ordered[-1])):
         ordered = ordered[np.isfinite(ordered)]
-    glevel, gsigma = clipped_stats_of_sorted(ordered, 5, 3.0)
+    glevel, gsigma = core_stats_of_sorted(ordered)
     if options.background == "global" or min(h, w) < 2 * options.mesh_px:
         return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
     cell = options.mesh_px
@@ -147,7 +147,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
         # The tiles' samples sorted by numpy (vectorised; ~0.07 ms for 192 tiles of 121 samples against
         # ~0.4 ms of insertion sorts in background_mesh), then the same clipped statistics.
         samples, counts, sampled = mesh_samples(img32, cell, mstep)
-        level, sigma = mesh_stats(np.sort(samples, axis=1), counts, sampled, ny, nx, 3, 3.0)
+        level, sigma = mesh_core_stats(np.sort(samples, axis=1), counts, sampled, ny, nx)
     else:       # a fine mesh on a large frame: no copy of every sample
         level, sigma = background_mesh(img32, cell, mstep)
     # Tiles without data (NaN: mostly NaN pixels) take their neighbours' median, else the frame's level.
@@ -182,54 +182,6 @@ def _tophat(img: np.ndarray, options: CentroidOptions) -> np.ndarray:
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, kernel)
     return np.ascontiguousarray(img - opened, dtype=np.float32)
-
-
-def _split_blob(residual, labels, lab, stats_row, min_separation=2.5, saddle_ratio=0.7):
-    """Deblend: local maxima of a blob that are separate peaks (saddle below ratio x lower peak)."""
-    left, top, bw, bh = (int(v) for v in stats_row[:4])
-    sub = residual[top:top + bh, left:left + bw]
-    mask = labels[top:top + bh, left:left + bw] == lab
-    if mask.sum() < 6:
-        return []
-    inside = np.where(mask, sub, -np.inf)
-    pad = np.full((bh + 2, bw + 2), -np.inf, dtype=inside.dtype)
-    pad[1:-1, 1:-1] = inside
-    # The largest of the eight neighbours, window by window (np.pad and np.stack cost ~10x more on these small blobs).
-    neigh = pad[0:bh, 0:bw].copy()
-    for j in range(3):
-        for i in range(3):
-            if (i, j) not in ((0, 0), (1, 1)):
-                np.maximum(neigh, pad[j:j + bh, i:i + bw], out=neigh)
-    peaks = np.argwhere(mask & (sub > neigh))
-    if len(peaks) < 2:
-        return []
-    heights = sub[peaks[:, 0], peaks[:, 1]]
-    order = np.argsort(-heights)
-    # Python ints and floats in the loop (numpy scalars cost ~1 us an operation): the same integer and
-    # double arithmetic; pixel values convert exactly, so comparisons between them do not change.
-    pts = peaks.tolist()
-    rows = sub.tolist()
-    kept = []
-    for k in order.tolist():
-        py, px = pts[k]
-        ok = True
-        for (qy, qx) in kept:
-            dist = math.hypot(px - qx, py - qy)
-            if dist < min_separation:
-                ok = False
-                break
-            n = int(math.ceil(dist * 2))
-            lowest = min(rows[int(round(py + (qy - py) * t / n))][int(round(px + (qx - px) * t / n))]
-                         for t in range(n + 1))
-            # the saddle limit in the residual's precision, as before
-            if lowest > float(saddle_ratio * min(sub[py, px], sub[qy, qx])):
-                ok = False
-                break
-        if ok:
-            kept.append((py, px))
-    if len(kept) < 2:
-        return []
-    return [(left + px, top + py) for (py, px) in kept]
 
 
 _CLIP_KAPPA = 3.0
@@ -483,10 +435,13 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         return result([], [], glevel, 0.0, "image is constant: no signal")
     sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
     cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+    integer = _is_integer_image(img)
     if options.threshold_dn is not None:
         thresh_mesh = np.full(level_mesh.shape, float(options.threshold_dn))
     else:
-        thresh_mesh = options.threshold_sigma * sigma_mesh
+        # A pixel's noise: the background's normal sigma, and on whole DN the rounding's 1/12 DN^2 (the
+        # whole noise of a frame whose pixels sit in one or two grey levels, where sigma is 0).
+        thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
     max_blobs = 20000
     ws = _workspace(img.shape, max_blobs)
     residual, mask = ws["residual"], ws["mask"]
@@ -507,13 +462,18 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     try:
         noise_mesh = _pixel_noise_mesh(residual, sigma_mesh, cell) if options.method == "gauss" else sigma_mesh
         return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel, gsigma,
-                        result, thresh_mesh, _is_integer_image(img))
+                        result, thresh_mesh, integer)
     finally:
         # Leave the reused label buffer zeroed for the next frame.
         if n_found > max_blobs:
             labels.fill(0)
         else:
             clear_labels(labels, table, n_found)
+
+
+def _blob_budget(max_stars: int) -> int:
+    """Blobs examined (classified, deblended) for ``max_stars`` stars: room for blends, duplicates and rejections."""
+    return 4 * max_stars + 40
 
 
 def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_mesh, cell, glevel, gsigma, result,
@@ -524,7 +484,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     1/12 DN^2 (on an 8-bit frame whose analogue noise is below a DN, the measured
     background noise is ~0 and the rounding is all the noise there is).
     """
-    from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, windowed_centroid
+    from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, split_blob, windowed_centroid
     from startrack._kernels.psf_fit import weighted_gaussian_fit
 
     quant = _QUANT_VAR if integer else 0.0
@@ -549,7 +509,16 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     rejected = []
     # One conversion of the blob table to Python floats (arithmetic on numpy scalars costs ~10x more).
     rows = table[:n_found + 1, :16].tolist()
-    for lab in range(1, n_found + 1):
+    labs = range(1, n_found + 1)
+    if options.max_stars is not None and n_found > _blob_budget(options.max_stars):
+        # Only the brightest blobs can give the max_stars brightest stars (a blend's pieces share its flux):
+        # classify and deblend those, in label order, and leave the faint majority (noise peaks, a photo's
+        # texture) unexamined.
+        flux = table[1:n_found + 1, 0]
+        keep = np.argpartition(-flux, _blob_budget(options.max_stars))[:_blob_budget(options.max_stars)]
+        labs = (np.sort(keep) + 1).tolist()
+    peak_buf = np.empty((64, 2), dtype=np.int64)
+    for lab in labs:
         flux, cx, cy, peak, px, py, npix, mxx, myy, mxy, nsat, ratio = rows[lab][:12]
         area = int(npix)
         px, py = int(px), int(py)
@@ -572,9 +541,10 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         elong = math.sqrt(l1 / l2)
         if options.deblend and area >= 6 and elong > 1.35:
             row = rows[lab]
-            stats_row = (int(row[12]), int(row[13]), int(row[14] - row[12] + 1), int(row[15] - row[13] + 1))
-            peaks = _split_blob(residual, labels, lab, stats_row)
-            if len(peaks) >= 2:
+            n_peaks = split_blob(residual, labels, lab, int(row[12]), int(row[13]), int(row[14] - row[12] + 1),
+                                 int(row[15] - row[13] + 1), 2.5, 0.7, peak_buf)
+            if n_peaks >= 2:
+                peaks = peak_buf[:n_peaks].tolist()
                 for (qx, qy) in peaks:
                     candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), nsat,
                                        math.sqrt(max(l2, 0.25)), True, flux / len(peaks)))
@@ -763,9 +733,9 @@ def centroid_windows(image: np.ndarray, centres, half_size: int, options: Centro
     list of dict or None
         For each window, the brightest star-like blob inside it (same fields
         as :func:`find_stars`, plus ``window``) or ``None`` when nothing was
-        found.  The background is the window's sigma-clipped border.
+        found.  The background is the normal core of the window's border.
     """
-    from startrack._kernels.centroid import _clipped_stats
+    from startrack._kernels.centroid import core_stats_of_sorted
 
     options = options or CentroidOptions()
     img = np.asarray(image, dtype=np.float32)
@@ -783,7 +753,8 @@ def centroid_windows(image: np.ndarray, centres, half_size: int, options: Centro
             continue
         sub = img[y0:y1, x0:x1]
         border = np.concatenate([sub[0], sub[-1], sub[1:-1, 0], sub[1:-1, -1]]).astype(np.float64)
-        level, sigma = _clipped_stats(border, 3, 3.0)
+        border = np.sort(border[np.isfinite(border)])
+        level, sigma = core_stats_of_sorted(border) if border.size else (0.0, 0.0)
         opts = CentroidOptions(**{**asdict(options), "background": "global", "max_stars": None})
         res = find_stars(sub - level + 0.0, opts, saturation=(saturation - level) if saturation else None)
         if not res.stars:

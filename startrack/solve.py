@@ -395,9 +395,9 @@ def warm_for_build(index=None) -> None:
             find_stars(image, replace(CentroidOptions(), method=method))
     # Kernels a real image may call that this frame does not: estimate_background's fallbacks (global
     # samples with NaN or infinities, a mesh too fine to copy) and centroid_windows' border statistics.
-    from startrack._kernels.centroid import _clipped_stats, background_mesh
+    from startrack._kernels.centroid import background_mesh, core_stats_of_sorted
 
-    _clipped_stats(np.array([1.0, 2.0, np.nan, 3.0]), 3, 3.0)
+    core_stats_of_sorted(np.array([1.0, 2.0, 3.0]))
     background_mesh(np.ascontiguousarray(image, dtype=np.float32), 64, 6)
     # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too): its
     # one-kernel search, and the driver's Python loop with the fused verification, through which every

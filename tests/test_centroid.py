@@ -314,14 +314,14 @@ def test_pixels_without_value_are_no_data():
 def test_mesh_paths_agree_with_pixels_without_value():
     """The two mesh statistics (numpy-sorted samples, and the kernel for fine meshes) give the same levels,
     NaN for the tiles without enough finite samples, on a frame with NaN and infinite regions."""
-    from startrack._kernels.centroid import MIN_TILE_SAMPLES, background_mesh, mesh_samples, mesh_stats
+    from startrack._kernels.centroid import MIN_TILE_SAMPLES, background_mesh, mesh_core_stats, mesh_samples
 
     rng = np.random.default_rng(3)
     img = rng.normal(50, 3, (200, 260)).astype(np.float32)
     img[:, :70] = np.nan            # tiles 0 (all) and 1 (partly) of each row
     img[150:, 200:] = np.inf
     samples, counts, sampled = mesh_samples(img, 64, 6)
-    level, sigma = mesh_stats(np.sort(samples, axis=1), counts, sampled, 4, 5, 3, 3.0)
+    level, sigma = mesh_core_stats(np.sort(samples, axis=1), counts, sampled, 4, 5)
     level2, sigma2 = background_mesh(img, 64, 6)
     np.testing.assert_array_equal(level, level2)
     np.testing.assert_array_equal(sigma, sigma2)

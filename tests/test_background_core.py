@@ -1,0 +1,76 @@
+"""The background's level and noise from the normal core of its distribution, and the deblend kernel."""
+import numpy as np
+import pytest
+from naive import split_blob_naive
+
+from startrack._kernels.centroid import _probit, core_stats_of_sorted, split_blob
+
+
+def _sample(rng, mu, sigma, n, *, integer=False, floor=None, star_fraction=0.01):
+    x = rng.normal(mu, sigma, n)
+    stars = rng.random(n) < star_fraction
+    x[stars] += rng.exponential(30 * sigma + 5, stars.sum())
+    if integer:
+        x = np.floor(x + 0.5)
+    if floor is not None:
+        x = np.maximum(x, floor)
+    return np.sort(x)
+
+
+@pytest.mark.parametrize("p", [1e-6, 0.001, 0.02425, 0.1, 0.5, 0.8, 0.97575, 0.999])
+def test_probit_inverts_the_normal_cdf(p):
+    from statistics import NormalDist
+
+    assert _probit(p) == pytest.approx(NormalDist().inv_cdf(p), rel=1e-6)
+
+
+@pytest.mark.parametrize("mu, sigma, integer, floor", [
+    (100.0, 5.0, False, None),      # a plain frame
+    (100.0, 5.0, True, None),       # whole DN
+    (2.0, 4.0, True, 0.0),          # dark-subtracted and clipped at 0: ~31 % zeros
+    (-1.5, 4.0, True, 0.0),         # clipped: ~65 % zeros, the median is 0
+    (1.2, 0.3, True, None),         # 8-bit, a third of a DN of noise: two grey levels
+    (20.0, 2.0, True, None),
+])
+def test_core_stats_recover_the_normal_background(mu, sigma, integer, floor):
+    rng = np.random.default_rng(7)
+    est = np.array([core_stats_of_sorted(_sample(rng, mu, sigma, 10000, integer=integer, floor=floor))
+                    for _ in range(20)])
+    assert np.mean(est[:, 0]) == pytest.approx(mu, abs=0.05 * sigma)
+    assert np.mean(est[:, 1]) == pytest.approx(sigma, rel=0.05)
+
+
+def test_core_stats_where_a_median_and_mad_fail():
+    """The oracle that fails for the old estimator: MAD reads 0 on a clipped or few-level frame."""
+    rng = np.random.default_rng(3)
+    s = _sample(rng, -1.5, 4.0, 10000, integer=True, floor=0.0)
+    assert 1.4826 * np.median(np.abs(s - np.median(s))) == 0.0
+    assert core_stats_of_sorted(s)[1] == pytest.approx(4.0, rel=0.05)
+
+
+def test_core_stats_of_constant_and_two_level_samples():
+    assert core_stats_of_sorted(np.full(100, 7.0)) == (7.0, 0.0)
+    level, sigma = core_stats_of_sorted(np.sort(np.r_[np.full(99, 3.0), 4.0]))
+    assert level == 3.0 and sigma == 0.0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_split_blob_matches_the_naive_deblend(seed):
+    from startrack._kernels.centroid import label_blobs
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:40, 0:50]
+    img = rng.normal(0, 1, (40, 50))
+    for _ in range(4):
+        x0, y0, a, s = rng.uniform(5, 45), rng.uniform(5, 35), rng.uniform(20, 200), rng.uniform(0.8, 3)
+        img += a * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * s * s))
+    residual = img.astype(np.float32)
+    mask = (residual > 3).astype(np.uint8)
+    labels, table, n = label_blobs(residual, mask, residual, np.inf, 10000)
+    out = np.empty((64, 2), dtype=np.int64)
+    for lab in range(1, n + 1):
+        row = table[lab]
+        box = (int(row[12]), int(row[13]), int(row[14] - row[12] + 1), int(row[15] - row[13] + 1))
+        ref = split_blob_naive(residual, labels, lab, box)
+        k = split_blob(residual, labels.astype(np.int32), lab, *box, 2.5, 0.7, out)
+        assert [tuple(p) for p in out[:k].tolist()] == [tuple(p) for p in ref]
