@@ -64,6 +64,7 @@ class CentroidOptions:
     tophat_px: float | None = None
     max_fwhm_ratio: float | None = None
     misfit_p: float = 1e-3
+    star_likeness: bool = True
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -608,7 +609,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             "x": float(x), "y": float(y), "flux": flux, "peak": float(peak), "npix": int(npix),
             "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, options.gain_e_per_dn),
             "fwhm_px": 2.3548 * sigma_psf, "noise_dn": float(noise), "saturated": bool(nsat > 0),
-            **({"deblended": True} if deblended else {}),
+            "_nsat": int(nsat), **({"deblended": True} if deblended else {}),
         }
         if method == "com" and not deblended:
             # The thresholded COM's own error model: pixel phase (truncation, rounding) and propagated noise.
@@ -624,6 +625,11 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         _flag_misfits(stars, options.misfit_p)
     stars.sort(key=lambda s: -s["flux"])
     stars = _unique(stars)
+    if options.star_likeness:
+        stars, unlike = _star_likeness(stars, residual)
+        rejected.extend(unlike)
+    for s_ in stars:
+        del s_["_nsat"]
     if options.max_fwhm_ratio is not None:
         stars, wide = _by_shape(stars, options.max_fwhm_ratio)
         rejected.extend(wide)
@@ -657,7 +663,7 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
             "x": x, "y": y, "flux": flux, "peak": float(peak), "npix": int(npix),
             "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, gain),
             "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": bool(nsat > 0),
-            **({"deblended": True} if deblended else {}),
+            "_nsat": int(nsat), **({"deblended": True} if deblended else {}),
         }
         if fitted:
             # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
@@ -693,6 +699,104 @@ def _unique(stars: list) -> list:
             kept.append(s_)
             grid.setdefault((gx, gy), []).append((x, y))
     return kept
+
+
+#: The point-spread function's width is taken from at most this many of the frame's best stars.
+_PSF_STARS = 60
+
+
+def _shorth_centre(values) -> float:
+    """The middle of the shortest interval holding half of ``values``: a location that up to half of them,
+    on either side, cannot move (foreground blobs, hot pixels)."""
+    v = np.sort(np.asarray(values, dtype=np.float64))
+    h = (len(v) + 1) // 2
+    widths = v[h - 1:] - v[:len(v) - h + 1]
+    i = int(np.argmin(widths))
+    return float(np.median(v[i:i + h]))
+
+
+def frame_psf(stars: list):
+    """The frame's point-spread function from its best stars: ``(fwhm_px, relative spread)``, or ``None``.
+
+    The best stars are the unsaturated, fitted detections of SNR >= 10 (at most
+    :data:`_PSF_STARS`, highest SNR first); at least 5 are needed.  The width is
+    the centre of the shortest half of their log FWHMs (:func:`_shorth_centre`):
+    a frame whose brightest detections are half foreground blobs still reads
+    its stars' width; the spread is 1.4826 MAD of the log widths about it (the
+    PSF's own variation over the field and the fits' noise).
+    """
+    best = sorted((s_ for s_ in stars if not s_["saturated"] and "cov_px2" in s_ and s_["snr"] >= 10
+                   and s_["fwhm_px"] > 0), key=lambda s_: -s_["snr"])[:_PSF_STARS]
+    if len(best) < 5:
+        return None
+    logs = np.log([s_["fwhm_px"] for s_ in best])
+    centre = _shorth_centre(logs)
+    spread = 1.4826 * float(np.median(np.abs(logs - centre)))
+    return math.exp(centre), spread
+
+
+def _star_likeness(stars: list, residual):
+    """Set apart the detections that are not point sources of the frame's own PSF: ``(stars, rejected)``.
+
+    Each detection is held against :func:`frame_psf` (when the frame has five
+    good stars to measure it from):
+
+    - **wider** than the PSF by more than ``max(2, exp(5 spread))`` times (an
+      extended blob, a piece of a foreground body, a galaxy, a defocused
+      reflection: a star is never twice as wide as the frame's other stars
+      unless the PSF varies that much over the field, which the spread measures);
+    - **sharper** than half the PSF's width, when the PSF is resolved (FWHM >= 2
+      px) and the detection is unsaturated with SNR >= 10 (a hot pixel, a cosmic
+      ray: light that did not come through the optics);
+    - **saturated over more than a disc of 3 FWHM radius** (a flat-topped
+      foreground body or bloom: a Gaussian star would need a peak e^25 times the
+      saturation level);
+    - **cut by the image border**: its centre within one FWHM (at least 1.5 px)
+      of the edge, where part of its light is missing and its centroid biased;
+    - **on an extended structure**: the median residual in the annulus from 2
+      to 4 FWHM around it (at least 3 to 6 px) is above a fifth of its own peak
+      and twice the pixel noise: a point source stands out of its
+      surroundings; a bump on a lit edge, a nebula's knot or a body's limb does
+      not.
+
+    The set-aside detections keep ``x``, ``y``, ``flux``, ``fwhm_px`` and the
+    ``reason``.
+    """
+    from startrack._kernels.centroid import annulus_medians
+
+    psf = frame_psf(stars)
+    if psf is None or not stars:
+        return stars, []
+    fwhm, spread = psf
+    h, w = residual.shape
+    wide = fwhm * max(2.0, math.exp(5.0 * spread))
+    edge = max(1.5, fwhm)
+    r_in = max(3.0, 2.0 * fwhm)
+    r_out = max(r_in + 3.0, 4.0 * fwhm)
+    xs = np.array([s_["x"] for s_ in stars])
+    ys = np.array([s_["y"] for s_ in stars])
+    around = annulus_medians(residual, xs, ys, r_in, r_out, np.empty(len(stars))).tolist()
+    sat_area = math.pi * (3.0 * fwhm) ** 2
+    keep, out = [], []
+    for s_, ring in zip(stars, around):
+        x, y, f = s_["x"], s_["y"], s_["fwhm_px"]
+        reason = None
+        if s_["_nsat"] > sat_area:
+            reason = f"saturated over {s_['_nsat']} px, wider than any star (a foreground body or bloom)"
+        elif not s_["saturated"] and f > wide:
+            reason = f"wider than the point-spread function (FWHM {f:.1f} px, the stars' {fwhm:.1f} px)"
+        elif not s_["saturated"] and fwhm >= 2.0 and s_["snr"] >= 10 and f < 0.5 * fwhm:
+            reason = f"sharper than the point-spread function (FWHM {f:.1f} px, the stars' {fwhm:.1f} px): " \
+                     "a hot pixel or cosmic ray"
+        elif min(x + 0.5, y + 0.5, w - 0.5 - x, h - 0.5 - y) < edge:
+            reason = "cut by the image border"
+        elif ring == ring and ring > 0.2 * s_["peak"] and ring > 2.0 * s_["noise_dn"]:
+            reason = f"on an extended structure (its surroundings at {ring / s_['peak']:.0%} of its peak)"
+        if reason is None:
+            keep.append(s_)
+        else:
+            out.append({"x": x, "y": y, "flux": s_["flux"], "fwhm_px": f, "reason": reason})
+    return keep, out
 
 
 def _by_shape(stars: list, max_ratio: float):

@@ -1025,3 +1025,31 @@ def split_blob(residual, labels, lab, left, top, bw, bh, min_separation, saddle_
         out[q, 0] = left + kept_x[q]
         out[q, 1] = top + kept_y[q]
     return nk
+
+
+@njit(cache=True)
+def annulus_medians(residual, xs, ys, r_in, r_out, out):
+    """Median residual in the annulus ``r_in <= r < r_out`` around each ``(xs[k], ys[k])`` (NaN when the annulus
+    holds fewer than 8 pixels of the image), into ``out``: what surrounds a detection."""
+    h, w = residual.shape
+    r2i = r_in * r_in
+    r2o = r_out * r_out
+    reach = int(math.ceil(r_out))
+    buf = np.empty((2 * reach + 1) ** 2)
+    for k in range(xs.shape[0]):
+        xc = xs[k]
+        yc = ys[k]
+        xi = int(math.floor(xc + 0.5))
+        yi = int(math.floor(yc + 0.5))
+        m = 0
+        for y in range(max(0, yi - reach), min(h, yi + reach + 1)):
+            dy2 = (y - yc) * (y - yc)
+            for x in range(max(0, xi - reach), min(w, xi + reach + 1)):
+                d2 = (x - xc) * (x - xc) + dy2
+                if r2i <= d2 < r2o:
+                    v = residual[y, x]
+                    if np.isfinite(v):
+                        buf[m] = v
+                        m += 1
+        out[k] = np.median(buf[:m]) if m >= 8 else np.nan
+    return out
