@@ -154,6 +154,11 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     # Tiles without data (NaN: mostly NaN pixels) take their neighbours' median, else the frame's level.
     level = _median3(level)
     sigma = _median3(sigma)
+    have = np.isfinite(level) & np.isfinite(sigma)
+    if have.any():
+        # The frame's level and noise are its typical tile's: a foreground body, a dark horizon or a bright moon
+        # over part of the frame makes the frame's histogram two-humped, and its core's width is not a noise.
+        glevel, gsigma = float(np.median(level[have])), float(np.median(sigma[have]))
     level = np.where(np.isfinite(level), level, glevel)
     sigma = np.where(sigma > 0, sigma, gsigma)
     return level, sigma, float(glevel), float(gsigma)
@@ -426,7 +431,9 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         probe = probe[np.isfinite(probe)]
     sat = top if sat is None else sat
     frac_sat = (float(np.mean(probe >= sat)) if probe.size else 0.0) if sat > bottom else 1.0
-    if frac_sat > 0.5:
+    if frac_sat > 0.95:
+        # Over 95 % saturated: daylight, a lens cap off in the sun.  A bright body over part of the frame (the Moon,
+        # a lit building) leaves the rest to search.
         return result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of pixels)")
     det_img = img
     if options.background == "tophat":
@@ -703,6 +710,8 @@ def _unique(stars: list) -> list:
 
 #: The point-spread function's width is taken from at most this many of the frame's best stars.
 _PSF_STARS = 60
+#: Fits that ended at the Gaussian fit's smallest sigma (0.2 px) measured no width: not in the PSF's sample.
+_FWHM_FLOOR = 2.3548 * 0.2 * 1.05
 
 
 def _shorth_centre(values) -> float:
@@ -718,7 +727,8 @@ def _shorth_centre(values) -> float:
 def frame_psf(stars: list):
     """The frame's point-spread function from its best stars: ``(fwhm_px, relative spread)``, or ``None``.
 
-    The best stars are the unsaturated, fitted detections of SNR >= 10 (at most
+    The best stars are the unsaturated, fitted detections of SNR >= 10 whose fit
+    did not end at its smallest width (at most
     :data:`_PSF_STARS`, highest SNR first); at least 5 are needed.  The width is
     the centre of the shortest half of their log FWHMs (:func:`_shorth_centre`):
     a frame whose brightest detections are half foreground blobs still reads
@@ -726,7 +736,7 @@ def frame_psf(stars: list):
     PSF's own variation over the field and the fits' noise).
     """
     best = sorted((s_ for s_ in stars if not s_["saturated"] and "cov_px2" in s_ and s_["snr"] >= 10
-                   and s_["fwhm_px"] > 0), key=lambda s_: -s_["snr"])[:_PSF_STARS]
+                   and s_["fwhm_px"] > _FWHM_FLOOR), key=lambda s_: -s_["snr"])[:_PSF_STARS]
     if len(best) < 5:
         return None
     logs = np.log([s_["fwhm_px"] for s_ in best])
@@ -754,10 +764,11 @@ def _star_likeness(stars: list, residual):
     - **cut by the image border**: its centre within one FWHM (at least 1.5 px)
       of the edge, where part of its light is missing and its centroid biased;
     - **on an extended structure**: the median residual in the annulus from 2
-      to 4 FWHM around it (at least 3 to 6 px) is above a fifth of its own peak
-      and twice the pixel noise: a point source stands out of its
-      surroundings; a bump on a lit edge, a nebula's knot or a body's limb does
-      not.
+      to 4 FWHM around it (at least 3 to 6 px) is above half its own peak and
+      twice the pixel noise: a point source stands out of its surroundings by
+      more than they stand out of the background (a star on a nebula's glow is
+      fitted with its local level); a bump on a lit edge, a nebula's knot or a
+      body's limb does not.
 
     The set-aside detections keep ``x``, ``y``, ``flux``, ``fwhm_px`` and the
     ``reason``.
@@ -790,7 +801,7 @@ def _star_likeness(stars: list, residual):
                      "a hot pixel or cosmic ray"
         elif min(x + 0.5, y + 0.5, w - 0.5 - x, h - 0.5 - y) < edge:
             reason = "cut by the image border"
-        elif ring == ring and ring > 0.2 * s_["peak"] and ring > 2.0 * s_["noise_dn"]:
+        elif ring == ring and ring > 0.5 * s_["peak"] and ring > 2.0 * s_["noise_dn"]:
             reason = f"on an extended structure (its surroundings at {ring / s_['peak']:.0%} of its peak)"
         if reason is None:
             keep.append(s_)
