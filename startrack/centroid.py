@@ -516,18 +516,18 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     candidates = []
     rejected = []
     # One conversion of the blob table to Python floats (arithmetic on numpy scalars costs ~10x more).
-    rows = table[:n_found + 1, :16].tolist()
-    labs = range(1, n_found + 1)
+    labs = np.arange(1, n_found + 1)
     if options.max_stars is not None and n_found > _blob_budget(options.max_stars):
         # Only the brightest blobs can give the max_stars brightest stars (a blend's pieces share its flux):
         # classify and deblend those, in label order, and leave the faint majority (noise peaks, a photo's
         # texture) unexamined.
         flux = table[1:n_found + 1, 0]
         keep = np.argpartition(-flux, _blob_budget(options.max_stars))[:_blob_budget(options.max_stars)]
-        labs = (np.sort(keep) + 1).tolist()
+        labs = np.sort(keep) + 1
+    rows = table[labs, :16].tolist()
     peak_buf = np.empty((64, 2), dtype=np.int64)
-    for lab in labs:
-        flux, cx, cy, peak, px, py, npix, mxx, myy, mxy, nsat, ratio = rows[lab][:12]
+    for lab, row in zip(labs.tolist(), rows):
+        flux, cx, cy, peak, px, py, npix, mxx, myy, mxy, nsat, ratio = row[:12]
         area = int(npix)
         px, py = int(px), int(py)
         if flux <= 0:
@@ -548,7 +548,6 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 1e-6)
         elong = math.sqrt(l1 / l2)
         if options.deblend and area >= 6 and elong > 1.35:
-            row = rows[lab]
             n_peaks = split_blob(residual, labels, lab, int(row[12]), int(row[13]), int(row[14] - row[12] + 1),
                                  int(row[15] - row[13] + 1), 2.5, 0.7, peak_buf)
             if n_peaks >= 2:
@@ -568,10 +567,13 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         # (with room for duplicates and shape rejections) and skip the faint majority.
         candidates.sort(key=lambda c: -c[7])
         candidates = candidates[:3 * options.max_stars + 20]
+    if options.star_likeness:
+        candidates, wide = _extended_blobs(candidates)
+        rejected.extend(wide)
     stars = []
     method = options.method
     if method == "gauss":
-        stars = _measure_gauss(residual, candidates, options, sigma_mesh, cell, quant)
+        stars = _measure_brightest(residual, candidates, options, sigma_mesh, cell, quant)
         candidates = []
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
@@ -644,6 +646,64 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         stars = stars[: options.max_stars]
     reason = None if stars else "no star-like detection (all rejected)"
     return result(stars, rejected, glevel, gsigma, reason)
+
+
+def _extended_blobs(candidates: list):
+    """Set apart, before any fit, the blobs that two independent widths both call extended: ``(candidates,
+    rejected)``.
+
+    For a point source of PSF sigma ``s`` the peak pixel holds ``~F / (2 pi s^2)`` of
+    the flux, so ``sqrt(F / (2 pi peak))`` reads ``s`` (less for a faint blob, whose
+    thresholded flux is short); the second moments of its thresholded pixels
+    read at most ``s`` across their minor axis.  The frame's point-source sigma
+    ``s0`` is the centre of the shortest half of the first width over the 30
+    brightest unsaturated, unblended blobs (:func:`_shorth_centre`: stars, even
+    when half of them are not).  A blob whose first width exceeds ``3 s0`` and
+    whose minor-axis moment exceeds ``2 s0`` (and a blend's pieces, when the
+    blend's minor-axis moment exceeds ``3 s0``) is an extended object, nebula or
+    a foreground body's piece: its fit, whose window grows with it, would cost
+    ten times a star's and :func:`_star_likeness` would set it apart after.
+    Saturated blobs are left to :func:`_star_likeness`.
+    """
+    widths = [math.sqrt(c[7] / (2.0 * math.pi * c[2])) for c in sorted(candidates, key=lambda c: -c[7])
+              if not c[6] and c[4] == 0 and c[2] > 0][:30]
+    if len(widths) < 5:
+        return candidates, []
+    s0 = math.exp(_shorth_centre(np.log(widths)))
+    keep, out = [], []
+    for c in candidates:
+        cx, cy, peak, _, nsat, minor, deblended, flux = c
+        if nsat == 0 and ((deblended and minor > 3.0 * s0) or (not deblended and peak > 0 and minor > 2.0 * s0
+                                                                 and flux > 9.0 * 2.0 * math.pi * peak * s0 * s0)):
+            out.append({"x": cx, "y": cy, "flux": flux, "reason": f"wider than the point-spread function (blob "
+                        f"sigma {minor:.1f} px, the point sources' {s0:.1f} px)"})
+        else:
+            keep.append(c)
+    return keep, out
+
+
+def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_var):
+    """:func:`_measure_gauss` of the candidates, brightest blob first: ``max_stars + 10`` of them, then
+    batches of half as many until ``max_stars`` distinct star-like detections are in hand (all of them
+    without ``max_stars``).
+
+    The fit is most of find_stars' time; a frame of many blobs (a photograph's texture, noise) is fitted
+    only as deep as its brightest stars need.
+    """
+    if options.max_stars is None:
+        return _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var)
+    candidates = sorted(candidates, key=lambda c: -c[7])
+    first = options.max_stars + 10
+    stars = _measure_gauss(residual, candidates[:first], options, noise_mesh, cell, quant_var)
+    batch = first // 2
+    for i in range(first, len(candidates), batch):
+        probe = _unique(sorted(stars, key=lambda s_: -s_["flux"]))
+        if options.star_likeness:
+            probe = _star_likeness(probe, residual)[0]
+        if len(probe) >= options.max_stars:
+            break
+        stars += _measure_gauss(residual, candidates[i:i + batch], options, noise_mesh, cell, quant_var)
+    return stars
 
 
 def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):

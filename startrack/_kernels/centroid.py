@@ -624,6 +624,10 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
             if abs(delta[0]) < 1e-6 and abs(delta[1]) < 1e-6:
                 break
         else:
+            # A step below the convergence tolerance that does not lower the cost: the minimum, to the
+            # precision of the arithmetic (raising the damping up to 1e8 would only repeat the evaluation).
+            if abs(delta[0]) < 1e-6 and abs(delta[1]) < 1e-6:
+                break
             lam *= 10.0
             if lam > 1e8:
                 break

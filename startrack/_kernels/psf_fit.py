@@ -163,6 +163,10 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
             if abs(delta[0]) < 1e-7 and abs(delta[1]) < 1e-7:
                 break
         else:
+            # A step below the convergence tolerance that does not lower the cost: the minimum, to the
+            # precision of the arithmetic (raising the damping up to 1e8 would only repeat the evaluation).
+            if abs(delta[0]) < 1e-7 and abs(delta[1]) < 1e-7:
+                break
             lam *= 10.0
             if lam > 1e8:
                 break
