@@ -131,14 +131,18 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     from startrack._kernels.centroid import background_mesh, core_stats_of_sorted, mesh_core_stats, mesh_samples
 
     h, w = image.shape
-    step = max(1, int(round(math.sqrt(h * w / 10000.0))))
-    sample = np.ascontiguousarray(image[::step, ::step], dtype=np.float64).ravel()
-    # ~10^4 values, sorted by numpy.  NaN and infinite pixels are no data.
-    ordered = np.sort(sample)
-    if ordered.size and not (np.isfinite(ordered[0]) and np.isfinite(ordered[-1])):
-        ordered = ordered[np.isfinite(ordered)]
-    glevel, gsigma = core_stats_of_sorted(ordered)
+
+    def frame_stats():
+        step = max(1, int(round(math.sqrt(h * w / 10000.0))))
+        sample = np.ascontiguousarray(image[::step, ::step], dtype=np.float64).ravel()
+        # ~10^4 values, sorted by numpy.  NaN and infinite pixels are no data.
+        ordered = np.sort(sample)
+        if ordered.size and not (np.isfinite(ordered[0]) and np.isfinite(ordered[-1])):
+            ordered = ordered[np.isfinite(ordered)]
+        return core_stats_of_sorted(ordered)
+
     if options.background == "global" or min(h, w) < 2 * options.mesh_px:
+        glevel, gsigma = frame_stats()
         return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
     cell = options.mesh_px
     mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
@@ -159,6 +163,8 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
         # The frame's level and noise are its typical tile's: a foreground body, a dark horizon or a bright moon
         # over part of the frame makes the frame's histogram two-humped, and its core's width is not a noise.
         glevel, gsigma = float(np.median(level[have])), float(np.median(sigma[have]))
+    else:
+        glevel, gsigma = frame_stats()
     level = np.where(np.isfinite(level), level, glevel)
     sigma = np.where(sigma > 0, sigma, gsigma)
     return level, sigma, float(glevel), float(gsigma)
@@ -412,25 +418,24 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     img = np.ascontiguousarray(image, dtype=np.float32)
     if img.ndim != 2 or img.size == 0:
         raise BadInputError(source, None, f"expected a 2-D image, got shape {img.shape}")
-    params = asdict(options)
+    params = dict(options.__dict__)     # every field is a scalar: a shallow copy is asdict's
 
     def result(stars, rejected, level, sigma, reason=None):
         return CentroidResult(stars, rejected, float(level), float(sigma), (time.perf_counter() - t0) * 1000.0,
                               reason, params)
 
     sat = options.saturation_dn if options.saturation_dn is not None else saturation
-    bottom = float(img.min())
-    top = float(img.max()) if sat is None else None     # the saturation level when none is given
+    # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
+    bottom, top = float(img.min()), float(img.max())      # numpy's vectorised passes; NaN propagates
     probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
-    if not math.isfinite(bottom) or (top is not None and not math.isfinite(top)):
-        # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
+    if not (math.isfinite(bottom) and math.isfinite(top)):
         finite = img[np.isfinite(img)]
         if finite.size == 0:
             return result([], [], float("nan"), 0.0, "image has no finite pixel value")
-        bottom = float(finite.min())
-        top = float(finite.max()) if top is not None else None
+        bottom, top = float(finite.min()), float(finite.max())
         probe = probe[np.isfinite(probe)]
-    sat = top if sat is None else sat
+    span = top - bottom
+    sat = top if sat is None else sat       # the saturation level when none is given: the largest value
     frac_sat = (float(np.mean(probe >= sat)) if probe.size else 0.0) if sat > bottom else 1.0
     if frac_sat > 0.95:
         # Over 95 % saturated: daylight, a lens cap off in the sun.  A bright body over part of the frame (the Moon,
@@ -440,7 +445,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     if options.background == "tophat":
         det_img = _tophat(img, options)
     level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options)
-    if not gsigma > 0 and float(img.max()) - float(img.min()) <= 0:
+    if not gsigma > 0 and span <= 0:
         return result([], [], glevel, 0.0, "image is constant: no signal")
     sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
     cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)

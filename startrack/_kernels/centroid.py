@@ -1057,3 +1057,4 @@ def annulus_medians(residual, xs, ys, r_in, r_out, out):
                         m += 1
         out[k] = np.median(buf[:m]) if m >= 8 else np.nan
     return out
+
