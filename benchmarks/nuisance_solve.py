@@ -24,8 +24,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 #: (fov deg, width, height): the frames of a nuisance are spread over these in turn.
