@@ -4,7 +4,8 @@ false-solution hunt on star-less frames carrying the same nuisances (success / w
 Every frame is rendered by `startrack render` and solved by `startrack solve` as a user runs them (subprocesses,
 the real CLI): a dark-subtracted 8-bit frame clipped at 0, 50 hot pixels, an opaque foreground body over 30 % and
 50 % of the frame (a disc, an edge, branches in turn), nebulosity, a 10x sky gradient, and a mirrored image
-(columns and rows in turn). The frames are spread over four sensors (6.1 deg 1392x1040, 8 deg 1024x768,
+(columns and rows in turn); with ``--no-stars`` the same nuisances on frames without a catalog star, with 30
+false point sources each (the false-solution hunt: any ok is wrong). The frames are spread over four sensors (6.1 deg 1392x1040, 8 deg 1024x768,
 12 deg 1280x960, 20 deg 1024x1024) and random attitudes. A solve is right when its boresight is within 10 pixels'
 angle and its roll within 1 deg of the truth, wrong when it says ok otherwise.
 
@@ -64,10 +65,11 @@ def render_set(name: str, count: int, out: str, seed: int, stars: bool, pythonpa
         if n == 0:
             continue
         fov, w, h = SENSORS[s]
-        args = ["render", "--fov-deg", str(fov), "--size", f"{w}x{h}", "--count", str(n), "--seed", str(seed + i),
+        args = ["render", "--fov-deg", str(fov), "--size", f"{w}x{h}", "--seed", str(seed + i),
                 "-o", os.path.join(out, f"s{i:02d}-.png"), "-q", *variants[v]]
-        if not stars:
-            args += ["--mag-max", "-30"]
+        # Star-less frames: a sequence rendered blacked out (no catalog star), with 30 false point sources
+        # besides the nuisance's own detections, the patterns a false solution would be made of.
+        args += ["--count", str(n)] if stars else ["--frames", str(n), "--blackout", f"0:{n}", "--false-stars", "30"]
         proc = _cli(args, pythonpath)
         if proc.returncode != 0:
             raise SystemExit(f"render failed: {' '.join(args)}\n{proc.stderr}")

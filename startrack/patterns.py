@@ -254,6 +254,7 @@ class BlindOptions:
     fov_min_deg: float = 1.5
     fov_max_deg: float = 100.0
     pattern_stars: int = 16
+    max_pattern_stars: int = 24
     verify_stars: int = 60
     sigma_px: float | None = None
     max_false_probability: float = 1e-6
@@ -387,18 +388,23 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     m = min(n_all, opts.verify_stars)
     xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
     n_pat = min(m, opts.pattern_stars)
+    # Deeper searches when every pattern of the brightest stars is spent: a frame whose brightest detections
+    # are mostly not catalog stars (a foreground's pieces, satellites, hot pixels) is found among later ones.
+    depths = sorted({n_pat, min(m, max(n_pat, opts.max_pattern_stars))})
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     f_lo = (width / 2.0) / math.tan(math.radians(opts.fov_max_deg) / 2.0)
     f_hi = (width / 2.0) / math.tan(math.radians(opts.fov_min_deg) / 2.0)
     params = IdentifyParams(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability)
     sigma = _centroid_sigma_px(stars[:m], params)
-    combos = _combos(n_pat)
-    log.debug("pattern search: %d stars (%d in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all, n_pat,
-              len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
-    xy_pat = np.ascontiguousarray(xy_all[:n_pat])
+    combos = _combos(depths[-1])
+    log.debug("pattern search: %d stars (%s in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all,
+              " then ".join(map(str, depths)), len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
+    xy_pat = np.ascontiguousarray(xy_all[:depths[-1]])
     seen = set()
     # Patterns are looked up a few at a time (one kernel call each), the first ones alone: most images
     # are identified by their first pattern, and the candidates are verified in the same order either way.
+    # _combos(n) begins with _combos(n') for n' < n (tetra3's order: a pattern's faintest star last), so the
+    # deeper searches are the same loop carried on past the first depth's patterns.
     starts = [0, 1, 3] + list(range(6, len(combos), 6))
     reason = "no star pattern identified"
     for s0, s1 in zip(starts, starts[1:] + [len(combos)]):
