@@ -5,8 +5,8 @@ Every frame is rendered by `startrack render` and solved by `startrack solve` as
 the real CLI): a dark-subtracted 8-bit frame clipped at 0, 50 hot pixels, an opaque foreground body over 30 % and
 50 % of the frame (a disc, an edge, branches in turn), nebulosity, a 10x sky gradient, and a mirrored image
 (columns and rows in turn); with ``--no-stars`` the same nuisances on frames without a catalog star, with 30
-false point sources each (the false-solution hunt: any ok is wrong). The frames are spread over four sensors (6.1 deg 1392x1040, 8 deg 1024x768,
-12 deg 1280x960, 20 deg 1024x1024) and random attitudes. A solve is right when its boresight is within 10 pixels'
+false point sources each (the false-solution hunt: any ok is wrong). The frames are spread over four sensors (6.1 deg 1392x1040 at 500 ms, 8 deg
+1024x768 at 300 ms, 12 deg 1280x960 and 20 deg 1024x1024 at 100 ms) and random attitudes. A solve is right when its boresight is within 10 pixels'
 angle and its roll within 1 deg of the truth, wrong when it says ok otherwise.
 
     python benchmarks/nuisance_solve.py --count 200 --out bench-output/nuisance
@@ -27,8 +27,9 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-#: (fov deg, width, height): the frames of a nuisance are spread over these in turn.
-SENSORS = [(6.1, 1392, 1040), (8.0, 1024, 768), (12.0, 1280, 960), (20.0, 1024, 1024)]
+#: (fov deg, width, height, exposure ms): the frames of a nuisance are spread over these in turn.  The narrow
+#: fields expose longer, as a star tracker of that field does to see stars to magnitude 7-8.
+SENSORS = [(6.1, 1392, 1040, 500), (8.0, 1024, 768, 300), (12.0, 1280, 960, 100), (20.0, 1024, 1024, 100)]
 
 #: name -> list of render arguments, one list per sensor slot (cycled), for the nuisances of issue 37.
 NUISANCES = {
@@ -64,8 +65,9 @@ def render_set(name: str, count: int, out: str, seed: int, stars: bool, pythonpa
     for i, ((s, v), n) in enumerate(zip(slots, per)):
         if n == 0:
             continue
-        fov, w, h = SENSORS[s]
-        args = ["render", "--fov-deg", str(fov), "--size", f"{w}x{h}", "--seed", str(seed + i),
+        fov, w, h, exposure = SENSORS[s]
+        args = ["render", "--fov-deg", str(fov), "--size", f"{w}x{h}", "--exposure-ms", str(exposure),
+                "--seed", str(seed + i),
                 "-o", os.path.join(out, f"s{i:02d}-.png"), "-q", *variants[v]]
         # Star-less frames: a sequence rendered blacked out (no catalog star), with 30 false point sources
         # besides the nuisance's own detections, the patterns a false solution would be made of.
