@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Attitude accuracy against each frame's Cramér-Rao bound (issue 21), startrack beside tetra3rs and cedar-solve.
+"""Accuracy against each frame's Cramér-Rao bound (issue 21), feeds section accuracy, results-accuracy-2026-12-02c.md.
 
 Every frame is rendered once (pixel-integrated Gaussian PSF, shot + background +
 read noise, 16-bit); each tool solves the same image with its own centroiding:
@@ -40,44 +40,11 @@ import tempfile
 import time
 
 import numpy as np
+from common import sensor_spec
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "peers"))
 EPOCH = 2025.0
 ARCSEC = math.degrees(1.0) * 3600.0
 WRONG_NEES = 25.0       # a frame more than 0.1 deg off is wrong when also beyond 5 sigma of its covariance
-
-
-def sensor_spec(name, psf_sigma=None, faint_snr=None):
-    """(camera, sensor, id magnitude range, render magnitude limit, label) of a named sensor."""
-    from startrack.camera import Camera
-    from startrack.render import Sensor
-
-    if name == "p000":      # paper 000: 752 x 480, 6 um, f 41.1 mm (30.1"/px), Hp 2.5-6.59, 200 ms
-        cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480)
-        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=200.0)
-        mags, render_mag = (2.5, 6.59), 7.5
-    elif name == "p003":    # paper 003: 20 x 20 deg, 1024 x 1024, 15 um, f 43.3 mm, Hp <= 5.0
-        cam = Camera.from_focal_length_mm(43.3, 15.0, 1024, 1024)
-        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=100.0)
-        mags, render_mag = (None, 5.0), 6.0
-    elif name == "15deg":   # a 15-degree tracker: 1024 x 1024, Hp <= 5.5
-        cam = Camera.from_fov(15.0, 1024, 1024)
-        sensor = Sensor(psf_sigma_px=1.0, exposure_ms=100.0)
-        mags, render_mag = (None, 5.5), 6.5
-    else:
-        raise SystemExit(f"unknown sensor {name!r}")
-    if psf_sigma is not None:
-        sensor.psf_sigma_px = psf_sigma
-    if faint_snr is not None:
-        # Zero point such that the faintest identification star has SNR = faint_snr.
-        from startrack.centroid_accuracy import flux_for_snr
-
-        v = sensor.background_e + sensor.read_noise_e**2
-        f = flux_for_snr(faint_snr, sensor.psf_sigma_px, v)
-        sensor.zero_point_e_per_s = f / sensor.exposure_s * 10 ** (0.4 * mags[1])
-        # (full well and gain unchanged: stars that saturate leave the bound and the estimate alike)
-    return cam, sensor, mags, render_mag
 
 
 class Peers:

@@ -1,6 +1,7 @@
-"""Blind solving (issue 15), every figure in one run: real photos beside astrometry.net and cedar-solve,
-time per image (whole process, in one process, first use), -j 1 vs -j 2, rendered 2-70 degree fields,
-and non-star images.
+"""Blind solving (issue 15), feeds `make bench` section blind and results/results-blind-2026-12-02c.md.
+
+Every figure in one run: real photos beside astrometry.net and cedar-solve, time per image (whole
+process, in one process, first use), -j 1 vs -j 2, rendered 2-70 degree fields, and non-star images.
 
     .venv/bin/python benchmarks/blind_bench.py [--out bench-output/blind.md] [--skip-peers]
 
@@ -10,9 +11,7 @@ copyrighted and never copied into the repository); the 8 ESA images are in tests
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import math
 import os
 import shutil
 import subprocess
@@ -21,35 +20,20 @@ import tempfile
 import time
 
 import numpy as np
+from common import ESA_DIR, ROOT, esa_references, sep_deg, table
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path.insert(0, os.path.join(HERE, "peers"))
 EXTRA = os.environ.get("STARTRACK_REAL_EXTRA", os.path.join(os.path.dirname(ROOT), "shared", "data", "real-extra"))
 if not os.path.isdir(EXTRA):
     EXTRA = "/work/shared/data/real-extra"
 ST = [sys.executable, "-m", "startrack"]
 
 
-def _sep_deg(ra, dec, ra0, dec0):
-    a = np.radians([ra, dec, ra0, dec0])
-    c = math.sin(a[1]) * math.sin(a[3]) + math.cos(a[1]) * math.cos(a[3]) * math.cos(a[0] - a[2])
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
-
-
-def table(header, rows):
-    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
-    return "\n".join(out)
-
-
 def references():
+    """``{image path: astrometry.net's solution}`` of the ESA images and of the extra photographs when present."""
     refs = {}
-    for path in (os.path.join(ROOT, "tests", "data", "real", "solutions.csv"), os.path.join(EXTRA, "solutions.csv")):
-        if os.path.exists(path):
-            d = os.path.dirname(path)
-            for r in csv.DictReader(open(path)):
-                refs[os.path.join(d, r["file"])] = r
+    for d in (ESA_DIR, EXTRA):
+        if os.path.exists(os.path.join(d, "solutions.csv")):
+            refs.update({os.path.join(d, f): r for f, r in esa_references(os.path.join(d, "solutions.csv")).items()})
     return refs
 
 
@@ -81,7 +65,7 @@ def real_photos(refs, cache_env, skip_peers):
         d = docs[0] if docs else {"solve": {"status": "no output"}}
         s = d["solve"]
         if s["status"] == "ok":
-            dist = _sep_deg(s["center_ra"], s["center_dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+            dist = sep_deg(s["center_ra"], s["center_dec"], float(r["ra_deg"]), float(r["dec_deg"]))
             width = s["fov_deg"][0] / float(r["fov_x_deg"]) - 1
             rows.append(["startrack", name, "ok", proc.returncode, f"{dist:.4f}", f"{100 * width:+.2f} %",
                          f"{wall:.2f} (CPU {CPU['last']:.2f})"])
@@ -102,7 +86,7 @@ def _peers(refs):
             for path, r in refs.items():
                 res = astrometry_peer.solve_field(path, 1, 100, timeout_s=60)
                 if res["status"] == "solved":
-                    dist = _sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+                    dist = sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
                     rows.append(["astrometry.net (scale 1-100 deg)", os.path.basename(path), "ok", "",
                                  f"{dist:.4f}", f"{100 * (res['fov_x_deg'] / float(r['fov_x_deg']) - 1):+.2f} %",
                                  f"{res['elapsed_ms'] / 1000:.2f}"])
@@ -121,7 +105,7 @@ def _peers(refs):
                 for path, r in refs.items():
                     res = cs.solve_image(path, float(r["fov_x_deg"]))
                     if res.get("ra") is not None:
-                        dist = _sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
+                        dist = sep_deg(res["ra"], res["dec"], float(r["ra_deg"]), float(r["dec_deg"]))
                         rows.append(["cedar-solve (FOV given)", os.path.basename(path), "ok", "", f"{dist:.4f}",
                                      f"{100 * (res['fov'] / float(r['fov_x_deg']) - 1):+.2f} %",
                                      f"{res.get('t_wall_ms', float('nan')) / 1000:.3f} (in-process)"])
@@ -254,7 +238,7 @@ def rendered(cache_env):
             d = json.loads(proc.stdout.splitlines()[0])
             s = d["solve"]
             if s["status"] == "ok":
-                dist = _sep_deg(d["attitude"]["ra"], d["attitude"]["dec"], ra, dec)
+                dist = sep_deg(d["attitude"]["ra"], d["attitude"]["dec"], ra, dec)
                 rows.append([f"{fov:g} deg {size}, k1 {k1:g}", "ok", proc.returncode, f"{dist * 3600:.1f}",
                              f"{s['fov_deg'][0]:.3f}", f"{d['camera'].get('distortion', {}).get('k1', 0):+.4f}",
                              d["attitude"]["n_stars"], f"{s['time_ms']:.0f}", f"{wall:.2f}"])

@@ -1,4 +1,4 @@
-"""Catalog loading, side by side: the deep shipped file vs a Hp <= 8 file (the previous shipped depth).
+"""Catalog loading, feeds catalogs/README.md's loading times: the deep shipped file vs a Hp <= 8 file, side by side.
 
     python benchmarks/catalog_bench.py [--repeats 9]
 

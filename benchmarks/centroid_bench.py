@@ -1,14 +1,14 @@
-"""Centroid benchmarks: accuracy against the Cramer-Rao bound, paper 000's experiment,
-pixel-phase bias, and speed against sep on rendered and real images."""
+"""Centroids, feeds `make bench` section centroid (results/results-2026-11-22.md) and examples/centroid-pixel-phase.png.
+
+Accuracy against the Cramer-Rao bound, paper 000's experiment, pixel-phase bias, and speed against sep on
+rendered and real images."""
 from __future__ import annotations
 
-import glob
 import os
 import time
 
 import numpy as np
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from common import esa_images
 
 
 def accuracy_table(n=300, seed=1):
@@ -113,7 +113,7 @@ def speed_and_completeness(n_frames=12, seed=3):
 
     try:
         import sep  # noqa: F401
-        from peers.sep_peer import extract as sep_extract
+        from sep_peer import extract as sep_extract  # benchmarks/peers, on sys.path by common
     except Exception as exc:  # noqa: BLE001
         sep_extract = None
         sep_error = f"{type(exc).__name__}: {exc}"
@@ -179,7 +179,7 @@ def speed_and_completeness(n_frames=12, seed=3):
         stats[tool] = (float(np.median(times)), float(np.mean(comp)), float(np.mean(falses)),
                        float(np.sqrt(np.mean(np.square(errs)))) if errs else float("nan"))
     real = []
-    for path in sorted(glob.glob(os.path.join(ROOT, "tests", "data", "real", "*.tiff"))):
+    for path in esa_images():
         img, meta = read_image(path)
         t = []
         for _ in range(5):

@@ -1,4 +1,6 @@
-"""Database benchmarks: build time, size and entries; range and label query throughput; paper 000 Table 5."""
+"""Databases, feeds `make bench` section databases (results/results-2026-11-22.md).
+
+Build time, size and entries; range and label query throughput; paper 000 Table 5 recomputed."""
 from __future__ import annotations
 
 import math

@@ -23,7 +23,7 @@ import collections
 import math
 
 import numpy as np
-from identify_compare import add_sensor_arguments, sensor_setup
+from common import add_sensor_arguments, sensor_setup
 
 
 def main(argv=None):

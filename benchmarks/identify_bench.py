@@ -1,4 +1,6 @@
-"""Identification side by side with cedar-solve and tetra3rs on the same centroid lists.
+"""Identification beside cedar-solve and tetra3rs, feeds `make bench` section identify (results/results-2026-11-22.md).
+
+The three tools get the same centroid lists (20 x 20 deg, Hp <= 5.0).
 
 Scoring is the same for every tool: a frame is a success when the tool returns an
 attitude whose boresight is within 0.1 degree of the truth and whose roll is within
@@ -8,13 +10,8 @@ when it returns none.
 """
 from __future__ import annotations
 
-import os
-import sys
-
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "peers"))
+from common import attitude_correct, peer_correct
 
 
 def _frames(cat, cam, sigma_px, false_stars, n, seed):
@@ -22,19 +19,6 @@ def _frames(cat, cam, sigma_px, false_stars, n, seed):
 
     return make_frames(cat, cam, Condition(sigma_px=sigma_px, false_stars=false_stars, mag_noise=0.1), n, seed,
                        mag_limit=5.0)
-
-
-def _correct(dcm, truth):
-    from startrack.rotations import attitude_error, quaternion_to_dcm
-
-    _, cross, roll = attitude_error(dcm, quaternion_to_dcm(truth["quaternion"]))
-    return cross < 0.1 and abs(roll) < 1.0
-
-
-def _peer_correct(ra, dec, roll, truth):
-    from startrack.rotations import radec_roll_to_dcm
-
-    return _correct(radec_roll_to_dcm(ra, dec, roll), truth)
 
 
 def run(n=1000, seed=11):
@@ -77,7 +61,7 @@ def run(n=1000, seed=11):
             for stars, truth, _ in frames:
                 res = identify_stars(stars, cam, db, "pyramid", params)
                 if res.status == "ok":
-                    good = _correct(quaternion_to_dcm(res.quaternion_estimate), truth)
+                    good = attitude_correct(quaternion_to_dcm(res.quaternion_estimate), truth)
                     results["startrack pyramid"].append(("ok", good, res.time_ms))
                 else:
                     results["startrack pyramid"].append(("fail", None, res.time_ms))
@@ -85,7 +69,7 @@ def run(n=1000, seed=11):
                 if "tetra3rs" in peers:
                     r = tetra3rs_peer.solve(xy, 1024, 1024, 20.0, db=peers["tetra3rs"])
                     if r["ra"] is not None:
-                        results["tetra3rs"].append(("ok", _peer_correct(r["ra"], r["dec"], r["roll"], truth),
+                        results["tetra3rs"].append(("ok", peer_correct(r, truth),
                                                      r["elapsed_ms"]))
                     else:
                         results["tetra3rs"].append(("fail", None, r["elapsed_ms"]))
@@ -93,7 +77,7 @@ def run(n=1000, seed=11):
                     r = cedar.solve_centroids(xy, 1024, 1024, 20.0)
                     t = r.get("t_solve_ms") or r.get("t_wall_ms") or float("nan")
                     if r.get("ra") is not None:
-                        results["cedar-solve"].append(("ok", _peer_correct(r["ra"], r["dec"], r["roll"], truth), t))
+                        results["cedar-solve"].append(("ok", peer_correct(r, truth), t))
                     else:
                         results["cedar-solve"].append(("fail", None, t))
             base = None

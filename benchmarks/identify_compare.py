@@ -1,4 +1,6 @@
-"""Identification side by side: startrack's six algorithms, tetra3rs and cedar-solve on the same star lists.
+"""Identification side by side, feeds `make bench` section identify-compare, README.md and results/ (identify).
+
+startrack's six algorithms, tetra3rs and cedar-solve on the same star lists.
 
 The star lists are those of ``startrack evaluate`` (:func:`startrack.evaluate.make_frames`,
 same seed, same conditions); startrack's rows come from :func:`startrack.evaluate.evaluate`,
@@ -19,24 +21,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "peers"))
-OUT = os.path.join(os.path.dirname(HERE), "bench-output")
+from common import OUT_DIR, add_sensor_arguments, load_average, peer_correct, sensor_setup
 
 ALGORITHMS = ["pyramid", "modified-pyramid", "voting", "brightness", "labelling", "grid"]
-
-
-def _peer_correct(r, truth):
-    from startrack.rotations import attitude_error, quaternion_to_dcm, radec_roll_to_dcm
-
-    est = radec_roll_to_dcm(r["ra"], r["dec"], r["roll"])
-    _, cross, roll = attitude_error(est, quaternion_to_dcm(truth["quaternion"]))
-    return cross < 0.1 and abs(roll) < 1.0
 
 
 def _row(tool, cond, outcomes, times):
@@ -47,33 +37,6 @@ def _row(tool, cond, outcomes, times):
             "median_ms": float(np.nanmedian(t)), "p95_ms": float(np.nanpercentile(t, 95))}
 
 
-def add_sensor_arguments(ap, count):
-    """The sensor, catalogs and conditions of issue 14's comparison (shared by the diagnosis scripts)."""
-    ap.add_argument("--fov", type=float, default=15.0)
-    ap.add_argument("--size", default="1280x960")
-    ap.add_argument("--db-mag", type=float, default=6.0)
-    ap.add_argument("--star-mag", type=float, default=5.5)
-    ap.add_argument("--min-stars", type=int, default=4, help="catalog stars per frame at least (false stars not counted)")
-    ap.add_argument("--count", type=int, default=count)
-    ap.add_argument("--seed", type=int, default=14)
-    ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10",
-                    help="sigma_px:false_stars, ... (identify_compare.py also takes sigma_px:false_stars:focal_error_pct)")
-
-
-def sensor_setup(args):
-    """``(camera, merge_arcsec, database catalog, frame catalog)`` of :func:`add_sensor_arguments`' options."""
-    from startrack.camera import Camera
-    from startrack.catalog import DEFAULT_MERGE_PX, load_catalog, merge_radius_arcsec
-
-    w, h = (int(v) for v in args.size.split("x"))
-    cam = Camera.from_fov(args.fov, w, h)
-    full = load_catalog()
-    # As build-kvector --size does: stars closer than 2 px are one entry (the sensor sees one blob).
-    merge_arcsec = merge_radius_arcsec(cam, DEFAULT_MERGE_PX)
-    return (cam, merge_arcsec, full.filter_magnitude(None, args.db_mag).merge_close(merge_arcsec),
-            full.filter_magnitude(None, args.star_mag))
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_sensor_arguments(ap, count=1000)
@@ -82,7 +45,7 @@ def main(argv=None):
                     help="build-triangles database for modified-pyramid (default: built here from the same stars)")
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--out", default=os.path.join(OUT, "identify_compare.md"))
+    ap.add_argument("--out", default=os.path.join(OUT_DIR, "identify_compare.md"))
     args = ap.parse_args(argv)
 
     from startrack.evaluate import Condition, evaluate, make_frames
@@ -91,7 +54,7 @@ def main(argv=None):
     from startrack.labels import build_labels
     from startrack.triangles import build_triangles, load_triangles
 
-    load_start = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    load_start = load_average()
     cam, merge_arcsec, db_cat, star_cat = sensor_setup(args)
     w, h = cam.width, cam.height
     t0 = time.perf_counter()
@@ -167,7 +130,7 @@ def main(argv=None):
                     if r.get("ra") is None:
                         outcomes.append("failure")
                     else:
-                        outcomes.append("success" if _peer_correct(r, truth) else "bad")
+                        outcomes.append("success" if peer_correct(r, truth) else "bad")
                 rows.append(_row(tool, cond.label(), outcomes, times))
     finally:
         if "cedar-solve" in peers:
@@ -183,7 +146,7 @@ def main(argv=None):
                      f"({r['success']}) | {r['failure']} | {r['bad']} | {r['median_ms']:.3f} | {r['p95_ms']:.3f} "
                      f"| {dbl} |")
     lines += ["", f"Load average (1, 5, 15 min) at the start: {load_start}; at the end: "
-              + " ".join(f"{v:.2f}" for v in os.getloadavg()) + f" ({os.cpu_count()} cores)"]
+              + load_average() + f" ({os.cpu_count()} cores)"]
     if bad:
         lines += ["", "Wrong answers (frame seed, star, reported id, true id):", ""] + [f"- {b}" for b in bad]
     text = "\n".join(lines) + "\n"

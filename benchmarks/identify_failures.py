@@ -15,7 +15,7 @@ import collections
 import re
 import time
 
-from identify_compare import add_sensor_arguments, sensor_setup
+from common import add_sensor_arguments, sensor_setup
 
 
 def main(argv=None):

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Issue 14's Must-show in one run: identification beside tetra3rs and cedar-solve (15 deg sensor, 1000
-# frames x 4 conditions), a narrow deep field, paper 004 Figs. 9-10 and paper 003 Table 3 rows for
+# Feeds results/results-identify-2026-12-04b.md ("Issue 14's must-show"): issue 14's Must-show in one run:
+# identification beside tetra3rs and cedar-solve (15 deg sensor, 1000 frames x 4 conditions), a narrow deep field,
+# paper 004 Figs. 9-10 and paper 003 Table 3 rows for
 # brightness, and the databases' sizes and build times for 20/12/8/6 deg sensors.
 #   benchmarks/identify_issue14.sh [COUNT] [OUT_DIR]
 set -uo pipefail

@@ -39,7 +39,7 @@ def _clocked(fn, spent, k):
 
 
 def main(argv=None):
-    from identify_compare import add_sensor_arguments, sensor_setup
+    from common import add_sensor_arguments, sensor_setup
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_sensor_arguments(ap, 300)

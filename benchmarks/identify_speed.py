@@ -1,4 +1,6 @@
-"""Pyramid's identification time beside tetra3rs's ``solve_from_centroids``, frame by frame in one process.
+"""Identification speed, feeds `make bench` section identify-speed and results/results-identify-2026-12-04b.md.
+
+Pyramid's identification time beside tetra3rs's ``solve_from_centroids``, frame by frame in one process.
 
 Issue 14's sensor and star lists (:mod:`identify_compare`'s options and frames).  Each frame is given to
 startrack twice -- as the list of star dicts a frame document holds, and as a
@@ -14,15 +16,9 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-sys.path.insert(0, os.path.join(HERE, "peers"))
-
-from identify_compare import _peer_correct, add_sensor_arguments, sensor_setup  # noqa: E402
+from common import add_sensor_arguments, load_average, peer_correct, sensor_setup
 
 
 def main(argv=None):
@@ -41,7 +37,7 @@ def main(argv=None):
     from startrack.kvector import build_kvector, max_separation_deg
     from startrack.records import StarTable
 
-    load_start = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    load_start = load_average()
     cam, _, db_cat, star_cat = sensor_setup(args)
     w, h = cam.width, cam.height
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
@@ -70,7 +66,7 @@ def main(argv=None):
                     if key == "tetra3rs":
                         r = tetra3rs_peer.solve(xy, w, h, args.fov, db=peer)
                         times[key].append(r["elapsed_ms"])
-                        good = r.get("ra") is not None and _peer_correct(r, truth)
+                        good = r.get("ra") is not None and peer_correct(r, truth)
                     else:
                         res = identify_stars(stars if key == "star dicts" else table, cam, kv, args.algorithm, params)
                         times[key].append(res.time_ms)
@@ -84,7 +80,7 @@ def main(argv=None):
                          f"{100 * ok[key] / len(inputs):.1f} % | {med:.4f} | {float(np.percentile(t, 95)):.4f} | "
                          f"{med / ref:.2f} |")
     lines += ["", f"Load average at the start: {load_start}; at the end: "
-              + " ".join(f"{v:.2f}" for v in os.getloadavg()) + f" ({os.cpu_count()} cores)"]
+              + load_average() + f" ({os.cpu_count()} cores)"]
     text = "\n".join(lines) + "\n"
     if args.out:
         with open(args.out, "w") as fh:

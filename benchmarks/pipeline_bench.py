@@ -1,10 +1,12 @@
-"""Attitude solver speed, paper 000's end-to-end accuracy requirement, and tracking vs lost-in-space speed."""
+"""Feeds `make bench` sections attitude and track (results/results-2026-11-22.md): attitude solver speed, paper 000's
+end-to-end accuracy requirement, and tracking vs lost-in-space speed."""
 from __future__ import annotations
 
 import math
 import time
 
 import numpy as np
+from common import sensor_spec
 
 
 def attitude_speed(n_stars=10, repeat=2000):
@@ -40,22 +42,20 @@ def attitude_speed(n_stars=10, repeat=2000):
 def paper000_end_to_end(n=1000, seed=0):
     """Paper 000's sensor: 752 x 480 px, 6 um, f = 41.1 mm, Hp 2.5-6.59; render -> centroid -> identify -> attitude."""
     from startrack.attitude import estimate_attitude
-    from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.identify import IdentifyParams, identify_stars
     from startrack.kvector import build_kvector, max_separation_deg
-    from startrack.render import Scene, Sensor, render_image
+    from startrack.render import Scene, render_image
     from startrack.rotations import attitude_error, quaternion_to_dcm, random_quaternions
 
-    cam = Camera.from_focal_length_mm(41.1, 6.0, 752, 480)
-    cat = load_catalog().filter_magnitude(2.5, 6.59)
-    render_cat = load_catalog().filter_magnitude(None, 7.5)
+    cam, sensor, mags, render_mag = sensor_spec("p000")
+    cat = load_catalog().filter_magnitude(*mags)
+    render_cat = load_catalog().filter_magnitude(None, render_mag)
     vec = render_cat.vectors()
     db = build_kvector(cat, max_separation_deg(camera=cam))
     rows = {int(i): k for k, i in enumerate(cat.id)}
     cvec = cat.vectors()
-    sensor = Sensor(psf_sigma_px=1.0, exposure_ms=200.0)
     rng = np.random.default_rng(seed)
     dcms = quaternion_to_dcm(random_quaternions(n, rng))
     cross, roll, nstars, sig_px = [], [], [], []

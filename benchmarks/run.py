@@ -1,48 +1,27 @@
 #!/usr/bin/env python3
-"""startrack benchmarks: `make bench` (or `python benchmarks/run.py [SECTION ...]`).
+"""`make bench`'s one entry, feeds bench-output/report.md (kept: results/results-2026-11-22.md): run SECTION ...
+
+    python benchmarks/run.py [SECTION ...]     # every section when none is named
+    python benchmarks/run.py --list            # the sections and what each measures
 
 Each section prints a table of medians (and ratios against peers where the issue names
 them) and the whole report is written to bench-output/report.md.  Speed targets live
-here, never in unit tests.
+here, never in unit tests.  A section is a function ``bench_NAME`` below whose docstring's
+first line says what it measures, registered in ``SECTIONS``.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import platform
-import statistics
-import sys
 import time
 
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-
-OUT_DIR = os.path.join(os.path.dirname(HERE), "bench-output")
-
-
-def timed(fn, repeat=20, warmup=2):
-    """Median and 95th percentile wall time of ``fn()`` in milliseconds."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1000.0)
-    return statistics.median(times), float(np.percentile(times, 95))
-
-
-def table(headers, rows):
-    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) for i, h in enumerate(headers)]
-    line = "| " + " | ".join(str(h).ljust(w) for h, w in zip(headers, widths)) + " |"
-    sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-    body = ["| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |" for r in rows]
-    return "\n".join([line, sep, *body])
+from common import OUT_DIR, ROOT, table, timed
 
 
 def bench_render():
+    """Rendering speed: a 1024x1024 16-bit frame with every noise (target <= 20 ms), with PRNU, and star-list frames/s."""
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.render import Scene, Sensor, render_image, star_list
@@ -87,6 +66,7 @@ def bench_render():
 
 
 def bench_centroid():
+    """Centroids: accuracy against the Cramer-Rao bound, paper 000's COM experiment, pixel-phase bias, speed beside sep."""
     import centroid_bench as cb
 
     rows, ok = cb.accuracy_table()
@@ -103,12 +83,12 @@ def bench_centroid():
               "benchmarks/centroid_bench.py):\n",
               table(["case", "mean |err x|", "var x", "mean |err y|", "var y", "paper x mean / var", "paper y mean / var"],
                     prow)]
-    plot_path = os.path.join(os.path.dirname(HERE), "examples", "centroid-pixel-phase.png")
+    plot_path = os.path.join(ROOT, "examples", "centroid-pixel-phase.png")
     path, curves = cb.pixel_phase_plot(plot_path)
     amp = {m: float(np.nanmax(np.abs(v))) for m, v in curves.items()}
     parts.append("\nPixel-phase bias (max |error| over sub-pixel phase, sigma 0.8 px, SNR 2000): "
                  + ", ".join(f"{m} {a:.4f} px" for m, a in amp.items())
-                 + (f"; plot: {os.path.relpath(path, os.path.dirname(HERE))}" if path else " (matplotlib missing: no plot)"))
+                 + (f"; plot: {os.path.relpath(path, ROOT)}" if path else " (matplotlib missing: no plot)"))
     stats, real, sep_error = cb.speed_and_completeness()
     srows = []
     for tool, v in stats.items():
@@ -128,6 +108,7 @@ def bench_centroid():
 
 
 def bench_databases():
+    """Databases: build time, size, entries; range and label query throughput; paper 000 Table 5 recomputed."""
     import database_bench as dbb
 
     rows, dbs = dbb.builds()
@@ -156,6 +137,7 @@ def bench_databases():
 
 
 def bench_identify():
+    """Identification: pyramid beside tetra3rs and cedar-solve, 20 deg, 1000 frames x 3 conditions (success, false, ms)."""
     import identify_bench as ib
 
     rows, notes = ib.run()
@@ -170,6 +152,7 @@ def bench_identify():
 
 
 def bench_identify_compare():
+    """Identification: the six algorithms beside tetra3rs and cedar-solve on issue 14's lists (IDENTIFY_COMPARE_COUNT)."""
     import identify_compare as ic
 
     path = os.path.join(OUT_DIR, "identify_compare.md")
@@ -180,6 +163,7 @@ def bench_identify_compare():
 
 
 def bench_identify_speed():
+    """Identification speed: pyramid beside tetra3rs at 12/15/20 deg, alternated passes (IDENTIFY_SPEED_COUNT; tetra3rs)."""
     import identify_speed as isp
 
     path = os.path.join(OUT_DIR, "identify_speed.md")
@@ -194,6 +178,7 @@ def bench_identify_speed():
 
 
 def bench_attitude():
+    """Attitude: solver speed per method (10 stars); paper 000's sensor end to end (1000 frames) against its requirement."""
     import pipeline_bench as pb
 
     rows = pb.attitude_speed()
@@ -213,6 +198,7 @@ def bench_attitude():
 
 
 def bench_track():
+    """Tracking: tracking vs lost-in-space speed; accuracy over rates, a blackout and few stars; speed by mode."""
     import pipeline_bench as pb
     import track_bench
 
@@ -224,6 +210,7 @@ def bench_track():
 
 
 def bench_solve():
+    """Real photos: `startrack solve` on the 8 ESA images beside cedar-solve and astrometry.net (centre, FOV, times)."""
     import solve_bench as sb
 
     rows, med, notes = sb.run()
@@ -243,12 +230,14 @@ def bench_solve():
 
 
 def bench_blind():
+    """Blind solving (issue 15): real photos beside the peers, first use, -j 1 vs -j 2, rendered fields, non-star images."""
     import blind_bench
 
     return "blind solving (issue 15)", blind_bench.report()
 
 
 def bench_accuracy():
+    """Attitude accuracy against each frame's Cramer-Rao bound (issue 21) beside the peers, and a sweep (ACCURACY_FRAMES)."""
     import accuracy_bench as ab
 
     n = int(os.environ.get("ACCURACY_FRAMES", "1000"))
@@ -260,17 +249,31 @@ def bench_accuracy():
     return "accuracy against the Cramér-Rao bound", text
 
 
-SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid, "databases": bench_databases,
-            "identify": bench_identify, "identify-compare": bench_identify_compare,
-            "identify-speed": bench_identify_speed, "attitude": bench_attitude,
-            "track": bench_track,
+SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid,
+            "databases": bench_databases, "identify": bench_identify, "identify-compare": bench_identify_compare,
+            "identify-speed": bench_identify_speed, "attitude": bench_attitude, "track": bench_track,
             "accuracy": bench_accuracy}
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("sections", nargs="*", help="sections to run (default: all): " + ", ".join(SECTIONS))
-    args = parser.parse_args()
+def section_list():
+    """One line per section: its name and what it measures (the first line of its docstring)."""
+    width = max(map(len, SECTIONS))
+    return "\n".join(f"{name.ljust(width)}  {fn.__doc__.splitlines()[0]}" for name, fn in SECTIONS.items())
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="sections:\n" + section_list())
+    parser.add_argument("sections", nargs="*", metavar="SECTION", help="sections to run (default: all, in this order): "
+                        + ", ".join(SECTIONS))
+    parser.add_argument("--list", action="store_true", help="print the sections and what each measures, and exit")
+    args = parser.parse_args(argv)
+    if args.list:
+        print(section_list())
+        return
+    unknown = [s for s in args.sections if s not in SECTIONS]
+    if unknown:
+        parser.error(f"unknown section(s) {', '.join(unknown)}; choose from {', '.join(SECTIONS)}")
     chosen = args.sections or list(SECTIONS)
     os.makedirs(OUT_DIR, exist_ok=True)
     import numba

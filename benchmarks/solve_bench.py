@@ -1,29 +1,26 @@
-"""Real photographs: startrack solve (no options) against cedar-solve and astrometry.net on the ESA images."""
+"""Real photographs, feeds `make bench` section solve (results/results-2026-11-22.md).
+
+startrack solve (no options) against cedar-solve and astrometry.net on the 8 ESA images.
+"""
 from __future__ import annotations
 
-import csv
-import glob
 import json
-import math
 import os
 import subprocess
 import sys
 import time
 
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path.insert(0, os.path.join(HERE, "peers"))
+from common import esa_images, esa_references, sep_deg
 
 
 def _sep_arcsec(ra, dec, ra0, dec0):
-    return math.hypot((ra - ra0) * math.cos(math.radians(dec0)), dec - dec0) * 3600
+    return sep_deg(ra, dec, ra0, dec0) * 3600
 
 
 def run():
-    images = sorted(glob.glob(os.path.join(ROOT, "tests", "data", "real", "*.tiff")))
-    ref = {r["file"]: r for r in csv.DictReader(open(os.path.join(ROOT, "tests", "data", "real", "solutions.csv")))}
+    images = esa_images()
+    ref = esa_references()
     st = os.path.join(os.path.dirname(sys.executable), "startrack")
     subprocess.run([st, "solve", images[0], "-q"], capture_output=True)      # build the cache once
     rows = []

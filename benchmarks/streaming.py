@@ -1,4 +1,4 @@
-"""Streaming and memory of the frame pipes (issue 13).
+"""Streaming and memory of the frame pipes (issue 13), feeds tests/cli/test_streaming.py (hold_pipeline).
 
 hold
     Writes frame 0 into ``startrack identify -d DB | startrack attitude`` and

@@ -1,5 +1,7 @@
 #!/usr/bin/env python3
-"""Tracking benchmark (issue 16): accuracy over rates, a blackout and a few-star stretch, speed by mode.
+"""Tracking (issue 16), feeds `make bench` section track and results/results-track-2026-12-02b.md: accuracy, speed.
+
+Accuracy over rates, a blackout and a few-star stretch; speed by mode.
 
     python benchmarks/track_bench.py [--frames 40] [--starts 3] [--out bench-output/track.md]
 
@@ -22,10 +24,10 @@ import argparse
 import math
 import os
 import statistics
-import sys
 import time
 
 import numpy as np
+from common import table
 
 AXIS = np.array([1.5, -1.0, 0.5]) / np.linalg.norm([1.5, -1.0, 0.5])
 RATES = (0.1, 0.5, 1.0, 2.0, 3.0)
@@ -236,8 +238,6 @@ def speed_rows(timings):
 
 
 def report(n_frames=40, starts=3):
-    from run import table  # benchmarks/run.py
-
     cam, cat, db = setup()
     # Warm the kernels (numba compilation is set-up, not tracking).
     track(cat, cam, db, render(cat, cam, 1.0 * AXIS, 3, 1, random_start(1)))
@@ -282,7 +282,6 @@ def main():
     parser.add_argument("--starts", type=int, default=3)
     parser.add_argument("--out", default=None, help="Also write the report (Markdown) here.")
     args = parser.parse_args()
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     text = report(args.frames, args.starts)
     print(text)
     if args.out:

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Issue 16's "Must show" by the command line: render -> track --database with no other option, on
+# Feeds results/results-track-2026-12-02b.md ("render -> track"): issue 16's "Must show" by the command line:
+# render -> track --database with no other option, on
 #  1. the issue's 60-frame sequence (0.3, -0.2, 0.5 deg/s, 0.1 s apart),
 #  2. a sparse one (4-6 catalog stars per frame: a poor field, rendered to Hp 6.0),
 #  3. the issue's slew (1.5, -1.0, 0.5 deg/s, 100 ms exposures: ~15 px streaks, 40 frames);
