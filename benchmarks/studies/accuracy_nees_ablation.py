@@ -1,5 +1,7 @@
 #!/usr/bin/env python3
-"""Why NEES was 3.57 on paper 000's sensor, and what each fix does (issue 21).
+"""Study (issue 21), recorded in 84dbd40:benchmarks/results-accuracy-2026-12-02b.md: why NEES was 3.57 (paper 000).
+
+And what each fix does.
 
 The same rendered frames and the same centroids (seed 0, as ``accuracy_bench.py --sensor p000``) solved
 four ways, each adding one change to the one before:
@@ -14,7 +16,7 @@ For each: the normalised error per axis against the frame's bound (z), NEES agai
 (frames within 0.1 deg), and the frames more than 0.1 deg off.  Then the per-star normalised centroid error
 (error / reported sigma) by category, from V3's stars.
 
-    python benchmarks/accuracy_nees_ablation.py 1000
+    python benchmarks/studies/accuracy_nees_ablation.py 1000
 """
 import math
 import os
@@ -22,8 +24,9 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from accuracy_bench import EPOCH, sensor_spec  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
+from accuracy_bench import EPOCH  # noqa: E402
+from common import sensor_spec  # noqa: E402
 
 from startrack.accuracy import (  # noqa: E402
     blended_references,

@@ -1,5 +1,7 @@
 #!/usr/bin/env python3
-"""Per-star check of the reported centroid sigma on paper 000's sensor (issue 21): error / sigma by neighbour and SNR.
+"""Study (issue 21), recorded in 84dbd40:benchmarks/results-accuracy-2026-12-02b.md: error / reported sigma per star.
+
+On paper 000's sensor, by neighbour and SNR.
 
 Frames of ``accuracy_bench.py --sensor p000`` (seed 0); each detection matched to a reference of
 ``blended_references`` (photocentres of companions closer than 2 px) projected at the true attitude; its
@@ -8,7 +10,7 @@ by the distance to the nearest other rendered star farther than 2 px (a companio
 and for isolated stars by SNR.  Then the background noise on star-free frames against the true noise:
 the detection mesh's and the one centroid's weighted fit uses (``_pixel_noise_mesh``).
 
-    python benchmarks/accuracy_star_diagnosis.py 1000
+    python benchmarks/studies/accuracy_star_diagnosis.py 1000
 """
 import math
 import os
@@ -16,8 +18,9 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from accuracy_bench import EPOCH, sensor_spec  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
+from accuracy_bench import EPOCH  # noqa: E402
+from common import sensor_spec  # noqa: E402
 
 from startrack.accuracy import blended_references, star_covariance  # noqa: E402
 from startrack.catalog import load_catalog  # noqa: E402

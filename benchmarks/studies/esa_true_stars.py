@@ -1,18 +1,21 @@
-"""How many of the 20 brightest detections on each ESA image are real stars (issue 4).
+"""Study (issue 4), recorded in benchmarks/studies/README.md: how many of the 20 brightest ESA detections are stars.
+
+How many of the 20 brightest detections on each ESA image are real stars.
 
 ``startrack centroid``'s default detection (``find_stars`` with default options)
 on each image; the image is then solved blind (``solve_image``) and the shipped
 catalog (Hp <= 8) projected with that attitude and fitted camera.  A detection
 counts as a true star when a catalog star lands within 2 px of it.
 
-    .venv/bin/python benchmarks/esa_true_stars.py
+    .venv/bin/python benchmarks/studies/esa_true_stars.py
 """
-import glob
 import os
+import sys
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
+from common import esa_images  # noqa: E402
 
 
 def main(radius_px=2.0, n_brightest=20):
@@ -25,7 +28,7 @@ def main(radius_px=2.0, n_brightest=20):
     vec = cat.vectors()
     print(f"| image | stars found | true among the {n_brightest} brightest |")
     print("|---|---|---|")
-    for path in sorted(glob.glob(os.path.join(ROOT, "tests", "data", "real", "*.tiff"))):
+    for path in esa_images():
         img, meta = read_image(path)
         stars = find_stars(img, CentroidOptions(), saturation=meta["saturation"]).stars
         sol = solve_image(img)

@@ -1,4 +1,6 @@
-"""Why the grid fails: each frame classified by what its reference stars allow.
+"""Study (issue 14), recorded in 84dbd40:benchmarks/results-idrobust-2026-12-02.md ("What limits grid"): why grid fails.
+
+Each frame classified by what its reference stars allow.
 
 On the frames of ``benchmarks/identify_compare.py`` (same seed, conditions, merged database), each
 frame is put in one of three classes and crossed with the grid's outcome:
@@ -14,16 +16,20 @@ frame is put in one of three classes and crossed with the grid's outcome:
 (Since the grid also proposes each reference match alone -- ``single_references`` -- the second
 class can succeed.)
 
-    .venv/bin/python benchmarks/grid_reasons.py --count 1000 --conditions 0.3:0,0.3:10
+    .venv/bin/python benchmarks/studies/grid_reasons.py --count 1000 --conditions 0.3:0,0.3:10
 """
 from __future__ import annotations
 
 import argparse
 import collections
 import math
+import os
+import sys
 
 import numpy as np
-from common import add_sensor_arguments, sensor_setup
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
+from common import add_sensor_arguments, sensor_setup  # noqa: E402
 
 
 def main(argv=None):

@@ -1,21 +1,26 @@
-"""Why identifications fail: the failure reasons of chosen algorithms, counted per condition.
+"""Study (issue 14), recorded in 84dbd40:benchmarks/results-idrobust-2026-12-02.md ("Causes found"): failure reasons.
+
+The failure reasons of chosen algorithms, counted per condition.
 
 The frames and the database are those of ``benchmarks/identify_compare.py`` (same seed, same
 conditions, same merged k-vector database); each failed frame is listed by its reason (the
 driver's, with numbers blanked so that like reasons group), with the frame's catalog and
 false star counts, so that a cause can be told from a symptom.
 
-    .venv/bin/python benchmarks/identify_failures.py -a voting,grid --count 300
-    .venv/bin/python benchmarks/identify_failures.py -a grid --count 300 --conditions 0.3:0 --frames
+    .venv/bin/python benchmarks/studies/identify_failures.py -a voting,grid --count 300
+    .venv/bin/python benchmarks/studies/identify_failures.py -a grid --count 300 --conditions 0.3:0 --frames
 """
 from __future__ import annotations
 
 import argparse
 import collections
+import os
 import re
+import sys
 import time
 
-from common import add_sensor_arguments, sensor_setup
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
+from common import add_sensor_arguments, sensor_setup  # noqa: E402
 
 
 def main(argv=None):

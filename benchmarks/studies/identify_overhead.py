@@ -1,6 +1,8 @@
-"""The Python part of the fused pyramid's ``time_ms``: per frame, ``time_ms`` minus the time inside its kernel.
+"""Study (issue 14), recorded in 84dbd40:benchmarks/results-identify-2026-12-03f.md: Python part of time_ms.
 
-The frames and sensor are issue 14's (:mod:`identify_compare`'s options: 15 deg 1280x960,
+The Python part of the fused pyramid's ``time_ms``: per frame, ``time_ms`` minus the time inside its kernel.
+
+The frames and sensor are issue 14's (:func:`common.add_sensor_arguments`' options: 15 deg 1280x960,
 database Hp <= 6, stars to 5.5).  Every frame is identified ``--reps`` times; per frame the
 minimum over the repetitions is kept (the least disturbed by other processes) and the median
 over frames reported: ``time_ms``, the kernel's time (its entry wrapped with a clock, which adds
@@ -9,10 +11,10 @@ kernel) and the driver's (``time_ms`` minus ``Algorithm.fused``).  A hash of eve
 (status, reason, matches, trials, quaternion, false-match probability, details) tells whether two
 trees decide alike.  Run it from each tree to compare, alternating:
 
-    PYTHONPATH=. .venv/bin/python benchmarks/identify_overhead.py --conditions 0.3:0,1.0:0 --count 1000
+    PYTHONPATH=. .venv/bin/python benchmarks/studies/identify_overhead.py --conditions 0.3:0,1.0:0 --count 1000
 
-``--tables``: the stars as :class:`startrack.records.StarTable` columns.  ``--reported-sigmas``: the stars carry their own ``sigma_px`` (as ``centroid`` writes them) instead of
-one fixed value.
+``--tables``: the stars as :class:`startrack.records.StarTable` columns.  ``--reported-sigmas``: the stars
+carry their own ``sigma_px`` (as ``centroid`` writes them) instead of one fixed value.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common, the tools
 
 
 def _clocked(fn, spent, k):
@@ -39,7 +41,7 @@ def _clocked(fn, spent, k):
 
 
 def main(argv=None):
-    from common import add_sensor_arguments, sensor_setup
+    from common import add_sensor_arguments, load_average, sensor_setup
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_sensor_arguments(ap, 300)
@@ -60,7 +62,7 @@ def main(argv=None):
     cam, _, db_cat, star_cat = sensor_setup(args)
     kv = build_kvector(db_cat, max_separation_deg(camera=cam))
     alg = get_algorithm("pyramid")
-    print(f"startrack at {os.path.dirname(startrack.__file__)}, load {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"startrack at {os.path.dirname(startrack.__file__)}, load {load_average()}")
     for spec in args.conditions.split(","):
         sigma, false_stars = spec.split(":")
         cond = Condition(sigma_px=float(sigma), false_stars=int(false_stars), min_catalog_stars=args.min_stars)
