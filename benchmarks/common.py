@@ -97,11 +97,13 @@ def add_sensor_arguments(ap, count):
     ap.add_argument("--size", default="1280x960")
     ap.add_argument("--db-mag", type=float, default=6.0)
     ap.add_argument("--star-mag", type=float, default=5.5)
-    ap.add_argument("--min-stars", type=int, default=4, help="catalog stars per frame at least (false stars not counted)")
+    ap.add_argument("--min-stars", type=int, default=4,
+                    help="catalog stars per frame at least (false stars not counted)")
     ap.add_argument("--count", type=int, default=count)
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--conditions", default="0.3:0,1.0:0,0.3:3,0.3:10",
-                    help="sigma_px:false_stars, ... (identify_compare.py also takes sigma_px:false_stars:focal_error_pct)")
+                    help="sigma_px:false_stars, ... (identify_compare.py also takes "
+                         "sigma_px:false_stars:focal_error_pct)")
 
 
 def sensor_setup(args):

@@ -21,7 +21,7 @@ from common import OUT_DIR, ROOT, table, timed
 
 
 def bench_render():
-    """Rendering speed: a 1024x1024 16-bit frame with every noise (target <= 20 ms), with PRNU, and star-list frames/s."""
+    """Rendering speed: a 1024x1024 16-bit frame with every noise (target <= 20 ms), with PRNU; star lists."""
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.render import Scene, Sensor, render_image, star_list
@@ -66,7 +66,7 @@ def bench_render():
 
 
 def bench_centroid():
-    """Centroids: accuracy against the Cramer-Rao bound, paper 000's COM experiment, pixel-phase bias, speed beside sep."""
+    """Centroids: accuracy against the Cramer-Rao bound, paper 000's COM experiment, pixel-phase bias, sep."""
     import centroid_bench as cb
 
     rows, ok = cb.accuracy_table()
@@ -137,7 +137,7 @@ def bench_databases():
 
 
 def bench_identify():
-    """Identification: pyramid beside tetra3rs and cedar-solve, 20 deg, 1000 frames x 3 conditions (success, false, ms)."""
+    """Identification: pyramid beside tetra3rs and cedar-solve, 20 deg, 1000 frames x 3 conditions."""
     import identify_bench as ib
 
     rows, notes = ib.run()
@@ -152,7 +152,7 @@ def bench_identify():
 
 
 def bench_identify_compare():
-    """Identification: the six algorithms beside tetra3rs and cedar-solve on issue 14's lists (IDENTIFY_COMPARE_COUNT)."""
+    """Identification: six algorithms beside tetra3rs and cedar-solve, issue 14's lists (IDENTIFY_COMPARE_COUNT)."""
     import identify_compare as ic
 
     path = os.path.join(OUT_DIR, "identify_compare.md")
@@ -163,7 +163,7 @@ def bench_identify_compare():
 
 
 def bench_identify_speed():
-    """Identification speed: pyramid beside tetra3rs at 12/15/20 deg, alternated passes (IDENTIFY_SPEED_COUNT; tetra3rs)."""
+    """Identification speed: pyramid beside tetra3rs at 12/15/20 deg, alternated passes (IDENTIFY_SPEED_COUNT)."""
     import identify_speed as isp
 
     path = os.path.join(OUT_DIR, "identify_speed.md")
@@ -178,7 +178,7 @@ def bench_identify_speed():
 
 
 def bench_attitude():
-    """Attitude: solver speed per method (10 stars); paper 000's sensor end to end (1000 frames) against its requirement."""
+    """Attitude: solver speed per method (10 stars); paper 000's sensor end to end (1000 frames)."""
     import pipeline_bench as pb
 
     rows = pb.attitude_speed()
@@ -230,14 +230,14 @@ def bench_solve():
 
 
 def bench_blind():
-    """Blind solving (issue 15): real photos beside the peers, first use, -j 1 vs -j 2, rendered fields, non-star images."""
+    """Blind solving (issue 15): real photos beside peers, first use, -j 1 vs -j 2, rendered fields, non-stars."""
     import blind_bench
 
     return "blind solving (issue 15)", blind_bench.report()
 
 
 def bench_accuracy():
-    """Attitude accuracy against each frame's Cramer-Rao bound (issue 21) beside the peers, and a sweep (ACCURACY_FRAMES)."""
+    """Attitude accuracy against each frame's Cramer-Rao bound (issue 21), beside peers; a sweep (ACCURACY_FRAMES)."""
     import accuracy_bench as ab
 
     n = int(os.environ.get("ACCURACY_FRAMES", "1000"))
