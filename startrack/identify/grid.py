@@ -63,7 +63,7 @@ Other defaults (from the 24 deg / magnitude 5.2 sensor of paper 004; the paper's
 values are not in our sources): ``br`` = 6 px (at least 3 eps), 12 reference stars, an
 overlap of at least 3 cells.  The paper's confirmation needs two reference stars
 with three neighbours each whose true pattern is among the best
-(``benchmarks/grid_reasons.py`` counts the frames that have fewer); ``single_references``
+(``benchmarks/studies/grid_reasons.py`` counts the frames that have fewer); ``single_references``
 proposes a reference without a second one.
 """
 from __future__ import annotations
