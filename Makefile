@@ -53,8 +53,9 @@ bench-peers: install
 	$(PY) -m pip install --quiet -e '.[bench]'
 	bash benchmarks/peers/setup_peers.sh
 
+# make bench [SECTIONS="identify track"]: benchmarks/run.py's sections (`benchmarks/run.py --list` names them)
 bench: bench-peers
-	$(PY) benchmarks/run.py
+	$(PY) benchmarks/run.py $(SECTIONS)
 
 bench-blind: bench-peers
 	$(PY) benchmarks/blind_bench.py
