@@ -17,7 +17,6 @@ attitude rounded to 1e-9).  Equal digests before and after a refactor: the same 
 from __future__ import annotations
 
 import argparse
-import glob
 import hashlib
 import json
 import math
@@ -25,9 +24,7 @@ import os
 import sys
 
 import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+from common import esa_images
 
 CONDITIONS = (("0.3 px", dict(sigma_px=0.3)),
               ("3 false, mag noise 0.1", dict(sigma_px=0.3, false_stars=3, mag_noise=0.1)),
@@ -125,7 +122,7 @@ def solve_digest() -> str:
     from startrack.solve import solve_image
 
     h_ = hashlib.sha256()
-    for path in sorted(glob.glob(os.path.join(ROOT, "tests", "data", "real", "*.tiff"))):
+    for path in esa_images():
         res = solve_image(path)
         ident = res.identification
         att = res.attitude
