@@ -15,7 +15,12 @@ The renderer is the project's test oracle, so it is physically honest:
 * **Sensor**: sky background and dark current (Poisson), photon shot noise,
   optional pixel response non-uniformity (PRNU, a fixed pattern of the sensor:
   the same map every frame of a given size), hot pixels, full-well
-  saturation, read noise, gain (e-/DN), bias and quantisation to 8, 12 or 16 bits.
+  saturation, read noise, gain (e-/DN), bias and quantisation to 8, 12 or 16 bits;
+  optionally cosmic-ray hits and dark-subtracted output (bias and dark removed, clipped at 0).
+* **Nuisances of real frames** (:mod:`startrack.nuisance`): vignetting, a sky gradient,
+  nebulosity, an opaque foreground body (a disc, an edge, branches) that hides the stars behind
+  it, and mirrored output (the written image flipped, as a FITS file stored bottom-up or a
+  camera behind a diagonal mirror).
 * **Errors for robustness studies**: magnitude noise, false stars, a
   focal-length error (the image is rendered with ``f (1 + e/100)`` while the
   camera section keeps the nominal ``f``; paper 004 Fig. 7).
@@ -70,6 +75,9 @@ class Sensor:
     prnu: float = 0.0
     hot_pixels: int = 0
     noise: bool = True
+    dark_subtracted: bool = False
+    cosmic_rays: int = 0
+    vignetting: float = 1.0
 
     def __post_init__(self):
         checks = {
@@ -82,6 +90,8 @@ class Sensor:
             "background_e_per_s": self.background_e_per_s >= 0,
             "prnu": 0 <= self.prnu < 1,
             "hot_pixels": self.hot_pixels >= 0,
+            "cosmic_rays": self.cosmic_rays >= 0,
+            "vignetting": 0 < self.vignetting <= 1,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -105,6 +115,14 @@ class Sensor:
     def bias(self) -> float:
         """Bias (offset) in DN; by default 2% of the range, so noise is not clipped at 0."""
         return self.bias_dn if self.bias_dn is not None else round(0.02 * self.max_dn)
+
+    @property
+    def offset_dn(self) -> float:
+        """The DN of zero electrons in the written image: the bias; dark-subtracted, minus the expected
+        dark current too (a master bias + dark removed, as a calibrated frame is; the sky stays)."""
+        if self.dark_subtracted:
+            return -self.dark_current_e_per_s * self.exposure_s / self.gain
+        return self.bias
 
     @property
     def exposure_s(self) -> float:
@@ -143,8 +161,29 @@ class Scene:
     focal_error_pct: float = 0.0
     rate_deg_s: tuple = (0.0, 0.0, 0.0)
     extra: dict = field(default_factory=dict)
+    foreground: str | None = None
+    foreground_fraction: float = 0.3
+    foreground_e_per_s: float | None = None
+    nebulosity_e_per_s: float = 0.0
+    gradient: float = 1.0
+    mirror: str | None = None
 
     def __post_init__(self):
+        from startrack.nuisance import FOREGROUNDS, MIRRORS
+
+        if self.foreground is not None and self.foreground not in FOREGROUNDS:
+            raise ParameterError("foreground", f"must be one of {', '.join(FOREGROUNDS)}, got {self.foreground!r}")
+        if not 0 < self.foreground_fraction < 1:
+            raise ParameterError("foreground_fraction", f"must be in (0, 1), got {self.foreground_fraction}")
+        if self.foreground_e_per_s is not None and not (self.foreground_e_per_s >= 0
+                                                         and math.isfinite(self.foreground_e_per_s)):
+            raise ParameterError("foreground_e_per_s", f"must be >= 0, got {self.foreground_e_per_s}")
+        if not (self.nebulosity_e_per_s >= 0 and math.isfinite(self.nebulosity_e_per_s)):
+            raise ParameterError("nebulosity_e_per_s", f"must be >= 0, got {self.nebulosity_e_per_s}")
+        if not (self.gradient >= 1 and math.isfinite(self.gradient)):
+            raise ParameterError("gradient", f"the brightest/faintest sky ratio must be >= 1, got {self.gradient}")
+        if self.mirror is not None and self.mirror not in MIRRORS:
+            raise ParameterError("mirror", f"must be one of {', '.join(MIRRORS)}, got {self.mirror!r}")
         if not self.mag_noise >= 0:
             raise ParameterError("mag_noise", f"must be >= 0, got {self.mag_noise}")
         if self.false_stars < 0:
@@ -234,7 +273,7 @@ def _prnu_map(height, width, prnu):
 
 
 def _background_table(sensor: Sensor):
-    return _background_table_of(sensor.background_e, sensor.gain, sensor.bias, sensor.read_noise_e)
+    return _background_table_of(sensor.background_e, sensor.gain, sensor.offset_dn, sensor.read_noise_e)
 
 
 @functools.lru_cache(maxsize=1)
@@ -282,15 +321,19 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
         The models above.
     rng : numpy Generator
         Drives every random choice (magnitude noise, false stars, hot pixels,
-        PRNU, and the pixel noise seed), so one seed gives one image.
+        the pixel noise seed, then the nuisances: gradient, nebulosity,
+        foreground, cosmic rays), so one seed gives one image; a frame without
+        nuisances draws exactly what it drew before they existed.
     vectors : ndarray (n, 3), optional
         ``catalog.vectors()``, when the caller already has them.
 
     Returns
     -------
     image : ndarray (height, width) of uint8 or uint16
+        As written: flipped when ``scene.mirror`` is set.
     truth : dict
-        The frame document's ``truth`` section (positions in pixels, degrees).
+        The frame document's ``truth`` section (positions in pixels of the
+        written image, degrees; the attitude is the un-mirrored camera's).
     """
     from startrack._kernels.render import add_stars, expose
 
@@ -326,25 +369,36 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     if sensor.hot_pixels:
         hx = rng.integers(0, width, sensor.hot_pixels)
         hy = rng.integers(0, height, sensor.hot_pixels)
-        level = rng.uniform(0.05, 1.0, sensor.hot_pixels) * sensor.full_well_e
-        np.add.at(signal, (hy, hx), level)
+        # Single pixels of log-uniform dark charge, 1 % to 200 % of the full well: most mildly hot, about
+        # one in eight saturated, as a sensor's dark-current outliers are.
+        level = sensor.full_well_e * 0.01 * 200.0 ** ((rng.uniform(0.05, 1.0, sensor.hot_pixels) - 0.05) / 0.95)
+        hot_levels = (hy, hx, level)
         hot = [{"x": int(a), "y": int(b), "electrons": float(c)} for a, b, c in zip(hx, hy, level)]
+    pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
+    extra_truth = _apply_nuisances(signal, sensor, scene, rng, x_mid, y_mid)
+    if sensor.hot_pixels:
+        np.add.at(signal, hot_levels[:2], hot_levels[2])
+    if sensor.cosmic_rays:
+        from startrack.nuisance import cosmic_rays
+
+        extra_truth["cosmic_rays"] = cosmic_rays(signal, int(sensor.cosmic_rays), rng, sensor.full_well_e)
     prnu = _prnu_map(height, width, sensor.prnu) if sensor.prnu > 0 else np.empty((0, 0))
     cdf, guide, lo = _background_table(sensor)
     image = np.empty((height, width), dtype=np.uint8 if sensor.bit_depth == 8 else np.uint16)
-    pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
     expose(signal, image, cdf, guide, lo, float(sensor.background_e), prnu, float(sensor.full_well_e),
-           float(sensor.read_noise_e), float(sensor.gain), float(sensor.bias), float(sensor.max_dn),
+           float(sensor.read_noise_e), float(sensor.gain), float(sensor.offset_dn), float(sensor.max_dn),
            pixel_seed, bool(sensor.noise))
     ra, dec, roll = dcm_to_radec_roll(dcm)
     peak_e = electrons[: len(index)] * _peak_fraction(sensor.psf_sigma_px)
+    hidden = extra_truth.get("foreground", {}).get("hidden", np.zeros(len(index), dtype=bool))
     truth = {
         "quaternion": dcm_to_quaternion(dcm).tolist(),
         "ra": float(ra), "dec": float(dec), "roll": float(roll),
         "stars": [
             {"id": int(catalog.id[i]), "x": float(x), "y": float(y), "mag": float(m),
              "mag_rendered": float(mr), "electrons": float(e), "saturated": bool(p + sensor.background_e >= sensor.full_well_e)}
-            for i, x, y, m, mr, e, p in zip(index, x_mid, y_mid, mags, rendered_mag, electrons, peak_e)
+            for i, x, y, m, mr, e, p, h in zip(index, x_mid, y_mid, mags, rendered_mag, electrons, peak_e, hidden)
+            if not h
         ],
         "false_stars": [{"x": float(a), "y": float(b), "mag": float(m)} for a, b, m in zip(false_x, false_y, false_mag)],
         "hot_pixels": hot,
@@ -352,8 +406,74 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
         "focal_length_px": float(true_cam.focal_length_px),
         "rate_deg_s": [float(v) for v in scene.rate_deg_s],
     }
+    if "foreground" in extra_truth:
+        fg = extra_truth.pop("foreground")
+        fg["hidden_star_ids"] = sorted(int(catalog.id[i]) for i, h in zip(index, hidden) if h)
+        del fg["hidden"]
+        truth["foreground"] = fg
+    truth.update(extra_truth)
     truth["stars"].sort(key=lambda s: s["mag"])
+    if scene.mirror is not None:
+        image = np.ascontiguousarray(image[:, ::-1] if scene.mirror == "x" else image[::-1, :])
+        _mirror_truth(truth, scene.mirror, width, height)
     return image, truth
+
+
+def _apply_nuisances(signal, sensor: Sensor, scene: Scene, rng, star_x, star_y):
+    """Turn ``signal`` (star electrons) into the expected electrons above the flat ``background_e``.
+
+    The combination of :mod:`startrack.nuisance`: ``V (T (stars + sky G + nebulosity) + M foreground)``
+    plus dark, minus the flat sky + dark the exposure kernel adds (so a pixel may be below it: the
+    sky behind a dark body, a vignetted corner).  Without nuisances ``signal`` is left alone and no
+    random number is drawn.  Returns the truth of what was added.
+    """
+    from startrack import nuisance
+
+    height, width = signal.shape
+    truth = {}
+    spatial = (scene.gradient > 1 or scene.nebulosity_e_per_s > 0 or scene.foreground is not None
+               or sensor.vignetting < 1)
+    if not spatial:
+        return truth
+    t = sensor.exposure_s
+    sky_e = sensor.background_e_per_s * t
+    sky = np.full((height, width), sky_e)
+    if scene.gradient > 1:
+        sky *= nuisance.gradient_map(height, width, scene.gradient, rng)
+        truth["gradient"] = float(scene.gradient)
+    if scene.nebulosity_e_per_s > 0:
+        sky += scene.nebulosity_e_per_s * t * nuisance.nebulosity_map(height, width, rng, sensor.psf_sigma_px)
+        truth["nebulosity_e_per_s"] = float(scene.nebulosity_e_per_s)
+    light = signal + sky
+    if scene.foreground is not None:
+        mask, texture = nuisance.foreground_mask(height, width, scene.foreground, scene.foreground_fraction, rng,
+                                                 soft_px=max(1.0, sensor.psf_sigma_px))
+        radiance = scene.foreground_e_per_s
+        if radiance is None:
+            # A moon in a star exposure saturates; a roof or a tree at night is dark.
+            radiance = 2.0 * sensor.full_well_e / t if scene.foreground == "disc" else 0.0
+        light = light * (1.0 - mask) + radiance * t * texture * mask
+        col = np.clip(np.rint(star_x), 0, width - 1).astype(np.int64)
+        row = np.clip(np.rint(star_y), 0, height - 1).astype(np.int64)
+        truth["foreground"] = {"kind": scene.foreground, "fraction": float(mask.mean()),
+                               "e_per_s": float(radiance), "hidden": mask[row, col] >= 0.5}
+    if sensor.vignetting < 1:
+        light *= nuisance.vignetting_map(height, width, sensor.vignetting)
+    signal[:] = light - sky_e
+    return truth
+
+
+def _mirror_truth(truth, axis, width, height):
+    """Flip the truth's pixel positions as the written image was flipped (x -> W-1-x or y -> H-1-y)."""
+    key, size = ("x", width) if axis == "x" else ("y", height)
+    for name in ("stars", "false_stars", "hot_pixels", "cosmic_rays"):
+        for item in truth.get(name, []):
+            item[key] = (size - 1) - item[key]
+            if name == "cosmic_rays":
+                a = math.radians(item["angle_deg"])
+                item["angle_deg"] = math.degrees(math.atan2(math.sin(a), -math.cos(a)) if axis == "x"
+                                                 else math.atan2(-math.sin(a), math.cos(a))) % 360.0
+    truth["mirror"] = axis
 
 
 def _peak_fraction(sigma):
@@ -443,6 +563,11 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
     if max_stars is not None:
         order = order[:max_stars]
     stars = [{"x": float(all_x[k]), "y": float(all_y[k]), "flux": float(flux[k])} for k in order]
+    if scene.mirror is not None:
+        # The list as a mirrored camera measures it (x -> W-1-x or y -> H-1-y), truth alike.
+        key, size = ("x", camera.width) if scene.mirror == "x" else ("y", camera.height)
+        for star in stars + truth_stars:
+            star[key] = (size - 1) - star[key]
     ra, dec, roll = dcm_to_radec_roll(dcm)
     truth = {
         "quaternion": dcm_to_quaternion(dcm).tolist(),
@@ -452,6 +577,8 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
         "epoch": float(catalog.epoch),
         "focal_length_px": float(true_cam.focal_length_px),
     }
+    if scene.mirror is not None:
+        truth["mirror"] = scene.mirror
     return stars, truth
 
 

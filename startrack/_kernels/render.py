@@ -132,9 +132,11 @@ def expose(signal, out, background_cdf, background_guide, background_lo, backgro
            read_noise, gain, bias, max_dn, seed, with_noise):
     """Turn expected electrons into digital numbers, with the sensor's noise.
 
-    ``signal`` holds the expected star (and hot-pixel) electrons per pixel,
-    ``background_e`` the expected sky + dark electrons of every pixel.  A pixel
-    with no star signal draws its DN straight from ``background_cdf``, the
+    ``signal`` holds the expected electrons per pixel above ``background_e``,
+    the flat sky + dark of every pixel: stars and hot pixels, and the
+    nuisances' departures from the flat sky, which may be negative (the sky
+    behind a dark foreground body, a vignetted corner).  A pixel
+    with no such signal (exactly 0) draws its DN straight from ``background_cdf``, the
     exact distribution of ``round((Poisson(background_e) + N(0, read_noise)) /
     gain + bias)`` (one uniform deviate and a guide-table look-up: Chen &
     Asau's indexed search, ``background_guide[b]`` being the first entry with
@@ -155,7 +157,7 @@ def expose(signal, out, background_cdf, background_guide, background_lo, backgro
             if not with_noise:
                 e = min(s + background_e, full_well)
                 dn = math.floor(e / gain + bias + 0.5)
-            elif s <= 0.0 and not has_prnu:
+            elif s == 0.0 and not has_prnu:
                 u = _uniform(state)
                 i = background_guide[int(u * n_guide)]
                 while background_cdf[i] < u:

@@ -83,7 +83,30 @@ def _floats(text, name, n):
 @click.option("--dark-current-e-per-s", type=FiniteFloat(0), default=20.0, show_default=True)
 @click.option("--background-e-per-s", type=FiniteFloat(0), default=50.0, show_default=True, help="Sky background per pixel.")
 @click.option("--prnu", type=FiniteFloat(0, 1), default=0.0, show_default=True, help="Pixel response non-uniformity (1 sigma, fraction).")
-@click.option("--hot-pixels", type=Int(0, 10_000_000), default=0, show_default=True, help="Number of hot pixels.")
+@click.option("--hot-pixels", type=Int(0, 10_000_000), default=0, show_default=True,
+              help="Number of hot pixels (single pixels, 1-200 % of the full well: some saturated).")
+@click.option("--cosmic-rays", type=Int(0, 10_000_000), default=0, show_default=True,
+              help="Cosmic-ray hits: sharp tracks of 1 to 30 pixels.")
+@click.option("--dark-subtracted", is_flag=True,
+              help="Write the frame as a dark-subtracted one: bias and expected dark current removed, clipped at 0 "
+                   "(with --bit-depth 8 and a small sky, most of the background is 0 to a few DN).")
+@click.option("--vignetting", type=FiniteFloat(0, 1, min_open=True), default=1.0, show_default=True,
+              help="Optics' response at the image corners relative to the centre (cos^4 law; a flat-field pattern).")
+@click.option("--gradient", type=FiniteFloat(1, 1e6), default=1.0, show_default=True,
+              help="Linear sky gradient in a random direction: brightest / faintest sky across the frame.")
+@click.option("--nebulosity-e-per-s", type=FiniteFloat(0), default=0.0, show_default=True,
+              help="Peak of smooth nebular emission (clouds, filaments, 1/f structure), e-/s per pixel.")
+@click.option("--foreground", type=click.Choice(["disc", "edge", "branches"]), default=None,
+              help="An opaque foreground body: a bright disc (a moon), a horizon/roof edge, or tree branches; "
+                   "stars behind it are hidden (truth.foreground.hidden_star_ids).")
+@click.option("--foreground-fraction", type=FiniteFloat(0, 1, min_open=True, max_open=True), default=0.3,
+              show_default=True, help="Fraction of the frame the foreground body covers.")
+@click.option("--foreground-e-per-s", type=FiniteFloat(0), default=None,
+              help="Foreground surface brightness, e-/s per pixel (default: a disc twice the full well per "
+                   "exposure, saturated like a moon; an edge or branches dark).")
+@click.option("--mirror", type=click.Choice(["x", "y"]), default=None,
+              help="Write the image (or star list) mirrored: columns (x) or rows (y) flipped; truth in the written "
+                   "pixels, the attitude the un-mirrored camera's.")
 @click.option("--no-noise", is_flag=True, help="Expected values only: no shot, dark or read noise.")
 @click.option("--mag-noise", type=FiniteFloat(0, 10), default=0.0, show_default=True, help="Magnitude noise, 1 sigma (paper 003: 0.2).")
 @click.option("--false-stars", type=Int(0, 100_000), default=0, show_default=True, help="False stars of random position and brightness.")
@@ -117,7 +140,9 @@ def _floats(text, name, n):
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
             output, documents, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
-            bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, no_noise, mag_noise,
+            bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, cosmic_rays,
+            dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
+            foreground_e_per_s, mirror, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
@@ -140,6 +165,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     Example (a tracking sequence: 20 frames at 0.5 deg/s with smear):
       startrack render --fov-deg 12 --size 1024x768 --frames 20 --rate-deg-s 0.3,0.4,0 \\
           --frame-interval-s 0.1 --seed 2 -o seq/frame.png > seq.jsonl
+    \b
+    Example (a real camera's nuisances: 8-bit dark-subtracted, hot pixels, a tree, mirrored):
+      startrack render --fov-deg 10 --size 640x480 --bit-depth 8 --gain-e-per-dn 2 --dark-subtracted \\
+          --hot-pixels 50 --foreground branches --foreground-fraction 0.3 --mirror x --seed 4 -o tree.png > tree.json
     """
     import math
     import os
@@ -217,12 +246,22 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     if attitude is not None and count > 1:
         raise BadInputError("--count", None, "random attitudes (--count) cannot be combined with a given attitude")
 
+    if stars_only:
+        for flag, used in (("--cosmic-rays", cosmic_rays), ("--dark-subtracted", dark_subtracted),
+                           ("--vignetting", vignetting < 1), ("--gradient", gradient > 1),
+                           ("--nebulosity-e-per-s", nebulosity_e_per_s > 0), ("--foreground", foreground)):
+            if used:
+                raise BadInputError(flag, None, "is a nuisance of images; drop it or --stars-only")
     sensor = Sensor(zero_point, exposure_ms, psf_sigma_px, full_well_e, int(bit_depth), gain_e_per_dn, bias_dn,
-                    read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, not no_noise)
+                    read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, not no_noise,
+                    dark_subtracted, cosmic_rays, vignetting)
     if mag_max is None:
         # The deep catalog goes to Hp 14.6: render what this sensor can detect (about Hp 8.1 by default).
         mag_max = round(sensor.detection_limit_mag(), 2)
-    scene = Scene(mag_max, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)))
+    scene = Scene(mag_max, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)),
+                  foreground=foreground, foreground_fraction=foreground_fraction,
+                  foreground_e_per_s=foreground_e_per_s, nebulosity_e_per_s=nebulosity_e_per_s, gradient=gradient,
+                  mirror=mirror)
     t0 = parse_time(start_time) if start_time else None
     cat = load_catalog(catalog, mag_max=mag_max)
     if mag_max is not None:
@@ -236,7 +275,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     params = {k: v for k, v in dict(
         catalog=catalog or "shipped", catalog_sha256=cat.checksum(), sensor=sensor.to_dict(),
         scene={"mag_limit": mag_max, "mag_noise": mag_noise, "false_stars": false_stars,
-               "focal_error_pct": focal_error_pct, "rate_deg_s": list(scene.rate_deg_s)},
+               "focal_error_pct": focal_error_pct, "rate_deg_s": list(scene.rate_deg_s),
+               "foreground": foreground, "foreground_fraction": foreground_fraction if foreground else None,
+               "foreground_e_per_s": foreground_e_per_s, "nebulosity_e_per_s": nebulosity_e_per_s,
+               "gradient": gradient, "mirror": mirror},
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
         time=start_time).items()}
