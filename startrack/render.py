@@ -14,7 +14,7 @@ The renderer is the project's test oracle, so it is physically honest:
   star's position at mid-exposure.
 * **Sensor**: sky background and dark current (Poisson), photon shot noise,
   optional pixel response non-uniformity (PRNU, a fixed pattern of the sensor:
-  the same map every frame of a given size), hot pixels, full-well
+  the same map every frame of a given size), hot pixels (fixed alike), full-well
   saturation, read noise, gain (e-/DN), bias and quantisation to 8, 12 or 16 bits;
   optionally cosmic-ray hits and dark-subtracted output (bias and dark removed, clipped at 0).
 * **Nuisances of real frames** (:mod:`startrack.nuisance`): vignetting, a sky gradient,
@@ -272,6 +272,21 @@ def _prnu_map(height, width, prnu):
     return out
 
 
+@functools.lru_cache(maxsize=4)
+def _hot_pixel_map(height, width, count, full_well_e):
+    """The sensor's hot pixels ``(rows, cols, electrons)``: fixed like its PRNU (seeded by the frame size and the
+    count), so a dark frame rendered with the same options holds them too.
+
+    Single pixels of log-uniform dark charge, 1 % to 200 % of the full well: most mildly hot, about one in
+    eight saturated, as a sensor's dark-current outliers are.
+    """
+    rng = np.random.default_rng([height, width, count, 0x484F_5450])
+    cols = rng.integers(0, width, count)
+    rows = rng.integers(0, height, count)
+    level = full_well_e * 0.01 * 200.0 ** rng.uniform(0.0, 1.0, count)
+    return rows, cols, level
+
+
 def _background_table(sensor: Sensor):
     return _background_table_of(sensor.background_e, sensor.gain, sensor.offset_dn, sensor.read_noise_e)
 
@@ -320,10 +335,11 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     sensor, scene :
         The models above.
     rng : numpy Generator
-        Drives every random choice (magnitude noise, false stars, hot pixels,
-        the pixel noise seed, then the nuisances: gradient, nebulosity,
-        foreground, cosmic rays), so one seed gives one image; a frame without
-        nuisances draws exactly what it drew before they existed.
+        Drives every random choice (magnitude noise, false stars, the pixel
+        noise seed, then the nuisances: gradient, nebulosity, foreground,
+        cosmic rays), so one seed gives one image; a frame without nuisances
+        draws exactly what it drew before they existed.  PRNU and hot pixels
+        are the sensor's, the same every frame of a size.
     vectors : ndarray (n, 3), optional
         ``catalog.vectors()``, when the caller already has them.
 
@@ -367,13 +383,8 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
               float(sensor.psf_sigma_px))
     hot = []
     if sensor.hot_pixels:
-        hx = rng.integers(0, width, sensor.hot_pixels)
-        hy = rng.integers(0, height, sensor.hot_pixels)
-        # Single pixels of log-uniform dark charge, 1 % to 200 % of the full well: most mildly hot, about
-        # one in eight saturated, as a sensor's dark-current outliers are.
-        level = sensor.full_well_e * 0.01 * 200.0 ** ((rng.uniform(0.05, 1.0, sensor.hot_pixels) - 0.05) / 0.95)
-        hot_levels = (hy, hx, level)
-        hot = [{"x": int(a), "y": int(b), "electrons": float(c)} for a, b, c in zip(hx, hy, level)]
+        hot_levels = _hot_pixel_map(height, width, int(sensor.hot_pixels), float(sensor.full_well_e))
+        hot = [{"x": int(a), "y": int(b), "electrons": float(c)} for b, a, c in zip(*hot_levels)]
     pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
     extra_truth = _apply_nuisances(signal, sensor, scene, rng, x_mid, y_mid)
     if sensor.hot_pixels:

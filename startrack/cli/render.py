@@ -84,7 +84,8 @@ def _floats(text, name, n):
 @click.option("--background-e-per-s", type=FiniteFloat(0), default=50.0, show_default=True, help="Sky background per pixel.")
 @click.option("--prnu", type=FiniteFloat(0, 1), default=0.0, show_default=True, help="Pixel response non-uniformity (1 sigma, fraction).")
 @click.option("--hot-pixels", type=Int(0, 10_000_000), default=0, show_default=True,
-              help="Number of hot pixels (single pixels, 1-200 % of the full well: some saturated).")
+              help="The sensor's hot pixels: single pixels of 1-200 % of the full well (some saturated), the same "
+                   "in every frame of a size (a dark frame rendered alike holds them).")
 @click.option("--cosmic-rays", type=Int(0, 10_000_000), default=0, show_default=True,
               help="Cosmic-ray hits: sharp tracks of 1 to 30 pixels.")
 @click.option("--dark-subtracted", is_flag=True,
