@@ -436,7 +436,7 @@ def _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, loss, t0):
     return out
 
 
-def wcs_header(dcm, camera, sip_order: int = 5):
+def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
     """A FITS WCS (TAN, with SIP terms when the camera has distortion) for an attitude.
 
     Pixel ``(x, y)`` (0-based, ours) is FITS ``(x + 1, y + 1)``.  ``CRPIX`` is
@@ -446,6 +446,9 @@ def wcs_header(dcm, camera, sip_order: int = 5):
     and ``E``, ``N`` east and north at the boresight.  With distortion, SIP
     ``A``/``B`` (distorted -> undistorted, fitted on a grid) and ``AP``/``BP``
     (undistorted -> distorted, exact for the radial model) are added.
+    ``mirrored``: the image is the camera's flipped about the principal point's column
+    (:mod:`startrack.parity`), pixel ``(x, y)`` being the camera's ``(2 cx - x, y)``: ``CD``'s first
+    column changes sign (so does its determinant) and the SIP terms of odd powers of ``u`` follow.
     Returns an ``astropy.io.fits.Header``.
     """
     from astropy.io import fits
@@ -457,6 +460,8 @@ def wcs_header(dcm, camera, sip_order: int = 5):
     east, north = east_north(ra, dec)
     k = math.degrees(1.0) / camera.focal_length_px
     cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
+    flip = -1.0 if mirrored else 1.0
+    cd[:, 0] *= flip
     hdr = fits.Header()
     hdr["WCSAXES"] = 2
     hdr["CTYPE1"] = "RA---TAN-SIP" if camera.has_distortion else "RA---TAN"
@@ -494,13 +499,14 @@ def wcs_header(dcm, camera, sip_order: int = 5):
         cb /= scale
         hdr["A_ORDER"] = sip_order
         hdr["B_ORDER"] = sip_order
+        # Mirrored: u -> -u, so A(u, v) -> -A(-u, v) and B(u, v) -> B(-u, v) (AP/BP alike).
         for (p, q), va, vb in zip(terms, ca, cb):
-            hdr[f"A_{p}_{q}"] = float(va)
-            hdr[f"B_{p}_{q}"] = float(vb)
+            hdr[f"A_{p}_{q}"] = float(va) * (flip ** (p + 1))
+            hdr[f"B_{p}_{q}"] = float(vb) * (flip ** p)
         hdr["AP_ORDER"] = 5
         hdr["BP_ORDER"] = 5
         for (p, q), v in ap.items():
-            hdr[f"AP_{p}_{q}"] = float(v)
+            hdr[f"AP_{p}_{q}"] = float(v) * (flip ** (p + 1))
         for (p, q), v in bp.items():
-            hdr[f"BP_{p}_{q}"] = float(v)
+            hdr[f"BP_{p}_{q}"] = float(v) * (flip ** p)
     return hdr

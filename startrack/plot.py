@@ -418,11 +418,16 @@ def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: floa
         cam_vec = cat.vectors() @ a.T
         front = cam_vec[:, 2] > 0
         x, y = cam.vectors_to_pixels(cam_vec[front])
+        mirrored = (doc.get("solve") or {}).get("parity") == "mirrored"
+        if mirrored:
+            x = 2.0 * cam.cx - x            # the image is the camera's flipped (startrack.parity)
         inside = cam.in_image(x, y)
         for px, py in zip(x[inside], y[inside]):
             pic.marker("predicted", px, py, 6)
         kinds.append("predicted")
         compass = _north_east_in_image(a, cam)
+        if mirrored:
+            compass = tuple(np.array([-d[0], d[1]]) for d in compass)
         lines.append(f"RA {att['ra']:.4f} deg   Dec {att['dec']:+.4f} deg   roll {att['roll']:.2f} deg   "
                      f"1-sigma {att.get('sigma_cross_boresight_arcsec', float('nan')):.1f}\" cross-boresight, "
                      f"{att.get('sigma_roll_arcsec', float('nan')):.0f}\" roll")

@@ -332,6 +332,8 @@ class Identification:
     tolerance_arcsec: float | None = schema_field(unit="arcsec", doc="half-width of the inter-star angle window")
     focal_scale: float | None = schema_field(doc="measured `theta_catalog / theta_measured` (true f = f / scale)")
     quaternion_estimate: np.ndarray | None = schema_field(kind="vector", doc="attitude of the verification")
+    parity: str | None = schema_field(kind="str", doc="`normal`, or `mirrored`: the stars identified were the "
+                                      "detections flipped about the principal point's column (`x -> 2 cx - x`)")
     details: dict = schema_field(kind="object", factory=dict,
                                  doc="algorithm-specific fields (`mode`, `votes`, `label_error_arcsec`, ...)")
 
@@ -388,6 +390,8 @@ class SolveResult:
     center_dec: float | None = schema_field(unit="deg", doc="declination of the image centre")
     hypotheses: int | None = schema_field(kind="int", doc="attempts (bands, focal lengths, databases)")
     database: str | None = schema_field(kind="str", doc="file name of the database that identified it")
+    parity: str | None = schema_field(kind="str", doc="`normal`, or `mirrored`: the image is the camera's flipped "
+                                      "(`x -> 2 cx - x`); the attitude and camera are the un-mirrored camera's")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
     details: dict = schema_field(kind="object", factory=dict, doc="other fields (`wcs_path`, `plot_path`, ...)")
     # Not part of the ``solve`` section: the other sections of the frame.

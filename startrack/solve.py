@@ -18,6 +18,7 @@ catalog builds new ones.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from startrack.errors import ParameterError
+from startrack.parity import mirror_stars, parities_to_try
 
 __all__ = ["FOV_BANDS", "SolveOptions", "band_database", "cache_dir", "fov_hypotheses", "solve_image"]
 
@@ -209,6 +211,9 @@ class SolveOptions:
         Epoch of observation, decimal year (proper motion).
     method : str
         Wahba solver of the attitude.
+    parity : str
+        ``auto`` (normal, then mirrored when normal finds nothing), ``normal`` or ``mirrored``
+        (:mod:`startrack.parity`).
     """
 
     fov_deg: float | None = None
@@ -223,6 +228,7 @@ class SolveOptions:
     epoch: float | None = None
     method: str = "quest"
     blind: str = "patterns"
+    parity: str = "auto"
 
 
 class _SearchClock:
@@ -292,14 +298,17 @@ def _identify_in_band(stars, camera, band, databases, algorithm, params, clock, 
     return None, n
 
 
-def pointing(dcm, camera) -> dict:
+def pointing(dcm, camera, mirrored: bool = False) -> dict:
     """Where the camera points: the image centre's and the principal point's RA/Dec (degrees).
 
     The attitude's boresight is the principal point (the optical axis); an
     observer asks where the middle of the picture is.  They differ when the
-    principal point is not at the image centre (a calibrated camera).
+    principal point is not at the image centre (a calibrated camera).  ``mirrored``: the image is
+    the camera's flipped about the principal point's column (:mod:`startrack.parity`).
     """
     def radec(x, y):
+        if mirrored:
+            x = 2.0 * camera.cx - x
         v = np.asarray(dcm).T @ camera.pixels_to_vectors(np.array([x]), np.array([y]))[0]
         return {"ra": math.degrees(math.atan2(v[1], v[0])) % 360.0,
                 "dec": math.degrees(math.asin(max(-1.0, min(1.0, float(v[2])))))}
@@ -484,73 +493,97 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
                        ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
     tried = 0
     result = None
-    id_config = _pyramid_config(opts.algorithm, opts.max_triads)
-    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
-                            max_false_probability=opts.max_false_probability)
-    if camera is not None:
-        log.info("camera given (%.3f deg wide): %s with the k-vector databases of its band", camera.fov_deg[0],
-                 opts.algorithm)
-        result, n = _identify_in_band(cres.stars, camera, _band_of(camera.fov_deg[0]), databases, opts.algorithm,
-                                      params, clock, id_config)
-        tried += n
-    elif opts.algorithm == "patterns" or opts.blind == "patterns":
-        log.info("field of view %s: scale-invariant pattern search",
-                 "unknown" if opts.fov_deg is None else f"{opts.fov_deg:g} deg +-{opts.fov_tolerance:.0%}")
-        result, n = _solve_with_patterns(cres.stars, w, h, opts, index, clock)
-        tried += n
-    else:
-        # Unknown focal length: paper 004's distance-ratio labels are scale-free, so a label
-        # database per band of fields identifies the brightest stars whatever the focal length
-        # and measures it; the frame is then identified again with that focal length.
-        bands = [_band_of(opts.fov_deg)] if opts.fov_deg is not None else [1, 2, 0, 3]
-        lab_params = IdentifyParams(sigma_px=opts.sigma_px or 0.5, max_false_probability=opts.max_false_probability / 5,
-                                    max_focal_error=0.6)
-        lab_config = make_config("labelling", {"max_focal_error": 0.6, "label_boundary": 0.3})
-        attempts = [(band, which) for band in bands for which in range(len(FOV_BANDS[band][4]))]
-        for band, which in attempts:
-            if clock.expired():
-                break
-            lo, hi = FOV_BANDS[band][:2]
-            log.info("FOV band %g-%g deg: label database %d", lo, hi, which)
-            labels = clock.setup(databases.band_labels, band, which)
-            guess = opts.fov_deg if opts.fov_deg is not None else labels.fov_deg
-            cam = Camera.from_fov(guess, w, h)
-            for _ in range(3):
-                tried += 1
-                lab = clock.first_use("labelling", identify_stars, cres.stars, cam, labels, "labelling", lab_params,
-                                      lab_config)
-                # The label match measures the focal length even when the label database's
-                # stars alone cannot confirm the frame: the pyramid below decides.
-                scale = _label_scale(lab)
-                if scale is None:
-                    break
-                cam = cam.with_focal_length(cam.focal_length_px / scale)
-                if abs(scale - 1.0) < 1e-4:
-                    break
-            if _label_scale(lab) is None:
-                log.info("FOV band %g-%g deg: labels measured no focal length (%s)", lo, hi, lab.reason)
-                continue
-            if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
-                log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the hint", lo, hi, cam.fov_deg[0])
-                continue
-            if not 0.7 * lo <= cam.fov_deg[0] <= 1.4 * hi:
-                log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the band", lo, hi, cam.fov_deg[0])
-                continue
-            log.info("FOV band %g-%g deg: labels measured %.3f deg; %s", lo, hi, cam.fov_deg[0], opts.algorithm)
-            b = _band_of(cam.fov_deg[0])
-            params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
-            result, n = _identify_in_band(cres.stars, cam, b, databases, opts.algorithm, params, clock, id_config)
+    order = parities_to_try(opts.parity)
+    # Every parity searched spends its share of the false-match budget, as every hypothesis does.
+    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / len(order))
+
+    def search(search_list):
+        tried = 0
+        result = None
+        id_config = _pyramid_config(opts.algorithm, opts.max_triads)
+        params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
+                                max_false_probability=opts.max_false_probability)
+        if camera is not None:
+            log.info("camera given (%.3f deg wide): %s with the k-vector databases of its band", camera.fov_deg[0],
+                     opts.algorithm)
+            result, n = _identify_in_band(search_list, camera, _band_of(camera.fov_deg[0]), databases, opts.algorithm,
+                                          params, clock, id_config)
             tried += n
-            if result is not None:
-                break
-    if result is None and camera is None and opts.fov_deg is not None and opts.blind != "patterns" \
-            and not clock.expired():
-        # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
-        # verification measures and corrects the focal length).
-        cam = Camera.from_fov(opts.fov_deg, w, h)
-        result, n = _identify_in_band(cres.stars, cam, _band_of(opts.fov_deg), databases, opts.algorithm, params,
-                                      clock, id_config)
+        elif opts.algorithm == "patterns" or opts.blind == "patterns":
+            log.info("field of view %s: scale-invariant pattern search",
+                     "unknown" if opts.fov_deg is None else f"{opts.fov_deg:g} deg +-{opts.fov_tolerance:.0%}")
+            result, n = _solve_with_patterns(search_list, w, h, opts, index, clock)
+            tried += n
+        else:
+            # Unknown focal length: paper 004's distance-ratio labels are scale-free, so a label
+            # database per band of fields identifies the brightest stars whatever the focal length
+            # and measures it; the frame is then identified again with that focal length.
+            bands = [_band_of(opts.fov_deg)] if opts.fov_deg is not None else [1, 2, 0, 3]
+            lab_params = IdentifyParams(sigma_px=opts.sigma_px or 0.5, max_false_probability=opts.max_false_probability / 5,
+                                        max_focal_error=0.6)
+            lab_config = make_config("labelling", {"max_focal_error": 0.6, "label_boundary": 0.3})
+            attempts = [(band, which) for band in bands for which in range(len(FOV_BANDS[band][4]))]
+            for band, which in attempts:
+                if clock.expired():
+                    break
+                lo, hi = FOV_BANDS[band][:2]
+                log.info("FOV band %g-%g deg: label database %d", lo, hi, which)
+                labels = clock.setup(databases.band_labels, band, which)
+                guess = opts.fov_deg if opts.fov_deg is not None else labels.fov_deg
+                cam = Camera.from_fov(guess, w, h)
+                for _ in range(3):
+                    tried += 1
+                    lab = clock.first_use("labelling", identify_stars, search_list, cam, labels, "labelling", lab_params,
+                                          lab_config)
+                    # The label match measures the focal length even when the label database's
+                    # stars alone cannot confirm the frame: the pyramid below decides.
+                    scale = _label_scale(lab)
+                    if scale is None:
+                        break
+                    cam = cam.with_focal_length(cam.focal_length_px / scale)
+                    if abs(scale - 1.0) < 1e-4:
+                        break
+                if _label_scale(lab) is None:
+                    log.info("FOV band %g-%g deg: labels measured no focal length (%s)", lo, hi, lab.reason)
+                    continue
+                if opts.fov_deg is not None and abs(cam.fov_deg[0] / opts.fov_deg - 1) > opts.fov_tolerance:
+                    log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the hint", lo, hi, cam.fov_deg[0])
+                    continue
+                if not 0.7 * lo <= cam.fov_deg[0] <= 1.4 * hi:
+                    log.info("FOV band %g-%g deg: labels measured %.2f deg, outside the band", lo, hi, cam.fov_deg[0])
+                    continue
+                log.info("FOV band %g-%g deg: labels measured %.3f deg; %s", lo, hi, cam.fov_deg[0], opts.algorithm)
+                b = _band_of(cam.fov_deg[0])
+                params.max_false_probability = opts.max_false_probability / (len(attempts) * len(FOV_BANDS[b][2]))
+                result, n = _identify_in_band(search_list, cam, b, databases, opts.algorithm, params, clock, id_config)
+                tried += n
+                if result is not None:
+                    break
+        if result is None and camera is None and opts.fov_deg is not None and opts.blind != "patterns" \
+                and not clock.expired():
+            # With a hint, the hinted lens itself (the pyramid tolerates a few percent, and the
+            # verification measures and corrects the focal length).
+            cam = Camera.from_fov(opts.fov_deg, w, h)
+            result, n = _identify_in_band(search_list, cam, _band_of(opts.fov_deg), databases, opts.algorithm, params,
+                                          clock, id_config)
+            tried += n
+        return result, tried
+
+    # A mirrored image: its stars flipped about the principal point's column are an ordinary camera's
+    # (startrack.parity); auto searches them only when the normal search found nothing, within the
+    # same time limit.
+    cx = camera.cx if camera is not None else (w - 1) / 2.0
+    searched = []
+    for parity in order:
+        if searched and clock.expired():
+            break
+        search_list = cres.stars if parity == "normal" else mirror_stars(cres.stars, cx)
+        searched.append(parity)
+        result, n = search(search_list)
         tried += n
+        if result is not None:
+            break
+        log.info("%s parity: no star pattern identified", parity)
     if result is None:
         from startrack.records import Identification
 
@@ -558,6 +591,10 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             reason, code = f"no solution within {opts.timeout_s:g} s of search", ReasonCode.TIMEOUT
         else:
             reason, code = f"no star pattern identified ({tried} attempts)", ReasonCode.NO_PATTERN
+        if len(searched) > 1:
+            reason += ", either parity"
+        elif order != ("normal", "mirrored"):
+            reason += f", {searched[0]} parity only"
         if camera is None and opts.fov_deg is None:
             reason += "; a field-of-view hint may help"
         log.info("not solved: %s", reason)
@@ -585,12 +622,15 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         epoch = (getattr(db, "params", None) or {}).get("catalog_epoch") if hasattr(db, "star_vec") else None
     if epoch is None:
         epoch = float(databases.catalog.epoch)
-    att = identified_attitude(stars, ident, cam, rows, vec, opts.method, epoch=epoch)
+    ident.parity = parity
+    # The attitude of the un-mirrored camera, from the star list the search identified.
+    att = identified_attitude(stars if parity == "normal" else StarTable.from_list(search_list), ident, cam, rows,
+                              vec, opts.method, epoch=epoch)
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
                       database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
-                      centroid=centroid, identification=ident, attitude=att)
+                      centroid=centroid, identification=ident, attitude=att, parity=parity)
     if att.status == Status.OK:
-        where = pointing(att.dcm, cam)
+        where = pointing(att.dcm, cam, mirrored=parity == "mirrored")
         out.center_ra, out.center_dec = where["center_ra"], where["center_dec"]
         out.details["principal_point"] = where["principal_point"]
     out.time_ms = (time.perf_counter() - t0) * 1000

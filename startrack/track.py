@@ -251,8 +251,23 @@ class Tracker:
     NEIGHBOURHOOD_MARGIN_DEG = 2.0
 
     def __init__(self, catalog, camera, database, config: TrackerConfig | None = None, initial_dcm=None,
-                 initial_rate=None):
+                 initial_rate=None, parity: str = "auto"):
+        from startrack.camera import Camera
+        from startrack.parity import parities_to_try
+
+        parities_to_try(parity)
         self.config = config or TrackerConfig()
+        # Parity (startrack.parity): a mirrored sequence is tracked on its frames flipped left-right, seen by the
+        # camera whose principal point is flipped too (x' = W-1-x sees what the un-mirrored camera sees at
+        # 2 cx - x), and every position reported is flipped back; auto settles it at the first acquisition.
+        self.parity = parity
+        self._parity_known = parity != "auto"
+        self._mirrored = parity == "mirrored"
+        self._camera_normal = camera
+        self._camera_flipped = Camera(camera.width, camera.height, camera.focal_length_px, camera.width - 1 - camera.cx,
+                                      camera.cy, camera.k1, camera.k2, camera.pixel_pitch_um, dict(camera.extra))
+        if self._mirrored:
+            camera = self._camera_flipped
         cat = catalog if self.config.mag_limit is None else catalog.filter_magnitude(None, self.config.mag_limit)
         self.catalog = cat.sorted_by_magnitude()
         self.vectors = np.ascontiguousarray(self.catalog.vectors())
@@ -398,7 +413,32 @@ class Tracker:
         if len(stars) < 3:
             return None, {"status": "failed", "algorithm": cfg.algorithm, "matches": [],
                           "reason": res.reason or f"{len(stars)} star(s) found: at least 3 are needed"}, stars, None, info
-        ident = identify_stars(stars, self.camera, self.db, cfg.algorithm, IdentifyParams())
+        if self._parity_known:
+            ident = identify_stars(stars, self.camera, self.db, cfg.algorithm, IdentifyParams())
+        else:
+            from startrack.parity import identify_either_parity
+
+            # Until the parity is known: normal first, then the frame's stars flipped left-right (the flipped
+            # camera's view), each with half the false-match budget and half the time budget (a sequence's
+            # field is rich: a search that finds nothing runs until its budget is spent), the second also
+            # what the first left.
+            default = IdentifyParams()
+            half = IdentifyParams(max_false_probability=default.max_false_probability / 2,
+                                  max_time_ms=default.max_time_ms / 2)
+            ident, _ = identify_either_parity(stars, self.camera, self.db, cfg.algorithm, half, parity="normal")
+            left_ms = default.max_time_ms - (ident.time_ms or 0.0)
+            if ident.status != "ok" and left_ms > 0:
+                flipped = [{**s, "x": self.camera.width - 1 - s["x"]} for s in stars]
+                half.max_time_ms = left_ms
+                again, _ = identify_either_parity(flipped, self._camera_flipped, self.db, cfg.algorithm, half,
+                                                  parity="normal")
+                if again.status == "ok":
+                    ident, stars = again, flipped
+                    self._mirrored, self.camera = True, self._camera_flipped
+                    rate_est = None          # measured on the frame as given: not the flipped camera's
+                    info["streaks"] = 0
+            if ident.status == "ok":
+                self._parity_known = True
         if ident.status != "ok":
             return None, to_section(ident), stars, rate_est, info
         body, ref, labels, sig = [], [], [], []
@@ -562,7 +602,7 @@ class Tracker:
         if self.last_t is not None and t <= self.last_t:
             raise BadInputError("image.time", None, f"time {t:.6f} s is not after the previous frame's "
                                 f"{self.last_t:.6f} s (out-of-order or repeated time stamps)")
-        img = np.ascontiguousarray(image, dtype=np.float32)
+        img = np.ascontiguousarray(image[:, ::-1] if self._mirrored else image, dtype=np.float32)
         cfg = self.config
         exposure = cfg.exposure_s if exposure_s is None else float(exposure_s)
         dt = None if self.last_t is None else t - self.last_t
@@ -633,8 +673,22 @@ class Tracker:
         from startrack.formats.sections import to_section
 
         track["t_s"] = t
+        track_section = to_section(track_state(track))
+        if self._mirrored:
+            # Positions in the frame as given: flipped back.
+            w1 = self.camera.width - 1
+            for s in stars_out:
+                s["x"] = w1 - s["x"]
+            for s in track_section.get("stars") or []:
+                for key in ("predicted", "measured"):
+                    if s.get(key) is not None:
+                        s[key] = [w1 - s[key][0], s[key][1]]
+            if ident_section is not None and ident_section.get("status") == "ok":
+                ident_section["parity"] = "mirrored"
+        elif ident_section is not None and ident_section.get("status") == "ok" and self._parity_known:
+            ident_section["parity"] = "normal"
         return {"stars": stars_out, "identification": ident_section, "attitude": att_section,
-                "track": to_section(track_state(track))}
+                "track": track_section}
 
     def _update_filter(self, result, track, dt, rate_est):
         cfg = self.config

@@ -8,6 +8,8 @@ from startrack.cli.options import (
     FiniteFloat,
     Int,
     RegistryChoice,
+    calibration_frame_options,
+    calibration_from_options,
     centroid_methods,
     handle_errors,
     jobs_option,
@@ -54,6 +56,7 @@ from startrack.cli.options import (
 @click.option("--window-px", type=Int(1, 1000), default=8, show_default=True, help="Window half-size for --windows-from.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of the detections (numbered per image when several).")
+@calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
 @jobs_option
 @resume_option
@@ -61,7 +64,7 @@ from startrack.cli.options import (
 @handle_errors
 def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, matched_filter, filter_sigma_px,
             min_pixels, max_pixels, max_elongation, no_deblend, max_stars, psf_sigma_px, gain_e_per_dn, saturation_dn,
-            camera_file, windows_from, window_px, plot, output, jobs, resume, quiet):
+            camera_file, windows_from, window_px, plot, bias, dark, flat, output, jobs, resume, quiet):
     """Find the stars in each image: one frame document per image on stdout.
 
     IMAGE may be PNG, JPEG, TIFF or FITS (8/12/16-bit; colour becomes
@@ -91,6 +94,7 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
                               filter_sigma_px, min_pixels, max_pixels, max_elongation, 0.7, not no_deblend, max_stars,
                               psf_sigma_px, gain_e_per_dn, saturation_dn)
     camera_doc = load_camera_file(camera_file).to_dict() if camera_file else None
+    calibration = calibration_from_options(bias, dark, flat)
     check_plot_output(plot)
     plot_names = StreamNames(plot)
     names = list(inputs) or ["-"]
@@ -117,6 +121,9 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
         height, width = image.shape
         out["image"] = {**out["image"], "path": path, "width": width, "height": height,
                         "bit_depth": meta["bit_depth"]}
+        if calibration is not None:
+            image, meta["saturation"] = calibration.apply(image, meta["saturation"], path)
+            out["image"]["calibration"] = calibration.record()
         if camera_doc is not None:
             out["camera"] = camera_doc
         if windows_from:

@@ -13,6 +13,7 @@ from startrack.cli.options import (
     jobs_option,
     load_camera_file,
     output_option,
+    parity_option,
     quiet_option,
     resume_option,
     retired_algorithms,
@@ -96,20 +97,22 @@ def _algorithm_choice():
                    "0: every frame uses only --brightness-calibration). Frames then run in order (no --jobs).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Annotated PNG of each frame with an image (numbered when several).")
+@parity_option
 @output_option()
 @jobs_option
 @resume_option
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_search_stars,
-            max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, output,
-            jobs, resume, quiet, **settings):
+            max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, parity,
+            output, jobs, resume, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
     from a file or stdin; writes `identification` with status, algorithm,
     matches (star index -> HIP id), time_ms, trials (proposals verified) and
-    false_match_probability, the probability that the match is a coincidence.
+    false_match_probability, the probability that the match is a coincidence,
+    and parity (a mirrored star list is identified too: --parity).
     The algorithm proposes star patterns in its paper's order; each is verified
     (attitude, every detection matched within its own sigma) until one passes
     the false-match limit or the search budget runs out.  A frame that cannot
@@ -141,9 +144,9 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     from startrack.identify import (
         IdentifyParams,
         database_kind,
-        identify_stars,
         warm_up,
     )
+    from startrack.parity import identify_either_parity
 
     config = algorithm_settings(settings, algorithm)
     from startrack.identify.calibration import CalibrationCarry, carries_calibration
@@ -201,10 +204,10 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
 
         validate_stars(doc, source)
         if carry is None:
-            result = identify_stars(doc["stars"], cam, db, algorithm, params, config, deep)
+            result, _ = identify_either_parity(doc["stars"], cam, db, algorithm, params, config, deep, parity)
         else:
             frame_config, used = carry.config_for(config)
-            result = identify_stars(doc["stars"], cam, db, algorithm, params, frame_config, deep)
+            result, _ = identify_either_parity(doc["stars"], cam, db, algorithm, params, frame_config, deep, parity)
             result.details.update(used)
             carry.update(result, index)
         doc["identification"] = to_section(result)
@@ -261,6 +264,8 @@ def _plot(path, doc, db, camera, result):
         cam_vec = db.star_vector @ quaternion_to_dcm(result.quaternion_estimate).T
         front = cam_vec[:, 2] > 0
         x, y = camera.vectors_to_pixels(cam_vec[front])
+        if doc["identification"].get("parity") == "mirrored":
+            x = 2.0 * camera.cx - x             # the stars are the camera's flipped (startrack.parity)
         inside = camera.in_image(x, y)
         predicted = list(zip(x[inside], y[inside]))
     title = f"{result.algorithm}: {result.status}, {len(result.matches)} stars identified"

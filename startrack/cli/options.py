@@ -357,6 +357,32 @@ resume_option = click.option("--resume", is_flag=True,
                              help="Keep the frames already in the -o file (a run cut short) and do only the rest.")
 quiet_option = click.option("--quiet", "-q", is_flag=True,
                             help="No progress bar or summary on stderr (errors and failures are still shown).")
+parity_option = click.option(
+    "--parity", type=click.Choice(["auto", "normal", "mirrored"]), default="auto", show_default=True,
+    help="Image parity: a mirrored image (a diagonal mirror, rows stored bottom-up) has its stars flipped "
+         "(x -> 2 cx - x); auto searches the mirrored stars when the normal ones find nothing.")
+def calibration_frame_options(f):
+    """``--bias``, ``--dark``, ``--flat``: calibration frames, each repeatable (median-combined)."""
+    for flag, what in (("--flat", "Flat frame (an evenly lit exposure; bias removed, scaled to median 1): the "
+                                  "image is divided by it."),
+                       ("--dark", "Dark frame (same exposure, shutter closed; it holds the bias): subtracted, and "
+                                  "its hot pixels replaced by their neighbours' median."),
+                       ("--bias", "Bias frame (zero exposure): subtracted when no dark is given; removed from "
+                                  "the flat.")):
+        f = click.option(flag, flag[2:], multiple=True, type=click.Path(dir_okay=False),
+                         help=what + " Repeat to median-combine several.")(f)
+    return f
+
+
+def calibration_from_options(bias, dark, flat):
+    """The :class:`~startrack.calibration_frames.CalibrationFrames` of the options, or ``None``."""
+    if not (bias or dark or flat):
+        return None
+    from startrack.calibration_frames import load_calibration_frames
+
+    return load_calibration_frames(bias, dark, flat)
+
+
 catalog_option = click.option("--catalog", type=click.Path(dir_okay=False), default=None,
                               help="Star catalog (startrack.catalog/1 HDF5); default: the shipped Hipparcos catalog.")
 

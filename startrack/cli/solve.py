@@ -5,9 +5,11 @@ from startrack.cli.options import (
     Command,
     FiniteFloat,
     Int,
+    calibration_frame_options,
     handle_errors,
     load_camera_file,
     output_option,
+    parity_option,
     quiet_option,
     resume_option,
 )
@@ -131,6 +133,18 @@ def _solved(run, jobs, scheduler, progress):
         yield i + head, doc
 
 
+def _calibration(frames):
+    """This process's calibration frames of ``(bias, dark, flat)`` paths: read once, kept for the next image."""
+    from startrack.calibration_frames import load_calibration_frames
+    from startrack.cluster import worker_cache
+
+    cache = worker_cache()
+    key = ("calibration_frames", frames)
+    if key not in cache:
+        cache[key] = load_calibration_frames(*frames)
+    return cache[key]
+
+
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
     import time
@@ -141,11 +155,16 @@ def _solve_one(args):
     from startrack.imageio import read_image
     from startrack.solve import solve_image
 
-    path, options, camera_doc, outputs = args
+    path, options, camera_doc, outputs, frames = args
     t0 = time.perf_counter()
     doc = {"format": FRAME_FORMAT, "image": {"path": path}}
     try:
         image, meta = read_image(path)
+        pixels, saturation = image, meta["saturation"]
+        if frames is not None:
+            calibration = _calibration(frames)
+            pixels, saturation = calibration.apply(image, saturation, path)
+            doc["image"]["calibration"] = calibration.record()
     except BadInputError as exc:
         doc["solve"] = {"status": "failed", "reason": str(exc), "bad_input": True}
         return doc
@@ -155,7 +174,7 @@ def _solve_one(args):
         from startrack.camera import Camera
 
         cam = Camera.from_dict(camera_doc)
-    result = solve_image(image, options=options, camera=cam, saturation=meta["saturation"], databases=_databases())
+    result = solve_image(pixels, options=options, camera=cam, saturation=saturation, databases=_databases())
     doc.update(to_frame(result))
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if doc["solve"]["status"] == "ok":
@@ -165,7 +184,8 @@ def _solve_one(args):
         from startrack.attitude import wcs_header
         from startrack.camera import Camera
 
-        hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]))
+        hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
+                         mirrored=doc["solve"].get("parity") == "mirrored")
         # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`)
         doc["attitude"]["wcs"] = {k: v for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")}
         if wcs_path or fits_path:
@@ -220,12 +240,14 @@ def _solve_one(args):
 @click.option("--matches-out", type=click.Path(), default=None,
               help="Matched stars per image as CSV (catalog id, RA/Dec, x/y, residual); a directory, a file, or "
                    "a pattern with {name}.")
+@parity_option
+@calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
 @resume_option
 @quiet_option
 @handle_errors
 def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, scheduler, wcs_path, plot, fits_out,
-            matches_out, output, resume, quiet):
+            matches_out, parity, bias, dark, flat, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -236,7 +258,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     fields over 25 degrees, the radial distortion k1).  A frame document per
     image (JSON Lines) goes to stdout, with a `solve` section: status, fitted
     field of view, the RA/Dec of the image centre (center_ra, center_dec) and
-    of the principal point,
+    of the principal point, the image's parity (mirrored images are solved too: --parity),
     time.  An image that cannot be solved is reported on stderr and the batch
     goes on.  Exit status: 0 when every image was solved, 1 when any could not
     be, 2 when any could not be read.
@@ -279,12 +301,18 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     camera_doc = None
     if camera_file:
         camera_doc = load_camera_file(camera_file).to_dict()
-    options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch)
+    options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch,
+                           parity=parity)
+    frames = None
+    if bias or dark or flat:
+        # Checked here (a bad calibration file is bad usage: exit 2), then read once per worker.
+        frames = (tuple(bias), tuple(dark), tuple(flat))
+        _calibration(frames)
     n = len(images)
     tasks = [(path, options, camera_doc, (output_for(wcs_path, path, n, ".wcs.fits"),
                                           output_for(plot, path, n, ".solved.png"),
                                           output_for(fits_out, path, n, ".new.fits"),
-                                          output_for(matches_out, path, n, ".matches.csv")))
+                                          output_for(matches_out, path, n, ".matches.csv")), frames)
              for path in images]
     for outs in {p for t in tasks for p in t[3] if p}:
         check_writable(outs)
@@ -312,8 +340,9 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         # Workers open the files themselves, from their own working directory: absolute paths,
         # checked up front on every worker (the first unreadable one is named).
         check_readable_on_workers([t[0] for t in todo], scheduler, jobs)
-        run = [(os.path.abspath(p), o, c, tuple(os.path.abspath(x) if x else x for x in outs))
-               for p, o, c, outs in todo]
+        run = [(os.path.abspath(p), o, c, tuple(os.path.abspath(x) if x else x for x in outs),
+                None if fr is None else tuple(tuple(os.path.abspath(x) for x in kind) for kind in fr))
+               for p, o, c, outs, fr in todo]
         progress = _cluster_progress(quiet)
     with writer:
         # In input order; with -j N, workers share the pattern index through the page cache.

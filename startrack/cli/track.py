@@ -7,12 +7,15 @@ from startrack.cli.options import (
     Int,
     NumberList,
     RegistryChoice,
+    calibration_frame_options,
+    calibration_from_options,
     catalog_option,
     handle_errors,
     identify_algorithms,
     load_camera_file,
     mag_options,
     output_option,
+    parity_option,
     quiet_option,
     retired_algorithms,
 )
@@ -43,11 +46,13 @@ from startrack.cli.options import (
               help="Longer without an attitude (a gap or a blackout) restarts from lost in space.")
 @click.option("--algorithm", "-a", type=RegistryChoice(lambda: identify_algorithms("kvector"), retired=retired_algorithms),
               default="pyramid", show_default=True, help="Lost-in-space algorithm.")
+@parity_option
+@calibration_frame_options
 @output_option()
 @quiet_option
 @handle_errors
 def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, initial_quaternion, rate_prior,
-            window_px, sigma_px, exposure_ms, max_gap_s, algorithm, output, quiet):
+            window_px, sigma_px, exposure_ms, max_gap_s, algorithm, parity, bias, dark, flat, output, quiet):
     """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
 
     Input: frame documents naming images (JSON Lines, e.g. from `startrack
@@ -84,6 +89,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     from startrack.timeutil import julian_year, parse_time
     from startrack.track import MODES, Tracker, TrackerConfig
 
+    calibration = calibration_from_options(bias, dark, flat)
     db = load_kvector(database)
     cam_override = None
     if camera_file:
@@ -137,11 +143,14 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
             if t_first:
                 # Catalog positions at the sequence's epoch (proper motion), as render placed them.
                 stars = cat.propagate(julian_year(parse_time(t_first, f"{src}: image.time")))
-            state["tracker"] = Tracker(stars, cam, db, config, init, rate)
+            state["tracker"] = Tracker(stars, cam, db, config, init, rate, parity=parity)
         path = (doc.get("image") or {}).get("path")
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")
         image, meta = read_image(path)
+        saturation = meta["saturation"]
+        if calibration is not None:
+            image, saturation = calibration.apply(image, saturation, path)
         image_doc = doc.get("image") or {}
         tstr = image_doc.get("time")
         if tstr:
@@ -159,8 +168,10 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
             raise BadInputError(src, "image.exposure_ms", f"must be a positive number, got {exp_ms!r}")
         exposure_s = exp_ms / 1000.0 if exp_ms is not None else config.exposure_s
         doc["image"] = {**(doc.get("image") or {}), "width": image.shape[1], "height": image.shape[0]}
+        if calibration is not None:
+            doc["image"]["calibration"] = calibration.record()
         doc["camera"] = cam.to_dict()
-        out = state["tracker"].step(image, t, meta["saturation"], exposure_s)
+        out = state["tracker"].step(image, t, saturation, exposure_s)
         state["t_prev"] = t
         state["modes"][out["track"]["mode"]] += 1
         doc["stars"] = out["stars"]
