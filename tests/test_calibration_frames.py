@@ -149,3 +149,21 @@ def test_fixed_pattern_frame_solves_only_after_calibration(tmp_path, solve_cache
         a = doc["attitude"]
         sep = math.hypot((a["ra"] - truth["ra"] + 180) % 360 - 180, a["dec"] - truth["dec"])
         assert sep * 3600 < 60 * max(1.0, 1 / math.cos(math.radians(a["dec"])))
+
+
+def test_track_applies_and_records_the_calibration(tmp_path):
+    sensor = ("--fov-deg", "12", "--size", "640x480", "--hot-pixels", "500", "-q")
+    db = tmp_path / "db.h5"
+    run_cli("build-kvector", "--fov-deg", "12", "--size", "640x480", "--mag-max", "6.0", "-o", db, "-q", check=True)
+    seq = run_cli("render", *sensor, "--frames", "3", "--rate-deg-s", "0.1,0,0.2", "--seed", "7",
+                  "-o", tmp_path / "seq" / "f.png", check=True).stdout
+    run_cli("render", *sensor, "--background-e-per-s", "0", "--frames", "2", "--blackout", "0:2", "--seed", "8",
+            "-o", tmp_path / "dark.png", check=True)
+    proc = run_cli("track", "--database", db, "--dark", tmp_path / "dark-0000.png", "--dark", tmp_path / "dark-0001.png",
+                   "-q", input=seq)
+    assert proc.returncode == 0, proc.stderr
+    for line in proc.stdout.splitlines():
+        doc = json.loads(line)
+        assert doc["attitude"]["status"] == "ok"
+        cal = doc["image"]["calibration"]
+        assert [f["kind"] for f in cal["files"]] == ["dark", "dark"] and cal["hot_pixels"] >= 450

@@ -148,6 +148,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         body, ref, sig, labels, bounds = [], [], [], [], []
         missing, misfits = [], []
         drop = misfits_to_drop([stars[m["star"]].get("misfit") is True and not sigma_px for m in matches])
+        mirrored = ident.get("parity") == "mirrored"
         for m, dropped in zip(matches, drop):
             row = rows.get(int(m["id"]))
             if row is None:
@@ -165,6 +166,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                                           f"{s.get('fit_chi2', float('nan')):.1f} for {s.get('fit_dof', '?')} dof: "
                                           "not a single star's image"})
                 continue
+            if mirrored:
+                x = 2.0 * cam.cx - x        # identified as the un-mirrored camera's stars (startrack.parity)
             body.append(cam.pixels_to_vectors(x, y))
             ref.append(centres.get(int(m["id"]), vectors[row]))
             # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
@@ -200,7 +203,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         doc["attitude"] = section
         if result.status == "ok" and wcs_path:
             from startrack.formats.atomic import atomic_path
-            hdr = wcs_header(result.dcm, cam)
+            hdr = wcs_header(result.dcm, cam, mirrored=mirrored)
             path = wcs_names(index)
             from astropy.io import fits
 
@@ -208,7 +211,8 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                 fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
             section["wcs_path"] = path
         if result.status == "ok":
-            section["wcs"] = {k: v for k, v in wcs_header(result.dcm, cam).items() if k not in ("COMMENT", "HISTORY")}
+            section["wcs"] = {k: v for k, v in wcs_header(result.dcm, cam, mirrored=mirrored).items()
+                              if k not in ("COMMENT", "HISTORY")}
         return doc
 
     run_frames(input, output, "attitude", process, quiet, "attitude", need=("stars",), jobs=jobs, resume=resume)

@@ -56,6 +56,11 @@ def command(input, output, fit, catalog, quiet):
         if att.get("status") != "ok" or ident.get("status") != "ok":
             continue                    # unsolved frames carry nothing to calibrate from
         validate_frame(doc, rec.source, ("camera", "stars"))
+        if "mirrored" in (ident.get("parity"), (doc.get("solve") or {}).get("parity")):
+            # Its camera is the un-mirrored one of flipped pixels: a principal point fitted from it would not be
+            # the image's.
+            raise BadInputError(rec.source, "identification.parity", "is mirrored: calibrate takes unmirrored "
+                                "frames only (flip the images first)")
         cam = Camera.from_dict(doc["camera"], rec.source)
         if camera is None:
             camera = cam

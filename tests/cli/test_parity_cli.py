@@ -110,6 +110,14 @@ def test_fits_stored_bottom_up_round_trips_to_the_same_sky(frames, solve_cache):
     assert a["center_dec"] == pytest.approx(plain["center_dec"], abs=2e-3)
 
 
+def test_calibrate_refuses_mirrored_frames(frames, solve_cache):
+    from conftest import assert_refused
+
+    _, rendered = frames
+    solved = run_cli("solve", rendered["x"][0], env=solve_cache, check=True, timeout=600).stdout
+    assert_refused(run_cli("calibrate", "-", "-o", rendered["x"][0].with_suffix(".json"), input=solved), "mirrored")
+
+
 def test_noise_frames_still_fail(tmp_path, solve_cache):
     run_cli("render", *SIZE, "--frames", "3", "--blackout", "0:3", "--false-stars", "40", "--seed", "4",
             "-o", tmp_path / "noise.png", "-q", check=True)
@@ -137,6 +145,17 @@ def test_identify_and_track_find_the_parity(tmp_path):
             assert ident["parity"] == ("normal" if m == "none" else "mirrored")
             ids = d["truth"]["star_ids"]
             assert all(ids[k["star"]] == k["id"] for k in ident["matches"])
+        # `attitude` reads the parity: the un-mirrored camera's attitude, a WCS of the image's sign.
+        att = run_cli("attitude", "-q", input=proc.stdout)
+        assert att.returncode == 0, att.stderr
+        for line in att.stdout.splitlines():
+            d = json.loads(line)
+            a = d["attitude"]
+            # 0.2 px of centroid noise at 67"/px over a few stars: the roll is good to a few arcminutes, a
+            # reflection's attitude would be degrees off.
+            assert _angle_arcsec(np.array(a["dcm"]), quaternion_to_dcm(np.array(d["truth"]["quaternion"]))) < 300
+            det = a["wcs"]["CD1_1"] * a["wcs"]["CD2_2"] - a["wcs"]["CD1_2"] * a["wcs"]["CD2_1"]
+            assert (det > 0) == (m == "none")    # a normal image's CD (y down) has a positive determinant
     proc = run_cli("identify", "-d", db, lists["x"], "--parity", "normal", "-q")
     assert proc.returncode == 1
     # A mirrored tracking sequence: acquired mirrored, tracked, positions in the frames as given.
