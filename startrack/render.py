@@ -372,7 +372,7 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     faint = scene.mag_limit if scene.mag_limit is not None else (float(np.max(catalog.mag)) if len(catalog) else 6.0)
     false_x = rng.uniform(-0.5, camera.width - 0.5, n_false)
     false_y = rng.uniform(-0.5, camera.height - 0.5, n_false)
-    false_mag = rng.uniform(max(0.0, faint - 5.0), faint, n_false)
+    false_mag = rng.uniform(min(faint, max(0.0, faint - 5.0)), faint, n_false)   # a limit below 0: all at it
     height, width = camera.height, camera.width
     signal = np.zeros((height, width), dtype=np.float64)
     if n_false:
@@ -565,7 +565,7 @@ def star_list(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng: n
     faint = scene.mag_limit if scene.mag_limit is not None else (float(np.max(catalog.mag)) if len(catalog) else 6.0)
     fx = rng.uniform(-0.5, camera.width - 0.5, n_false)
     fy = rng.uniform(-0.5, camera.height - 0.5, n_false)
-    fmag = rng.uniform(max(0.0, faint - 5.0), faint, n_false)
+    fmag = rng.uniform(min(faint, max(0.0, faint - 5.0)), faint, n_false)
     all_x = np.concatenate([mx, fx])
     all_y = np.concatenate([my, fy])
     flux = electrons_from_magnitude(np.concatenate([noisy_mag, fmag]), sensor)

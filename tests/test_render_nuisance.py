@@ -207,3 +207,11 @@ def test_render_cli_nuisances(tmp_path):
     assert params["scene"]["nebulosity_e_per_s"] == 200
     assert_refused(run_cli("render", "--stars-only", "--fov-deg", "10", "--foreground", "disc"), "--foreground")
     assert_refused(run_cli("render", "--fov-deg", "10", "--gradient", "0.5", "-o", tmp_path / "x.png"), "--gradient")
+
+
+def test_false_stars_with_a_magnitude_limit_below_zero():
+    # Was "internal error: ValueError: high - low < 0" (false stars drawn between max(0, limit - 5) and the limit).
+    proc = run_cli("render", "--stars-only", "--fov-deg", "20", "--mag-max", "-1", "--false-stars", "5", "--seed", "2",
+                   check=True)
+    doc = json.loads(proc.stdout)
+    assert doc["truth"]["star_ids"].count(None) == 5 and len(doc["stars"]) == len(doc["truth"]["star_ids"])
