@@ -116,7 +116,7 @@ def _median3(a):
     return median3(np.ascontiguousarray(a, dtype=np.float64))
 
 
-def estimate_background(image: np.ndarray, options: CentroidOptions):
+def estimate_background(image: np.ndarray, options: CentroidOptions, saturation: float | None = None):
     """Background level and noise on a coarse mesh, and their global values (DN).
 
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
@@ -126,7 +126,10 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     it holds on frames clipped at zero after a dark subtraction, on 8-bit
     frames of a few grey levels and under stars, where a median and MAD do not.
     The noise is the normal's sigma; on whole DN the caller adds the rounding's
-    1/12 DN^2 where a pixel's noise is meant.
+    1/12 DN^2 where a pixel's noise is meant.  Pixels at or above ``saturation``
+    are no data (they say nothing of the sky's level): a tile of a bright
+    body's saturated face takes its neighbours' level, and a tile across its
+    edge the level of its unsaturated part.
     """
     from startrack._kernels.centroid import background_mesh, core_stats_of_sorted, mesh_core_stats, mesh_samples
 
@@ -147,6 +150,8 @@ def estimate_background(image: np.ndarray, options: CentroidOptions):
     cell = options.mesh_px
     mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
     img32 = np.ascontiguousarray(image, dtype=np.float32)
+    if saturation is not None:
+        img32 = np.where(img32 >= saturation, np.float32(np.nan), img32)
     ny, nx = -(-h // cell), -(-w // cell)
     if ny * nx * -(-min(cell, h) // mstep) * -(-min(cell, w) // mstep) <= 4_000_000:
         # The tiles' samples sorted by numpy (vectorised; ~0.07 ms for 192 tiles of 121 samples against
@@ -444,7 +449,9 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     det_img = img
     if options.background == "tophat":
         det_img = _tophat(img, options)
-    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options)
+    # Saturated pixels are no data for the background (only looked for when the probe saw some).
+    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options,
+                                                                 sat if frac_sat > 0 and det_img is img else None)
     if not gsigma > 0 and span <= 0:
         return result([], [], glevel, 0.0, "image is constant: no signal")
     sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)

@@ -465,7 +465,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         :class:`~startrack.errors.BadInputError`).
     """
     from startrack.camera import Camera
-    from startrack.centroid import CentroidOptions, find_stars
+    from startrack.centroid import CentroidOptions, find_stars, frame_psf
     from startrack.identify import IdentifyParams, identify_stars, make_config
     from startrack.records import ReasonCode, StarTable
 
@@ -485,17 +485,15 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     h, w = image.shape
     cres = clock.first_use("centroid", find_stars, image, centroid_options or CentroidOptions(max_stars=opts.max_stars),
                            saturation=saturation)
-    stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
-    centroid = cres.section()
     log.info("%dx%d image: %d stars detected (%.0f ms)", w, h, len(cres.stars), (time.perf_counter() - t0) * 1000)
-    if len(cres.stars) < 4:
-        return _failed(cres.reason or f"only {len(cres.stars)} stars detected",
-                       ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
     tried = 0
     result = None
     order = parities_to_try(opts.parity)
-    # Every parity searched spends its share of the false-match budget, as every hypothesis does.
-    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / len(order))
+    # The detections of a second, deeper pass (below) are searched when the first ones give nothing, unless the
+    # caller chose the detection's settings.
+    depths = ("plain",) if centroid_options is not None else ("plain", "deep")
+    # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does.
+    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / (len(order) * len(depths)))
 
     def search(search_list):
         tried = 0
@@ -574,16 +572,40 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     # same time limit.
     cx = camera.cx if camera is not None else (w - 1) / 2.0
     searched = []
-    for parity in order:
-        if searched and clock.expired():
-            break
-        search_list = cres.stars if parity == "normal" else mirror_stars(cres.stars, cx)
-        searched.append(parity)
-        result, n = search(search_list)
-        tried += n
+    for depth in depths:
+        if depth == "deep":
+            # A frame whose brightest detections gave no pattern (few stars above a pixel's threshold: a narrow
+            # field, a short exposure, a dark-subtracted 8-bit frame) is detected again through a matched filter
+            # of the frame's own PSF: a star's whole light against the noise, ~0.7 mag deeper for a 1 px PSF.
+            if clock.expired():
+                break
+            psf = frame_psf(cres.stars) if cres.stars else None
+            deep = CentroidOptions(max_stars=opts.max_stars, matched_filter=True,
+                                   filter_sigma_px=psf[0] / 2.3548 if psf else 1.0)
+            more = clock.first_use("centroid-deep", find_stars, image, deep, saturation=saturation)
+            if len(more.stars) <= len(cres.stars) and len(cres.stars) >= 4:
+                break
+            log.info("matched-filter detection: %d stars (%d before)", len(more.stars), len(cres.stars))
+            cres = more
+        if len(cres.stars) < 4:
+            continue
+        for parity in order:
+            if searched and clock.expired():
+                break
+            search_list = cres.stars if parity == "normal" else mirror_stars(cres.stars, cx)
+            searched.append(parity)
+            result, n = search(search_list)
+            tried += n
+            if result is not None:
+                break
+            log.info("%s parity: no star pattern identified", parity)
         if result is not None:
             break
-        log.info("%s parity: no star pattern identified", parity)
+    stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
+    centroid = cres.section()
+    if len(cres.stars) < 4:
+        return _failed(cres.reason or f"only {len(cres.stars)} stars detected",
+                       ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
     if result is None:
         from startrack.records import Identification
 
@@ -591,7 +613,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             reason, code = f"no solution within {opts.timeout_s:g} s of search", ReasonCode.TIMEOUT
         else:
             reason, code = f"no star pattern identified ({tried} attempts)", ReasonCode.NO_PATTERN
-        if len(searched) > 1:
+        if len(set(searched)) > 1:
             reason += ", either parity"
         elif order != ("normal", "mirrored"):
             reason += f", {searched[0]} parity only"
