@@ -834,8 +834,11 @@ def _star_likeness(stars: list, residual):
     - **saturated over more than a disc of 3 FWHM radius** (a flat-topped
       foreground body or bloom: a Gaussian star would need a peak e^25 times the
       saturation level);
-    - **cut by the image border**: its centre within one FWHM (at least 1.5 px)
-      of the edge, where part of its light is missing and its centroid biased;
+    - **centred outside the image** (a fit that ran off the edge).  A star cut by
+      the border is kept: the fit models the pixels that are there and its
+      sigma says what the cut costs (setting such stars apart lost 1 % of the
+      catalog stars of paper 000's 752 x 480 frames, and 4 of 300 frames'
+      identifications);
     - **on an extended structure**: the median residual in the annulus from 2
       to 4 FWHM around it (at least 3 to 6 px) is above half its own peak and
       twice the pixel noise: a point source stands out of its surroundings by
@@ -854,7 +857,6 @@ def _star_likeness(stars: list, residual):
     fwhm, spread = psf
     h, w = residual.shape
     wide = fwhm * max(2.0, math.exp(5.0 * spread))
-    edge = max(1.5, fwhm)
     r_in = max(3.0, 2.0 * fwhm)
     r_out = max(r_in + 3.0, 4.0 * fwhm)
     xs = np.array([s_["x"] for s_ in stars])
@@ -872,8 +874,8 @@ def _star_likeness(stars: list, residual):
         elif not s_["saturated"] and fwhm >= 2.0 and s_["snr"] >= 10 and f < 0.5 * fwhm:
             reason = f"sharper than the point-spread function (FWHM {f:.1f} px, the stars' {fwhm:.1f} px): " \
                      "a hot pixel or cosmic ray"
-        elif min(x + 0.5, y + 0.5, w - 0.5 - x, h - 0.5 - y) < edge:
-            reason = "cut by the image border"
+        elif min(x + 0.5, y + 0.5, w - 0.5 - x, h - 0.5 - y) < 0.0:
+            reason = "centred outside the image"
         elif ring == ring and ring > 0.5 * s_["peak"] and ring > 2.0 * s_["noise_dn"]:
             reason = f"on an extended structure (its surroundings at {ring / s_['peak']:.0%} of its peak)"
         if reason is None:
