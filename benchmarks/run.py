@@ -104,6 +104,14 @@ def bench_centroid():
     parts += ["\n\nReal ESA images (1024x768 16-bit):\n",
               table(["image", "startrack ms", "stars", "sep ms", "sep detections"],
                     [[n, f"{a:.2f}", b, f"{c:.2f}", d] for n, a, b, c, d in real])]
+    beside = cb.beside_tetra3rs()
+    if beside:
+        parts += ["\n\nfind_stars beside tetra3rs's extract_centroids (issue 38; the 8 ESA images alternated image by "
+                  "image in one process, each image's median of 9 warm runs; goal ratio <= 1.0):\n",
+                  table(["find_stars ms", "extract_centroids ms", "ratio of medians", "median ratio", "load"],
+                        [[f"{beside['find_stars_ms']:.2f}", f"{beside['extract_centroids_ms']:.2f}",
+                          f"{beside['ratio_of_medians']:.2f}", f"{beside['median_ratio']:.2f}",
+                          f"{beside['load']:.1f}"]])]
     return "centroid", "\n".join(parts)
 
 
