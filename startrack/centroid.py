@@ -111,7 +111,7 @@ class CentroidResult:
 
 def _median3(a):
     """3 x 3 median filter of a small 2-D array (edges replicated)."""
-    from startrack._kernels.centroid import median3
+    from startrack._kernels.background import median3
 
     return median3(np.ascontiguousarray(a, dtype=np.float64))
 
@@ -122,7 +122,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions, saturation:
     Returns ``(level_mesh, sigma_mesh, global_level, global_sigma)``; the mesh
     arrays have one value per ``mesh_px`` tile (a 1 x 1 mesh for ``global``).
     Each level and noise is the normal core of the tile's (or the frame's)
-    sampled pixels (:func:`startrack._kernels.centroid.core_stats_of_sorted`):
+    sampled pixels (:func:`startrack._kernels.background.core_stats_of_sorted`):
     it holds on frames clipped at zero after a dark subtraction, on 8-bit
     frames of a few grey levels and under stars, where a median and MAD do not.
     The noise is the normal's sigma; on whole DN the caller adds the rounding's
@@ -131,7 +131,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions, saturation:
     body's saturated face takes its neighbours' level, and a tile across its
     edge the level of its unsaturated part.
     """
-    from startrack._kernels.centroid import background_mesh, core_stats_of_sorted, mesh_core_stats, mesh_samples
+    from startrack._kernels.background import background_mesh, core_stats_of_sorted, mesh_core_stats, mesh_samples
 
     h, w = image.shape
 
@@ -221,7 +221,7 @@ def _pixel_noise_mesh(residual, sigma_mesh, cell):
     3-sigma-truncated normal; then the mesh's 3 x 3 median filter.  The
     detection thresholds keep the mesh's own sigma.
     """
-    from startrack._kernels.centroid import tile_clipped_std
+    from startrack._kernels.background import tile_clipped_std
 
     h, w = residual.shape
     ny, nx = sigma_mesh.shape
@@ -925,7 +925,7 @@ def centroid_windows(image: np.ndarray, centres, half_size: int, options: Centro
         as :func:`find_stars`, plus ``window``) or ``None`` when nothing was
         found.  The background is the normal core of the window's border.
     """
-    from startrack._kernels.centroid import core_stats_of_sorted
+    from startrack._kernels.background import core_stats_of_sorted
 
     options = options or CentroidOptions()
     img = np.asarray(image, dtype=np.float32)

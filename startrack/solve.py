@@ -404,7 +404,7 @@ def warm_for_build(index=None) -> None:
             find_stars(image, replace(CentroidOptions(), method=method))
     # Kernels a real image may call that this frame does not: estimate_background's fallbacks (global
     # samples with NaN or infinities, a mesh too fine to copy) and centroid_windows' border statistics.
-    from startrack._kernels.centroid import background_mesh, core_stats_of_sorted
+    from startrack._kernels.background import background_mesh, core_stats_of_sorted
 
     core_stats_of_sorted(np.array([1.0, 2.0, 3.0]))
     background_mesh(np.ascontiguousarray(image, dtype=np.float32), 64, 6)

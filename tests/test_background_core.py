@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from naive import split_blob_naive
 
-from startrack._kernels.centroid import _probit, core_stats_of_sorted, split_blob
+from startrack._kernels.background import _probit, core_stats_of_sorted
+from startrack._kernels.centroid import split_blob
 
 
 def _sample(rng, mu, sigma, n, *, integer=False, floor=None, star_fraction=0.01):

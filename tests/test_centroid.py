@@ -314,7 +314,7 @@ def test_pixels_without_value_are_no_data():
 def test_mesh_paths_agree_with_pixels_without_value():
     """The two mesh statistics (numpy-sorted samples, and the kernel for fine meshes) give the same levels,
     NaN for the tiles without enough finite samples, on a frame with NaN and infinite regions."""
-    from startrack._kernels.centroid import MIN_TILE_SAMPLES, background_mesh, mesh_core_stats, mesh_samples
+    from startrack._kernels.background import MIN_TILE_SAMPLES, background_mesh, mesh_core_stats, mesh_samples
 
     rng = np.random.default_rng(3)
     img = rng.normal(50, 3, (200, 260)).astype(np.float32)

@@ -4,6 +4,7 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
+from startrack._kernels.background import core_stats_of_sorted
 
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -174,8 +175,8 @@ def _moments(image, xc, yc, half, k_sigma):
         border[t] = image[y, x0]
         border[t + 1] = image[y, x1]
         t += 2
-    bg = np.median(border)
-    noise = 1.4826 * np.median(np.abs(border - bg))
+    border.sort()
+    bg, noise = core_stats_of_sorted(border)     # the normal core: also on a frame clipped at 0
     if noise <= 0.0:
         noise = max(1e-3, math.sqrt(max(bg, 1.0)) * 0.01)
     thr = bg + k_sigma * noise
@@ -475,8 +476,8 @@ def segment_one(image, x_start, y_start, hx, hy, radius, iters):
         border[t] = image[y, x0]
         border[t + 1] = image[y, x1]
         t += 2
-    bg = np.median(border)
-    noise = 1.4826 * np.median(np.abs(border - bg))
+    border.sort()
+    bg, noise = core_stats_of_sorted(border)     # the normal core: also on a frame clipped at 0
     r2 = radius * radius
     sw = 0.0
     sx = 0.0
