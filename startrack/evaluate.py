@@ -65,11 +65,18 @@ def conditions_grid(**lists) -> list:
     return [Condition(**dict(zip(keys, combo))) for combo in itertools.product(*values)]
 
 
+#: Random attitudes drawn for one frame before a condition's ``min_stars``/``min_catalog_stars`` is declared unmet.
+MAX_ATTITUDE_TRIES = 1000
+
+
 def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor=None, mag_limit=None, vectors=None,
                 start: int = 0):
     """``n`` star-list frames for ``condition``; frame k uses attitude seed (seed, k), retried (seed, k, t)
     until it has ``min_stars`` stars (paper 003's "at least 4 stars including one false star") and
     ``min_catalog_stars`` stars of the catalog (false stars not counted).
+
+    When no attitude of ``MAX_ATTITUDE_TRIES`` meets the condition, :class:`ParameterError` (``min_stars`` or
+    ``min_catalog_stars``) names it: a frame that does not meet it is never returned.
 
     ``start`` gives the frames ``start .. start + n - 1`` of the same sequence (chunks of a large set).
     """
@@ -82,15 +89,27 @@ def make_frames(catalog, camera, condition: Condition, n: int, seed: int, sensor
     vectors = catalog.vectors() if vectors is None else vectors
     frames = []
     for k in range(start, start + n):
-        for t in range(1000):
+        most, most_catalog = 0, 0
+        for t in range(MAX_ATTITUDE_TRIES):
             frame_seed = [int(seed), int(k), int(t)]
             rng = np.random.default_rng(frame_seed)
             dcm = quaternion_to_dcm(random_quaternions(1, rng)[0])
             stars, truth = star_list(catalog, camera, dcm, sensor, scene, rng, condition.sigma_px,
                                      condition.max_stars, condition.drop_fraction, vectors)
-            if len(stars) >= condition.min_stars and \
-                    sum(1 for i in truth["star_ids"] if i is not None) >= condition.min_catalog_stars:
+            n_catalog = sum(1 for i in truth["star_ids"] if i is not None)
+            if len(stars) >= condition.min_stars and n_catalog >= condition.min_catalog_stars:
                 break
+            most, most_catalog = max(most, len(stars)), max(most_catalog, n_catalog)
+        else:
+            # Never a frame that does not meet the condition: the table would print the condition over
+            # frames that do not have it (issue 41).
+            if most < condition.min_stars:
+                raise ParameterError("min_stars", f"no frame with at least {condition.min_stars} stars in "
+                                     f"{MAX_ATTITUDE_TRIES} random attitudes (frame {k}; the most was {most}): "
+                                     "lower it, or widen the field or the magnitude limit")
+            raise ParameterError("min_catalog_stars", f"no frame with at least {condition.min_catalog_stars} "
+                                 f"catalog stars in {MAX_ATTITUDE_TRIES} random attitudes (frame {k}; the most "
+                                 f"was {most_catalog}): lower it, or widen the field or the magnitude limit")
         frames.append((stars, truth, frame_seed))
     return frames
 
