@@ -223,7 +223,7 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
     if resume and output == "-":
         raise BadInputError("--resume", None, "needs an output file (-o FILE) to resume into")
-    writer = FrameWriter(output, resume=resume)
+    writer = FrameWriter(output, resume=resume, section=section)
     if records is None:
         records = read_frames(input_path)
     tally = BatchTally(label, quiet, unit)

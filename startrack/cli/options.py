@@ -523,6 +523,7 @@ def handle_errors(func):
 
             warnings.filterwarnings("ignore", category=RuntimeWarning)
         try:
+            guard_outputs()
             return func(*args, **kwargs)
         except click.exceptions.Exit:
             raise
@@ -564,6 +565,51 @@ def handle_errors(func):
             sys.exit(1)
 
     return wrapper
+
+
+#: Parameters that name files a command writes (besides any of type :class:`OutputPath`).
+OUTPUT_PARAMS = frozenset({"output", "wcs_path", "plot", "fits_out", "matches_out", "csv_path", "documents"})
+
+
+class OutputPath(click.Path):
+    """A file the command writes: never registered as an input (:func:`guard_outputs`)."""
+
+
+def _path_values(value):
+    if isinstance(value, (str, os.PathLike)):
+        return [os.fspath(value)]
+    if isinstance(value, (tuple, list)):
+        return [os.fspath(v) for v in value if isinstance(v, (str, os.PathLike))]
+    return []
+
+
+def guard_outputs(ctx=None) -> None:
+    """Refuse (exit 2) an output file that is one of the command's inputs, before any work.
+
+    Inputs are the arguments and the file options (``click.Path``) that are not outputs; ``-`` means
+    standard input, which counts when it is a regular file (``< FILE``).  Every output opened later
+    through :mod:`startrack.formats.atomic` or a :class:`~startrack.formats.frame.FrameWriter` is checked
+    again against every input read since, so a command inherits the rule by using them.
+    """
+    from startrack.formats.atomic import check_writable, register_input
+
+    ctx = ctx or click.get_current_context(silent=True)
+    if ctx is None:
+        return
+    outputs = []
+    for param in ctx.command.params:
+        values = _path_values(ctx.params.get(param.name))
+        if param.name in OUTPUT_PARAMS or isinstance(param.type, OutputPath):
+            outputs += [v for v in values if v != "-"]
+        elif isinstance(param, click.Argument) or isinstance(param.type, click.Path):
+            for v in values:
+                if v == "-":
+                    with contextlib.suppress(AttributeError, ValueError, OSError):
+                        register_input(sys.stdin.fileno(), "<stdin>")
+                else:
+                    register_input(v)
+    for path in outputs:
+        check_writable(path)
 
 
 def require_stdout() -> None:

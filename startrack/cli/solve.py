@@ -316,6 +316,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
              for path in images]
     for outs in {p for t in tasks for p in t[3] if p}:
         check_writable(outs)
+    # The output checked (--resume: this command's documents only) before the index is built or opened.
+    writer = FrameWriter(output, resume=resume, section="solve")
     # Build (or open) what the workers need once, before any of them starts.
     if camera_doc is None:
         from startrack.solve import _process_index
@@ -330,7 +332,6 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
             _databases().band_database(b, which=which)
     bar = ProgressBar("solve", quiet)
     tally = BatchTally("solve", quiet, "image")
-    writer = FrameWriter(output, resume=resume)
     todo = [t for t in tasks if not writer.skip({"image": {"path": t[0]}})]
     tally.skipped = n - len(todo)
     run, progress = todo, None

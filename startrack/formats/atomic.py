@@ -31,14 +31,53 @@ __all__ = [
     "check_writable",
     "clean_stale_temporaries",
     "deferred_signals",
+    "input_named_by",
     "install_signal_cleanup",
     "is_special",
     "output_target",
+    "register_input",
     "write_error",
 ]
 
 _TEMP_RE = re.compile(r"^\.(?P<name>.+)\.st(?P<pid>\d+)-[0-9a-f]{8}\.part")
 _LIVE_TEMPS: set[str] = set()
+#: (device, inode) -> (name, path or descriptor) of every regular file this process reads (:func:`register_input`).
+_INPUTS: dict[tuple[int, int], tuple[str, object]] = {}
+
+
+def _stat(source):
+    try:
+        return os.fstat(source) if isinstance(source, int) else os.stat(source)
+    except (OSError, TypeError, ValueError):
+        return None
+
+
+def register_input(path, name: str | None = None) -> None:
+    """Note that this process reads ``path`` (a path or an open file descriptor): it may not be an output.
+
+    Only regular files count (a device or FIFO is never replaced).  Links and hard links are the same
+    file: the file is known by its device and inode (and an entry whose path no longer names that
+    inode, a deleted input, is forgotten).
+    """
+    st = _stat(path)
+    if st is not None and stat.S_ISREG(st.st_mode):
+        _INPUTS[(st.st_dev, st.st_ino)] = (str(name if name is not None else path), path)
+
+
+def input_named_by(path: str) -> str | None:
+    """The name under which ``path`` (followed through links) was registered as an input, or None."""
+    st = _stat(path)
+    if st is None or not stat.S_ISREG(st.st_mode):
+        return None
+    key = (st.st_dev, st.st_ino)
+    entry = _INPUTS.get(key)
+    if entry is None:
+        return None
+    now = _stat(entry[1])
+    if now is None or (now.st_dev, now.st_ino) != key:
+        del _INPUTS[key]  # the input is gone and its inode reused: not the same file
+        return None
+    return entry[0]
 
 
 def output_target(path: str) -> str:
@@ -58,7 +97,16 @@ def is_special(path: str) -> bool:
 
 
 def check_writable(path: str) -> None:
-    """Refuse early (``BadInputError``) an output whose directory cannot be written."""
+    """Refuse early (``BadInputError``) an output whose directory cannot be written, or that is an input.
+
+    An output that is one of this process's inputs (:func:`register_input`) would destroy the input it
+    is computed from (issue 41: ``identify a.jsonl -o a.jsonl`` turned 8 documents into 2 lines).
+    """
+    same = input_named_by(path)
+    if same is not None:
+        also = "" if same == str(path) else f" ({same})"
+        raise BadInputError(path, None, f"is also an input of this command{also}: writing it would destroy the input; "
+                                        "choose another output")
     target = output_target(path)
     if os.path.isdir(target):
         raise BadInputError(path, None, "is a directory, expected a file name")

@@ -23,6 +23,7 @@ from startrack.formats.atomic import (
     check_writable,
     is_special,
     output_target,
+    register_input,
     write_error,
 )
 
@@ -220,6 +221,7 @@ def _open_text(path: str):
         raise BadInputError(path, None, "no such file")
     if os.path.isdir(path):
         raise BadInputError(path, None, "is a directory")
+    register_input(path)
     try:
         return open(path, encoding="utf-8"), path
     except OSError as exc:
@@ -382,7 +384,22 @@ def frame_key(doc) -> str | None:
     return json.dumps(parts, default=str)
 
 
-def read_finished(path: str):
+def _check_finished(doc, section: str, source: str) -> None:
+    """Refuse a line of a ``--resume`` output that is not this command's result (issue 41: a ``centroid``
+    document counted as a solved image)."""
+    if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith("startrack.frame/"):
+        raise BadInputError(source, "format", "is not a startrack frame document: --resume appends only to this "
+                                              "command's own output")
+    sec = doc.get(section)
+    if not isinstance(sec, dict):
+        raise BadInputError(source, section, "is missing: the document is another command's result, not this "
+                                             "command's: --resume appends only to this command's own output")
+    status = sec.get("status")
+    if status is not None and status not in ("ok", "failed"):
+        raise BadInputError(source, f"{section}.status", f"is {status!r}, expected 'ok' or 'failed'")
+
+
+def read_finished(path: str, section: str | None = None):
     """Read the complete frame documents of a batch output, for ``--resume``.
 
     Returns ``(keys, n_unkeyed, good_bytes)``: a multiset (dict key -> count) of
@@ -390,7 +407,9 @@ def read_finished(path: str):
     without a key, and the byte length of the complete lines.  A last line
     without its newline, or one that is not valid JSON (a write cut short by
     ``kill -9``), is not counted: the writer truncates the file to
-    ``good_bytes`` before appending.
+    ``good_bytes`` before appending.  With ``section`` (the command's own section,
+    ``"solve"``), every complete line must be a frame document holding it with a
+    status ``ok`` or ``failed`` (or none): else :class:`BadInputError` names the line.
     """
     keys: dict[str, int] = {}
     n_unkeyed = 0
@@ -398,7 +417,7 @@ def read_finished(path: str):
     if not os.path.exists(path) or is_special(path):
         return keys, n_unkeyed, good
     with open(path, "rb") as handle:
-        for raw in handle:
+        for line_no, raw in enumerate(handle, start=1):
             if not raw.endswith(b"\n"):
                 break
             if raw.strip():
@@ -406,6 +425,8 @@ def read_finished(path: str):
                     doc = _loads(raw.decode("utf-8"))
                 except (ValueError, UnicodeDecodeError):
                     break
+                if section is not None:
+                    _check_finished(doc, section, f"{path}:{line_no}")
                 key = frame_key(doc)
                 if key is None:
                     n_unkeyed += 1
@@ -426,12 +447,13 @@ class FrameWriter:
       flushed as its frame finishes, and the file is ``fsync``-ed at the end, so
       ``kill -9`` loses only the frames in flight.  With ``resume=True`` the
       complete lines already there are kept (a cut-off last line is dropped) and
-      new frames are appended; :attr:`done` holds their :func:`frame_key`.
+      new frames are appended; :attr:`done` holds their :func:`frame_key`.  With
+      ``section`` the lines kept must be this command's results (:func:`read_finished`).
 
     Use as a context manager.
     """
 
-    def __init__(self, path: str = "-", resume: bool = False):
+    def __init__(self, path: str = "-", resume: bool = False, section: str | None = None):
         self.path = path
         self.count = 0
         self.resume = resume
@@ -448,7 +470,7 @@ class FrameWriter:
         self.target = output_target(path)
         self.special = is_special(self.target)
         if resume and not self.special:
-            self.done, self.done_unkeyed, self._good_bytes = read_finished(self.target)
+            self.done, self.done_unkeyed, self._good_bytes = read_finished(self.target, section)
 
     def skip(self, doc) -> bool:
         """True (and the frame counted as done) if ``doc``'s frame is already in the output (``--resume``)."""
@@ -473,6 +495,7 @@ class FrameWriter:
         if self.path == "-":
             self._handle = sys.stdout
             return
+        check_writable(self.path)  # again: an input opened since __init__ may be this file
         try:
             if self.special:
                 self._handle = open(self.target, "w", encoding="utf-8")  # noqa: SIM115 - a journal kept open
