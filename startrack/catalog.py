@@ -400,7 +400,7 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     """
     import h5py
 
-    from startrack.formats.hdf5 import read_hdf5
+    from startrack.formats.hdf5 import corrupt_hdf5, read_hdf5
 
     t0 = time.perf_counter()
     path = path or default_catalog_path()
@@ -413,15 +413,18 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
         else:
             rows = np.flatnonzero(mag <= mag_max)
     cols = {"mag": mag[rows]}
-    with h5py.File(path, "r") as h5:
+    with corrupt_hdf5(path) as where, h5py.File(path, "r") as h5:
         for name in ("id", "ra", "dec"):
+            where.field = name
             if name not in h5:
                 raise BadInputError(path, name, "dataset is missing")
             cols[name] = np.asarray(h5[name][rows])
         n = len(cols["id"])
         for name in ("pm_ra", "pm_dec", "bv"):
+            where.field = name
             cols[name] = np.asarray(h5[name][rows]) if name in h5 else np.full(n, np.nan if name == "bv" else 0.0)
         merged = {}
+        where.field = "merged_id"
         if "merged_id" in h5 and "merged_into" in h5:
             into_ids = np.asarray(h5["merged_into"]).tolist()
             for into, mid in zip(into_ids, np.asarray(h5["merged_id"]).tolist(), strict=True):

@@ -49,7 +49,7 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["INDEX_FORMAT", "LEVELS_DEG", "PatternIndex", "build_index", "save_index", "open_index",
+__all__ = ["INDEX_FORMAT", "LEVELS_DEG", "PatternIndex", "build_index", "save_index", "open_index", "check_index",
            "default_index_path", "default_index", "BlindOptions", "solve_blind", "cache_dir"]
 
 log = logging.getLogger(__name__)
@@ -151,18 +151,43 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
                         np.stack(prefixes).astype(np.int64), np.concatenate(all_p), np.concatenate(all_k), p)
 
 
+def _data_sha256(mapped, head_len: int) -> str:
+    """The SHA-256 of everything after the header (the arrays and their padding)."""
+    import hashlib
+
+    return hashlib.sha256(memoryview(mapped)[head_len:]).hexdigest()
+
+
+def _header_sha256(header: dict) -> str:
+    import hashlib
+
+    rest = {k: v for k, v in header.items() if k not in ("data_sha256", "header_sha256")}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()
+
+
 def save_index(index: PatternIndex, path: str) -> None:
-    """Write ``index`` as one flat file: magic, header length, JSON header, 64-byte aligned arrays."""
+    """Write ``index`` as one flat file: magic, header length, JSON header, 64-byte aligned arrays.
+
+    The header carries the SHA-256 of itself and of the data after it (:func:`open_index` checks both).
+    """
+    import hashlib
+
     from startrack._version import __version__
     from startrack.formats.atomic import atomic_path
 
+    check_index(index, path)  # never write an index the kernels could not trust
     arrays = {}
     offset = 0
+    data = hashlib.sha256()
     for name in _ARRAYS:
         a = np.ascontiguousarray(getattr(index, name))
         arrays[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
         offset += (a.nbytes + 63) // 64 * 64
+        data.update(a.tobytes())
+        data.update(b"\0" * ((a.nbytes + 63) // 64 * 64 - a.nbytes))
     header = {"format": INDEX_FORMAT, "version": __version__, "params": index.params, "arrays": arrays}
+    header["header_sha256"] = _header_sha256(header)
+    header["data_sha256"] = data.hexdigest()
     blob = json.dumps(header).encode()
     head_len = (16 + len(blob) + 63) // 64 * 64
     with atomic_path(path, suffix=".idx") as tmp, open(tmp, "wb") as fh:
@@ -174,35 +199,131 @@ def save_index(index: PatternIndex, path: str) -> None:
             fh.write(b"\0" * ((a.nbytes + 63) // 64 * 64 - a.nbytes))
 
 
-def open_index(path: str) -> PatternIndex:
-    """Open a pattern index file by memory map (milliseconds; pages are read when used)."""
+def check_index(index: PatternIndex, source: str | None = None) -> None:
+    """Refuse (``BadInputError`` naming the array) an index whose rows, offsets or vectors a kernel could not trust.
+
+    The kernels index ``star_vec`` by ``patterns``, ``keys``/``patterns`` by ``level_start`` plus
+    ``level_prefix``: every one of them is checked to lie in range, so that no file, however
+    damaged, makes a kernel read outside an array.
+    """
+    from startrack._kernels.patterns import PREFIX_SIZE
+
+    src = source or index.path or "pattern index"
+    n_stars = len(index.star_id)
+    n_pat = len(index.keys)
+    n_lev = len(index.level_rho)
+
+    def bad(name, problem):
+        raise BadInputError(src, name, problem)
+
+    if index.star_vec.shape != (n_stars, 3) or index.star_mag.shape != (n_stars,):
+        bad("star_vec", f"shape {index.star_vec.shape} does not match {n_stars} stars")
+    if n_stars and not np.all(np.abs(np.einsum("ij,ij->i", index.star_vec, index.star_vec) - 1.0) < 1e-6):
+        bad("star_vec", "holds vectors that are not finite unit vectors")
+    if index.patterns.shape != (n_pat, 4):
+        bad("patterns", f"shape {index.patterns.shape} does not match {n_pat} keys")
+    if n_pat and int(index.patterns.max()) >= n_stars:
+        bad("patterns", f"names a star row beyond the {n_stars} stars")
+    if n_pat and int(index.keys.max()) >= 1 << 25:
+        bad("keys", "holds a key beyond 25 bits")
+    if index.level_start.shape != (n_lev,) or index.level_count.shape != (n_lev,) or \
+            index.level_prefix.shape != (n_lev, PREFIX_SIZE + 1):
+        bad("level_start", f"the level tables do not match {n_lev} levels")
+    if not np.all(np.isfinite(index.level_rho) & (index.level_rho > 0)):
+        bad("level_rho", "holds a level size that is not a positive number")
+    start, count = index.level_start, index.level_count
+    if n_lev and (np.any(count < 0) or start[0] != 0 or np.any(start[1:] != start[:-1] + count[:-1])
+                  or start[-1] + count[-1] != n_pat):
+        bad("level_start", f"the levels do not tile the {n_pat} patterns")
+    prefix = index.level_prefix
+    if n_lev and (np.any(prefix[:, 0] != 0) or np.any(np.diff(prefix, axis=1) < 0) or np.any(prefix[:, -1] != count)):
+        bad("level_prefix", "holds offsets out of order or beyond their level")
+
+
+def open_index(path: str, verify: bool = True) -> PatternIndex:
+    """Open a pattern index file by memory map (milliseconds; pages are read when used).
+
+    With ``verify`` (the default) the file's checksums and every index a kernel follows are checked
+    (:func:`check_index`) whenever the file changed since it was last checked (its inode, size and
+    change time, kept in ``PATH.checked``; a write of any kind changes the change time): a damaged
+    file is refused with ``BadInputError`` naming it and the array, never handed to a kernel.
+    """
     try:
         with open(path, "rb") as fh:
             magic = fh.read(8)
             if magic != _MAGIC:
                 raise BadInputError(path, None, "is not a startrack pattern index")
             head_len = int(np.frombuffer(fh.read(8), dtype=np.uint64)[0])
+            if not 16 < head_len <= 1 << 24:
+                raise BadInputError(path, "header", "has an impossible length: the file is damaged")
             header = json.loads(fh.read(head_len - 16).decode())
+            if not isinstance(header, dict):
+                raise ValueError("the header is not a JSON object")
     except (OSError, ValueError, IndexError) as exc:
         raise BadInputError(path, None, f"cannot read the pattern index: {exc}") from None
     if header.get("format") != INDEX_FORMAT:
         raise BadInputError(path, "format", f"expected {INDEX_FORMAT}, got {header.get('format')!r}")
+    if "data_sha256" not in header or "header_sha256" not in header:
+        raise BadInputError(path, "data_sha256", "is missing (an index from before checksums)")
+    if header["header_sha256"] != _header_sha256(header):
+        raise BadInputError(path, "header", "does not match its checksum: the file is damaged")
     size = os.path.getsize(path)
     out = {}
-    for name in _ARRAYS:
-        spec = header["arrays"][name]
-        dt = np.dtype(spec["dtype"])
-        shape = tuple(spec["shape"])
-        n = int(np.prod(shape)) if shape else 1
-        if head_len + spec["offset"] + n * dt.itemsize > size:
-            raise BadInputError(path, name, "is truncated")
-        if n == 0:
-            out[name] = np.zeros(shape, dtype=dt)
-        else:
-            out[name] = np.asarray(np.memmap(path, dtype=dt, mode="r", offset=head_len + spec["offset"], shape=shape))
+    try:
+        for name in _ARRAYS:
+            spec = header["arrays"][name]
+            dt = np.dtype(spec["dtype"])
+            shape = tuple(int(v) for v in spec["shape"])
+            n = int(np.prod(shape)) if shape else 1
+            if head_len + spec["offset"] + n * dt.itemsize > size:
+                raise BadInputError(path, name, "is truncated")
+            if n == 0:
+                out[name] = np.zeros(shape, dtype=dt)
+            else:
+                out[name] = np.asarray(np.memmap(path, dtype=dt, mode="r", offset=head_len + spec["offset"],
+                                                 shape=shape))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BadInputError(path, "arrays", f"the header's array table is damaged ({exc})") from None
     index = PatternIndex(**out, params=header["params"], path=path)
+    if verify:
+        stamp = _checked_stamp(path, header["data_sha256"])
+        if stamp is None or not _stamp_matches(path + ".checked", stamp):
+            whole = np.memmap(path, dtype=np.uint8, mode="r")
+            if _data_sha256(whole, head_len) != header["data_sha256"]:
+                raise BadInputError(path, "data_sha256", "does not match the arrays: the file is damaged")
+            check_index(index, path)
+            _write_stamp(path + ".checked", stamp)
     log.info("pattern index %s: %.0f MB, memory-mapped", path, size / 1e6)
     return index
+
+
+def _checked_stamp(path: str, checksum: str) -> dict | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return {"ino": st.st_ino, "size": st.st_size, "mtime_ns": st.st_mtime_ns, "ctime_ns": st.st_ctime_ns,
+            "data_sha256": checksum}
+
+
+def _stamp_matches(stamp_path: str, stamp: dict) -> bool:
+    try:
+        with open(stamp_path, encoding="utf-8") as fh:
+            return json.load(fh) == stamp
+    except (OSError, ValueError):
+        return False
+
+
+def _write_stamp(stamp_path: str, stamp: dict | None) -> None:
+    import contextlib
+
+    if stamp is None:
+        return
+    with contextlib.suppress(OSError):
+        tmp = f"{stamp_path}.{os.getpid()}"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(stamp, fh)
+        os.replace(tmp, stamp_path)
 
 
 def default_index_path(catalog=None) -> str:
@@ -227,18 +348,33 @@ def default_index_path(catalog=None) -> str:
 
 
 def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
-    """The default pattern index: opened from the cache, else built once (calling ``notice(text)`` first)."""
+    """The default pattern index: opened from the cache (checked, :func:`open_index`), else built once.
+
+    A missing or damaged file is built under :func:`startrack.formats.hdf5.build_lock`, one builder at a
+    time: a second process waits and opens what the first built.  A damaged file gets one warning that
+    names it and what is wrong, and is rebuilt.  ``notice(text)`` is called before a build.
+    """
+    from startrack.formats.hdf5 import build_lock
+
     path = default_index_path(catalog)
     if os.path.exists(path):
         try:
             return open_index(path)
-        except BadInputError as exc:
-            log.warning("pattern index %s: %s: rebuilding it", path, exc)
-    if notice is not None:
-        notice(f"building the star index once, ~{estimated_build_s():.0f} s, into {os.path.dirname(path)}")
-    index = build_index(catalog, progress=progress)
-    save_index(index, path)
-    return open_index(path)
+        except BadInputError:
+            pass  # checked again, and rebuilt, under the lock
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with build_lock(path):
+        if os.path.exists(path):
+            try:
+                return open_index(path)  # built by another process while this one waited
+            except BadInputError as exc:
+                log.warning("pattern index %s: %s%s: rebuilding it", path, f"{exc.field}: " if exc.field else "",
+                            exc.problem)
+        if notice is not None:
+            notice(f"building the star index once, ~{estimated_build_s():.0f} s, into {os.path.dirname(path)}")
+        index = build_index(catalog, progress=progress)
+        save_index(index, path)
+        return open_index(path)
 
 
 def estimated_build_s() -> float:

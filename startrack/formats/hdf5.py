@@ -27,7 +27,7 @@ from startrack.errors import BadInputError
 from startrack.formats.atomic import atomic_path, deferred_signals
 from startrack.formats.frame import check_format_tag
 
-__all__ = ["HDF5File", "build_lock", "cached_database", "read_format_tag", "read_hdf5", "write_hdf5"]
+__all__ = ["HDF5File", "build_lock", "cached_database", "corrupt_hdf5", "read_format_tag", "read_hdf5", "write_hdf5"]
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +104,24 @@ def _attr(value):
     return value
 
 
+class corrupt_hdf5(contextlib.AbstractContextManager):  # noqa: N801 - used as a context manager
+    """Turn what h5py raises on a damaged file (``OSError``, ``KeyError``, ``ValueError`` ...) into a
+    :class:`BadInputError` naming the file and the dataset being read (set ``.field`` as reading goes on).
+
+    Example: ``with corrupt_hdf5(path) as where: where.field = "ra"; h5["ra"][()]``.
+    """
+
+    def __init__(self, path: str, field: str | None = None):
+        self.path, self.field = path, field
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc is None or isinstance(exc, BadInputError) or not isinstance(
+                exc, (OSError, KeyError, ValueError, RuntimeError, TypeError, AttributeError, IndexError)):
+            return False
+        text = str(exc).strip("'\"").splitlines()[0][:100] if str(exc) else type(exc).__name__
+        raise BadInputError(self.path, self.field, f"is corrupt (HDF5: {text})") from None
+
+
 def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
     """Open a startrack HDF5 file, check its format tag and read its datasets.
 
@@ -130,21 +148,19 @@ def read_hdf5(path: str, expected_format: str, names=None) -> HDF5File:
         h5 = h5py.File(path, "r")
     except OSError:
         raise BadInputError(path, None, f"is not an HDF5 file or is corrupt (expected {expected_format})") from None
-    with h5:
+    with h5, corrupt_hdf5(path) as where:
         try:
             attrs = {k: _attr(v) for k, v in h5.attrs.items()}
-        except (OSError, ValueError, RuntimeError):
+        except (OSError, KeyError, ValueError, RuntimeError):
             raise BadInputError(path, None, "is corrupt (its attributes cannot be read)") from None
         check_format_tag(attrs, expected_format, path)
         wanted = list(names) if names is not None else [k for k in h5 if isinstance(h5[k], h5py.Dataset)]
         datasets = {}
         for name in wanted:
+            where.field = name
             if name not in h5:
                 raise BadInputError(path, name, "dataset is missing")
-            try:
-                datasets[name] = h5[name][()]
-            except (OSError, ValueError, RuntimeError) as exc:
-                raise BadInputError(path, name, f"is corrupt (HDF5: {str(exc).splitlines()[0][:80]})") from None
+            datasets[name] = h5[name][()]
     return HDF5File(path, attrs, datasets)
 
 
