@@ -81,8 +81,15 @@ cli.params.append(verbose_option)
 
 def main(argv=None):
     """Entry point: one-line messages and exit 2 for usage errors, no tracebacks."""
+    from startrack.cli.options import install_closed_stdout
+    from startrack.errors import BadInputError
+
+    install_closed_stdout()
     try:
         rv = cli.main(args=argv, prog_name="startrack", standalone_mode=False)
+    except BadInputError as exc:  # output to a closed stdout (--help >&-), outside any command's handler
+        click.echo(f"startrack: error: {exc}", err=True)
+        sys.exit(exc.exit_code)
     except click.exceptions.UsageError as exc:
         path = exc.ctx.command_path if exc.ctx is not None else "startrack"
         msg = " ".join(exc.format_message().split())

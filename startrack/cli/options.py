@@ -610,6 +610,52 @@ def guard_outputs(ctx=None) -> None:
                     register_input(v)
     for path in outputs:
         check_writable(path)
+    if any(v == "-" for param in ctx.command.params if param.name in OUTPUT_PARAMS or isinstance(param.type, OutputPath)
+           for v in _path_values(ctx.params.get(param.name))):
+        require_stdout()
+    for param in ctx.command.params:
+        value = ctx.params.get(param.name)
+        if isinstance(param, click.Option) and param.type is click.STRING and isinstance(value, str):
+            try:
+                value.encode("utf-8")
+            except UnicodeEncodeError:
+                # an undecodable byte of the command line (a surrogate escape): not text any library can take
+                raise BadInputError(flag_of(ctx.command, param.name) or param.name, None,
+                                    "is not valid UTF-8 text") from None
+
+
+class ClosedStdout:
+    """Standard output when the process started with it closed (``>&-``): every write is refused.
+
+    Python sets ``sys.stdout`` to None then, and ``click.echo`` drops what it is given: ``cache list >&-``
+    and ``--help >&-`` exited 0 with their output lost (issue 41).  In its place, a write raises
+    :class:`BadInputError` (exit 2, one line); a command that writes only files is not affected.
+    """
+
+    closed = True
+    encoding = "utf-8"
+    errors = "strict"
+
+    def write(self, text):  # noqa: ARG002 - a stream's signature
+        raise BadInputError("<stdout>", None, "is closed: the output has nowhere to go")
+
+    def flush(self):
+        return None
+
+    def isatty(self):
+        return False
+
+    def writable(self):
+        return True
+
+    def fileno(self):
+        raise ValueError("standard output is closed")
+
+
+def install_closed_stdout() -> None:
+    """Put a :class:`ClosedStdout` in place of a ``None`` standard output."""
+    if sys.stdout is None:
+        sys.stdout = ClosedStdout()
 
 
 def require_stdout() -> None:

@@ -1,4 +1,6 @@
 """startrack solve: photographs in, attitudes out (centroid -> identify -> attitude)."""
+from dataclasses import dataclass
+
 import click
 
 from startrack.cli.options import (
@@ -178,41 +180,59 @@ def _solve_one(args):
     doc.update(to_frame(result))
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if doc["solve"]["status"] == "ok":
-        wcs_path, plot_path, fits_path, matches_path = outputs
-        import numpy as np
-
-        from startrack.attitude import wcs_header
-        from startrack.camera import Camera
-
-        hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
-                         mirrored=doc["solve"].get("parity") == "mirrored")
-        # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`)
-        doc["attitude"]["wcs"] = {k: v for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")}
-        if wcs_path or fits_path:
-            from astropy.io import fits
-
-            from startrack.formats.atomic import atomic_path
-
-            if wcs_path:
-                with atomic_path(wcs_path, suffix=".fits") as tmp:
-                    fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
-                doc["solve"]["wcs_path"] = wcs_path
-            if fits_path:
-                # The image itself with its WCS, like astrometry.net's new-image.fits.
-                full = hdr.copy()
-                full["HISTORY"] = f"solved by startrack from {path}"
-                with atomic_path(fits_path, suffix=".fits") as tmp:
-                    fits.PrimaryHDU(data=image, header=full).writeto(tmp, overwrite=True)
-                doc["solve"]["fits_path"] = fits_path
-        if matches_path:
-            _write_matches(matches_path, doc)
-            doc["solve"]["matches_path"] = matches_path
-        if plot_path:
-            from startrack.plot import annotate_solution
-
-            annotate_solution(plot_path, image, doc, mag_limit=7.0)
-            doc["solve"]["plot_path"] = plot_path
+        try:
+            _write_outputs(doc, image, path, outputs)
+        except BadInputError as exc:
+            # an output that cannot be written (disk full, /dev/full) is the command's error, not the image's
+            return OutputFailure(exc.source, exc.field, exc.problem)
     return doc
+
+
+@dataclass(frozen=True)
+class OutputFailure:
+    """A worker's output file that could not be written: the batch stops with exit 2 naming it."""
+
+    source: str
+    field: str | None
+    problem: str
+
+
+def _write_outputs(doc, image, path, outputs):
+    """The solved image's WCS, FITS, matched-star CSV and picture (each named by ``outputs`` or None)."""
+    wcs_path, plot_path, fits_path, matches_path = outputs
+    import numpy as np
+
+    from startrack.attitude import wcs_header
+    from startrack.camera import Camera
+
+    hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
+                     mirrored=doc["solve"].get("parity") == "mirrored")
+    # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`)
+    doc["attitude"]["wcs"] = {k: v for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")}
+    if wcs_path or fits_path:
+        from astropy.io import fits
+
+        from startrack.formats.atomic import atomic_path
+
+        if wcs_path:
+            with atomic_path(wcs_path, suffix=".fits") as tmp:
+                fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
+            doc["solve"]["wcs_path"] = wcs_path
+        if fits_path:
+            # The image itself with its WCS, like astrometry.net's new-image.fits.
+            full = hdr.copy()
+            full["HISTORY"] = f"solved by startrack from {path}"
+            with atomic_path(fits_path, suffix=".fits") as tmp:
+                fits.PrimaryHDU(data=image, header=full).writeto(tmp, overwrite=True)
+            doc["solve"]["fits_path"] = fits_path
+    if matches_path:
+        _write_matches(matches_path, doc)
+        doc["solve"]["matches_path"] = matches_path
+    if plot_path:
+        from startrack.plot import annotate_solution
+
+        annotate_solution(plot_path, image, doc, mag_limit=7.0)
+        doc["solve"]["plot_path"] = plot_path
 
 
 @click.command("solve", cls=Command, exclusive=[("camera_file", "fov_deg")], short_help="Solve photographs: centroid, identify and attitude in one go.")
@@ -350,6 +370,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         for i, doc in _solved(run, jobs, scheduler, progress):
             if isinstance(doc, dict) and run is not todo:
                 doc.setdefault("image", {})["path"] = todo[i][0]
+            if isinstance(doc, OutputFailure):
+                raise BadInputError(doc.source, doc.field, doc.problem)
             if isinstance(doc, TaskFailure):
                 doc = {"format": FRAME_FORMAT, "image": {"path": todo[i][0]},
                        "solve": {"status": "failed", "reason": f"internal error: {doc.error}"}}
