@@ -107,6 +107,9 @@ def _legacy_json_path(ctx, args):
 @click.option("--json", "as_json", is_flag=True,
               help="Write the rows as JSON (what `plot --kind evaluate` reads) instead of the text table.")
 @output_option("The table, or with --json the rows as JSON; with a FILE the table is still printed on stdout.")
+@click.option("--resume", is_flag=True,
+              help="Go on from the checkpoint (-o FILE's FILE.partial.json) that a run cut short left, with the same "
+                   "options; the frames are the same, so the rows are those of an uninterrupted run (times aside).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
 @click.option("--accuracy", is_flag=True,
               help="Instead: render --count images (stars to --mag-max + 1) and report the attitude error against "
@@ -118,7 +121,7 @@ def _legacy_json_path(ctx, args):
 def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
             mag_max, count, sigma_px, sigma_arcsec, false_stars, mag_noise, focal_error_pct, drop_fraction,
             min_stars, min_catalog_stars, max_stars, tolerance_arcsec, sigma_hint_px, seed, jobs, scheduler, csv_path, as_json, output, plot,
-            accuracy, quiet, **settings):
+            accuracy, quiet, resume, **settings):
     """Compare identification algorithms over random attitudes, as the papers do.
 
     Every combination of the comma-separated condition values is one row per
@@ -213,22 +216,38 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     if lim is None:
         lim = min(float(db.star_mag.max()) for db in loaded.values())
     cat = load_catalog(catalog, mag_max=lim).filter_magnitude(None, lim)
+    import dataclasses
+    import os
+
     import numpy as np
 
-    if seed is None:
+    if resume and (output == "-" or accuracy or scheduler is not None):
+        raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json), without "
+                                              "--accuracy or --scheduler")
+    if seed is None and not (resume and os.path.exists(f"{output}.partial.json")):
         seed = int(np.random.SeedSequence().entropy % (2**31))
     if accuracy:
         _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, None if output == "-" else output,
                   quiet)
         return
-    rows = []
     bar = ProgressBar("evaluate", quiet)
-    for cond in conds:
+    saved = _Checkpoint(None if output == "-" else output, resume, seed, {
+        "count": count, "camera": cam.to_dict(), "mag_limit": lim, "databases": [os.path.abspath(d) for d in databases],
+        "catalog": catalog, "algorithms": algos, "conditions": [dataclasses.asdict(c) for c in conds],
+        "tolerance_arcsec": tolerance_arcsec, "sigma_hint_px": sigma_hint_px,
+        "settings": {a: dataclasses.asdict(c) for a, c in configs.items()}})
+    seed = saved.seed
+    rows = list(saved.rows)
+    for ci, cond in enumerate(conds):
+        if ci < saved.conditions_done:
+            continue
         hint = sigma_hint_px if sigma_hint_px is not None else max(cond.sigma_px, 0.01)
         params = IdentifyParams(sigma_px=hint, tolerance_arcsec=tolerance_arcsec)
+        done = len(rows)
         rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim, scheduler=scheduler,
-                         catalog_path=catalog, configs=configs)
-        bar(len(rows), len(conds) * len(algos))
+                         catalog_path=catalog, configs=configs, resume=saved.partial(ci),
+                         checkpoint=None if scheduler is not None else saved.saver(ci, rows[:done]),
+                         progress=lambda d, _t, k=done: bar(k * count + d, len(conds) * len(algos) * count))
     for r in rows:
         if r.get("double_frames"):
             info(quiet, f"unresolved doubles: {r['algorithm']} [{r['condition']}] {r['double_frames']} frames with one "
@@ -258,6 +277,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
             w = csv.DictWriter(fh, keys, extrasaction="ignore")
             w.writeheader()
             w.writerows(rows)
+    saved.remove()
     if plot:
         # the conditions every point shares, in the title (the swept one is the x axis)
         plot_results(rows, plot, title=f"{cam.fov_deg[0]:.1f} x {cam.fov_deg[1]:.1f} deg field, {cam.width}x{cam.height} px, "
@@ -324,3 +344,88 @@ def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars
         with atomic_open(json_path, "w") as fh:
             json.dump({"accuracy": s, "seed": seed, "count": count, "camera": cam.to_dict()}, fh, indent=1,
                       default=list)
+
+
+class _Checkpoint:
+    """``FILE.partial.json`` beside ``evaluate -o FILE``: the rows done and the tallies of the condition under way.
+
+    Written (atomically, at most every few seconds and at the end of each condition) while the run goes
+    on, removed when it ends; ``--resume`` goes on from it when it was written with the same options
+    (its ``key``), else it is refused.  Without ``--resume`` a run starts afresh and overwrites it.
+    """
+
+    def __init__(self, output, resume, seed, options):
+        import hashlib
+        import json
+        import os
+
+        #: seconds between checkpoints (STARTRACK_CHECKPOINT_S, default 5)
+        self.every_s = float(os.environ.get("STARTRACK_CHECKPOINT_S", "5"))
+
+        from startrack.errors import BadInputError
+        from startrack.formats.frame import read_json_file
+
+        self.path = None if output is None else f"{output}.partial.json"
+        self.key = hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()
+        self.seed, self.rows, self.conditions_done, self._partial = seed, [], 0, None
+        self._last = 0.0
+        if not resume:
+            return
+        if not os.path.exists(self.path):
+            raise BadInputError(self.path, None, "no such file: nothing to resume (run without --resume)")
+        doc = read_json_file(self.path)
+        if doc.get("format") != "startrack.evaluate-checkpoint/1":
+            raise BadInputError(self.path, "format", "is not an evaluate checkpoint")
+        if doc.get("key") != self.key:
+            raise BadInputError(self.path, "key", "was written by an evaluate run with other options: give the same "
+                                                  "options, or run without --resume")
+        if seed is not None and doc.get("seed") != seed:
+            raise BadInputError(self.path, "seed", f"is {doc.get('seed')}, not --seed {seed}")
+        try:
+            self.seed, self.rows = int(doc["seed"]), list(doc["rows"])
+            self.conditions_done = int(doc["conditions_done"])
+            self._partial = doc.get("partial")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise BadInputError(self.path, None, f"is damaged ({type(exc).__name__}: {exc})") from None
+
+    def partial(self, condition: int):
+        """The state ``evaluate(resume=...)`` takes for condition ``condition``, or None."""
+        p = self._partial
+        if p is not None and p.get("condition_index") == condition:
+            return p["state"]
+        return None
+
+    def saver(self, condition: int, rows_before: list):
+        if self.path is None:
+            return None
+
+        def save(state):
+            import time
+
+            end = state["tallies"] is None
+            if not end and time.monotonic() - self._last < self.every_s:
+                return
+            self._last = time.monotonic()
+            rows = rows_before + state["rows"]
+            partial = None if end else {"condition_index": condition, "state": {**state, "rows": []}}
+            self._write({"rows": rows, "conditions_done": condition + 1 if end else condition, "partial": partial})
+        return save
+
+    def _write(self, body):
+        import json
+
+        from startrack._version import __version__
+        from startrack.formats.atomic import atomic_open
+
+        doc = {"format": "startrack.evaluate-checkpoint/1", "startrack_version": __version__, "key": self.key,
+               "seed": self.seed, **body}
+        with atomic_open(self.path, "w") as fh:
+            json.dump(doc, fh, allow_nan=True)
+
+    def remove(self):
+        import contextlib
+        import os
+
+        if self.path is not None:
+            with contextlib.suppress(OSError):
+                os.remove(self.path)
