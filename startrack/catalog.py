@@ -282,7 +282,7 @@ class Catalog:
             raise ParameterError("per_cell", f"must be at least 1, got {per_cell}")
         if not 0 < cell_deg <= 90:
             raise ParameterError("cell_deg", f"must be in (0, 90], got {cell_deg:g}")
-        cell, _ = _cells(self.ra, self.dec, cell_deg)
+        cell, _ = _cells(self.ra, self.dec, cell_deg, count=False)
         order = np.lexsort((self.id, self.mag, cell))
         sorted_cell = cell[order]
         start = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
@@ -308,16 +308,28 @@ def merge_radius_arcsec(camera, merge_px: float = DEFAULT_MERGE_PX) -> float:
     return float(merge_px) * float(camera.pixel_scale_arcsec)
 
 
-def _cells(ra_deg, dec_deg, cell_deg: float):
-    """Cell number of each direction on the equal-area igloo grid of :meth:`Catalog.thin_uniform`."""
+def _cells(ra_deg, dec_deg, cell_deg: float, count: bool = True):
+    """Cell number of each direction on the equal-area igloo grid of :meth:`Catalog.thin_uniform`, and the
+    number of cells on the sky (``None`` unless ``count``).
+
+    Memory is that of the stars, whatever ``cell_deg`` (issue 41: 1e-6 deg took 2.8 GB, 1e-7 ran out of
+    memory): the occupied cells are numbered densely, and the bands are counted in blocks.
+    """
     n_bands = max(1, round(180.0 / cell_deg))
     band = np.minimum(((np.asarray(dec_deg) + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
     centre = -90.0 + (band + 0.5) * 180.0 / n_bands
     n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(centre)) / cell_deg)).astype(np.int64)
     ra_cell = np.minimum((np.mod(ra_deg, 360.0) / 360.0 * n_ra).astype(np.int64), n_ra - 1)
-    band_cells = np.maximum(1, np.round(360.0 * np.cos(np.radians(
-        -90.0 + (np.arange(n_bands) + 0.5) * 180.0 / n_bands)) / cell_deg)).astype(np.int64)
-    return band * 100000 + ra_cell, int(band_cells.sum())
+    # dense numbers of the occupied cells, in (band, cell in band) order: no overflow at any size
+    cell = np.unique(np.stack([band, ra_cell]), axis=1, return_inverse=True)[1].ravel() if len(band) else band
+    if not count:
+        return cell, None
+    total = 0
+    block = 1 << 20
+    for b0 in range(0, n_bands, block):
+        centres = -90.0 + (np.arange(b0, min(n_bands, b0 + block)) + 0.5) * 180.0 / n_bands
+        total += int(np.maximum(1, np.round(360.0 * np.cos(np.radians(centres)) / cell_deg)).astype(np.int64).sum())
+    return cell, total
 
 
 def thin_for_field(catalog: Catalog, field_w_deg: float, field_h_deg: float, stars_per_field: float = 20.0,

@@ -40,7 +40,7 @@ def command(input, output, fit, catalog, quiet):
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError
     from startrack.formats.atomic import atomic_open, check_writable
-    from startrack.formats.frame import read_frames, validate_frame
+    from startrack.formats.frame import read_frames, validate_attitude, validate_frame
 
     check_writable(output)
     base = load_catalog(catalog)
@@ -61,6 +61,7 @@ def command(input, output, fit, catalog, quiet):
             # the image's.
             raise BadInputError(rec.source, "identification.parity", "is mirrored: calibrate takes unmirrored "
                                 "frames only (flip the images first)")
+        dcm = validate_attitude(doc, rec.source)  # a zero quaternion is bad input, never skipped
         cam = Camera.from_dict(doc["camera"], rec.source)
         if camera is None:
             camera = cam
@@ -79,7 +80,7 @@ def command(input, output, fit, catalog, quiet):
             s = doc["stars"][m["star"]]
             xy.append((s["x"], s["y"]))
             ref.append(vec[k])
-        frames.append((np.asarray(att["dcm"]), np.array(xy), np.array(ref)))
+        frames.append((dcm, np.array(xy), np.array(ref)))
     if camera is None:
         raise BadInputError(input, "attitude", "no frame with a solved attitude to calibrate from")
     if fit.strip() == "auto":

@@ -52,8 +52,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     from startrack.errors import BadInputError
 
     require_stdout()
-    cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
-                              default_size="1024x1024")
+    # no default size: the stars in a field depend on its shape (issue 41: 1024x1024 was assumed silently)
+    cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2)
     if samples < 1:
         raise BadInputError("--samples", None, f"must be at least 1, got {samples}")
     cat = load_catalog(catalog).filter_magnitude(mag_min, mag_max)

@@ -99,13 +99,16 @@ def _algorithm_choice():
               help="Annotated PNG of each frame with an image (numbered when several).")
 @parity_option
 @output_option()
+@click.option("--max-frame-stars", type=Int(3, 10_000_000), default=10_000, show_default=True,
+              help="Detections read per frame: the brightest this many (the stars are brightest first); a frame "
+                   "with more is identified on them, says so on stderr and records stars_read.")
 @jobs_option
 @resume_option
 @quiet_option
 @handle_errors
 def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec, max_stars, max_search_stars,
             max_false_probability, max_proposals, max_time_ms, catalog, match_all, calibration_frames, plot, parity,
-            output, jobs, resume, quiet, **settings):
+            max_frame_stars, output, jobs, resume, quiet, **settings):
     """Identify the stars of each frame: adds an `identification` section.
 
     Reads frame documents with `stars` (x, y, brightest first) and a `camera`,
@@ -202,14 +205,23 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
             checked[key] = _check(db, cam, kind)
         from startrack.formats.frame import validate_stars
 
-        validate_stars(doc, source)
+        stars = doc.get("stars")
+        if isinstance(stars, list) and len(stars) > max_frame_stars:
+            # Memory and time bounded per frame (issue 41: 100,000 stars took 895 MB and 25 s): the brightest
+            # detections, which come first, are the ones any identification uses; the rest pass through.
+            info(False, f"identify: {source}: {len(stars)} stars, identified on the {max_frame_stars} brightest "
+                        "(--max-frame-stars)")
+            stars = stars[:max_frame_stars]
+        validate_stars({"stars": stars}, source)
         if carry is None:
-            result, _ = identify_either_parity(doc["stars"], cam, db, algorithm, params, config, deep, parity)
+            result, _ = identify_either_parity(stars, cam, db, algorithm, params, config, deep, parity)
         else:
             frame_config, used = carry.config_for(config)
-            result, _ = identify_either_parity(doc["stars"], cam, db, algorithm, params, frame_config, deep, parity)
+            result, _ = identify_either_parity(stars, cam, db, algorithm, params, frame_config, deep, parity)
             result.details.update(used)
             carry.update(result, index)
+        if stars is not doc.get("stars"):
+            result.details["stars_read"] = len(stars)
         doc["identification"] = to_section(result)
         if plot and (doc.get("image") or {}).get("path") and os.path.exists(doc["image"]["path"]):
             _plot(plot_names(index), doc, db, cam, result)

@@ -31,6 +31,7 @@ __all__ = [
     "FRAME_FORMAT",
     "FrameRecord",
     "FrameWriter",
+    "validate_attitude",
     "check_format_tag",
     "dumps_frame",
     "frame_key",
@@ -88,6 +89,40 @@ def validate_stars(doc: dict, source: str) -> None:
             _require_number(star[name], source, f"stars[{i}].{name}")
         if "flux" in star:
             _require_number(star["flux"], source, f"stars[{i}].flux")
+
+
+def validate_attitude(doc: dict, source: str) -> np.ndarray:
+    """The rotation matrix of a solved ``attitude`` section, checked: its ``quaternion`` a unit quaternion, its
+    ``dcm`` a rotation, and the two the same attitude (tolerance 1e-6); ``BadInputError`` names the field."""
+    from startrack.rotations import quaternion_to_dcm
+
+    att = doc.get("attitude") if isinstance(doc.get("attitude"), dict) else {}
+    q, dcm = att.get("quaternion"), att.get("dcm")
+    if q is None and dcm is None:
+        raise BadInputError(source, "attitude.quaternion", "is missing")
+    out = None
+    if q is not None:
+        if not isinstance(q, list) or len(q) != 4:
+            raise BadInputError(source, "attitude.quaternion", "must be a list of 4 numbers")
+        for i, v in enumerate(q):
+            _require_number(v, source, f"attitude.quaternion[{i}]")
+        norm = math.sqrt(sum(float(v) ** 2 for v in q))
+        if abs(norm - 1.0) > 1e-6:
+            raise BadInputError(source, "attitude.quaternion", f"is not a unit quaternion (norm {norm:.6g})")
+        out = quaternion_to_dcm(np.asarray(q, dtype=float))
+    if dcm is not None:
+        try:
+            m = np.asarray(dcm, dtype=float)
+        except (TypeError, ValueError):
+            m = np.zeros(0)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            raise BadInputError(source, "attitude.dcm", "must be 3 rows of 3 finite numbers")
+        if np.abs(m @ m.T - np.eye(3)).max() > 1e-6 or np.linalg.det(m) < 0:
+            raise BadInputError(source, "attitude.dcm", "is not a rotation matrix")
+        if out is not None and np.abs(m - out).max() > 1e-6:
+            raise BadInputError(source, "attitude.dcm", "and attitude.quaternion are not the same attitude")
+        out = m
+    return out
 
 
 def validate_frame(doc, source: str, need: tuple[str, ...] = ()) -> dict:
@@ -190,9 +225,21 @@ def _reject_constant(name):
 MAX_JSON_DEPTH = 64
 
 
+def _unique_keys(pairs):
+    """A JSON object whose keys are unique: a repeated key (two ``"stars"``) is refused, never last-one-wins."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"duplicate key {key!r} in one object")
+            seen.add(key)
+    return out
+
+
 def _loads(text: str):
     try:
-        value = json.loads(text, parse_constant=_reject_constant)
+        value = json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
     except RecursionError:
         raise ValueError("nested too deeply") from None
     _check_depth(value)
