@@ -241,3 +241,214 @@ def test_damaged_cached_index_is_rebuilt_and_one_process_builds(small_catalog, t
     procs = [subprocess.Popen([sys.executable, "-c", code], env=env) for _ in range(2)]
     assert [p.wait(300) for p in procs] == [0, 0]
     assert builds.read_text() == "x"
+
+
+# -- item 6: internal errors that name nothing ---------------------------------------------------------------------
+
+def test_a_corrupt_catalog_names_the_file_and_dataset(tmp_path):
+    """main: a damaged catalog HDF5 gave "internal error: KeyError: 'Unable to synchronously open object...'" (or an
+    OSError) naming no file, in build-kvector and attitude.  Now: exit 2 naming the file and the dataset."""
+    good = tmp_path / "c.h5"
+    run_cli("catalog-filter", "--mag-max", "5", "-o", good, check=True)
+    data = good.read_bytes()
+    frame = json.dumps({"format": "startrack.frame/1", "stars": []})
+    seen = set()
+    for offset in range(4096, len(data) - 4096, 4096):
+        bad = tmp_path / "bad.h5"
+        bad.write_bytes(data[:offset] + np.random.default_rng(offset).bytes(4096) + data[offset + 4096:])
+        for proc in (run_cli("build-kvector", "--catalog", bad, "--fov-deg", "20", "-o", tmp_path / "k.h5", "-q"),
+                     run_cli("attitude", "--catalog", bad, input=frame)):
+            if proc.returncode == 0:
+                continue  # the damage fell where nothing reads (unused space of the file)
+            assert_refused(proc, f"{bad}: ")
+            assert "internal error" not in proc.stderr
+            seen.add(proc.stderr.split(": ")[2] if proc.stderr.count(": ") > 2 else "")
+    assert seen  # at least one damage was refused
+
+
+def test_write_errors_and_undecodable_text_are_bad_input(tmp_path):
+    """main: `plot --title <non-UTF-8>` gave an internal TypeError; `catalog-filter -o - >&-` an AttributeError.
+    Now: exit 2 with one line naming the option or <stdout>."""
+    doc = {"format": "startrack.frame/1", "stars": [], "attitude": {"status": "failed", "reason": "x"}}
+    (tmp_path / "f.json").write_text(json.dumps(doc))
+    cmd = [sys.executable, "-m", "startrack", "plot", str(tmp_path / "f.json"), "--kind", "residuals", "--title"]
+    proc = subprocess.run([*map(os.fsencode, cmd), b"\xff\xfe title", b"-o", os.fsencode(tmp_path / "r.png")],
+                          capture_output=True, text=True, timeout=120)
+    assert_refused(proc, "--title: is not valid UTF-8 text")
+    closed = subprocess.run(["bash", "-c", f"{sys.executable} -m startrack catalog-filter --mag-max 3 -o - >&-"],
+                            capture_output=True, text=True, timeout=120)
+    assert_refused(closed, "<stdout>: is closed")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_solve_write_error_is_exit_2_naming_the_file(solve_cache):
+    """main: `solve --wcs /dev/full` (and --plot) gave "internal error: BadInputError" and exit 1.  Now exit 2,
+    the file named."""
+    image = os.path.join(os.path.dirname(__file__), "..", "data", "real", "2019-07-29T204726_Alt40_Azi45_Try1.tiff")
+    for option in ("--wcs", "--plot"):
+        proc = run_cli("solve", image, option, "/dev/full", "-q", env=solve_cache)
+        lines = [line for line in proc.stderr.splitlines() if line.strip() and "building" not in line]
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert "/dev/full: cannot write" in lines[0] and "internal error" not in proc.stderr
+
+
+# -- item 7: quieter gaps ------------------------------------------------------------------------------------------
+
+def test_output_lost_to_a_closed_stdout_is_an_error():
+    """main: `cache list >&-` and `--help >&-` exited 0 with their output lost.  Now exit 2, <stdout> named."""
+    for args in ("cache list", "--help", "identify --help"):
+        proc = subprocess.run(["bash", "-c", f"{sys.executable} -m startrack {args} >&-"], capture_output=True,
+                              text=True, timeout=120)
+        assert_refused(proc, "<stdout>: is closed")
+
+
+# -- item 3: long evaluate / render --count cannot be resumed; memory grows with --count ---------------------------
+
+def test_evaluate_tallies_in_chunks_and_resumes_from_a_checkpoint(db20, catalog, monkeypatch):
+    """main: evaluate held every frame of a condition (memory grew ~8 MB/s with --count) and had no checkpoint.
+    Now frames are made CHUNK_FRAMES at a time and reduced into a Tally; a run resumed from any checkpoint gives
+    the rows of an uninterrupted run."""
+    import startrack.evaluate as ev
+    from startrack.camera import Camera
+    from startrack.identify import IdentifyParams
+    from startrack.kvector import load_kvector
+
+    monkeypatch.setattr(ev, "CHUNK_FRAMES", 40)
+    made = []
+    real = ev.make_frames
+    monkeypatch.setattr(ev, "make_frames", lambda *a, **k: made.append(a[3]) or real(*a, **k))
+    cam = Camera.from_fov(20, 512, 512)
+    dbs = {"kvector": load_kvector(str(db20))}
+    cat = catalog.filter_magnitude(None, 4.0)
+    conds = ev.conditions_grid(sigma_px=[0.1], false_stars=[0, 1])
+    states = []
+    full = ev.evaluate(["pyramid", "voting"], conds, 100, dbs, cam, cat, 5, params=IdentifyParams(sigma_px=0.1),
+                       mag_limit=4.0, checkpoint=states.append)
+    assert max(made) == 40  # never more than one chunk of frames at once
+    assert [s["frames_done"] for s in states if s["tallies"]] == [40, 80, 40, 80]
+
+    def untimed(rows):
+        return [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in rows]
+
+    for state in states:
+        again = ev.evaluate(["pyramid", "voting"], conds, 100, dbs, cam, cat, 5, params=IdentifyParams(sigma_px=0.1),
+                            mag_limit=4.0, resume=json.loads(json.dumps(state)))
+        assert untimed(again) == untimed(full)
+    # beyond EXACT_TIMES the percentiles come from a 0.1 % histogram
+    monkeypatch.setattr(ev, "EXACT_TIMES", 10)
+    times = np.random.default_rng(1).lognormal(0, 1, 500)
+    tally = ev.Tally()
+    tally.add([("success", t, 5, [0, k, 0], [], False) for k, t in enumerate(times)])
+    row = tally.row("pyramid", conds[0], 500)
+    assert abs(row["median_ms"] / np.median(times) - 1) < 0.002 and abs(row["p95_ms"] / np.percentile(times, 95) - 1) < 0.01
+
+
+def test_evaluate_resume_through_the_cli(db20, tmp_path):
+    """main: "No such option '--resume'" for evaluate, though the README says a long run resumes.  Now a run killed
+    (-9) after a checkpoint goes on with --resume to the rows of an uninterrupted run; other options are refused."""
+    import signal
+    import time
+
+    common = ["evaluate", "-d", str(db20), "--fov-deg", "20", "--size", "512x512", "-a", "pyramid", "-n", "6000",
+              "--seed", "3", "--json", "-q"]
+    run_cli(*common, "-o", tmp_path / "whole.json", check=True)
+    whole = json.loads((tmp_path / "whole.json").read_text())
+    out = tmp_path / "cut.json"
+    partial = tmp_path / "cut.json.partial.json"
+    env = {**os.environ, "STARTRACK_CHECKPOINT_S": "0"}
+    env.pop("STARTRACK_DEBUG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "startrack", *common, "-o", str(out)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not partial.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert partial.exists() and not out.exists()
+    refused = run_cli(*common[:-4], "--seed", "4", "--json", "-q", "-o", out, "--resume")
+    assert_refused(refused, "partial.json: seed")
+    run_cli(*common, "-o", out, "--resume", check=True)
+    resumed = json.loads(out.read_text())
+
+    def untimed(rows):
+        return [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in rows]
+
+    assert untimed(resumed["rows"]) == untimed(whole["rows"]) and not partial.exists()
+
+
+def test_duplicate_keys_zero_quaternions_and_missing_sizes_are_refused(tmp_path):
+    """main: a document with two "stars" keys was read with the last one winning; `calibrate` skipped a frame whose
+    quaternion was zero and returned the good frame's result; `catalog-stats` without --size assumed 1024x1024.
+    Now each is exit 2 naming the file and field (or the option)."""
+    doc = '{"format": "startrack.frame/1", "stars": [{"x": 1, "y": 2}], "stars": []}\n'
+    (tmp_path / "dup.json").write_text(doc)
+    proc = run_cli("attitude", tmp_path / "dup.json")
+    assert_refused(proc, "dup.json", "duplicate key 'stars'")
+    proc = run_cli("catalog-stats", "--fov-deg", "10", "-n", "10")
+    assert_refused(proc, "--size", "is needed")
+
+
+def test_calibrate_refuses_a_zero_quaternion(tmp_path):
+    """main: calibrate read the dcm of a solved frame and ignored a zero quaternion beside it (exit 0, the good
+    frames' result).  Now the attitude is checked: exit 2 naming attitude.quaternion."""
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    cam = Camera.from_fov(20, 1024, 1024)
+    cat = load_catalog(mag_max=5.0).filter_magnitude(None, 5.0)
+    vec = cat.vectors()
+    lines = []
+    for k, q in enumerate(random_quaternions(3, np.random.default_rng(4))):
+        dcm = quaternion_to_dcm(q)
+        cam_vec = vec @ dcm.T
+        seen = np.flatnonzero(cam_vec[:, 2] > 0.95)
+        xy = cam.vectors_to_pixels(cam_vec[seen])
+        inside = (xy[:, 0] > 0) & (xy[:, 0] < 1023) & (xy[:, 1] > 0) & (xy[:, 1] < 1023)
+        stars = [{"x": float(x), "y": float(y)} for x, y in xy[inside]]
+        matches = [{"star": i, "id": int(cat.id[j])} for i, j in enumerate(seen[inside])]
+        quaternion = [0.0, 0.0, 0.0, 0.0] if k == 1 else [float(v) for v in q]
+        lines.append(json.dumps({"format": "startrack.frame/1", "camera": cam.to_dict(), "stars": stars,
+                                 "identification": {"status": "ok", "algorithm": "pyramid", "matches": matches},
+                                 "attitude": {"status": "ok", "method": "quest", "quaternion": quaternion,
+                                              "dcm": dcm.tolist()}}))
+    (tmp_path / "solved.jsonl").write_text("\n".join(lines) + "\n")
+    proc = run_cli("calibrate", tmp_path / "solved.jsonl", "-o", tmp_path / "lens.json")
+    assert_refused(proc, "solved.jsonl:2", "attitude.quaternion", "not a unit quaternion")
+    assert not (tmp_path / "lens.json").exists()
+
+
+def test_uniform_thinning_memory_does_not_grow_with_tiny_cells(catalog):
+    """main: `catalog-filter --cell-deg 1e-6` took 2.8 GB and 18 s (an array per declination band), 1e-7 ran out of
+    memory, and below ~0.004 deg cell numbers collided (band * 100000).  Now the occupied cells are numbered
+    densely: tiny cells keep every star, and 4 deg cells keep what they kept."""
+    from startrack.catalog import _cells
+
+    cat = catalog.filter_magnitude(None, 6.0)
+    for cell_deg in (1e-6, 1e-7, 1e-12):
+        assert len(cat.thin_uniform(1, cell_deg)) == len(cat)
+    for cell_deg in (4.0, 0.5, 1e-3):
+        # the igloo grid written out naively: band, then the cell within the band
+        n_bands = max(1, round(180.0 / cell_deg))
+        band = np.minimum(((cat.dec + 90.0) / 180.0 * n_bands).astype(np.int64), n_bands - 1)
+        n_ra = np.maximum(1, np.round(360.0 * np.cos(np.radians(-90.0 + (band + 0.5) * 180.0 / n_bands)) / cell_deg))
+        ra_cell = np.minimum((np.mod(cat.ra, 360.0) / 360.0 * n_ra).astype(np.int64), n_ra.astype(np.int64) - 1)
+        naive = np.unique(band.astype(object) * 10**12 + ra_cell, return_inverse=True)[1].ravel()
+        cells, n = _cells(cat.ra, cat.dec, cell_deg)
+        assert np.array_equal(cells, naive) and n >= len(np.unique(cells))
+
+
+def test_identify_caps_the_stars_it_reads(db20, tmp_path):
+    """main: `identify` on a 100,000-star frame took 895 MB and 25 s.  Now it identifies the --max-frame-stars
+    brightest, says so on stderr and records stars_read; the stars pass through."""
+    docs = tmp_path / "in.jsonl"
+    _eight_documents(docs)
+    first = json.loads(docs.read_text().splitlines()[0])
+    rng = np.random.default_rng(1)
+    first["stars"] = [{"x": float(x), "y": float(y), "flux": 1.0} for x, y in rng.uniform(0, 511, (50, 2))]
+    docs.write_text(json.dumps(first) + "\n")
+    proc = run_cli("identify", docs, "-d", db20, "--max-frame-stars", "20")
+    out = json.loads(proc.stdout)
+    assert "50 stars, identified on the 20 brightest" in proc.stderr
+    assert out["identification"]["stars_read"] == 20 and len(out["stars"]) == 50
+    assert all(m["star"] < 20 for m in out["identification"]["matches"])
