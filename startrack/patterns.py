@@ -56,6 +56,8 @@ log = logging.getLogger(__name__)
 
 INDEX_FORMAT = "startrack.patterns/1"
 _MAGIC = b"STPATIDX"
+#: 2: the header carries ``header_sha256`` and ``data_sha256`` (issue 41).
+_FILE_LAYOUT = 2
 LEVEL_RATIO = math.sqrt(2.0)
 LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
@@ -335,7 +337,9 @@ def default_index_path(catalog=None) -> str:
     """
     import hashlib
 
-    tag = hashlib.sha256(json.dumps(BUILD_PARAMS, sort_keys=True).encode()).hexdigest()[:8]
+    # the file layout is in the tag too: an index with checksums never shares a name with one without
+    tag = hashlib.sha256(json.dumps({**BUILD_PARAMS, "file_layout": _FILE_LAYOUT}, sort_keys=True).encode()
+                         ).hexdigest()[:8]
     if catalog is not None:
         cat_tag = catalog.checksum()[:12]
     else:
