@@ -591,7 +591,7 @@ def guard_outputs(ctx=None) -> None:
     through :mod:`startrack.formats.atomic` or a :class:`~startrack.formats.frame.FrameWriter` is checked
     again against every input read since, so a command inherits the rule by using them.
     """
-    from startrack.formats.atomic import check_writable, register_input
+    from startrack.formats.atomic import refuse_input, register_input
 
     ctx = ctx or click.get_current_context(silent=True)
     if ctx is None:
@@ -609,7 +609,7 @@ def guard_outputs(ctx=None) -> None:
                 else:
                     register_input(v)
     for path in outputs:
-        check_writable(path)
+        refuse_input(path)  # only this: a command may create an output's directory itself
     if any(v == "-" for param in ctx.command.params if param.name in OUTPUT_PARAMS or isinstance(param.type, OutputPath)
            for v in _path_values(ctx.params.get(param.name))):
         require_stdout()

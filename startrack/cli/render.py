@@ -137,6 +137,9 @@ def _floats(text, name, n):
               help="Render a large --count on a Dask cluster ('local', or tcp://HOST:8786): chunks of frames per "
                    "task, images written by the workers (a shared filesystem), documents in order.")
 @click.option("--frame-seed", type=Int(0, 2**63 - 1), default=None, help="Re-render exactly one frame from its recorded frame_seed.")
+@click.option("--resume", is_flag=True,
+              help="Go on with a --count set cut short: keep the whole sequences already in --documents FILE "
+                   "(written by this command with the same options and --seed) and render only the rest.")
 @quiet_option
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
@@ -145,7 +148,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
             foreground_e_per_s, mirror, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
-            sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, quiet):
+            sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, resume, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
 
     The image goes to --output (format by extension: 8/16-bit PNG, 16-bit TIFF,
@@ -271,6 +274,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             raise BadInputError("--mag-max", None, f"no catalog star is at or brighter than {mag_max}")
     if t0 is not None:
         cat = cat.propagate(julian_year(t0))
+    if resume and (documents == "-" or frame_seed is not None or scheduler is not None):
+        raise BadInputError("--resume", None, "needs --documents FILE, without --frame-seed or --scheduler")
+    if seed is None and resume:
+        seed = _seed_of(documents)
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % (2**31))
     params = {k: v for k, v in dict(
@@ -299,11 +306,17 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                     frame_seed, params, black)
     if frame_seed is not None and run.total != 1:
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
+    skipped = 0
+    if resume:
+        import dataclasses
+
+        skipped = _keep_done(documents, seed, params, frames)
+        run = dataclasses.replace(run, count=count - skipped // frames, first_index=skipped)
     bar = ProgressBar("render", quiet)
     n_stars = 0
     from startrack.cluster import TaskFailure
 
-    with FrameWriter(documents) as writer:
+    with FrameWriter(documents, resume=resume, section="render") as writer:
         if scheduler is None:
             results = ((i, [item]) for i, item in enumerate(_write_images(run.frames_iter())))
         else:
@@ -329,6 +342,68 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                 n_stars += len(doc["truth"]["stars"])
                 done += 1
                 bar(done, run.total)
-    info(quiet, f"render: {run.total} frame(s), {n_stars / run.total:.1f} catalog stars per frame on average, seed {seed}"
+    if skipped:
+        info(quiet, f"render: {skipped} frame(s) already in {documents} (--resume)")
+    info(quiet, f"render: {run.total} frame(s), {n_stars / max(run.total, 1):.1f} catalog stars per frame on average, "
+                f"seed {seed}"
                 + (f", images {output if run.total == 1 else os.path.splitext(output)[0] + '-NNNN' + os.path.splitext(output)[1]}"
                    if output else ""))
+
+
+def _seed_of(documents):
+    """The ``render.seed`` of the first document of ``documents`` (``--resume`` without ``--seed``), or None."""
+    import json
+    import os
+
+    if not os.path.exists(documents):
+        return None
+    with open(documents, "rb") as fh:
+        line = fh.readline()
+    try:
+        seed = json.loads(line)["render"]["seed"]
+    except (ValueError, KeyError, TypeError):
+        return None
+    return int(seed) if isinstance(seed, int) else None
+
+
+def _keep_done(documents, seed, params, frames):
+    """``--resume``: check the complete documents of ``documents`` are this run's frames, in order, and cut the
+    file after the last whole sequence; returns the frames kept.
+
+    Every line must be a ``render`` document of the same ``seed`` and parameters with ``frame_index`` its line
+    number: anything else is refused (``BadInputError`` naming the line), the file untouched.
+    """
+    import json
+    import os
+
+    from startrack.errors import BadInputError
+    from startrack.formats.frame import _loads, read_finished
+
+    if not os.path.exists(documents):
+        return 0
+    read_finished(documents, "render")  # every complete line a frame document with a render section
+    expected = json.loads(json.dumps(params))
+    ends = []
+    with open(documents, "rb") as fh:
+        good = 0
+        for raw in fh:
+            if not raw.endswith(b"\n"):
+                break
+            try:
+                doc = _loads(raw.decode("utf-8"))
+            except (ValueError, UnicodeDecodeError):
+                break
+            where = f"{documents}:{len(ends) + 1}"
+            rec = doc["render"]
+            if rec.get("seed") != seed:
+                raise BadInputError(where, "render.seed", f"is {rec.get('seed')}, not this run's {seed}")
+            if rec.get("params") != expected:
+                raise BadInputError(where, "render.params", "differ from this run's options: give the same options")
+            if rec.get("frame_index") != len(ends):
+                raise BadInputError(where, "render.frame_index", f"is {rec.get('frame_index')}, expected {len(ends)}")
+            good += len(raw)
+            ends.append(good)
+    keep = len(ends) // frames * frames
+    with open(documents, "r+b") as fh:
+        fh.truncate(ends[keep - 1] if keep else 0)
+    return keep

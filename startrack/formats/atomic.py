@@ -35,6 +35,7 @@ __all__ = [
     "install_signal_cleanup",
     "is_special",
     "output_target",
+    "refuse_input",
     "register_input",
     "write_error",
 ]
@@ -96,17 +97,22 @@ def is_special(path: str) -> bool:
     return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
 
 
+def refuse_input(path: str) -> None:
+    """Refuse (``BadInputError``) an output that is one of this process's inputs (:func:`register_input`)."""
+    same = input_named_by(path)
+    if same is not None:
+        also = "" if same == str(path) else f" ({same})"
+        raise BadInputError(path, None, f"is also an input of this command{also}: writing it would destroy the input; "
+                                        "choose another output")
+
+
 def check_writable(path: str) -> None:
     """Refuse early (``BadInputError``) an output whose directory cannot be written, or that is an input.
 
     An output that is one of this process's inputs (:func:`register_input`) would destroy the input it
     is computed from (issue 41: ``identify a.jsonl -o a.jsonl`` turned 8 documents into 2 lines).
     """
-    same = input_named_by(path)
-    if same is not None:
-        also = "" if same == str(path) else f" ({same})"
-        raise BadInputError(path, None, f"is also an input of this command{also}: writing it would destroy the input; "
-                                        "choose another output")
+    refuse_input(path)
     target = output_target(path)
     if os.path.isdir(target):
         raise BadInputError(path, None, "is a directory, expected a file name")

@@ -452,3 +452,31 @@ def test_identify_caps_the_stars_it_reads(db20, tmp_path):
     assert "50 stars, identified on the 20 brightest" in proc.stderr
     assert out["identification"]["stars_read"] == 20 and len(out["stars"]) == 50
     assert all(m["star"] < 20 for m in out["identification"]["matches"])
+
+
+def test_render_count_resumes(tmp_path):
+    """main: "No such option '--resume'" for render.  Now a set cut short (a half-written last line, a sequence
+    begun) goes on to the documents and images of an uninterrupted run; another seed or options are refused."""
+    common = ["render", "--stars-only", "--fov-deg", "20", "--size", "512x512", "--count", "4", "--frames", "2",
+              "--seed", "7", "-q"]
+    run_cli(*common, "--documents", tmp_path / "whole.jsonl", check=True)
+    whole = (tmp_path / "whole.jsonl").read_bytes()
+    lines = whole.splitlines(keepends=True)
+    cut = tmp_path / "cut.jsonl"
+    cut.write_bytes(b"".join(lines[:3]) + lines[3][:200])  # 1.5 sequences, then a line cut short
+    proc = run_cli(*common[:-3], "--seed", "8", "-q", "--documents", cut, "--resume")
+    assert_refused(proc, "cut.jsonl:1: render.seed")
+    proc = run_cli(*common[:3], "21", *common[4:], "--documents", cut, "--resume")
+    assert_refused(proc, "cut.jsonl:1: render.params")
+    run_cli(*common, "--documents", cut, "--resume", check=True)
+    assert cut.read_bytes() == whole
+    images = ["render", "--fov-deg", "20", "--size", "128x128", "--count", "3", "--seed", "7", "-q",
+              "-o", tmp_path / "img" / "s.png"]
+    run_cli(*images, "--documents", tmp_path / "imgs.jsonl", check=True)
+    pictures = {p.name: p.read_bytes() for p in (tmp_path / "img").iterdir()}
+    (tmp_path / "icut.jsonl").write_bytes((tmp_path / "imgs.jsonl").read_bytes().splitlines(keepends=True)[0])
+    for name in ("s-0001.png", "s-0002.png"):
+        (tmp_path / "img" / name).unlink()
+    run_cli(*images, "--documents", tmp_path / "icut.jsonl", "--resume", check=True)
+    assert (tmp_path / "icut.jsonl").read_bytes() == (tmp_path / "imgs.jsonl").read_bytes()
+    assert {p.name: p.read_bytes() for p in (tmp_path / "img").iterdir()} == pictures
