@@ -234,8 +234,10 @@ class Tally:
         }
 
     def to_dict(self) -> dict:
-        return {"n": self.n, "counts": self.counts, "sum_ms": self.sum_ms, "sum_stars": self.sum_stars,
-                "double": self.double, "bad_seeds": self.bad_seeds, "times": self.times,
+        """A copy of the state, JSON-able (later frames do not change it)."""
+        return {"n": self.n, "counts": dict(self.counts), "sum_ms": self.sum_ms, "sum_stars": self.sum_stars,
+                "double": list(self.double), "bad_seeds": list(self.bad_seeds),
+                "times": None if self.times is None else list(self.times),
                 "hist": {str(k): v for k, v in self.hist.items()}}
 
     @classmethod

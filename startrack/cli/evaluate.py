@@ -294,11 +294,14 @@ def _peek_format(path):
 
     if not os.path.exists(path):
         raise BadInputError(path, None, "no such file")
+    from startrack.formats.hdf5 import corrupt_hdf5
+
     try:
-        with h5py.File(path, "r") as h5:
-            tag = h5.attrs.get("format")
+        h5 = h5py.File(path, "r")
     except OSError:
         raise BadInputError(path, None, "is not an HDF5 file") from None
+    with h5, corrupt_hdf5(path, "format"):
+        tag = h5.attrs.get("format")
     if tag is None:
         raise BadInputError(path, "format", "is missing")
     tag = tag.decode() if isinstance(tag, bytes) else str(tag)
@@ -363,7 +366,6 @@ class _Checkpoint:
         self.every_s = float(os.environ.get("STARTRACK_CHECKPOINT_S", "5"))
 
         from startrack.errors import BadInputError
-        from startrack.formats.frame import read_json_file
 
         self.path = None if output is None else f"{output}.partial.json"
         self.key = hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()
@@ -373,8 +375,12 @@ class _Checkpoint:
             return
         if not os.path.exists(self.path):
             raise BadInputError(self.path, None, "no such file: nothing to resume (run without --resume)")
-        doc = read_json_file(self.path)
-        if doc.get("format") != "startrack.evaluate-checkpoint/1":
+        try:  # read directly: this file is rewritten by this run, it is no input to protect
+            with open(self.path, encoding="utf-8") as fh:
+                doc = json.load(fh)
+        except (OSError, ValueError) as exc:
+            raise BadInputError(self.path, None, f"cannot be read as a checkpoint ({exc})") from None
+        if not isinstance(doc, dict) or doc.get("format") != "startrack.evaluate-checkpoint/1":
             raise BadInputError(self.path, "format", "is not an evaluate checkpoint")
         if doc.get("key") != self.key:
             raise BadInputError(self.path, "key", "was written by an evaluate run with other options: give the same "

@@ -559,6 +559,10 @@ def handle_errors(func):
         except Exception as exc:  # noqa: BLE001 - the last line of defence of a CLI
             if os.environ.get("STARTRACK_DEBUG"):
                 raise
+            if isinstance(exc, OSError) and exc.filename is not None:
+                # a file the operating system refused (missing, disk full, too large ...): named, as bad input
+                _echo_err(f"{command_path()}: error: {exc.filename}: {exc.strerror or type(exc).__name__}")
+                sys.exit(2)
             msg = str(exc).splitlines()[0] if str(exc) else ""
             _echo_err(f"{command_path()}: internal error: {type(exc).__name__}: {msg} "
                       "(set STARTRACK_DEBUG=1 for a traceback)")
