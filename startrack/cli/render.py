@@ -310,7 +310,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     if resume:
         import dataclasses
 
-        skipped = _keep_done(documents, seed, params, frames)
+        skipped = _keep_done(documents, seed, params, frames, cam.to_dict())
         run = dataclasses.replace(run, count=count - skipped // frames, first_index=skipped)
     bar = ProgressBar("render", quiet)
     n_stars = 0
@@ -366,11 +366,11 @@ def _seed_of(documents):
     return int(seed) if isinstance(seed, int) else None
 
 
-def _keep_done(documents, seed, params, frames):
+def _keep_done(documents, seed, params, frames, camera):
     """``--resume``: check the complete documents of ``documents`` are this run's frames, in order, and cut the
     file after the last whole sequence; returns the frames kept.
 
-    Every line must be a ``render`` document of the same ``seed`` and parameters with ``frame_index`` its line
+    Every line must be a ``render`` document of the same ``seed``, parameters and camera with ``frame_index`` its line
     number: anything else is refused (``BadInputError`` naming the line), the file untouched.
     """
     import json
@@ -399,6 +399,8 @@ def _keep_done(documents, seed, params, frames):
                 raise BadInputError(where, "render.seed", f"is {rec.get('seed')}, not this run's {seed}")
             if rec.get("params") != expected:
                 raise BadInputError(where, "render.params", "differ from this run's options: give the same options")
+            if doc.get("camera") != json.loads(json.dumps(camera)):
+                raise BadInputError(where, "camera", "differs from this run's camera: give the same options")
             if rec.get("frame_index") != len(ends):
                 raise BadInputError(where, "render.frame_index", f"is {rec.get('frame_index')}, expected {len(ends)}")
             good += len(raw)
