@@ -559,6 +559,14 @@ def handle_errors(func):
         except Exception as exc:  # noqa: BLE001 - the last line of defence of a CLI
             if os.environ.get("STARTRACK_DEBUG"):
                 raise
+            signal_exc = _signal_behind(exc)
+            if signal_exc is not None:
+                # a signal raised inside a compiled kernel comes back wrapped (numba: "SystemError: ... returned a
+                # result with an exception set"): it is the interruption, not an internal error
+                code = getattr(signal_exc, "exit_code", 130)
+                what = "terminated" if code == 143 else "interrupted"
+                _echo_err(f"{command_path()}: {what} (temporary files removed, outputs left as they were)")
+                sys.exit(code)
             if isinstance(exc, OSError) and exc.filename is not None:
                 # a file the operating system refused (missing, disk full, too large ...): named, as bad input
                 _echo_err(f"{command_path()}: error: {exc.filename}: {exc.strerror or type(exc).__name__}")
@@ -660,6 +668,17 @@ def install_closed_stdout() -> None:
     """Put a :class:`ClosedStdout` in place of a ``None`` standard output."""
     if sys.stdout is None:
         sys.stdout = ClosedStdout()
+
+
+def _signal_behind(exc):
+    """The ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM's ``Terminated``) an exception was raised from, or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def require_stdout() -> None:
