@@ -484,3 +484,19 @@ def test_render_count_resumes(tmp_path):
     run_cli(*images, "--documents", tmp_path / "icut.jsonl", "--resume", check=True)
     assert (tmp_path / "icut.jsonl").read_bytes() == (tmp_path / "imgs.jsonl").read_bytes()
     assert {p.name: p.read_bytes() for p in (tmp_path / "img").iterdir()} == pictures
+
+
+def test_a_signal_inside_a_kernel_is_an_interruption_not_an_internal_error():
+    """main: SIGTERM during `evaluate` (inside a numba kernel) printed "internal error: SystemError: CPUDispatcher(...)
+    returned a result with an exception set" and exit 1.  Now the signal is found behind the wrapper."""
+    from startrack.cli.options import _signal_behind
+    from startrack.formats.atomic import Terminated
+
+    try:
+        try:
+            raise Terminated()
+        except Terminated as inner:
+            raise SystemError("returned a result with an exception set") from inner
+    except SystemError as exc:
+        assert isinstance(_signal_behind(exc), Terminated) and _signal_behind(exc).exit_code == 143
+    assert _signal_behind(ValueError("x")) is None
