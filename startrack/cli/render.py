@@ -399,8 +399,12 @@ def _keep_done(documents, seed, params, frames, camera):
                 raise BadInputError(where, "render.seed", f"is {rec.get('seed')}, not this run's {seed}")
             if rec.get("params") != expected:
                 raise BadInputError(where, "render.params", "differ from this run's options: give the same options")
-            if doc.get("camera") != json.loads(json.dumps(camera)):
-                raise BadInputError(where, "camera", "differs from this run's camera: give the same options")
+            cam = json.loads(json.dumps(camera))
+            if doc.get("camera") != cam:
+                given = doc.get("camera") if isinstance(doc.get("camera"), dict) else {}
+                key = next((k for k in sorted(set(cam) | set(given)) if cam.get(k) != given.get(k)), "")
+                raise BadInputError(where, f"camera.{key}", f"is {given.get(key)!r}, this run's {cam.get(key)!r}: "
+                                                            "give the same options")
             if rec.get("frame_index") != len(ends):
                 raise BadInputError(where, "render.frame_index", f"is {rec.get('frame_index')}, expected {len(ends)}")
             good += len(raw)

@@ -469,7 +469,7 @@ def test_render_count_resumes(tmp_path):
     proc = run_cli(*common[:-3], "--seed", "8", "-q", "--documents", cut, "--resume")
     assert_refused(proc, "cut.jsonl:1: render.seed")
     proc = run_cli(*common[:3], "21", *common[4:], "--documents", cut, "--resume")
-    assert_refused(proc, "cut.jsonl:1: camera")
+    assert_refused(proc, "cut.jsonl:1: camera.focal_length_px")
     proc = run_cli(*common, "--mag-max", "5", "--documents", cut, "--resume")
     assert_refused(proc, "cut.jsonl:1: render.params")
     run_cli(*common, "--documents", cut, "--resume", check=True)
