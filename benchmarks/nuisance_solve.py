@@ -87,28 +87,41 @@ def _image_path(doc, out):
 
 
 def score(truth: dict, solved: dict) -> str:
-    """``right``, ``wrong`` (status ok, attitude off) or ``failed``."""
+    """``right``, ``wrong`` (status ok, attitude off) or ``failed``.
+
+    A frame mirrored in y is the camera's mirrored in x turned by 180 degrees about the boresight: a solver
+    that reports the x-mirrored camera (startrack.parity) is right with the truth's roll + 180 degrees.
+    """
+    import numpy as np
+
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
     status = (solved.get("solve") or {}).get("status")
     if status != "ok" or "attitude" not in solved:
         return "failed"
     cam = truth["camera"]
-    px_rad = 2 * math.atan(cam["width"] / 2 / cam["focal_length_px"]) / cam["width"]
-    _, cross, roll = attitude_error(quaternion_to_dcm(solved["attitude"]["quaternion"]),
-                                    quaternion_to_dcm(truth["truth"]["quaternion"]))
-    return "right" if cross < 10 * px_rad and roll < math.radians(1.0) else "wrong"
+    px_deg = math.degrees(2 * math.atan(cam["width"] / 2 / cam["focal_length_px"]) / cam["width"])
+    true = quaternion_to_dcm(truth["truth"]["quaternion"])
+    if truth["truth"].get("mirror") == "y":
+        true = np.diag([-1.0, -1.0, 1.0]) @ true
+    _, cross, roll = attitude_error(quaternion_to_dcm(solved["attitude"]["quaternion"]), true)   # degrees
+    return "right" if cross < 10 * px_deg and abs(roll) < 1.0 else "wrong"
 
 
-def solve_set(docs: list, out: str, pythonpath: str, label: str) -> dict:
+def solve_set(docs: list, out: str, pythonpath: str, label: str, score_only: bool = False) -> dict:
     paths = [_image_path(d, out) for d in docs]
+    saved = os.path.join(out, f"solved-{label}.jsonl")
     t0 = time.perf_counter()
-    proc = _cli(["solve", "-q", *paths], pythonpath)
+    if score_only:
+        stdout = open(saved).read()
+    else:
+        proc = _cli(["solve", "-q", *paths], pythonpath)
+        if proc.returncode == 2:
+            raise SystemExit(f"solve refused its input:\n{proc.stderr}")
+        stdout = proc.stdout
     wall = time.perf_counter() - t0
-    if proc.returncode == 2:
-        raise SystemExit(f"solve refused its input:\n{proc.stderr}")
     solved = {}
-    for line in proc.stdout.splitlines():
+    for line in stdout.splitlines():
         if line.strip():
             d = json.loads(line)
             solved[os.path.basename(d["image"]["path"])] = d
@@ -118,12 +131,13 @@ def solve_set(docs: list, out: str, pythonpath: str, label: str) -> dict:
         s = solved.get(os.path.basename(p), {})
         verdict = score(d, s)
         counts[verdict] += 1
-        if verdict != "right":
+        if verdict == "failed":
             r = (s.get("solve") or {}).get("reason", "no document")
             r = r.split(" (")[0].split(";")[0]
             reasons[r] = reasons.get(r, 0) + 1
-    with open(os.path.join(out, f"solved-{label}.jsonl"), "w") as f:
-        f.write(proc.stdout)
+    if not score_only:
+        with open(saved, "w") as f:
+            f.write(stdout)
     return {**counts, "n": len(docs), "wall_s": wall, "reasons": reasons}
 
 
@@ -137,13 +151,14 @@ def main(argv=None):
     ap.add_argument("--render-pythonpath", default=ROOT, help="the checkout whose render makes the frames")
     ap.add_argument("--label", default="this", help="names the solved-LABEL.jsonl files")
     ap.add_argument("--no-stars", action="store_true", help="the false-solution hunt: frames without stars")
+    ap.add_argument("--score-only", action="store_true", help="score the solved-LABEL.jsonl files of an earlier run")
     args = ap.parse_args(argv)
     rows = []
     for name in args.nuisances.split(","):
         sub = os.path.join(args.out, ("noise-" if args.no_stars else "") + name)
         docs = render_set(name, args.count, sub, args.seed + 1000 * list(NUISANCES).index(name), not args.no_stars,
                           os.path.abspath(args.render_pythonpath))
-        r = solve_set(docs, sub, os.path.abspath(args.solve_pythonpath), args.label)
+        r = solve_set(docs, sub, os.path.abspath(args.solve_pythonpath), args.label, args.score_only)
         rows.append((name, r))
         top = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items(), key=lambda kv: -kv[1])[:3])
         print(f"| {name} | {r['n']} | {100 * r['right'] / r['n']:.1f} % ({r['right']}) | {r['wrong']} | "
