@@ -17,7 +17,9 @@ import logging
 import math
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 
 import numpy as np
 
@@ -99,15 +101,39 @@ class Catalog:
     def sorted_by_magnitude(self) -> "Catalog":
         return self.subset(np.lexsort((self.id, self.mag)))
 
-    def rows_by_id(self) -> dict[int, int]:
-        """``{catalog id: row}``, to look up the rows of identified stars."""
-        return {int(i): k for k, i in enumerate(self.id)}
+    def _derived(self, name, make):
+        """``make()``, computed once per catalog and kept on it.
+
+        A catalog is a value: its operations return new catalogs and nothing in startrack
+        changes its arrays in place.  The cache is keyed on the arrays themselves, so a
+        column replaced by assignment is noticed; a caller that writes into a column in
+        place must make a new catalog (:meth:`subset`) instead.
+        """
+        key = (self.id, self.ra, self.dec)
+        got = self.__dict__.get("_cache_" + name)
+        if got is None or any(a is not b for a, b in zip(got[0], key, strict=True)):
+            got = (key, make())
+            self.__dict__["_cache_" + name] = got
+        return got[1]
+
+    def __getstate__(self):
+        # The derived tables are rebuilt where they are needed (a worker process), not pickled.
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_cache_")}
+
+    def rows_by_id(self) -> Mapping[int, int]:
+        """``{catalog id: row}`` (read-only, built once per catalog), to look up the rows of identified stars."""
+        return self._derived("rows", lambda: MappingProxyType(dict(zip(self.id.tolist(), range(len(self.id))))))
 
     def vectors(self) -> np.ndarray:
-        """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14)."""
-        from startrack.rotations import radec_to_vector
+        """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14); computed once per catalog, read-only."""
+        def make():
+            from startrack.rotations import radec_to_vector
 
-        return radec_to_vector(self.ra, self.dec)
+            vec = np.ascontiguousarray(radec_to_vector(self.ra, self.dec))
+            vec.flags.writeable = False
+            return vec
+
+        return self._derived("vectors", make)
 
     def checksum(self) -> str:
         """SHA-256 of the star table (ids, positions, magnitudes and epoch).

@@ -141,6 +141,15 @@ class BandDatabases:
             self._catalog = load_catalog()
         return self._catalog
 
+    def catalog_at(self, epoch: float | None = None):
+        """The catalog with its positions at ``epoch`` (decimal year; ``None``: its own), propagated once per epoch."""
+        if epoch is None:
+            return self.catalog
+        key = ("catalog_at", float(epoch))
+        if key not in self.memo:
+            self.memo[key] = self.catalog.propagate(epoch)
+        return self.memo[key]
+
     def band_database(self, band: int, which: int = 0):
         """The k-vector database ``which`` of FOV band ``band`` (:data:`FOV_BANDS`), or the given database."""
         if self.database is not None:
@@ -630,7 +639,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         vec = db.star_vec        # the pattern index's rows of the matches (solve_blind)
         rows = {int(k): int(v) for k, v in index_rows.items()}
     else:
-        cat = databases.catalog if opts.epoch is None else databases.catalog.propagate(opts.epoch)
+        cat = databases.catalog_at(opts.epoch)
         rows = cat.rows_by_id()
         vec = cat.vectors()
     from startrack.formats.sections import identification_record

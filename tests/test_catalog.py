@@ -180,3 +180,31 @@ def test_photocentres_around_stars_agree_with_the_merged_catalog():
     grouped = set(merged.merged) | {int(j) for others in merged.merged.values() for j in others}
     lonely = [r for r in range(len(cat)) if int(cat.id[r]) not in grouped][:200]
     assert cat.photocentres(lonely, radius) == {}
+
+
+def test_rows_and_vectors_are_built_once_and_match_a_fresh_computation(catalog):
+    """rows_by_id and vectors are kept on the catalog (issue 38: rebuilt per solve they were 70 % of it),
+    equal to what they were computed as, read-only, and rebuilt when a column is replaced."""
+    import pickle
+
+    from startrack.rotations import radec_to_vector
+
+    sub = catalog.subset(np.arange(0, len(catalog), 7))
+    rows, vec = sub.rows_by_id(), sub.vectors()
+    assert sub.rows_by_id() is rows and sub.vectors() is vec
+    assert dict(rows) == {int(i): k for k, i in enumerate(sub.id)}
+    np.testing.assert_array_equal(vec, radec_to_vector(sub.ra, sub.dec))
+    with pytest.raises(ValueError):
+        vec[0, 0] = 1.0
+    with pytest.raises(TypeError):
+        rows[1] = 2
+    # A replaced column is noticed (the arrays are the cache's key).
+    sub.ra = sub.ra + 1.0
+    np.testing.assert_array_equal(sub.vectors(), radec_to_vector(sub.ra, sub.dec))
+    # Workers get the catalog without its derived tables, and rebuild the same.
+    back = pickle.loads(pickle.dumps(sub))
+    assert not any(k.startswith("_cache_") for k in back.__dict__)
+    np.testing.assert_array_equal(back.vectors(), sub.vectors())
+    # Derived catalogs do not inherit the tables.
+    later = sub.propagate(2030.0)
+    assert later.vectors() is not sub.vectors() and not np.array_equal(later.vectors(), sub.vectors())

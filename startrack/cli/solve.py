@@ -49,10 +49,9 @@ def _write_matches(path, doc):
     """The matched stars of a solved image as CSV: catalog id, RA/Dec, x/y, magnitude, residual."""
     import csv
 
-    from startrack.catalog import load_catalog
     from startrack.formats.atomic import atomic_path
 
-    cat = load_catalog()
+    cat = _databases().catalog        # this process's, loaded once (its id index too)
     rows = cat.rows_by_id()
     resid = {(r["star"], r["id"]): r["residual_arcsec"] for r in doc["attitude"].get("residuals", [])}
     with atomic_path(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as fh:
