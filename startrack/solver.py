@@ -186,8 +186,21 @@ class Solver:
         return solve_image(image, opts, camera=camera if camera is not None else self.camera, catalog=self.catalog,
                            saturation=saturation, databases=self.bands)
 
-    def identify(self, stars, camera=None, *, algorithm: str | None = None, params=None):
+    def _catalog_stars(self):
+        """The catalog at the solver's epoch as :class:`startrack.identify.catalog_match.CatalogStars`, made once."""
+        key = ("catalog_stars", self.epoch)
+        if key not in self._positions_cache:
+            from startrack.identify.catalog_match import CatalogStars
+
+            cat = self.catalog if self.epoch is None else self.catalog.propagate(self.epoch)
+            self._positions_cache[key] = CatalogStars.from_catalog(cat)
+        return self._positions_cache[key]
+
+    def identify(self, stars, camera=None, *, algorithm: str | None = None, params=None, match_all: bool = True):
         """Identify the stars of one frame.
+
+        The same identification as ``startrack identify`` with the solver's catalog
+        (``--catalog``) and ``match_all`` (``--match-all``, its default).
 
         Parameters
         ----------
@@ -199,6 +212,10 @@ class Solver:
             Default: the solver's.
         params : IdentifyParams, optional
             Tolerances and limits.
+        match_all : bool
+            After the attitude, match the detections the database lacks to the
+            solver's catalog (:func:`startrack.identify.catalog_match.match_catalog`);
+            ``False``: the database's stars only.
 
         Returns
         -------
@@ -214,7 +231,8 @@ class Solver:
         db = self.database(camera)
         from startrack.records import StarTable
 
-        res = identify_stars(stars if isinstance(stars, StarTable) else list(stars), camera, db, algorithm, params)
+        res = identify_stars(stars if isinstance(stars, StarTable) else list(stars), camera, db, algorithm, params,
+                             catalog=self._catalog_stars() if match_all else None)
         return identification_record(res)
 
     def attitude(self, stars, identification, camera=None, *, method: str | None = None,

@@ -99,3 +99,13 @@ def split_blob_naive(residual, labels, lab, stats_row, min_separation=2.5, saddl
     if len(kept) < 2:
         return []
     return [(left + px, top + py) for (py, px) in kept]
+
+
+def cone_naive(vectors, axis, cos_radius):
+    """Rows whose unit vector is within the cone (``v . axis > cos_radius``), ascending: every row tested,
+    the dot product summed x, y, z as the index's kernel sums it."""
+    import numpy as np
+
+    v = np.asarray(vectors, dtype=np.float64)
+    dot = v[:, 0] * axis[0] + v[:, 1] * axis[1] + v[:, 2] * axis[2]
+    return np.flatnonzero(dot > cos_radius)
