@@ -125,13 +125,15 @@ class Catalog:
         return self._derived("rows", lambda: MappingProxyType(dict(zip(self.id.tolist(), range(len(self.id))))))
 
     def vectors(self) -> np.ndarray:
-        """ICRS unit vectors, shape ``(n, 3)`` (paper 000 Eq. 14); computed once per catalog, read-only."""
+        """ICRS unit vectors, shape ``(n, 3)``, C-contiguous (paper 000 Eq. 14).
+
+        Computed once per catalog and shared by every caller: read it, never write into it.
+        (It is not flagged read-only: numba compiles kernels again for read-only arrays.)
+        """
         def make():
             from startrack.rotations import radec_to_vector
 
-            vec = np.ascontiguousarray(radec_to_vector(self.ra, self.dec))
-            vec.flags.writeable = False
-            return vec
+            return np.ascontiguousarray(radec_to_vector(self.ra, self.dec))
 
         return self._derived("vectors", make)
 

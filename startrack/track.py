@@ -270,9 +270,10 @@ class Tracker:
             camera = self._camera_flipped
         cat = catalog if self.config.mag_limit is None else catalog.filter_magnitude(None, self.config.mag_limit)
         self.catalog = cat.sorted_by_magnitude()
-        self.vectors = np.ascontiguousarray(self.catalog.vectors())
+        self.vectors = self.catalog.vectors()
         self.ids = self.catalog.id
-        self.row_of_id = {int(i): k for k, i in enumerate(self.ids)}
+        self.row_of_id = self.catalog.rows_by_id()
+        self._sky = None            # the catalog's sky index (startrack.skyindex), made at the first neighbourhood
         self.camera = camera
         self.db = database
         self.filter = None
@@ -311,7 +312,11 @@ class Tracker:
         the field can hold is in it)."""
         bore = np.asarray(dcm)[2]
         if self._near is None or float(bore @ self._near[0]) < self._cos_margin:
-            rows = np.flatnonzero(self.vectors @ bore > self._cos_near)
+            if self._sky is None:
+                from startrack.skyindex import SkyIndex
+
+                self._sky = SkyIndex(self.vectors)
+            rows = self._sky.cone(bore, self._cos_near)
             self._near = (bore.copy(), rows, np.ascontiguousarray(self.vectors[rows]))
         return self._near[1], self._near[2]
 

@@ -184,7 +184,7 @@ def test_photocentres_around_stars_agree_with_the_merged_catalog():
 
 def test_rows_and_vectors_are_built_once_and_match_a_fresh_computation(catalog):
     """rows_by_id and vectors are kept on the catalog (issue 38: rebuilt per solve they were 70 % of it),
-    equal to what they were computed as, read-only, and rebuilt when a column is replaced."""
+    equal to what they were computed as, the id index read-only, and rebuilt when a column is replaced."""
     import pickle
 
     from startrack.rotations import radec_to_vector
@@ -194,8 +194,7 @@ def test_rows_and_vectors_are_built_once_and_match_a_fresh_computation(catalog):
     assert sub.rows_by_id() is rows and sub.vectors() is vec
     assert dict(rows) == {int(i): k for k, i in enumerate(sub.id)}
     np.testing.assert_array_equal(vec, radec_to_vector(sub.ra, sub.dec))
-    with pytest.raises(ValueError):
-        vec[0, 0] = 1.0
+    assert vec.flags.c_contiguous and vec.flags.writeable      # numba takes it as it takes any array
     with pytest.raises(TypeError):
         rows[1] = 2
     # A replaced column is noticed (the arrays are the cache's key).

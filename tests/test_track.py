@@ -222,3 +222,29 @@ def test_window_kernel_matches_its_parts(catalog, k1, rate):
         assert np.array_equal(np.flatnonzero(res[:, 11] > 0), ok)
         assert np.allclose(res[ok, 3], seg[(seg[:, 4] > 0) & near, 0]) and np.allclose(res[ok, 7],
                                                                                     seg[(seg[:, 4] > 0) & near, 3])
+
+
+@pytest.mark.parametrize("fov", [12.0, 70.0, 120.0])
+def test_predicted_stars_through_the_sky_index_are_the_brute_force_ones(catalog, fov):
+    """The tracker's predicted stars (its neighbourhood from the sky index) are those of projecting the whole
+    catalog, attitude after attitude as the boresight moves, across the poles and right ascension 0."""
+    from startrack.rotations import random_quaternions
+
+    cam = Camera.from_fov(fov, 1024, 768)
+    tracker = Tracker(catalog, cam, None, TrackerConfig(mag_limit=7.0))
+    vec = catalog.filter_magnitude(None, 7.0).sorted_by_magnitude().vectors()
+    cos_limit = math.cos(math.radians(min(89.0, cam.max_off_axis_deg + 1.0)))
+    dcms = [radec_roll_to_dcm(ra, dec, roll) for ra, dec, roll in
+            ((0.0, 90.0, 0.0), (359.9, 89.0, 30.0), (0.1, 88.0, 60.0), (180.0, -90.0, 10.0), (359.99, 0.0, 0.0),
+             (0.01, -45.0, 5.0), (359.0, -1.0, 0.0))]
+    dcms += [quaternion_to_dcm(q) for q in random_quaternions(20, np.random.default_rng(38))]
+    for dcm in dcms:
+        rows, x, y = tracker.predict_stars(dcm)
+        cam_vec = vec @ np.asarray(dcm).T
+        front = np.flatnonzero(cam_vec[:, 2] > cos_limit)
+        bx, by = cam.vectors_to_pixels(cam_vec[front])
+        inside = cam.in_image(bx, by, margin=2.0) & np.isfinite(bx)
+        want = front[inside][: tracker.config.max_predicted]
+        np.testing.assert_array_equal(rows, want)
+        np.testing.assert_allclose(x, bx[inside][: len(want)], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(y, by[inside][: len(want)], rtol=0, atol=1e-9)
