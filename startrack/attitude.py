@@ -42,6 +42,7 @@ __all__ = [
     "triad",
     "wahba_loss",
     "wcs_header",
+    "wcs_keywords",
 ]
 
 METHODS = ("quest", "q-method", "svd", "foam", "esoq2", "triad")
@@ -449,10 +450,18 @@ def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
     ``mirrored``: the image is the camera's flipped about the principal point's column
     (:mod:`startrack.parity`), pixel ``(x, y)`` being the camera's ``(2 cx - x, y)``: ``CD``'s first
     column changes sign (so does its determinant) and the SIP terms of odd powers of ``u`` follow.
-    Returns an ``astropy.io.fits.Header``.
+    Returns an ``astropy.io.fits.Header`` of :func:`wcs_keywords`.
     """
     from astropy.io import fits
 
+    hdr = fits.Header()
+    for key, value in wcs_keywords(dcm, camera, sip_order, mirrored).items():
+        hdr[key] = value
+    return hdr
+
+
+def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dict:
+    """The keywords of :func:`wcs_header` and their values, in order, as a dict (without astropy)."""
     from startrack.rotations import dcm_to_radec_roll, east_north
 
     a = np.asarray(dcm, dtype=np.float64)
@@ -462,7 +471,7 @@ def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
     cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
     flip = -1.0 if mirrored else 1.0
     cd[:, 0] *= flip
-    hdr = fits.Header()
+    hdr = {}
     hdr["WCSAXES"] = 2
     hdr["CTYPE1"] = "RA---TAN-SIP" if camera.has_distortion else "RA---TAN"
     hdr["CTYPE2"] = "DEC--TAN-SIP" if camera.has_distortion else "DEC--TAN"

@@ -194,3 +194,22 @@ def test_leave_one_out_is_the_solve_from_the_other_stars(angle, n):
         assert got[i] == pytest.approx(want, abs=1e-9)
     if n >= 12:                                     # the others agree without it
         assert got[n // 2] > 10 * np.median(got)
+
+
+@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (-0.05, 0.01)])
+def test_wcs_keywords_are_the_header_without_astropy(k1, k2):
+    """`solve` writes a frame's attitude.wcs from wcs_keywords (no astropy import): the header's cards exactly."""
+    import subprocess
+    import sys
+
+    from startrack.attitude import wcs_keywords
+
+    cam = Camera.from_fov(12, 1024, 768, k1=k1, k2=k2)
+    a = radec_roll_to_dcm(230.0, 64.0, 33.0)
+    hdr = wcs_header(a, cam)
+    kw = wcs_keywords(a, cam)
+    assert list(kw.items()) == [(k, v) for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")]
+    code = ("import sys, numpy as np; from startrack.attitude import wcs_keywords; from startrack.camera import Camera;"
+            "wcs_keywords(np.eye(3), Camera.from_fov(12, 64, 48, k1=0.01)); print('astropy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

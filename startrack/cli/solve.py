@@ -201,17 +201,21 @@ def _write_outputs(doc, image, path, outputs):
     wcs_path, plot_path, fits_path, matches_path = outputs
     import numpy as np
 
-    from startrack.attitude import wcs_header
+    from startrack.attitude import wcs_keywords
     from startrack.camera import Camera
 
-    hdr = wcs_header(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
-                     mirrored=doc["solve"].get("parity") == "mirrored")
-    # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`)
-    doc["attitude"]["wcs"] = {k: v for k, v in hdr.items() if k not in ("COMMENT", "HISTORY")}
+    # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`); astropy only to write FITS
+    keywords = wcs_keywords(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
+                            mirrored=doc["solve"].get("parity") == "mirrored")
+    doc["attitude"]["wcs"] = dict(keywords)
     if wcs_path or fits_path:
         from astropy.io import fits
 
         from startrack.formats.atomic import atomic_path
+
+        hdr = fits.Header()
+        for key, value in keywords.items():
+            hdr[key] = value
 
         if wcs_path:
             with atomic_path(wcs_path, suffix=".fits") as tmp:
