@@ -394,7 +394,15 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
         yield FrameRecord(name, None, BadInputError(name, None, f"is not valid JSON or JSON Lines ({exc})"), base)
 
 
+_AS_IS = frozenset((str, int, bool, type(None)))     # JSON values as they are (the most common by far)
+
+
 def _to_json(value):
+    kind = type(value)
+    if kind in _AS_IS:
+        return value
+    if kind is float:
+        return value if math.isfinite(value) else None
     if isinstance(value, dict):
         return {str(k): _to_json(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
