@@ -137,6 +137,15 @@ class Catalog:
 
         return self._derived("vectors", make)
 
+    def sky_index(self):
+        """The :class:`startrack.skyindex.SkyIndex` of :meth:`vectors` (cone queries), built once per catalog."""
+        def make():
+            from startrack.skyindex import SkyIndex
+
+            return SkyIndex(self.vectors())
+
+        return self._derived("sky_index", make)
+
     def checksum(self) -> str:
         """SHA-256 of the star table (ids, positions, magnitudes and epoch).
 

@@ -234,7 +234,7 @@ def _write_outputs(doc, image, path, outputs):
     if plot_path:
         from startrack.plot import annotate_solution
 
-        annotate_solution(plot_path, image, doc, mag_limit=7.0)
+        annotate_solution(plot_path, image, doc, catalog=_databases().catalog, mag_limit=7.0)
         doc["solve"]["plot_path"] = plot_path
 
 
