@@ -257,10 +257,17 @@ def bench_accuracy():
     return "accuracy against the Cramér-Rao bound", text
 
 
+def bench_speed():
+    """Issue 38: Solver.solve, identify with defaults, a warm solve process and -j 2, each beside tetra3rs."""
+    import speed_path
+
+    return "the whole path beside tetra3rs: solve, identify's final match, start-up, -j (issue 38)", speed_path.report()
+
+
 SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid,
             "databases": bench_databases, "identify": bench_identify, "identify-compare": bench_identify_compare,
             "identify-speed": bench_identify_speed, "attitude": bench_attitude, "track": bench_track,
-            "accuracy": bench_accuracy}
+            "accuracy": bench_accuracy, "speed": bench_speed}
 
 
 def section_list():
