@@ -52,7 +52,8 @@ def _startrack_where():
 
 
 def _process_env():
-    """The environment of the timed processes: this startrack, and Python's byte-code cache on (as an
+    """The environment of the timed processes (run in the checkout's directory: ``python -m`` puts the working
+    directory before ``PYTHONPATH``): this startrack, and Python's byte-code cache on (as an
     installation has it; ``PYTHONDONTWRITEBYTECODE`` would recompile every module in every process),
     kept under bench-output/pycache so that no checkout is written to."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
@@ -207,14 +208,14 @@ def section_startup(runs: int = 9) -> str:
         commands = {"startrack": [sys.executable, "-m", "startrack", "solve", image, "-q"],
                     "tetra3rs": [sys.executable, script, db_path, image, str(ESA_FOV_DEG)]}
         for cmd in commands.values():          # warm: caches built, files in the page cache
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=_startrack_where())
             if proc.returncode != 0:
                 raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr}")
         wall = {k: [] for k in commands}
         for rep in range(runs):
             for key in (list(commands) if rep % 2 == 0 else list(commands)[::-1]):
                 t0 = time.perf_counter()
-                subprocess.run(commands[key], capture_output=True, env=env, check=True)
+                subprocess.run(commands[key], capture_output=True, env=env, check=True, cwd=_startrack_where())
                 wall[key].append(time.perf_counter() - t0)
     a, b = statistics.median(wall["startrack"]), statistics.median(wall["tetra3rs"])
     rows = [["`startrack solve IMAGE -q` (blind)", f"{a:.3f}", f"{a / b:.2f}"],
@@ -240,14 +241,15 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
             paths.append(dst)
         env = _process_env()
         base = [sys.executable, "-m", "startrack", "solve", *paths, "-q", "-o", os.devnull]
-        subprocess.run(base[:5] + ["-q"], capture_output=True, env=env)          # warm
+        subprocess.run(base[:5] + ["-q"], capture_output=True, env=env, cwd=_startrack_where())        # warm
         rate = {1: [], 2: []}
         loads = []
         for rep in range(runs):
             for jobs in ((1, 2) if rep % 2 == 0 else (2, 1)):
                 loads.append(os.getloadavg()[0])
                 t0 = time.perf_counter()
-                proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env)
+                proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env,
+                                      cwd=_startrack_where())
                 dt = time.perf_counter() - t0
                 if proc.returncode not in (0, 1):
                     raise RuntimeError(proc.stderr)
