@@ -120,3 +120,18 @@ def test_clearing_another_cache_keeps_the_compiled_kernels(tmp_path):
     inside = {"STARTRACK_CACHE": str(tmp_path), "STARTRACK_KERNELS": str(kernels)}
     run_cli("cache", "clear", env=inside, check=True)
     assert not (kernels / "kernels-abc.so").exists()
+
+
+def test_numba_version_is_read_without_importing_it():
+    """The AOT build's tag names numba's version as importlib.metadata does, without importing either."""
+    import subprocess
+    import sys
+    from importlib.metadata import version
+
+    from startrack._kernels._jit import _numba_version
+
+    assert _numba_version() == version("numba")
+    code = ("import sys; from startrack._kernels._jit import _numba_version; _numba_version(); "
+            "print('numba' in sys.modules, 'importlib.metadata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "False"]

@@ -243,9 +243,24 @@ def _materialise() -> None:
 # ---------------------------------------------------------------- the AOT build
 
 def _versions() -> str:
+    return f"numba {_numba_version()}; numpy {np.__version__}; python {sys.version}; {sys.platform}"
+
+
+def _numba_version() -> str:
+    """numba's installed version, without importing numba or importlib.metadata (~20 ms of every process's
+    start-up): the name of the one ``numba-VERSION.dist-info`` beside the package, else importlib.metadata."""
+    spec = importlib.util.find_spec("numba")
+    if spec is not None and spec.origin:
+        site = os.path.dirname(os.path.dirname(spec.origin))
+        try:
+            found = [n for n in os.listdir(site) if n.startswith("numba-") and n.endswith(".dist-info")]
+        except OSError:
+            found = []
+        if len(found) == 1:
+            return found[0][len("numba-"):-len(".dist-info")]
     from importlib.metadata import version
 
-    return f"numba {version('numba')}; numpy {np.__version__}; python {sys.version}; {sys.platform}"
+    return version("numba")
 
 
 def _cpu_id() -> str:
