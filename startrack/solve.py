@@ -417,6 +417,9 @@ def warm_for_build(index=None) -> None:
 
     core_stats_of_sorted(np.array([1.0, 2.0, 3.0]))
     background_mesh(np.ascontiguousarray(image, dtype=np.float32), 64, 6)
+    # The sky index's build and cone query, called from Python by identify's final catalog match and the
+    # tracker's predicted stars.
+    catalog.sky_index().cone(np.array([0.0, 0.0, 1.0]), 0.9)
     # `identify`'s default algorithm on a k-vector database (a pipeline's stages are processes too): its
     # one-kernel search, and the driver's Python loop with the fused verification, through which every
     # other algorithm verifies its proposals (pixels_to_unit, verify_focal).
