@@ -1,4 +1,6 @@
-"""The whole path at tetra3rs's speed (issue 38): solve, identify's final match, start-up, -j.
+"""The whole path beside tetra3rs (issue 38's must-show), feeds `make bench` section speed and results-speed-2026-12-05.
+
+Solve, identify's final match, start-up, -j.
 
 Four sections, each beside tetra3rs where the issue asks for it, every figure a median:
 
