@@ -14,16 +14,28 @@ __all__ = ["CatalogStars", "match_catalog", "match_identified"]
 
 @dataclass
 class CatalogStars:
-    """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes."""
+    """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes, and their
+    sky index (:class:`startrack.skyindex.SkyIndex`, made at the first match when not given)."""
 
     vectors: np.ndarray
     id: np.ndarray
     mag: np.ndarray
+    sky: object = None
 
     @classmethod
     def from_catalog(cls, catalog) -> CatalogStars:
-        """From a :class:`startrack.catalog.Catalog` (vectors computed once)."""
-        return cls(np.ascontiguousarray(catalog.vectors()), np.asarray(catalog.id), np.asarray(catalog.mag))
+        """From a :class:`startrack.catalog.Catalog` (its vectors and sky index, made once per catalog)."""
+        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index())
+
+    def in_cone(self, axis: np.ndarray, cos_radius: float) -> np.ndarray:
+        """The rows with ``vectors @ axis > cos_radius``, ascending: the stars near the sky index's cone,
+        tested as a pass over every star would test them."""
+        if self.sky is None:
+            from startrack.skyindex import SkyIndex
+
+            self.sky = SkyIndex(self.vectors)
+        near = self.sky.near(axis, cos_radius)
+        return near[self.vectors[near] @ axis > cos_radius]
 
 
 def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
@@ -57,16 +69,20 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     """
     from startrack._kernels.attitude import quest
 
+    done = np.zeros(len(b_all), dtype=bool)
+    done[[m.star for m in matches]] = True
+    todo = np.flatnonzero(~done)
+    if len(todo) == 0:
+        return matches, None
     vec = stars.vectors
-    front = np.flatnonzero((vec @ dcm[2] > cos_fov) & (stars.mag <= (np.inf if mag_limit is None else mag_limit)))
+    # The catalog stars in the field's cone only (the sky index), not a pass over the catalog.
+    front = stars.in_cone(dcm[2], cos_fov)
+    front = front[stars.mag[front] <= (np.inf if mag_limit is None else mag_limit)]
     pc = vec[front] @ dcm.T
     x, y = camera.vectors_to_pixels(pc)
     keep = camera.in_image(x, y)
     idx, pc = front[keep], pc[keep]
-    done = np.zeros(len(b_all), dtype=bool)
-    done[[m.star for m in matches]] = True
-    todo = np.flatnonzero(~done)
-    if len(idx) < 1 or len(todo) == 0:
+    if len(idx) < 1:
         return matches, None
     taken = {int(m.id) for m in matches}
     dots = b_all[todo] @ pc.T                                   # (detections, predicted)
@@ -118,8 +134,17 @@ def _frame_depth(flux, star_index, mags, margin: float = 1.0):
     fl = flux[np.isfinite(flux) & (flux > 0)]
     if ok.sum() < 3 or len(fl) == 0:
         return None
-    zp = float(np.median(mags[ok] + 2.5 * np.log10(f[ok])))
+    zp = _median(mags[ok] + 2.5 * np.log10(f[ok]))
     return float(-2.5 * np.log10(fl.min()) + zp + margin)
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a short array, the same number without its machinery (a frame's few stars)."""
+    v = np.sort(values)
+    n = len(v)
+    if n == 0 or np.isnan(v[-1]):
+        return float(np.median(values))
+    return float(v[n // 2]) if n % 2 else float((v[n // 2 - 1] + v[n // 2]) / 2)
 
 
 def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db, params):
@@ -138,9 +163,12 @@ def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_
     """
     from startrack.identify.verify import _geometry, _pixels_to_vectors
 
+    has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
+    depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
+    if len(accepted.matches) >= len(xs):
+        return accepted.matches, None, depth       # every detection identified: nothing for the catalog
     if not isinstance(catalog, CatalogStars):
         catalog = CatalogStars.from_catalog(catalog)
-    has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     if b_all is None:
         b_all = _pixels_to_vectors(camera, xs, ys)
     cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
@@ -148,7 +176,6 @@ def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_
     margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-    depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
     matches, q = match_catalog(accepted.matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
                                radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
                                _geometry(camera if scale is None else cam)[0], depth, sig_px / cam.focal_length_px)
