@@ -127,7 +127,10 @@ def section_identify(count: int = 300, passes: int = 3) -> str:
     from startrack.catalog import load_catalog
     from startrack.evaluate import Condition, make_frames, score
     from startrack.identify import IdentifyParams, identify_stars
-    from startrack.identify.base import CatalogStars
+    try:
+        from startrack.identify.catalog_match import CatalogStars
+    except ImportError:         # a checkout from before identify/'s split (the baseline of issue 38)
+        from startrack.identify.base import CatalogStars
     from startrack.kvector import build_kvector, max_separation_deg
 
     load0 = _load()
