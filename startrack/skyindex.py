@@ -9,10 +9,11 @@ the right ascensions within the cone's widest extent ``asin(sin r / cos dec)``
 and tests only those stars: a 15 degree field of the 118,000-star catalog tests about a
 thousand.  The answer is the brute-force one, ascending.
 
-Declination bands were measured against HEALPix cone searches (astropy-healpix 1.x and
-cdshealpix 0.9 on the shipped catalog, nside 16-64): the bands answer a 3 degree cone in
-7 us, the HEALPix packages in 68-189 us (most of it their per-call overhead), so no
-dependency is added (``benchmarks/speed_path.py``).
+Declination bands were measured against HEALPix cone searches (astropy-healpix 2.0.1 at
+nside 16-64 and cdshealpix 0.9.0 at depth 4-6, on the shipped catalog): the bands answer a
+3 degree cone in 7 us and a 12 degree one in 20 us, the HEALPix packages in 69-193 and
+189-2,104 us (their per-call overhead and the cells' look-up), so no dependency is added
+(``benchmarks/results-speed-2026-12-05.md``).
 
 Example
 -------
