@@ -67,6 +67,7 @@ class Solver:
         self.options = options or SolveOptions(algorithm=algorithm, method=method, epoch=epoch)
         self._bands = None          # the FOV bands' databases, loaded or built once (solve.BandDatabases)
         self._positions_cache: dict = {}
+        self._catalog_stars_cache = None
 
     # ------------------------------------------------------------------ owned resources
     @property
@@ -95,12 +96,16 @@ class Solver:
                 self._camera = camera_from_file(os.fspath(arg))
         return self._camera
 
-    def _positions(self):
-        """Catalog rows by id and ICRS unit vectors at the solver's epoch."""
-        if self.epoch not in self._positions_cache:
-            cat = self.catalog if self.epoch is None else self.catalog.propagate(self.epoch)
-            self._positions_cache[self.epoch] = (cat.rows_by_id(), cat.vectors())
-        return self._positions_cache[self.epoch]
+    def _positions(self, epoch: float | None = None):
+        """Catalog rows by id and ICRS unit vectors at ``epoch`` (default: the solver's), made once per epoch
+        (the last few epochs are kept)."""
+        epoch = self.epoch if epoch is None else epoch
+        if epoch not in self._positions_cache:
+            if len(self._positions_cache) > 8:
+                self._positions_cache.clear()
+            cat = self.catalog if epoch is None else self.catalog.propagate(epoch)
+            self._positions_cache[epoch] = (cat.rows_by_id(), cat.vectors())
+        return self._positions_cache[epoch]
 
     def database(self, camera=None):
         """The identification database: the one given, else the cached one of ``camera``'s field-of-view band."""
@@ -188,13 +193,13 @@ class Solver:
 
     def _catalog_stars(self):
         """The catalog at the solver's epoch as :class:`startrack.identify.catalog_match.CatalogStars`, made once."""
-        key = ("catalog_stars", self.epoch)
-        if key not in self._positions_cache:
+        got = self._catalog_stars_cache
+        if got is None or got[0] != self.epoch:
             from startrack.identify.catalog_match import CatalogStars
 
             cat = self.catalog if self.epoch is None else self.catalog.propagate(self.epoch)
-            self._positions_cache[key] = CatalogStars.from_catalog(cat)
-        return self._positions_cache[key]
+            got = self._catalog_stars_cache = (self.epoch, CatalogStars.from_catalog(cat))
+        return got[1]
 
     def identify(self, stars, camera=None, *, algorithm: str | None = None, params=None, match_all: bool = True):
         """Identify the stars of one frame.
@@ -268,11 +273,7 @@ class Solver:
 
         camera = self._need_camera(camera, "attitude")
         table = stars if isinstance(stars, StarTable) else StarTable.from_list(list(stars))
-        if epoch is not None and epoch != self.epoch:
-            cat = self.catalog.propagate(epoch)
-            rows, vec = cat.rows_by_id(), cat.vectors()
-        else:
-            rows, vec = self._positions()
+        rows, vec = self._positions(epoch)
         return identified_attitude(table, identification_record(identification), camera, rows, vec,
                                    method or self.method, sigma_px,
                                    epoch if epoch is not None else self.epoch)
