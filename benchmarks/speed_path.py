@@ -1,4 +1,4 @@
-"""The whole path beside tetra3rs (issue 38's must-show), feeds `make bench` section speed and results-speed-2026-12-05.
+"""Issue 38's must-show beside tetra3rs, feeds `make bench` section speed and results/results-speed-2026-12-05.md.
 
 Solve, identify's final match, start-up, -j.
 

@@ -13,7 +13,7 @@ Declination bands were measured against HEALPix cone searches (astropy-healpix 2
 nside 16-64 and cdshealpix 0.9.0 at depth 4-6, on the shipped catalog): the bands answer a
 3 degree cone in 7 us and a 12 degree one in 20 us, the HEALPix packages in 69-193 and
 189-2,104 us (their per-call overhead and the cells' look-up), so no dependency is added
-(``benchmarks/results-speed-2026-12-05.md``).
+(``benchmarks/results/results-speed-2026-12-05.md``).
 
 Example
 -------

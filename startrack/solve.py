@@ -511,8 +511,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         tried = 0
         result = None
         # The k-vector searches' configuration, only when one can run (it loads every algorithm's module).
-        id_config = _pyramid_config(opts.algorithm, opts.max_triads) if camera is not None or (
-            opts.algorithm != "patterns" and opts.blind != "patterns") else None
+        id_config = _pyramid_config(opts.algorithm, opts.max_triads) if camera is not None or \
+            opts.blind != "patterns" else None
         params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
                                 max_false_probability=opts.max_false_probability)
         if camera is not None:
