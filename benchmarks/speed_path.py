@@ -122,7 +122,7 @@ def section_solve(passes: int = 5) -> str:
 def section_identify(count: int = 300, passes: int = 3) -> str:
     """identify with defaults (final match against the shipped catalog) beside tetra3rs on issue 14's lists."""
     import tetra3rs_peer
-    from identify_compare import _peer_correct, add_sensor_arguments, sensor_setup
+    from common import add_sensor_arguments, peer_correct, sensor_setup
 
     from startrack.catalog import load_catalog
     from startrack.evaluate import Condition, make_frames, score
@@ -159,7 +159,7 @@ def section_identify(count: int = 300, passes: int = 3) -> str:
                 if key == "tetra3rs":
                     r = tetra3rs_peer.solve(xy, w, h, args.fov, db=peer)
                     times[key].append(r["elapsed_ms"])
-                    good = r.get("ra") is not None and _peer_correct(r, truth)
+                    good = r.get("ra") is not None and peer_correct(r, truth)
                     got = r["matches"]
                 else:
                     res = identify_stars(stars, cam, kv, "pyramid", params, catalog=deep if key == kinds[0] else None)
