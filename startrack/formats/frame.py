@@ -443,12 +443,12 @@ def _check_finished(doc, section: str, source: str) -> None:
     """Refuse a line of a ``--resume`` output that is not this command's result (issue 41: a ``centroid``
     document counted as a solved image)."""
     if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith("startrack.frame/"):
-        raise BadInputError(source, "format", "is not a startrack frame document: --resume appends only to this "
+        raise BadInputError(source, "format", "is not a startrack frame document: a resumed batch appends only to this "
                                               "command's own output")
     sec = doc.get(section)
     if not isinstance(sec, dict):
         raise BadInputError(source, section, "is missing: the document is another command's result, not this "
-                                             "command's: --resume appends only to this command's own output")
+                                             "command's: a resumed batch appends only to this command's own output")
     status = sec.get("status")
     if status is not None and status not in ("ok", "failed"):
         raise BadInputError(source, f"{section}.status", f"is {status!r}, expected 'ok' or 'failed'")
