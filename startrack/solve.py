@@ -479,6 +479,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     from startrack.camera import Camera
     from startrack.centroid import CentroidOptions, find_stars, frame_psf
     from startrack.identify import IdentifyParams, identify_stars, make_config
+    from startrack.patterns import BlindOptions
     from startrack.records import ReasonCode, StarTable
 
     if databases is None:
@@ -591,7 +592,9 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             # A frame whose brightest detections gave no pattern (few stars above a pixel's threshold: a narrow
             # field, a short exposure, a dark-subtracted 8-bit frame) is detected again through a matched filter
             # of the frame's own PSF: a star's whole light against the noise, ~0.7 mag deeper for a 1 px PSF.
-            if clock.expired():
+            # Only a frame of fewer detections than the blind search's deepest pattern level gains from it: with
+            # more, the brightest of the deeper list are the ones already searched.
+            if clock.expired() or len(cres.stars) >= BlindOptions.max_pattern_stars:
                 break
             psf = frame_psf(cres.stars) if cres.stars else None
             deep = CentroidOptions(max_stars=opts.max_stars, matched_filter=True,
