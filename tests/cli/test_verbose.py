@@ -48,12 +48,12 @@ def test_verbose_identify_says_what_the_search_did(star_frame):
     lines = _log_lines(info.stderr, "INFO")
     assert any(re.search(r"startrack\.kvector: k-vector database \S+db\.h5: \d+ stars, \d+ pairs", l)
                for l in lines), info.stderr
-    assert any(re.search(r"startrack\.identify\.base: pyramid: \d+ of \d+ stars identified at proposal \d+", l)
+    assert any(re.search(r"startrack\.identify\.driver: pyramid: \d+ of \d+ stars identified at proposal \d+", l)
                for l in lines), info.stderr
     assert any(re.search(r"startrack\.cli\.batch: frame 1 \(<stdin>[^)]*\): ok", l) for l in lines), info.stderr
     assert _log_lines(info.stderr, "DEBUG") == []
     debug = run_cli("identify", "-d", db, "-vv", input=frame, check=True)
-    assert any(re.search(r"DEBUG: startrack\.identify\.base: pyramid: \d+ stars .*tolerance", l)
+    assert any(re.search(r"DEBUG: startrack\.identify\.driver: pyramid: \d+ stars .*tolerance", l)
                for l in _log_lines(debug.stderr, "DEBUG")), debug.stderr
     quiet = run_cli("identify", "-d", db, input=frame, check=True)
     assert _log_lines(quiet.stderr) == [], quiet.stderr
