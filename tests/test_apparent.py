@@ -1,0 +1,140 @@
+"""Apparent places: frame times, the Earth's velocity, stellar aberration (startrack.apparent)."""
+import datetime as dt
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from startrack import apparent as ap
+from startrack.errors import BadInputError
+
+UTC = dt.timezone.utc
+MAS = math.pi / 180 / 3.6e6
+
+
+def _angle(a, b):
+    """Angle between unit vectors (rad), accurate near zero."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+
+
+def _unit(rng, n):
+    u = rng.normal(size=(n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def test_perpendicular_aberration_is_asin_beta_toward_the_apex():
+    # 30 km/s perpendicular to the star: the relativistic displacement is asin(v/c) (cos theta' = beta).
+    state = ap.velocity_state([0.0, 30.0, 0.0])
+    u = np.array([[1.0, 0.0, 0.0]])
+    moved = ap.aberrate(u, state, deflection=False)
+    shift = _angle(moved, u)[0]
+    assert shift == pytest.approx(math.asin(30.0 / ap.C_KM_S), rel=1e-6)
+    assert math.degrees(shift) * 3600 == pytest.approx(20.64, abs=0.01)
+    # Toward the apex (+y), and in the plane of the star and the velocity.
+    assert moved[0, 1] > 0 and abs(moved[0, 2]) < 1e-15
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-1, 1), st.floats(0, 2 * math.pi), st.floats(0.1, 40.0))
+def test_relativistic_formula_and_apex(cz, phi, speed):
+    # cos theta' = (cos theta + beta) / (1 + beta cos theta), theta from the apex (special relativity,
+    # e.g. Explanatory Supplement 3rd ed. Eq. 7.38), and the star moves toward the apex.
+    s = math.sqrt(max(0.0, 1 - cz * cz))
+    u = np.array([s * math.cos(phi), s * math.sin(phi), cz])
+    apex = np.array([0.0, 0.0, 1.0])
+    state = ap.velocity_state(apex * speed)
+    moved = ap.aberrate(u, state, deflection=False)
+    beta = speed / ap.C_KM_S
+    expected = (cz + beta) / (1 + beta * cz)
+    # erfa.ab adds the Sun's potential term (< 1 microarcsec at 1 au).
+    assert math.acos(np.clip(moved @ apex, -1, 1)) == pytest.approx(math.acos(np.clip(expected, -1, 1)), abs=1e-11)
+    assert moved @ apex >= cz - 1e-15
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.floats(0, 40.0))
+def test_unaberrate_inverts(seed, speed):
+    rng = np.random.default_rng(seed)
+    v = _unit(rng, 1)[0] * speed
+    state = ap.velocity_state(v, _unit(rng, 1)[0], 0.98)
+    u = _unit(rng, 50)
+    back = ap.unaberrate(ap.aberrate(u, state), state)
+    assert np.max(_angle(back, u)) < 1e-14
+
+
+def test_agrees_with_astropy_gcrs_of_a_star_at_infinity():
+    from astropy import units
+    from astropy.coordinates import GCRS, CartesianRepresentation, SkyCoord
+    from astropy.time import Time
+
+    rng = np.random.default_rng(7)
+    u = _unit(rng, 500)
+    ra = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    dec = np.degrees(np.arcsin(u[:, 2]))
+    stars = SkyCoord(ra=ra * units.deg, dec=dec * units.deg, frame="icrs")
+    for when, v_sc in ((dt.datetime(2026, 3, 20, 6, tzinfo=UTC), None),
+                       (dt.datetime(2026, 9, 22, 18, 30, tzinfo=UTC), np.array([3.1, -6.2, 2.4]))):
+        state = ap.observer_state(when, v_sc)
+        ours = ap.aberrate(u, state)
+        extra = {} if v_sc is None else {"obsgeovel": CartesianRepresentation(v_sc * units.km / units.s)}
+        g = stars.transform_to(GCRS(obstime=Time(when), **extra)).cartesian.xyz.value.T
+        g /= np.linalg.norm(g, axis=1, keepdims=True)
+        assert np.max(_angle(ours, g)) < 1.0 * MAS
+        # And the effect itself is there: up to ~20.5" (+ LEO).
+        assert np.max(_angle(ours, u)) > 15 / 206265
+
+
+def test_earth_velocity_is_the_orbital_one():
+    # About 29.8 km/s, perpendicular to the Sun direction within the orbit's eccentricity (~1 deg).
+    for month in (1, 4, 7, 10):
+        t = dt.datetime(2026, month, 5, tzinfo=UTC)
+        state = ap.observer_state(t)
+        speed = np.linalg.norm(state.earth_km_s)
+        assert 29.2 < speed < 30.4
+        cosang = state.earth_km_s @ state.sun_to_observer / speed
+        assert abs(cosang) < math.sin(math.radians(1.5))
+
+
+def test_apparent_scale_matches_aberrated_separations():
+    state = ap.velocity_state([20.0, -15.0, 10.0])
+    rng = np.random.default_rng(3)
+    for b in _unit(rng, 5):
+        # Two stars 5 deg apart around b.
+        perp = np.cross(b, [0.3, 0.5, 0.8])
+        perp /= np.linalg.norm(perp)
+        d = math.radians(2.5)
+        p, q = b * math.cos(d) + perp * math.sin(d), b * math.cos(d) - perp * math.sin(d)
+        pa, qa = ap.aberrate(np.array([p, q]), state, deflection=False)
+        ratio = _angle(pa, qa) / _angle(p, q)
+        assert ratio == pytest.approx(ap.apparent_scale(b, state), abs=2e-7)
+
+
+def test_frame_time_sources_in_order():
+    given_time = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+    doc = {"image": {"time": "2026-12-05T10:00:00Z"}}
+    assert ap.frame_time(doc, explicit=given_time) == ap.FrameTime(given_time, "--time")
+    assert ap.frame_time(doc).source == "image.time"
+    assert ap.frame_time(doc).time == dt.datetime(2026, 12, 5, 10, tzinfo=UTC)
+    header = {"DATE-OBS": "2019-07-29T20:47:26"}
+    assert ap.frame_time({}, fits_header=header) == ap.FrameTime(dt.datetime(2019, 7, 29, 20, 47, 26, tzinfo=UTC),
+                                                                 "FITS DATE-OBS")
+    mjd = ap.frame_time({}, fits_header={"MJD-OBS": 61000.25})
+    assert mjd.source == "FITS MJD-OBS" and mjd.time == dt.datetime(2025, 11, 21, 6, tzinfo=UTC)  # MJD 60000 = 2023-02-25
+    exif = ap.frame_time({}, exif_datetime="2019:07:29 22:47:26", utc_offset_hours=2)
+    assert exif == ap.FrameTime(dt.datetime(2019, 7, 29, 20, 47, 26, tzinfo=UTC), "EXIF DateTimeOriginal")
+    # EXIF has no zone: without an offset the time is unknown.
+    assert not ap.frame_time({}, exif_datetime="2019:07:29 22:47:26").known
+    assert ap.frame_time({}) == ap.FrameTime(None, None)
+
+
+def test_velocity_input_is_checked():
+    assert ap.parse_velocity("1,2,3", "--velocity-km-s").tolist() == [1, 2, 3]
+    for bad in ("1,2", "a,b,c", "1,2,nan", "1e5,0,0"):
+        with pytest.raises(BadInputError):
+            ap.parse_velocity(bad, "--velocity-km-s")
+    with pytest.raises(BadInputError, match="observer.velocity_km_s"):
+        ap.frame_velocity({"observer": {"velocity_km_s": [1, 2]}}, source="f.jsonl:1")
+    v, source = ap.frame_velocity({"observer": {"velocity_km_s": [1, 2, 3]}})
+    assert source == "observer.velocity_km_s" and v.tolist() == [1, 2, 3]
