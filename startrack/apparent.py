@@ -55,7 +55,7 @@ _DAY_S = 86400.0
 class FrameTime:
     """A frame's time (UTC, mid-exposure as far as the source says) and where it came from.
 
-    ``source`` is one of ``"--time"`` (given by the user), ``"image.time"`` (the frame
+    ``source`` is one of ``"given"`` (by the user, for every frame), ``"image.time"`` (the frame
     document), ``"FITS DATE-OBS"``, ``"FITS MJD-OBS"``, ``"EXIF DateTimeOriginal"``, or
     ``None`` with ``time`` ``None`` when nothing gives one.
     """
@@ -236,14 +236,14 @@ def exif_time(text: str | None, utc_offset_hours: float | None) -> FrameTime:
 def frame_time(doc: dict | None = None, explicit: _dt.datetime | None = None, fits_header=None,
                exif_datetime: str | None = None, utc_offset_hours: float | None = None,
                source: str = "frame") -> FrameTime:
-    """A frame's time from wherever it is known, in this order: ``explicit`` (the user's), the frame
+    """A frame's time from wherever it is known, in this order: ``explicit`` (the user's, source ``"given"``), the frame
     document's ``image.time``, a FITS header's ``DATE-OBS``/``MJD-OBS``, EXIF ``DateTimeOriginal`` with
     ``utc_offset_hours``.  ``FrameTime(None, None)`` when none of them gives one.
     """
     from startrack.timeutil import parse_time
 
     if explicit is not None:
-        return FrameTime(explicit.astimezone(_dt.timezone.utc), "--time")
+        return FrameTime(explicit.astimezone(_dt.timezone.utc), "given")
     text = ((doc or {}).get("image") or {}).get("time") if isinstance(doc, dict) else None
     if text:
         return FrameTime(parse_time(text, f"{source}: image.time"), "image.time")
@@ -256,9 +256,9 @@ def frame_time(doc: dict | None = None, explicit: _dt.datetime | None = None, fi
 
 def frame_velocity(doc: dict | None, explicit=None, source: str = "frame"):
     """The spacecraft's GCRS velocity (km/s) for a frame and where it came from: ``explicit``
-    (``--velocity-km-s``), else the document's ``observer.velocity_km_s``, else ``(None, None)``."""
+    (``"given"`` by the user for every frame), else the document's ``observer.velocity_km_s``, else ``(None, None)``."""
     if explicit is not None:
-        return np.asarray(explicit, dtype=float), "--velocity-km-s"
+        return np.asarray(explicit, dtype=float), "given"
     observer = (doc or {}).get("observer") if isinstance(doc, dict) else None
     if observer is None:
         return None, None
@@ -267,3 +267,86 @@ def frame_velocity(doc: dict | None, explicit=None, source: str = "frame"):
     if observer.get("velocity_km_s") is None:
         return None, None
     return parse_velocity(observer["velocity_km_s"], f"{source}: observer.velocity_km_s"), "observer.velocity_km_s"
+
+
+@dataclass(frozen=True)
+class ApparentOptions:
+    """How a run turns catalog directions into apparent ones.
+
+    ``aberration`` False turns the correction off (catalog directions as if the camera were at
+    rest); ``time`` overrides every frame's own time; ``velocity_km_s`` (GCRS, km/s) overrides
+    every frame's ``observer.velocity_km_s``.
+    """
+
+    aberration: bool = True
+    time: _dt.datetime | None = None
+    velocity_km_s: tuple | None = None
+
+
+@dataclass(frozen=True)
+class FrameApparent:
+    """One frame's apparent-place setting: its time, the observer's state (``None``: no correction)
+    and the record written into outputs (:meth:`record`)."""
+
+    time: FrameTime
+    state: ObserverState | None
+    aberration: str                   # "corrected", "disabled" or "no_time"
+    velocity_source: str | None = None
+
+    def record(self) -> dict:
+        from startrack.timeutil import format_time
+
+        out = {"aberration": self.aberration,
+               "time": format_time(self.time.time) if self.time.known else None,
+               "time_source": self.time.source}
+        if self.state is not None:
+            out["velocity_km_s"] = [round(float(v), 6) for v in self.state.velocity_km_s]
+            if self.velocity_source is not None:
+                out["observer_velocity_km_s"] = [float(v) for v in self.state.spacecraft_km_s]
+                out["velocity_source"] = self.velocity_source
+        return out
+
+    def apparent(self, vectors) -> np.ndarray:
+        """Catalog (astrometric) unit vectors at this frame's apparent places (unchanged without a state)."""
+        if self.state is None:
+            return np.ascontiguousarray(vectors, dtype=np.float64)
+        return aberrate(vectors, self.state)
+
+
+def frame_apparent(doc: dict | None, options: ApparentOptions, source: str = "frame", fits_header=None,
+                   exif_datetime: str | None = None, utc_offset_hours: float | None = None) -> FrameApparent:
+    """The apparent-place setting of one frame (its time, velocity and whether aberration is corrected)."""
+    ft = frame_time(doc, options.time, fits_header, exif_datetime, utc_offset_hours, source)
+    if not options.aberration:
+        return FrameApparent(ft, None, "disabled")
+    if not ft.known:
+        return FrameApparent(ft, None, "no_time")
+    velocity, vsource = frame_velocity(doc, options.velocity_km_s, source)
+    return FrameApparent(ft, observer_state(ft.time, velocity), "corrected", vsource)
+
+
+def astrometric_attitude(dcm, camera, state: ObserverState | None):
+    """The attitude and camera whose pinhole map takes pixels to *astrometric* (catalog) directions.
+
+    ``dcm`` is the camera's true orientation (apparent directions ``u' = A^T b``).  Removing
+    aberration from every pixel's direction is, over a field of view, a rotation and a uniform
+    scale ``1 / (1 - beta cos psi)`` (:func:`apparent_scale`) to first order in ``v/c``
+    (second-order terms are ~ 1e-8 rad).  The rotation is fitted (Wahba, SVD) over a grid of
+    the image's pixels; the focal length of the returned camera is ``f * apparent_scale``.
+    Returns ``(dcm_astrometric, camera_astrometric)``; ``(dcm, camera)`` without a state.
+    """
+    a = np.asarray(dcm, dtype=np.float64)
+    if state is None:
+        return a, camera
+    scale = apparent_scale(a[2], state)
+    cam_astro = camera.with_focal_length(camera.focal_length_px * scale)
+    xs, ys = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, 9), np.linspace(-0.5, camera.height - 0.5, 9))
+    xs, ys = xs.ravel(), ys.ravel()
+    apparent_dirs = np.asarray(camera.pixels_to_vectors(xs, ys)) @ a
+    astrometric = unaberrate(apparent_dirs, state)
+    body = np.asarray(cam_astro.pixels_to_vectors(xs, ys))
+    # Wahba by SVD: A maps ICRS to camera, body ~ A astrometric.
+    b = body.T @ astrometric
+    u, _, vt = np.linalg.svd(b)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
+    return u @ d @ vt, cam_astro

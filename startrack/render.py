@@ -639,6 +639,37 @@ class RenderRun:
     params: dict = field(default_factory=dict)
     blackout: tuple = ()
     first_index: int = 0           # index of the first frame (a chunk of a larger set: same seeds and names)
+    aberration: bool = False       # the sky as a moving observer sees it (startrack.apparent)
+    velocity_km_s: tuple | None = None    # the camera's GCRS velocity (km/s) at the first frame
+    orbit_period_s: float | None = None   # the velocity turns about (v x z) with this period (a circular orbit)
+
+    def observer_velocity(self, t_s: float):
+        """The camera's GCRS velocity (km/s) ``t_s`` seconds after the first frame, or ``None``."""
+        if self.velocity_km_s is None:
+            return None
+        v = np.asarray(self.velocity_km_s, dtype=np.float64)
+        if not self.orbit_period_s:
+            return v
+        normal = np.cross(v, [0.0, 0.0, 1.0])
+        if np.linalg.norm(normal) < 1e-9 * max(np.linalg.norm(v), 1e-300):
+            normal = np.cross(v, [1.0, 0.0, 0.0])
+        normal /= np.linalg.norm(normal)
+        angle = 2.0 * math.pi * t_s / self.orbit_period_s
+        # Rodrigues: v turned by angle about the orbit normal (normal is perpendicular to v).
+        return v * math.cos(angle) + np.cross(normal, v) * math.sin(angle)
+
+    def apparent_vectors(self, vectors, t, t_s: float, cache: dict):
+        """The catalog's unit vectors at their apparent places at UTC ``t`` (aberration, solar deflection)."""
+        velocity = self.observer_velocity(t_s)
+        if not self.aberration:
+            return vectors, velocity
+        from startrack.apparent import aberrate, observer_state
+
+        key = (t, None if velocity is None else tuple(velocity))
+        if key not in cache:
+            cache.clear()
+            cache[key] = aberrate(vectors, observer_state(t, velocity))
+        return cache[key], velocity
 
     @property
     def total(self) -> int:
@@ -653,6 +684,7 @@ class RenderRun:
         from startrack.timeutil import format_time
 
         vectors = self.catalog.vectors()
+        apparent_cache = {}
         rate = np.radians(np.asarray(self.scene.rate_deg_s, dtype=np.float64))
         start = self.start_time if self.start_time is not None else epoch_time(self.catalog.epoch)
         index = self.first_index
@@ -670,20 +702,22 @@ class RenderRun:
                 doc = {"format": FRAME_FORMAT}
                 image_doc = {"width": self.camera.width, "height": self.camera.height}
                 # Every frame carries its time (mid-exposure) and exposure, so `track` needs no option.
-                image_doc["time"] = format_time(start + _dt.timedelta(seconds=k * self.frame_interval_s))
+                t_frame = start + _dt.timedelta(seconds=k * self.frame_interval_s)
+                image_doc["time"] = format_time(t_frame)
+                seen, velocity = self.apparent_vectors(vectors, t_frame, k * self.frame_interval_s, apparent_cache)
                 image_doc["exposure_ms"] = float(self.sensor.exposure_ms)
                 image = None
                 path = None
                 if self.stars_only:
                     stars, truth = star_list(self.catalog, self.camera, dcm, self.sensor, self.scene, rng,
-                                             self.sigma_px, self.max_stars, self.drop_fraction, vectors)
+                                             self.sigma_px, self.max_stars, self.drop_fraction, seen)
                 else:
                     catalog = self.catalog
                     if k in self.blackout:
                         # A covered or blinded frame: the sensor's noise and no star.
                         catalog = self.catalog.subset(np.zeros(len(self.catalog), dtype=bool))
                     image, truth = render_image(catalog, self.camera, dcm, self.sensor, self.scene, rng,
-                                                vectors=None if k in self.blackout else vectors)
+                                                vectors=None if k in self.blackout else seen)
                     if k in self.blackout:
                         truth["blackout"] = True
                     path = self.image_path(index) if self.image_path else None
@@ -692,6 +726,8 @@ class RenderRun:
                     image_doc["bit_depth"] = self.sensor.bit_depth
                 doc["image"] = image_doc
                 doc["camera"] = self.camera.to_dict()
+                if velocity is not None:
+                    doc["observer"] = {"velocity_km_s": [float(v) for v in velocity]}
                 doc["truth"] = truth
                 if self.stars_only:
                     doc["stars"] = stars

@@ -114,7 +114,7 @@ def test_apparent_scale_matches_aberrated_separations():
 def test_frame_time_sources_in_order():
     given_time = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
     doc = {"image": {"time": "2026-12-05T10:00:00Z"}}
-    assert ap.frame_time(doc, explicit=given_time) == ap.FrameTime(given_time, "--time")
+    assert ap.frame_time(doc, explicit=given_time) == ap.FrameTime(given_time, "given")
     assert ap.frame_time(doc).source == "image.time"
     assert ap.frame_time(doc).time == dt.datetime(2026, 12, 5, 10, tzinfo=UTC)
     header = {"DATE-OBS": "2019-07-29T20:47:26"}

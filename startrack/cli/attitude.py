@@ -6,7 +6,10 @@ import click
 from startrack.cli.options import (
     Command,
     FiniteFloat,
+    NoTimeNotice,
     RegistryChoice,
+    apparent_from_options,
+    apparent_options,
     attitude_methods,
     catalog_option,
     handle_errors,
@@ -25,6 +28,7 @@ from startrack.cli.options import (
 @catalog_option
 @click.option("--epoch", type=FiniteFloat(1000, 3000), default=None,
               help="Epoch (decimal year) of the catalog positions; default: image.time, else the render's epoch.")
+@apparent_options
 @click.option("--sigma-px", type=FiniteFloat(0, 100, min_open=True), default=None,
               help="Centroid noise (1 sigma, px) of every star, instead of each star's own bound (default: from "
                    "flux, PSF and noise, else sigma_px, else 0.5).")
@@ -43,13 +47,19 @@ from startrack.cli.options import (
 @resume_option
 @quiet_option
 @handle_errors
-def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted, merge_px, gate, wcs_path, output, jobs,
+def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberration, sigma_px, sigma_floor_px, unweighted, merge_px, gate, wcs_path, output, jobs,
             resume, quiet):
     """Solve each frame's attitude from its identified stars: adds an `attitude` section.
 
     Camera-frame vectors come from the star positions and the camera (paper 000
     Eq. 13, distortion removed); ICRS vectors from the catalog by HIP id
-    (Eq. 14), with proper motion applied to the frame's epoch; a star with
+    (Eq. 14), with proper motion applied to the frame's epoch, then moved to
+    their apparent places for the frame (solar light deflection and stellar
+    aberration for the Earth's barycentric velocity at the frame's time plus
+    the camera's own, --velocity-km-s or observer.velocity_km_s): the
+    attitude is the camera's true orientation in ICRS, while the WCS maps
+    pixels to astrometric (catalog) positions.  The time and velocity used are
+    in attitude.apparent.  A star with
     catalog companions closer than --merge-px pixels (an unresolved double,
     down to the catalog's faintest) is referred to their photocentre, where
     its centroid lies.  Written:
@@ -84,12 +94,16 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
     from startrack.catalog import load_catalog, merge_radius_arcsec
     from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
-    from startrack.timeutil import julian_year, parse_time
+    from startrack.timeutil import julian_year
 
     if wcs_path:
         from startrack.imageio import check_fits_output
 
         check_fits_output(wcs_path)
+    from startrack.apparent import astrometric_attitude, frame_apparent
+
+    apparent = apparent_from_options(obs_time, velocity_km_s, no_aberration)
+    no_time = NoTimeNotice("attitude")
     base = load_catalog(catalog)
     propagated = {}
     wcs_names = StreamNames(wcs_path)
@@ -134,9 +148,11 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             if isinstance(cid, bool) or not isinstance(cid, int):
                 raise BadInputError(source, f"identification.matches[{i}].id",
                                     f"must be an integer catalog id, got {json.dumps(cid)[:40]}")
+        setting = frame_apparent(doc, apparent, source)
+        no_time(setting)
         ep = epoch
-        if ep is None and (doc.get("image") or {}).get("time"):
-            ep = julian_year(parse_time(doc["image"]["time"], f"{source}: image.time"))
+        if ep is None and setting.time.known:
+            ep = julian_year(setting.time.time)
         if ep is None and isinstance((doc.get("truth") or {}).get("epoch"), (int, float)):
             ep = float(doc["truth"]["epoch"])
         if ep is None:
@@ -169,7 +185,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
             if mirrored:
                 x = 2.0 * cam.cx - x        # identified as the un-mirrored camera's stars (startrack.parity)
             body.append(cam.pixels_to_vectors(x, y))
-            ref.append(centres.get(int(m["id"]), vectors[row]))
+            ref.append(setting.apparent(centres.get(int(m["id"]), vectors[row])))
             # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
             # bound from its flux, PSF and noise (startrack.accuracy), else the sigma_px centroid wrote,
             # else --sigma-px.  The bound alone goes into the crb_* fields.
@@ -198,12 +214,16 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
         if misfits:
             section["rejected"] = misfits + section.get("rejected", [])
         section["epoch"] = float(ep)
+        section["apparent"] = setting.record()
         if missing:
             section["not_in_catalog"] = missing[:20]
         doc["attitude"] = section
+        if result.status == "ok":
+            # The WCS maps pixels to astrometric (catalog) positions, as astrometry.net's does.
+            wcs_dcm, wcs_cam = astrometric_attitude(result.dcm, cam, setting.state)
         if result.status == "ok" and wcs_path:
             from startrack.formats.atomic import atomic_path
-            hdr = wcs_header(result.dcm, cam, mirrored=mirrored)
+            hdr = wcs_header(wcs_dcm, wcs_cam, mirrored=mirrored)
             path = wcs_names(index)
             from astropy.io import fits
 
@@ -211,7 +231,7 @@ def command(input, method, catalog, epoch, sigma_px, sigma_floor_px, unweighted,
                 fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
             section["wcs_path"] = path
         if result.status == "ok":
-            section["wcs"] = {k: v for k, v in wcs_header(result.dcm, cam, mirrored=mirrored).items()
+            section["wcs"] = {k: v for k, v in wcs_header(wcs_dcm, wcs_cam, mirrored=mirrored).items()
                               if k not in ("COMMENT", "HISTORY")}
         return doc
 

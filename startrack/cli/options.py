@@ -720,3 +720,49 @@ def info(quiet: bool, message: str) -> None:
     """A summary line on stderr, unless ``--quiet``."""
     if not quiet:
         click.echo(message, err=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Apparent places (issue 39): the frame's time, the observer's velocity, aberration on or off
+# ---------------------------------------------------------------------------------------------
+
+def apparent_options(f):
+    """``--time``, ``--velocity-km-s``, ``--no-aberration``: how catalog directions become apparent ones."""
+    opts = [
+        click.option("--time", "obs_time", type=str, default=None,
+                     help="ISO-8601 UTC time of every frame (default: each frame's image.time, a FITS DATE-OBS "
+                          "or MJD-OBS, EXIF with --utc-offset)."),
+        click.option("--velocity-km-s", type=NumberList(-3000, 3000, length=3, as_text=True), default=None,
+                     help="The camera's velocity VX,VY,VZ (km/s, GCRS: relative to the Earth's centre, ICRS axes), "
+                          "added to the Earth's; default: each frame's observer.velocity_km_s, else 0."),
+        click.option("--no-aberration", is_flag=True,
+                     help="Compare with catalog directions as if the camera were at rest (no stellar aberration)."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def apparent_from_options(obs_time, velocity_km_s, no_aberration):
+    """The library's :class:`startrack.apparent.ApparentOptions` of the three options."""
+    from startrack.apparent import ApparentOptions, parse_velocity
+    from startrack.timeutil import parse_time
+
+    t = parse_time(obs_time, "--time") if obs_time else None
+    v = tuple(parse_velocity(velocity_km_s, "--velocity-km-s")) if velocity_km_s else None
+    return ApparentOptions(aberration=not no_aberration, time=t, velocity_km_s=v)
+
+
+class NoTimeNotice:
+    """Says once per run, on stderr, that frames had no time (aberration not corrected) and what to add."""
+
+    def __init__(self, command: str):
+        self.command = command
+        self.said = False
+
+    def __call__(self, setting) -> None:
+        if setting.aberration == "no_time" and not self.said:
+            self.said = True
+            _echo_err(f"{self.command}: no time for a frame, so stellar aberration (up to 20.5 arcsec) is not "
+                      "corrected: add image.time (ISO 8601 UTC) to the frame documents, or give --time "
+                      "(or --no-aberration to say so)")

@@ -120,6 +120,14 @@ def _floats(text, name, n):
 @click.option("--time", "start_time", type=str, default=None,
               help="ISO-8601 time of the (first) frame; proper motion is applied to that epoch. "
                    "Default: the catalog's epoch. Every frame's image.time is written.")
+@click.option("--velocity-km-s", type=NumberList(-3000, 3000, length=3, as_text=True), default=None,
+              help="The camera's velocity VX,VY,VZ (km/s, GCRS), written to each frame's observer.velocity_km_s and "
+                   "added to the Earth's for the aberration rendered.")
+@click.option("--orbit-period-s", type=FiniteFloat(0, 1e9, min_open=True), default=None,
+              help="With --velocity-km-s: the velocity turns about (v x z) once in this period (a circular orbit).")
+@click.option("--no-aberration", is_flag=True,
+              help="Render the catalog directions as a camera at rest sees them (default: stellar aberration for "
+                   "the Earth's velocity at each frame's time plus --velocity-km-s, and solar light deflection).")
 @click.option("--blackout", type=str, default=None,
               help="START:COUNT: frames of a sequence rendered without stars (covered or blinded), e.g. 50:10.")
 @click.option("--stars-only", is_flag=True, help="No image: stars straight from the truth, with noise.")
@@ -147,7 +155,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, cosmic_rays,
             dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
             foreground_e_per_s, mirror, no_noise, mag_noise,
-            false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, blackout, stars_only, sigma_px,
+            false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, velocity_km_s,
+            orbit_period_s, no_aberration, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, resume, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
 
@@ -157,6 +166,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     Gaussian integrated over each pixel (Eqs. 4-5), and the sensor adds shot,
     dark, read and background noise.  Every random choice follows --seed; each
     document records its frame_seed, which --frame-seed re-renders alone.
+    The stars are where a moving camera sees them: proper motion to the
+    frame's time, solar light deflection and stellar aberration for the
+    Earth's velocity at that time plus --velocity-km-s (--no-aberration: a
+    camera at rest); truth is the camera's true attitude.
 
     \b
     Example (Orion, 20 deg, 1024 x 1024, 16-bit PNG):
@@ -173,12 +186,18 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     Example (a real camera's nuisances: 8-bit dark-subtracted, hot pixels, a tree, mirrored):
       startrack render --fov-deg 10 --size 640x480 --bit-depth 8 --gain-e-per-dn 2 --dark-subtracted \\
           --hot-pixels 50 --foreground branches --foreground-fraction 0.3 --mirror x --seed 4 -o tree.png > tree.json
+    \b
+    Example (star lists as a low-Earth-orbit camera sees them on 22 September 2026: the Earth's
+    velocity and the camera's own, turning once an orbit, make stellar aberration):
+      startrack render --stars-only --count 5 --fov-deg 15 --size 1024x1024 --sigma-px 0.3 --seed 3 \\
+          --time 2026-09-22T12:00:00Z --velocity-km-s 7.5,0,0 --orbit-period-s 5400 > leo.jsonl
     """
     import math
     import os
 
     import numpy as np
 
+    from startrack.apparent import parse_velocity
     from startrack.catalog import load_catalog
     from startrack.cli.paths import numbered_path
     from startrack.errors import BadInputError
@@ -289,7 +308,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                "gradient": gradient, "mirror": mirror},
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
-        time=start_time).items()}
+        time=start_time, aberration=not no_aberration, velocity_km_s=velocity_km_s,
+        orbit_period_s=orbit_period_s).items()}
     black = ()
     if blackout:
         try:
@@ -303,7 +323,11 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     run = RenderRun(cat, cam, sensor, scene, seed, attitude, count, frames, frame_interval_s, t0, stars_only,
                     noise_px, max_stars, drop_fraction,
                     (lambda index: numbered_path(output, index, count * frames)) if output else None,
-                    frame_seed, params, black)
+                    frame_seed, params, black, aberration=not no_aberration,
+                    velocity_km_s=tuple(parse_velocity(velocity_km_s, "--velocity-km-s")) if velocity_km_s else None,
+                    orbit_period_s=orbit_period_s)
+    if orbit_period_s and not velocity_km_s:
+        raise BadInputError("--orbit-period-s", None, "needs --velocity-km-s")
     if frame_seed is not None and run.total != 1:
         raise BadInputError("--frame-seed", None, "re-renders one frame: drop --count/--frames")
     skipped = 0
