@@ -350,3 +350,29 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
     u, _, vt = np.linalg.svd(b)
     d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
     return u @ d @ vt, cam_astro
+
+
+def image_time_tags(path: str):
+    """``(fits_header, exif_datetime)`` of an image file: the primary FITS header of a FITS file, the EXIF
+    ``DateTimeOriginal`` (else ``DateTime``) of another; ``None`` for what the file does not carry."""
+    import os
+
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext in (".fits", ".fit", ".fts"):
+        from astropy.io import fits
+
+        try:
+            return dict(fits.getheader(path)), None
+        except (OSError, ValueError):
+            return None, None
+    try:
+        from PIL import Image
+    except ImportError:           # pragma: no cover - Pillow is a dependency of the image readers
+        return None, None
+    try:
+        with Image.open(path) as img:
+            exif = img.getexif()
+            value = exif.get_ifd(0x8769).get(0x9003) or exif.get(0x0132)   # DateTimeOriginal, else DateTime
+    except (OSError, ValueError, SyntaxError):
+        return None, None
+    return None, (value if isinstance(value, str) else None)

@@ -223,6 +223,9 @@ class SolveOptions:
     parity : str
         ``auto`` (normal, then mirrored when normal finds nothing), ``normal`` or ``mirrored``
         (:mod:`startrack.parity`).
+    observer : startrack.apparent.ObserverState or None
+        The observer's velocity at the image's time: the attitude is solved against the catalog's
+        apparent places (stellar aberration) and is the camera's true orientation; ``None``: at rest.
     """
 
     fov_deg: float | None = None
@@ -238,6 +241,7 @@ class SolveOptions:
     method: str = "quest"
     blind: str = "patterns"
     parity: str = "auto"
+    observer: object = None
 
 
 class _SearchClock:
@@ -664,12 +668,15 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     ident.parity = parity
     # The attitude of the un-mirrored camera, from the star list the search identified.
     att = identified_attitude(stars if parity == "normal" else StarTable.from_list(search_list), ident, cam, rows,
-                              vec, opts.method, epoch=epoch)
+                              vec, opts.method, epoch=epoch, observer=opts.observer)
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
                       database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
                       centroid=centroid, identification=ident, attitude=att, parity=parity)
     if att.status == Status.OK:
-        where = pointing(att.dcm, cam, mirrored=parity == "mirrored")
+        from startrack.apparent import astrometric_attitude
+
+        # The image centre's astrometric (catalog) position, as the WCS and astrometry.net give it.
+        where = pointing(*astrometric_attitude(att.dcm, cam, opts.observer), mirrored=parity == "mirrored")
         out.center_ra, out.center_dec = where["center_ra"], where["center_dec"]
         out.details["principal_point"] = where["principal_point"]
     out.time_ms = (time.perf_counter() - t0) * 1000
@@ -689,7 +696,7 @@ def _failed(reason, code, t0, stars=None, centroid=None, **kw):
 
 
 def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
-                        sigma_px: float | None = None, epoch: float | None = None):
+                        sigma_px: float | None = None, epoch: float | None = None, observer=None):
     """The attitude of identified stars (Wahba's problem, paper 000 Eq. 15, with outlier rejection).
 
     Parameters
@@ -710,6 +717,8 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         else 0.1 px; never below 0.05 px).
     epoch : float, optional
         Recorded in the result (decimal year).
+    observer : startrack.apparent.ObserverState, optional
+        The catalog directions are moved to their apparent places for it (stellar aberration).
 
     Returns
     -------
@@ -726,6 +735,10 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     star = np.array([int(m[0]) for m in idx], dtype=np.int64)
     body = camera.pixels_to_vectors(stars.x[star], stars.y[star]).reshape(-1, 3)
     ref = np.asarray(vectors)[[rows[int(m[1])] for m in idx]].reshape(-1, 3)
+    if observer is not None:
+        from startrack.apparent import aberrate
+
+        ref = aberrate(ref, observer)
     if sigma_px is not None:
         sig_px = np.full(len(star), float(sigma_px))
     elif stars.sigma_px is not None:

@@ -271,6 +271,7 @@ class Tracker:
         cat = catalog if self.config.mag_limit is None else catalog.filter_magnitude(None, self.config.mag_limit)
         self.catalog = cat.sorted_by_magnitude()
         self.vectors = self.catalog.vectors()
+        self.astrometric = self.vectors      # the catalog's directions; self.vectors the frame's apparent ones
         self.ids = self.catalog.id
         self.row_of_id = self.catalog.rows_by_id()
         self._sky = None            # the catalog's sky index (startrack.skyindex), made at the first neighbourhood
@@ -304,6 +305,13 @@ class Tracker:
 
     def _q(self):
         return math.radians(self.config.rate_noise_deg_s2) ** 2
+
+    def set_directions(self, vectors):
+        """Use these unit vectors (rows of ``self.catalog``: ``self.astrometric`` moved to the coming frame's
+        apparent places, :mod:`startrack.apparent`) for the catalog stars from the next step on."""
+        self.vectors = np.ascontiguousarray(vectors, dtype=np.float64)
+        if self._near is not None:
+            self._near = (self._near[0], self._near[1], np.ascontiguousarray(self.vectors[self._near[1]]))
 
     # ------------------------------------------------------------------ helpers
     def _neighbourhood(self, dcm):

@@ -149,7 +149,7 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
                 raise BadInputError(source, f"identification.matches[{i}].id",
                                     f"must be an integer catalog id, got {json.dumps(cid)[:40]}")
         setting = frame_apparent(doc, apparent, source)
-        no_time(setting)
+        no_time(setting.aberration)
         ep = epoch
         if ep is None and setting.time.known:
             ep = julian_year(setting.time.time)

@@ -756,13 +756,17 @@ def apparent_from_options(obs_time, velocity_km_s, no_aberration):
 class NoTimeNotice:
     """Says once per run, on stderr, that frames had no time (aberration not corrected) and what to add."""
 
-    def __init__(self, command: str):
+    FRAMES = "add image.time (ISO 8601 UTC) to the frame documents"
+    IMAGES = "give the images a FITS DATE-OBS, or EXIF DateTimeOriginal with --utc-offset"
+
+    def __init__(self, command: str, what: str = FRAMES):
         self.command = command
+        self.what = what
         self.said = False
 
-    def __call__(self, setting) -> None:
-        if setting.aberration == "no_time" and not self.said:
+    def __call__(self, aberration: str) -> None:
+        """``aberration``: the frame's ``FrameApparent.aberration`` (``"no_time"`` is reported once)."""
+        if aberration == "no_time" and not self.said:
             self.said = True
             _echo_err(f"{self.command}: no time for a frame, so stellar aberration (up to 20.5 arcsec) is not "
-                      "corrected: add image.time (ISO 8601 UTC) to the frame documents, or give --time "
-                      "(or --no-aberration to say so)")
+                      f"corrected: {self.what}, or give --time (or --no-aberration to say so)")

@@ -7,6 +7,9 @@ from startrack.cli.options import (
     Command,
     FiniteFloat,
     Int,
+    NoTimeNotice,
+    apparent_from_options,
+    apparent_options,
     calibration_frame_options,
     handle_errors,
     load_camera_file,
@@ -148,15 +151,17 @@ def _calibration(frames):
 
 def _solve_one(args):
     """Worker: solve one image path; returns the frame document (never raises for a bad image)."""
+    import dataclasses
     import time
 
+    from startrack.apparent import frame_apparent, image_time_tags
     from startrack.errors import BadInputError
     from startrack.formats.frame import FRAME_FORMAT
     from startrack.formats.sections import to_frame
     from startrack.imageio import read_image
     from startrack.solve import solve_image
 
-    path, options, camera_doc, outputs, frames = args
+    path, (options, apparent, utc_offset), camera_doc, outputs, frames = args
     t0 = time.perf_counter()
     doc = {"format": FRAME_FORMAT, "image": {"path": path}}
     try:
@@ -166,9 +171,18 @@ def _solve_one(args):
             calibration = _calibration(frames)
             pixels, saturation = calibration.apply(image, saturation, path)
             doc["image"]["calibration"] = calibration.record()
+        header, exif = image_time_tags(path)
+        setting = frame_apparent(doc, apparent, path, header, exif, utc_offset)
     except BadInputError as exc:
         doc["solve"] = {"status": "failed", "reason": str(exc), "bad_input": True}
         return doc
+    if setting.time.known:
+        from startrack.timeutil import format_time, julian_year
+
+        doc["image"]["time"] = format_time(setting.time.time)
+        if options.epoch is None:
+            options = dataclasses.replace(options, epoch=julian_year(setting.time.time))
+    options = dataclasses.replace(options, observer=setting.state)
     doc["image"].update(width=image.shape[1], height=image.shape[0], bit_depth=meta["bit_depth"])
     cam = None
     if camera_doc is not None:
@@ -178,9 +192,11 @@ def _solve_one(args):
     result = solve_image(pixels, options=options, camera=cam, saturation=saturation, databases=_databases())
     doc.update(to_frame(result))
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
+    if isinstance(doc.get("attitude"), dict):
+        doc["attitude"]["apparent"] = setting.record()
     if doc["solve"]["status"] == "ok":
         try:
-            _write_outputs(doc, image, path, outputs)
+            _write_outputs(doc, image, path, outputs, setting.state)
         except BadInputError as exc:
             # an output that cannot be written (disk full, /dev/full) is the command's error, not the image's
             return OutputFailure(exc.source, exc.field, exc.problem)
@@ -196,16 +212,22 @@ class OutputFailure:
     problem: str
 
 
-def _write_outputs(doc, image, path, outputs):
-    """The solved image's WCS, FITS, matched-star CSV and picture (each named by ``outputs`` or None)."""
+def _write_outputs(doc, image, path, outputs, observer=None):
+    """The solved image's WCS, FITS, matched-star CSV and picture (each named by ``outputs`` or None).
+
+    ``observer`` (:class:`startrack.apparent.ObserverState`): the WCS maps pixels to astrometric (catalog)
+    positions, as astrometry.net's does, while the attitude is the camera's true orientation.
+    """
     wcs_path, plot_path, fits_path, matches_path = outputs
     import numpy as np
 
+    from startrack.apparent import astrometric_attitude
     from startrack.attitude import wcs_keywords
     from startrack.camera import Camera
 
     # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`); astropy only to write FITS
-    keywords = wcs_keywords(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
+    keywords = wcs_keywords(*astrometric_attitude(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
+                                                  observer),
                             mirrored=doc["solve"].get("parity") == "mirrored")
     doc["attitude"]["wcs"] = dict(keywords)
     if wcs_path or fits_path:
@@ -245,6 +267,10 @@ def _write_outputs(doc, image, path, outputs):
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="A calibrated camera JSON (then no field-of-view search).")
 @click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Epoch of observation (decimal year) for proper motion.")
+@apparent_options
+@click.option("--utc-offset", type=FiniteFloat(-14, 14), default=None,
+              help="Hours local time is ahead of UTC where a photo's EXIF DateTimeOriginal was taken (EXIF has no "
+                   "zone; without it an EXIF time is not used).")
 @click.option("--timeout-s", type=FiniteFloat(0, 86400, min_open=True), default=5.0, show_default=True,
               help="Give up on an image after this many seconds of search (building a cached database and "
                    "compiling kernels on first use do not count).")
@@ -269,8 +295,9 @@ def _write_outputs(doc, image, path, outputs):
 @resume_option
 @quiet_option
 @handle_errors
-def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs, scheduler, wcs_path, plot, fits_out,
-            matches_out, parity, bias, dark, flat, output, resume, quiet):
+def command(images, fov_deg, fov_tolerance, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
+            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, parity, bias, dark, flat, output,
+            resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -281,8 +308,11 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
     fields over 25 degrees, the radial distortion k1).  A frame document per
     image (JSON Lines) goes to stdout, with a `solve` section: status, fitted
     field of view, the RA/Dec of the image centre (center_ra, center_dec) and
-    of the principal point, the image's parity (mirrored images are solved too: --parity),
-    time.  An image that cannot be solved is reported on stderr and the batch
+    of the principal point (astrometric, as the WCS), the image's parity (mirrored images are solved
+    too: --parity), time.  The image's time (--time, FITS DATE-OBS / MJD-OBS, EXIF
+    DateTimeOriginal with --utc-offset) and the camera's velocity give the catalog's apparent
+    places (stellar aberration): attitude is the camera's true orientation, attitude.apparent
+    records the setting.  An image that cannot be solved is reported on stderr and the batch
     goes on.  Exit status: 0 when every image was solved, 1 when any could not
     be, 2 when any could not be read.
 
@@ -332,7 +362,8 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         frames = (tuple(bias), tuple(dark), tuple(flat))
         _calibration(frames)
     n = len(images)
-    tasks = [(path, options, camera_doc, (output_for(wcs_path, path, n, ".wcs.fits"),
+    apparent = (options, apparent_from_options(obs_time, velocity_km_s, no_aberration), utc_offset)
+    tasks = [(path, apparent, camera_doc, (output_for(wcs_path, path, n, ".wcs.fits"),
                                           output_for(plot, path, n, ".solved.png"),
                                           output_for(fits_out, path, n, ".new.fits"),
                                           output_for(matches_out, path, n, ".matches.csv")), frames)
@@ -353,6 +384,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
         b = _band_of(Camera.from_dict(camera_doc).fov_deg[0])
         for which in range(len(FOV_BANDS[b][2])):
             _databases().band_database(b, which=which)
+    no_time = NoTimeNotice("solve", NoTimeNotice.IMAGES)
     bar = ProgressBar("solve", quiet)
     tally = BatchTally("solve", quiet, "image")
     todo = [t for t in tasks if not writer.skip({"image": {"path": t[0]}})]
@@ -378,6 +410,7 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, timeout_s, jobs,
             if isinstance(doc, TaskFailure):
                 doc = {"format": FRAME_FORMAT, "image": {"path": todo[i][0]},
                        "solve": {"status": "failed", "reason": f"internal error: {doc.error}"}}
+            no_time(((doc.get("attitude") or {}).get("apparent") or {}).get("aberration"))
             bad = bool(doc["solve"].get("bad_input"))
             if n == 1 and bad:
                 raise BadInputError(todo[i][0], None, doc["solve"]["reason"].split(": ", 1)[-1])

@@ -5,8 +5,11 @@ from startrack.cli.options import (
     Command,
     FiniteFloat,
     Int,
+    NoTimeNotice,
     NumberList,
     RegistryChoice,
+    apparent_from_options,
+    apparent_options,
     calibration_frame_options,
     calibration_from_options,
     catalog_option,
@@ -48,11 +51,13 @@ from startrack.cli.options import (
               default="pyramid", show_default=True, help="Lost-in-space algorithm.")
 @parity_option
 @calibration_frame_options
+@apparent_options
 @output_option()
 @quiet_option
 @handle_errors
 def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, initial_quaternion, rate_prior,
-            window_px, sigma_px, exposure_ms, max_gap_s, algorithm, parity, bias, dark, flat, output, quiet):
+            window_px, sigma_px, exposure_ms, max_gap_s, algorithm, parity, bias, dark, flat, obs_time,
+            velocity_km_s, no_aberration, output, quiet):
     """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
 
     Input: frame documents naming images (JSON Lines, e.g. from `startrack
@@ -64,7 +69,11 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     time per frame.  Stars of a turning camera are fitted as streaks (position
     at mid-exposure).  The first frame, and any frame after a gap or blackout
     longer than --max-gap-s, is solved lost in space with identify's search.
-    Catalog positions are moved to the first frame's image.time (proper motion).
+    Catalog positions are moved to the first frame's image.time (proper motion)
+    and, every frame, to their apparent places (stellar aberration for the
+    Earth's velocity at the frame's time plus the camera's own,
+    observer.velocity_km_s or --velocity-km-s): the attitude is the camera's
+    true orientation in ICRS (attitude.apparent records the setting).
     Out-of-order time stamps are refused.  Exit status 1 when any frame has no
     attitude.
 
@@ -78,6 +87,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
 
     import numpy as np
 
+    from startrack.apparent import frame_apparent
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.cli.batch import run_frames
@@ -90,6 +100,9 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     from startrack.track import MODES, Tracker, TrackerConfig
 
     calibration = calibration_from_options(bias, dark, flat)
+    apparent = apparent_from_options(obs_time, velocity_km_s, no_aberration)
+    no_time = NoTimeNotice("track")
+
     db = load_kvector(database)
     cam_override = None
     if camera_file:
@@ -136,14 +149,18 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
             Camera.from_dict(doc["camera"], src) if "camera" in doc else None)
         if cam is None:
             raise BadInputError(src, "camera", "is missing (give --camera)")
+        setting = frame_apparent(doc, apparent, src)
+        no_time(setting.aberration)
         if state["tracker"] is None:
             check_database(db, cam)
             stars = cat
-            t_first = (doc.get("image") or {}).get("time")
-            if t_first:
+            if setting.time.known:
                 # Catalog positions at the sequence's epoch (proper motion), as render placed them.
-                stars = cat.propagate(julian_year(parse_time(t_first, f"{src}: image.time")))
+                stars = cat.propagate(julian_year(setting.time.time))
             state["tracker"] = Tracker(stars, cam, db, config, init, rate, parity=parity)
+        tracker = state["tracker"]
+        if setting.state is not None or tracker.vectors is not tracker.astrometric:
+            tracker.set_directions(setting.apparent(tracker.astrometric))
         path = (doc.get("image") or {}).get("path")
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")
@@ -177,6 +194,8 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         doc["stars"] = out["stars"]
         doc["identification"] = out["identification"]
         doc["attitude"] = out["attitude"]
+        if isinstance(doc["attitude"], dict):
+            doc["attitude"]["apparent"] = setting.record()
         doc["track"] = out["track"]
         return doc
 
