@@ -330,8 +330,9 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
 
     ``dcm`` is the camera's true orientation (apparent directions ``u' = A^T b``).  Removing
     aberration from every pixel's direction is, over a field of view, a rotation and a uniform
-    scale ``1 / (1 - beta cos psi)`` (:func:`apparent_scale`) to first order in ``v/c``
-    (second-order terms are ~ 1e-8 rad).  The rotation is fitted (Wahba, SVD) over a grid of
+    scale ``1 / (1 - beta cos psi)`` (:func:`apparent_scale`) to first order in the field angle
+    ``theta``; the rest, below ``beta theta^2`` (0.3 arcsec at the corner of an 11 x 9 deg
+    image), is not representable by a pinhole and is left out (terms in ``beta^2`` are ~1e-8 rad).  The rotation is fitted (Wahba, SVD) over a grid of
     the image's pixels; the focal length of the returned camera is ``f * apparent_scale``.
     Returns ``(dcm_astrometric, camera_astrometric)``; ``(dcm, camera)`` without a state.
     """

@@ -138,3 +138,28 @@ def test_velocity_input_is_checked():
         ap.frame_velocity({"observer": {"velocity_km_s": [1, 2]}}, source="f.jsonl:1")
     v, source = ap.frame_velocity({"observer": {"velocity_km_s": [1, 2, 3]}})
     assert source == "observer.velocity_km_s" and v.tolist() == [1, 2, 3]
+
+
+@pytest.mark.parametrize("k1", [0.0, -0.05])
+def test_astrometric_attitude_maps_pixels_to_astrometric_directions(k1):
+    # The WCS's pinhole (rotation + scaled focal length) against the exact map: pixel -> true camera
+    # direction -> apparent ICRS -> aberration removed, over the whole image, for 35 km/s.  What a
+    # pinhole leaves is the aberration's second-order term in the field angle, below (v/c) theta^2
+    # (0.4" at this image's corner); a wrong scale would leave (v/c) theta, five times more.
+    from startrack.camera import Camera
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    rng = np.random.default_rng(11)
+    cam = Camera(1024, 768, 3000.0, 511.5, 383.5, k1, 0.0)
+    for q in random_quaternions(5, rng):
+        dcm = quaternion_to_dcm(q)
+        state = ap.velocity_state(_unit(rng, 1)[0] * 35.0, _unit(rng, 1)[0], 1.0)
+        a_astro, cam_astro = ap.astrometric_attitude(dcm, cam, state)
+        x, y = rng.uniform(-0.5, 1023.5, 200), rng.uniform(-0.5, 767.5, 200)
+        exact = ap.unaberrate(np.asarray(cam.pixels_to_vectors(x, y)) @ dcm, state)
+        model = np.asarray(cam_astro.pixels_to_vectors(x, y)) @ a_astro
+        corner = math.hypot(512, 384) / cam.focal_length_px
+        assert np.max(_angle(exact, model)) < 35.0 / ap.C_KM_S * corner ** 2
+        # ... and the true attitude alone would be off by the aberration itself.
+        plain = np.asarray(cam.pixels_to_vectors(x, y)) @ dcm
+        assert np.max(_angle(exact, plain)) > 5 / 206265

@@ -1,0 +1,103 @@
+"""Stellar aberration end to end (issue 39): render simulates it, attitude corrects it, its WCS is astrometric."""
+import json
+import math
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+ARCSEC = math.degrees(1.0) * 3600
+
+
+def _frames(tmp_path, *extra):
+    proc = run_cli("render", "--stars-only", "--count", 4, "--fov-deg", 15, "--size", "1024x1024", "--seed", 5,
+                   "--mag-max", 6, "--time", "2026-09-22T12:00:00Z", "-q", *extra, check=True)
+    docs = [json.loads(line) for line in proc.stdout.splitlines()]
+    for d in docs:
+        # The identification from the truth: this test is about the attitude.
+        d["identification"] = {"status": "ok", "algorithm": "truth",
+                               "matches": [{"star": i, "id": sid} for i, sid in enumerate(d["truth"]["star_ids"])
+                                           if sid is not None]}
+    return docs
+
+
+def _attitude(docs, *args):
+    proc = run_cli("attitude", "-q", *args, input="".join(json.dumps(d) + "\n" for d in docs))
+    assert proc.returncode == 0, proc.stderr
+    return [json.loads(line) for line in proc.stdout.splitlines()], proc.stderr
+
+
+def _error_arcsec(doc):
+    from startrack.accuracy import error_vector
+    from startrack.rotations import quaternion_to_dcm
+
+    e = error_vector(quaternion_to_dcm(np.array(doc["attitude"]["quaternion"])),
+                     quaternion_to_dcm(np.array(doc["truth"]["quaternion"])))
+    return math.hypot(e[0], e[1]) * ARCSEC
+
+
+def test_attitude_removes_the_aberration_render_simulated(tmp_path):
+    docs = _frames(tmp_path, "--velocity-km-s", "5,-5,2")
+    assert docs[0]["observer"] == {"velocity_km_s": [5.0, -5.0, 2.0]}
+    fixed, err = _attitude(docs)
+    plain, _ = _attitude(docs, "--no-aberration")
+    for a, b in zip(fixed, plain):
+        rec = a["attitude"]["apparent"]
+        assert rec["aberration"] == "corrected" and rec["time_source"] == "image.time"
+        assert rec["velocity_source"] == "observer.velocity_km_s" and rec["observer_velocity_km_s"] == [5, -5, 2]
+        assert 22 < np.linalg.norm(rec["velocity_km_s"]) < 40
+        assert b["attitude"]["apparent"] == {"aberration": "disabled", "time": "2026-09-22T12:00:00.000Z",
+                                             "time_source": "image.time"}
+        # Noise-free stars: the corrected attitude is the rendered one, the other is off by the aberration.
+        assert _error_arcsec(a) < 0.2
+        assert _error_arcsec(b) > 8
+    assert err == ""
+
+
+def test_velocity_option_overrides_and_no_time_is_said_once(tmp_path):
+    docs = _frames(tmp_path, "--velocity-km-s", "5,-5,2")
+    # A wrong velocity given on the command line wins over the frames' own, and shows in the error.
+    wrong, _ = _attitude(docs, "--velocity-km-s", "-5,5,-2")
+    assert wrong[0]["attitude"]["apparent"]["velocity_source"] == "given"
+    assert all(_error_arcsec(d) > 2 for d in wrong)
+    for d in docs:
+        del d["image"]["time"]
+        del d["truth"]["epoch"]
+    out, err = _attitude(docs)
+    assert all(d["attitude"]["apparent"]["aberration"] == "no_time" for d in out)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "image.time" in lines[0] and "--time" in lines[0]
+    # --time fills it in.
+    out, err = _attitude(docs, "--time", "2026-09-22T12:00:00Z")
+    assert err == "" and all(_error_arcsec(d) < 0.5 for d in out)   # the epoch: proper motion from 2026.7
+    assert out[0]["attitude"]["apparent"]["time_source"] == "given"
+
+
+def test_wcs_maps_pixels_to_catalog_positions(tmp_path):
+    from astropy.wcs import WCS
+
+    from startrack.catalog import load_catalog
+
+    docs = _frames(tmp_path, "--velocity-km-s", "7,0,0")
+    out, _ = _attitude(docs)
+    cat = load_catalog().propagate(out[0]["attitude"]["epoch"])
+    rows = cat.rows_by_id()
+    for d in out:
+        # A TAN WCS holds the aberration to first order in the field angle; the rest is below (v/c) theta^2.
+        beta = np.linalg.norm(d["attitude"]["apparent"]["velocity_km_s"]) / 299792.458
+        limit = beta * (math.hypot(512, 512) / d["camera"]["focal_length_px"]) ** 2 * ARCSEC
+        wcs = WCS({k: v for k, v in d["attitude"]["wcs"].items()})
+        for s in d["truth"]["stars"]:
+            if s.get("blended"):
+                continue
+            ra, dec = wcs.all_pix2world([[s["x"], s["y"]]], 0)[0]
+            r = rows[s["id"]]
+            dra = (ra - cat.ra[r] + 180) % 360 - 180
+            sep = math.hypot(dra * math.cos(math.radians(dec)), dec - cat.dec[r]) * 3600
+            assert sep < limit, (s["id"], sep)
+
+
+@pytest.mark.parametrize("bad", ["1,2", "1,2,x", "9000,0,0"])
+def test_bad_velocity_is_exit_2(bad):
+    proc = run_cli("attitude", "--velocity-km-s", bad, input="")
+    assert proc.returncode == 2 and "--velocity-km-s" in proc.stderr and "Traceback" not in proc.stderr
