@@ -9,7 +9,7 @@ from conftest import run_cli
 ARCSEC = math.degrees(1.0) * 3600
 
 
-def _frames(tmp_path, *extra):
+def _frames(*extra):
     proc = run_cli("render", "--stars-only", "--count", 4, "--fov-deg", 15, "--size", "1024x1024", "--seed", 5,
                    "--mag-max", 6, "--time", "2026-09-22T12:00:00Z", "-q", *extra, check=True)
     docs = [json.loads(line) for line in proc.stdout.splitlines()]
@@ -36,8 +36,8 @@ def _error_arcsec(doc):
     return math.hypot(e[0], e[1]) * ARCSEC
 
 
-def test_attitude_removes_the_aberration_render_simulated(tmp_path):
-    docs = _frames(tmp_path, "--velocity-km-s", "5,-5,2")
+def test_attitude_removes_the_aberration_render_simulated():
+    docs = _frames("--velocity-km-s", "5,-5,2")
     assert docs[0]["observer"] == {"velocity_km_s": [5.0, -5.0, 2.0]}
     fixed, err = _attitude(docs)
     plain, _ = _attitude(docs, "--no-aberration")
@@ -54,8 +54,8 @@ def test_attitude_removes_the_aberration_render_simulated(tmp_path):
     assert err == ""
 
 
-def test_velocity_option_overrides_and_no_time_is_said_once(tmp_path):
-    docs = _frames(tmp_path, "--velocity-km-s", "5,-5,2")
+def test_velocity_option_overrides_and_no_time_is_said_once():
+    docs = _frames("--velocity-km-s", "5,-5,2")
     # A wrong velocity given on the command line wins over the frames' own, and shows in the error.
     wrong, _ = _attitude(docs, "--velocity-km-s", "-5,5,-2")
     assert wrong[0]["attitude"]["apparent"]["velocity_source"] == "given"
@@ -73,12 +73,12 @@ def test_velocity_option_overrides_and_no_time_is_said_once(tmp_path):
     assert out[0]["attitude"]["apparent"]["time_source"] == "given"
 
 
-def test_wcs_maps_pixels_to_catalog_positions(tmp_path):
+def test_wcs_maps_pixels_to_catalog_positions():
     from astropy.wcs import WCS
 
     from startrack.catalog import load_catalog
 
-    docs = _frames(tmp_path, "--velocity-km-s", "7,0,0")
+    docs = _frames("--velocity-km-s", "7,0,0")
     out, _ = _attitude(docs)
     cat = load_catalog().propagate(out[0]["attitude"]["epoch"])
     rows = cat.rows_by_id()
