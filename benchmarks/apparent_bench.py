@@ -1,5 +1,7 @@
 #!/usr/bin/env python3
-"""Stellar aberration (issue 39): error / Cramér-Rao bound per axis with and without the correction.
+"""Issue 39's must-show: stellar aberration, error / Cramér-Rao bound per axis with and without the correction.
+
+Feeds results/results-apparent-2026-12-05.md.
 
 Star lists (15 deg, 1024 x 1024, 0.3 px centroids) as a camera sees them (``render --stars-only``
 simulates proper motion, solar deflection and aberration for the Earth's velocity at the frame's
