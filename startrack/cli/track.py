@@ -150,7 +150,6 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         if cam is None:
             raise BadInputError(src, "camera", "is missing (give --camera)")
         setting = frame_apparent(doc, apparent, src)
-        no_time(setting.aberration)
         if state["tracker"] is None:
             check_database(db, cam)
             stars = cat
@@ -188,6 +187,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         if calibration is not None:
             doc["image"]["calibration"] = calibration.record()
         doc["camera"] = cam.to_dict()
+        no_time(setting.aberration)      # after the frame's input was found usable
         out = state["tracker"].step(image, t, saturation, exposure_s)
         state["t_prev"] = t
         state["modes"][out["track"]["mode"]] += 1
