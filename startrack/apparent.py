@@ -366,10 +366,8 @@ def image_time_tags(path: str):
             return dict(fits.getheader(path)), None
         except (OSError, ValueError):
             return None, None
-    try:
-        from PIL import Image
-    except ImportError:           # pragma: no cover - Pillow is a dependency of the image readers
-        return None, None
+    from PIL import Image         # a core dependency (pyproject.toml)
+
     try:
         with Image.open(path) as img:
             exif = img.getexif()
