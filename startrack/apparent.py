@@ -366,7 +366,7 @@ def image_time_tags(path: str):
             return dict(fits.getheader(path)), None
         except (OSError, ValueError):
             return None, None
-    from PIL import Image         # a core dependency (pyproject.toml)
+    from PIL import Image  # a core dependency (pyproject.toml)
 
     try:
         with Image.open(path) as img:
