@@ -29,7 +29,7 @@ def mirror_stars(stars, cx: float):
 
 
 def identify_either_parity(stars, camera, db, algorithm: str = "pyramid", params=None, config=None, catalog=None,
-                           parity: str = "auto"):
+                           parity: str = "auto", apparent=None):
     """:func:`startrack.identify.identify_stars` over the parities of ``parity``: ``(result, parity searched last)``.
 
     ``auto`` searches the mirrored stars only when the normal ones found nothing, within what is
@@ -53,7 +53,7 @@ def identify_either_parity(stars, camera, db, algorithm: str = "pyramid", params
             break
         listed = stars if searched == "normal" else mirror_stars(stars, camera.cx)
         result = identify_stars(listed, camera, db, algorithm, dataclasses.replace(shared, max_time_ms=left), config,
-                                catalog)
+                                catalog, apparent)
         # Each search's own time (its database loading excluded, as identify_stars counts it).
         spent_ms += result.time_ms or 0.0
         trials += result.trials or 0

@@ -189,7 +189,7 @@ def _default_config(kind: type):
 
 
 def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: IdentifyParams | None = None,
-                   config=None, catalog=None) -> Identification:
+                   config=None, catalog=None, apparent=None) -> Identification:
     """Identify the stars of one frame.
 
     Parameters
@@ -210,6 +210,10 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
     catalog : Catalog, optional
         Match the detections the database does not hold against this catalog
         once the attitude is known (:func:`startrack.identify.catalog_match.match_catalog`).
+    apparent : callable, optional
+        ICRS unit vectors to the frame's apparent places
+        (:meth:`startrack.apparent.FrameApparent.apparent`): the final match
+        and ``quaternion_estimate`` then account for stellar aberration.
 
     Returns
     -------
@@ -224,4 +228,4 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         from startrack.errors import BadInputError
 
         raise BadInputError("config", None, f"{algorithm} takes a {alg.config.__name__}, got {type(config).__name__}")
-    return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog)
+    return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog, apparent)

@@ -21,11 +21,32 @@ class CatalogStars:
     id: np.ndarray
     mag: np.ndarray
     sky: object = None
+    #: ``vectors`` minus the same stars' at the epoch they were propagated from (:meth:`moved`), or None.
+    motion: np.ndarray | None = None
+    _id_order: np.ndarray | None = None
 
     @classmethod
-    def from_catalog(cls, catalog) -> CatalogStars:
-        """From a :class:`startrack.catalog.Catalog` (its vectors and sky index, made once per catalog)."""
-        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index())
+    def from_catalog(cls, catalog, since=None) -> CatalogStars:
+        """From a :class:`startrack.catalog.Catalog` (its vectors and sky index, made once per catalog);
+        ``since``: the same catalog at the epoch it was propagated from (the stars' ``motion``)."""
+        motion = None if since is None else catalog.vectors() - since.vectors()
+        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index(), motion)
+
+    def moved(self, ids, vectors: np.ndarray) -> np.ndarray:
+        """``vectors`` (a database's stars ``ids``, at the epoch this catalog was propagated from) moved by their
+        catalog stars' proper motion to this catalog's epoch (``motion``); unchanged without it or for an id
+        the catalog lacks.  A database's merged photocentre moves with the star it is named after."""
+        if self.motion is None:
+            return vectors
+        order = self._id_order
+        if order is None:
+            order = self._id_order = np.argsort(self.id, kind="stable")
+        ids = np.asarray(ids, dtype=self.id.dtype)
+        rows = order[np.minimum(np.searchsorted(self.id, ids, sorter=order), len(order) - 1)]
+        found = self.id[rows] == ids
+        out = np.array(vectors, dtype=np.float64, copy=True)
+        out[found] += self.motion[rows[found]]
+        return out / np.linalg.norm(out, axis=1, keepdims=True)
 
     def in_cone(self, axis: np.ndarray, cos_radius: float) -> np.ndarray:
         """The rows with ``vectors @ axis > cos_radius``, ascending: the stars near the sky index's cone,
@@ -40,7 +61,7 @@ class CatalogStars:
 
 def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
                   stars: CatalogStars, max_chance: float, cos_fov: float, mag_limit: float | None = None,
-                  sigma: np.ndarray | None = None, passes: int = 3):
+                  sigma: np.ndarray | None = None, passes: int = 3, apparent=None):
     """Match every detection left over to a (deeper) catalog with the identification's attitude.
 
     Each unmatched detection takes the nearest catalog star projected into the
@@ -66,6 +87,11 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     verified stars' attitude).  Each pass starts from an attitude many times
     better; what it leaves out it leaves out evenly about the truth.
 
+    ``apparent``, when given, maps ICRS (catalog) unit vectors to the frame's
+    apparent places (:meth:`startrack.apparent.FrameApparent.apparent`:
+    stellar aberration): the catalog stars are matched at the places the
+    camera sees them, and the attitude is the camera's true orientation.
+
     Parameters
     ----------
     matches : list of Match
@@ -78,12 +104,15 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     """
     from startrack.rotations import quaternion_to_dcm
 
-    out, q = _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma)
+    if apparent is not None:
+        ref = apparent(ref)
+    out, q = _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma,
+                         apparent)
     for _ in range(passes - 1):
         if q is None:
             break
         again, q2 = _match_once(matches, ref, quaternion_to_dcm(q), b_all, radius, camera, stars, max_chance, cos_fov,
-                                mag_limit, sigma)
+                                mag_limit, sigma, apparent)
         if q2 is None:
             break
         held = again == out
@@ -93,7 +122,7 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     return out, q
 
 
-def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma):
+def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma, apparent):
     """One pass of :func:`match_catalog`: the detections matched with the attitude ``dcm`` and the attitude
     refined with them."""
     from startrack._kernels.attitude import quest
@@ -107,10 +136,11 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
     # The catalog stars in the field's cone only (the sky index), not a pass over the catalog.
     front = stars.in_cone(dcm[2], cos_fov)
     front = front[stars.mag[front] <= (np.inf if mag_limit is None else mag_limit)]
-    pc = vec[front] @ dcm.T
+    cone = vec[front] if apparent is None else apparent(vec[front])
+    pc = cone @ dcm.T
     x, y = camera.vectors_to_pixels(pc)
     keep = camera.in_image(x, y)
-    idx, pc = front[keep], pc[keep]
+    idx, pc, cone = front[keep], pc[keep], cone[keep]
     if len(idx) < 1:
         return matches, None
     dots = b_all[todo] @ pc.T                                   # (detections, predicted)
@@ -150,11 +180,11 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
     first = np.ones(len(sel), dtype=bool)
     first[1:] = cids[sel[1:]] != cids[sel[:-1]]
     sel = np.sort(sel[first])
-    cand = {int(cids[k]): (int(todo[k]), float(dot[k]), int(idx[best[k]])) for k in sel}
+    cand = {int(cids[k]): (int(todo[k]), float(dot[k]), int(best[k])) for k in sel}
     new = sorted(cand.items(), key=lambda kv: kv[1][0])
     out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
     body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
-    ref_all = np.vstack([ref, vec[[k for _, (_, _, k) in new]]])
+    ref_all = np.vstack([ref, cone[[k for _, (_, _, k) in new]]])
     w = 1.0 / radius[[m.star for m in out]] ** 2
     q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref_all), w / w.sum())
     q = q / math.sqrt(float(q @ q))
@@ -186,7 +216,7 @@ def _median(values: np.ndarray) -> float:
     return float(v[n // 2]) if n % 2 else float((v[n // 2 - 1] + v[n // 2]) / 2)
 
 
-def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db, params):
+def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db, params, apparent=None):
     """:func:`match_catalog` of an accepted identification (:func:`startrack.identify.driver.run`'s ``catalog``).
 
     ``accepted`` is the verification's verdict (its matches, database indices and attitude), ``scale`` the
@@ -215,7 +245,31 @@ def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_
     margin_px = math.radians(params.margin_arcsec / 3600.0) * cam.focal_length_px
     radius_px = np.full(len(xs), float(params.match_radius_px)) if params.match_radius_px is not None else \
         np.maximum(1.0, params.match_sigma * sig_px + margin_px)
-    matches, q = match_catalog(accepted.matches, db.star_vector[accepted.cat_index], accepted.dcm, b,
+    # The verified stars at the catalog's epoch (the frame's: proper motion applied), not the database's.
+    ref = catalog.moved(db.star_id[accepted.cat_index], db.star_vector[accepted.cat_index])
+    matches, q = match_catalog(accepted.matches, ref, accepted.dcm, b,
                                radius_px / cam.focal_length_px, cam, catalog, params.max_chance_match,
-                               _geometry(camera if scale is None else cam)[0], depth, sig_px / cam.focal_length_px)
+                               _geometry(camera if scale is None else cam)[0], depth, sig_px / cam.focal_length_px,
+                               apparent=apparent)
     return matches, q, depth
+
+
+def apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, catalog=None):
+    """The attitude of the verified matches alone refitted to their apparent places (QUEST, weights
+    ``1 / sigma^2``): the camera's true orientation when no catalog match refined it
+    (:func:`match_catalog`'s ``apparent``).  With ``catalog`` (a :class:`CatalogStars`) the database's
+    stars are first moved to its epoch (:meth:`CatalogStars.moved`); else they are at the database's."""
+    from startrack._kernels.attitude import quest
+    from startrack.identify.verify import _pixels_to_vectors
+
+    cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
+    stars = np.asarray(accepted.star_index, dtype=np.int64)
+    body = _pixels_to_vectors(cam, np.asarray(xs)[stars], np.asarray(ys)[stars])
+    ref = db.star_vector[accepted.cat_index]
+    if isinstance(catalog, CatalogStars):
+        ref = catalog.moved(db.star_id[accepted.cat_index], ref)
+    ref = apparent(ref)
+    w = 1.0 / np.asarray(sig_px, dtype=np.float64)[stars] ** 2
+    q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref), w / w.sum())
+    q = q / math.sqrt(float(q @ q))
+    return -q if q[3] < 0 else q

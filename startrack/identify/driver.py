@@ -35,7 +35,7 @@ from startrack.identify.algorithm import (
     SearchContext,
     SearchOutcome,
 )
-from startrack.identify.catalog_match import match_identified
+from startrack.identify.catalog_match import apparent_quaternion, match_identified
 from startrack.identify.params import IdentifyParams, _frame_arrays, _table_arrays, _tolerances, star_sigmas_px
 from startrack.identify.verify import _geometry, _pixels_to_vectors, _verify_fused, _verify_with_focal
 from startrack.records import Identification, ReasonCode, StarTable, Status
@@ -56,7 +56,7 @@ FUSED_VERIFY = True
 FUSED_SEARCH = True
 
 def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: IdentifyParams,
-        catalog=None) -> Identification:
+        catalog=None, apparent=None) -> Identification:
     """The search driver: proposals from ``algorithm.search``, each verified, until one passes or the budget ends.
 
     Parameters
@@ -72,6 +72,13 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     catalog : CatalogStars or Catalog, optional
         A catalog to match the detections the database does not hold against
         (:func:`~startrack.identify.catalog_match.match_catalog`), e.g. the full catalog behind a shallow database.
+    apparent : callable, optional
+        ICRS unit vectors to the frame's apparent places (stellar aberration,
+        :meth:`startrack.apparent.FrameApparent.apparent`): the final match and
+        the reported attitude use them, so that ``quaternion_estimate`` is the
+        camera's true orientation.  The search and the verification compare
+        angles within the field, which aberration changes by at most 1e-4 of
+        themselves (v/c), far inside their tolerances.
 
     Returns
     -------
@@ -175,12 +182,15 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     if catalog is not None:
         n_db = len(matches)
         matches, q, depth = match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db,
-                                             params)
+                                             params, apparent)
         if depth is not None:
             details["match_mag_limit"] = round(depth, 2)
         if q is not None:
             quaternion = q
             details["matched_beyond_database"] = len(matches) - n_db
+    if apparent is not None and (catalog is None or q is None):
+        quaternion = apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, catalog)
+    if catalog is not None or apparent is not None:
         elapsed = (time.perf_counter() - t0) * 1000
     if info:
         log.info("%s: %d of %d stars identified at proposal %d (%d pattern(s)), false-match probability %.2g, "

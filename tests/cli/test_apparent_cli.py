@@ -101,3 +101,33 @@ def test_wcs_maps_pixels_to_catalog_positions():
 def test_bad_velocity_is_exit_2(bad):
     proc = run_cli("attitude", "--velocity-km-s", bad, input="")
     assert proc.returncode == 2 and "--velocity-km-s" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("match,time", [("--match-all", "2026-09-22T12:00:00Z"),
+                                        ("--database-only", "1991-04-02T13:30:00Z")])
+def test_identify_quaternion_estimate_is_the_true_orientation(tmp_path, match, time):
+    """identify's final match and quaternion_estimate use the apparent places (issue 39: "it applies in
+    identify"), and with the catalog the database's stars moved to the frame's time; on main the estimate
+    was the astrometric one at the database's epoch, 12" off the camera's orientation.  (--database-only
+    has no catalog, so no proper motion: its frames are at the database's epoch.)"""
+    db = tmp_path / "db.h5"
+    run_cli("build-kvector", "--fov-deg", 15, "--size", "1024x1024", "--mag-max", 5.5, "-o", db, check=True)
+    proc = run_cli("render", "--stars-only", "--count", 8, "--fov-deg", 15, "--size", "1024x1024", "--seed", 5,
+                   "--mag-max", 6, "--time", time, "--velocity-km-s", "5,-5,2", "-q", check=True)
+    got = {}
+    for flag in ((), ("--no-aberration",)):
+        out = run_cli("identify", "-d", db, "-q", match, *flag, input=proc.stdout)
+        assert out.returncode == 0, out.stderr
+        got[flag] = [json.loads(line) for line in out.stdout.splitlines()]
+    errors = {True: [], False: []}
+    for a, b in zip(got[()], got[("--no-aberration",)], strict=True):
+        assert a["identification"]["apparent"]["aberration"] == "corrected"
+        assert b["identification"]["apparent"]["aberration"] == "disabled"
+        assert all(a["truth"]["star_ids"][m["star"]] == m["id"] for m in a["identification"]["matches"])
+        for doc, corrected in ((a, True), (b, False)):
+            doc["attitude"] = {"quaternion": doc["identification"]["quaternion_estimate"]}
+            errors[corrected].append(_error_arcsec(doc))
+    # Noise-free stars: the estimate is the rendered orientation (within the blends' photocentres); without the
+    # correction it is off by the aberration.
+    rms = {k: math.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
+    assert rms[True] < 2.0 and rms[False] > 8, rms
