@@ -228,14 +228,15 @@ def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_
     Returns
     -------
     (matches, quaternion or None, depth or None)
-        ``quaternion`` None when nothing was added; ``depth`` the magnitude limit used.
+        ``quaternion`` None when nothing was added; ``depth`` the magnitude limit used (None: no
+        detection was left to match, or no fluxes).
     """
     from startrack.identify.verify import _geometry, _pixels_to_vectors
 
+    if len(accepted.matches) >= len(xs):
+        return accepted.matches, None, None        # every detection identified: nothing for the catalog
     has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
-    if len(accepted.matches) >= len(xs):
-        return accepted.matches, None, depth       # every detection identified: nothing for the catalog
     if not isinstance(catalog, CatalogStars):
         catalog = CatalogStars.from_catalog(catalog)
     if b_all is None:
