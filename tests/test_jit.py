@@ -95,6 +95,19 @@ def test_aot_build_runs_without_numba_and_falls_back_exactly(tmp_path):
     assert not json.loads(off.stdout)["aot"]
     assert json.loads(off.stdout)["dcm"] == out["dcm"]
 
+    # A damaged build (4 KB overwritten inside its machine code) is not loaded: its checksum fails (issue 41; on
+    # main the library was loaded and run), said once on stderr, and numba's kernels give the same numbers.
+    lib = next(tmp_path.glob("kernels-*.so"))
+    assert len(manifest["sha256"]) == 64
+    assert (tmp_path / (lib.name[:-3] + ".checked")).exists()      # the first load hashed it and stamped it
+    data = bytearray(lib.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 4096] = os.urandom(4096)
+    lib.write_bytes(bytes(data))
+    bad = subprocess.run([sys.executable, "-c", _CHILD], env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 0, bad.stderr
+    assert not json.loads(bad.stdout)["aot"] and json.loads(bad.stdout)["dcm"] == out["dcm"]
+    assert bad.stderr.count("sha256: does not match") == 1 and lib.name in bad.stderr
+
 
 def test_every_kernel_module_declares_lazy_kernels():
     """A kernel module that took njit from numba would hand numba a lazy kernel it cannot type."""

@@ -45,7 +45,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["njit", "prange", "LazyKernel", "kernels_dir", "aot_path", "build_aot", "aot_loaded"]
+__all__ = ["njit", "prange", "LazyKernel", "kernels_dir", "aot_path", "build_aot", "aot_loaded", "aot_intact"]
 
 _KERNELS: list = []          # every LazyKernel, in definition order
 _MATERIALISED = False        # numba imported and every lazy kernel bound to a dispatcher
@@ -329,6 +329,8 @@ def _load_aot() -> dict:
             manifest = json.load(f)
     except (OSError, ValueError):
         return {}
+    if not aot_intact(path, manifest):
+        return {}
     spec = importlib.util.spec_from_file_location(manifest["module"], path)
     if spec is None:
         return {}
@@ -341,6 +343,58 @@ def _load_aot() -> dict:
     for qualname, entries in manifest["kernels"].items():
         table[qualname] = {_fast_key(key): getattr(mod, symbol) for symbol, key in entries}
     return table
+
+
+def _file_sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def aot_intact(path: str, manifest: dict | None = None) -> bool:
+    """Whether the AOT build at ``path`` is the one its manifest describes (its ``sha256``).
+
+    A damaged library would be loaded and its machine code run: a crash, or wrong numbers.  The
+    checksum is read once per file state: a ``.checked`` stamp beside it holds the file's inode, size
+    and times when it matched, so that later start-ups only ``stat`` it (as the pattern index does).
+    A mismatch is said once on stderr; the kernels then run under numba's JIT.
+    """
+    try:
+        if manifest is None:
+            with open(path[:-3] + ".json") as f:
+                manifest = json.load(f)
+        want = manifest.get("sha256")
+        st = os.stat(path)
+    except (OSError, ValueError, AttributeError):
+        return False
+    if not isinstance(want, str):
+        return False                # a build from before checksums: not trusted, rebuilt by `cache build`
+    stamp = [st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns, want]
+    checked = path[:-3] + ".checked"
+    try:
+        with open(checked) as f:
+            if json.load(f) == stamp:
+                return True
+    except (OSError, ValueError):
+        pass
+    try:
+        got = _file_sha256(path)
+    except OSError:
+        return False
+    if got != want:
+        sys.stderr.write(f"startrack: WARNING: compiled kernels {path}: sha256: does not match its build's: the file "
+                         "is damaged; running numba's just-in-time kernels (`startrack cache build` rebuilds it)\n")
+        return False
+    try:
+        tmp = f"{checked}.{os.getpid()}"
+        with open(tmp, "w") as f:
+            json.dump(stamp, f)
+        os.replace(tmp, checked)
+    except OSError:
+        pass
+    return True
 
 
 def aot_loaded() -> bool:
@@ -428,6 +482,7 @@ def _build(path, module, cpu, kernels):
                                                                             if e not in keep}))
             entries = keep
             continue
+        manifest["sha256"] = _file_sha256(path)
         with open(path[:-3] + ".json.tmp", "w") as f:
             json.dump(manifest, f)
         os.replace(path[:-3] + ".json.tmp", path[:-3] + ".json")

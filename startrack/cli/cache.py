@@ -78,15 +78,15 @@ def _build_kernels(quiet: bool, index) -> None:
     import sys
     import time
 
-    from startrack._kernels._jit import aot_path, build_aot
+    from startrack._kernels._jit import aot_intact, aot_path, build_aot
     from startrack.formats.hdf5 import build_lock
 
     path = aot_path()
-    if os.environ.get("STARTRACK_AOT", "1") == "0" or os.path.exists(path):
+    if os.environ.get("STARTRACK_AOT", "1") == "0" or aot_intact(path):
         return
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with build_lock(path):
-        if os.path.exists(path):
+        if aot_intact(path):
             return
         # Always visible, like the index's notice: a minute of silence looks like a hang.
         sys.stderr.write(f"startrack: compiling the solver's kernels ahead of time once, 1-2 min, into "
