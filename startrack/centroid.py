@@ -436,10 +436,14 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     if not (math.isfinite(bottom) and math.isfinite(top)):
         finite = img[np.isfinite(img)]
         if finite.size == 0:
-            return result([], [], float("nan"), 0.0, "image has no finite pixel value")
+            return result([], [], float("nan"), 0.0, "image is constant: no finite pixel value")
         bottom, top = float(finite.min()), float(finite.max())
         probe = probe[np.isfinite(probe)]
     span = top - bottom
+    if span <= 0 and (sat is None or top < sat):
+        # One value everywhere (an array of zeros, a dark frame of one DN) carries no signal; it is saturated
+        # only when that value reaches a saturation level given or read from the file.
+        return result([], [], top, 0.0, "image is constant: no signal")
     sat = top if sat is None else sat       # the saturation level when none is given: the largest value
     frac_sat = (float(np.mean(probe >= sat)) if probe.size else 0.0) if sat > bottom else 1.0
     if frac_sat > 0.95:

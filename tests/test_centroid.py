@@ -308,7 +308,7 @@ def test_pixels_without_value_are_no_data():
         assert found.reason is None
         assert sorted((round(s["x"]), round(s["y"])) for s in found.stars) == sorted((x, y) for x, y, _ in stars)
     empty = find_stars(np.full((300, 400), np.nan, dtype=np.float32))
-    assert empty.stars == [] and empty.reason == "image has no finite pixel value"
+    assert empty.stars == [] and empty.reason == "image is constant: no finite pixel value"
 
 
 def test_mesh_paths_agree_with_pixels_without_value():
