@@ -402,6 +402,8 @@ class BlindOptions:
     tol_geom: float = 0.05
     fit_distortion_deg: float = 25.0
     rank: str = "peak"
+    # (ra, dec, radius) in degrees: the boresight lies within radius of (ra, dec); None: anywhere.
+    sky_circle: tuple | None = None
 
 
 @functools.lru_cache(maxsize=8)
@@ -540,6 +542,15 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     log.debug("pattern search: %d stars (%s in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all,
               " then ".join(map(str, depths)), len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
     xy_pat = np.ascontiguousarray(xy_all[:depths[-1]])
+    # A position hint: a candidate's pattern stars are in the field, so each lies within the field's half
+    # diagonal (at the candidate's focal length) of the boresight; those farther than that plus the radius from
+    # the hinted centre are not verified, and a verified solution must have its boresight in the circle.
+    hint_vec = None
+    if opts.sky_circle is not None:
+        ra_h, dec_h, radius_h = (math.radians(v) for v in opts.sky_circle)
+        hint_vec = np.array([math.cos(dec_h) * math.cos(ra_h), math.cos(dec_h) * math.sin(ra_h), math.sin(dec_h)])
+        info["outside_hint"] = 0
+    half_diag_px = math.hypot(width, height) / 2.0
     seen = set()
     # Patterns are looked up a few at a time (one kernel call each), the first ones alone: most images
     # are identified by their first pattern, and the candidates are verified in the same order either way.
@@ -560,6 +571,13 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
         info["patterns"] += len(block)
         info["candidates"] += len(ci)
         order = np.lexsort((cf[:, 1], ci[:, 0]))      # by image pattern (brightest first), best fit first
+        if hint_vec is not None and len(order):
+            reach = radius_h + np.arctan(half_diag_px / cf[order, 0]) + math.radians(0.5)
+            # Every pattern star of the candidate within reach of the hinted centre (the farthest decides).
+            cos_hint = np.min(index.star_vec[ci[order][:, 2:6].astype(np.int64)] @ hint_vec, axis=1)
+            near = cos_hint >= np.cos(np.minimum(reach, math.pi))
+            info["outside_hint"] += int(len(order) - np.count_nonzero(near))
+            order = order[near]
         for row, (f, _err) in zip(ci[order], cf[order], strict=True):
             if time.perf_counter() > deadline:
                 break
@@ -572,6 +590,10 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             info["verified"] += 1
             res = _verify_candidate(stars[:m], xy_all, img, cat_rows, f, width, height, index, params, sigma,
                                     info["verified"], f_lo, f_hi, opts)
+            if res is not None and hint_vec is not None and \
+                    math.acos(max(-1.0, min(1.0, float(res[2][2] @ hint_vec)))) > radius_h:
+                info["outside_hint"] += 1      # a field found elsewhere than the hint says: not this frame's answer
+                res = None
             if res is not None:
                 cam, matches, dcm, p_false = res
                 matches = [dict(mm, star=ranked[mm["star"]]) for mm in matches]

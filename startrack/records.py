@@ -137,6 +137,46 @@ def schema_field(default: Any = None, *, key: str | None = None, kind: str = "nu
     return field(default=default, metadata=meta)
 
 
+class _Record:
+    """What every typed record offers: its frame-document form and a short ``repr``.
+
+    ``to_dict()`` is what the commands write (:func:`startrack.formats.sections.to_frame` /
+    :func:`~startrack.formats.sections.to_section`, one schema: ``docs/formats.md``); ``to_json()`` its
+    JSON text.  ``dataclasses.asdict`` works on every record (plain values, arrays and named tuples).
+    """
+
+    def to_dict(self) -> dict:
+        """The record as the frame document (or section) the commands write: JSON-ready, degrees, arcseconds."""
+        from startrack.formats.sections import record_to_dict
+
+        return record_to_dict(self)
+
+    def to_json(self, **kwargs) -> str:
+        """:meth:`to_dict` as JSON text (``kwargs`` go to :func:`json.dumps`, e.g. ``indent=2``)."""
+        import json
+
+        return json.dumps(self.to_dict(), **kwargs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._summary()})"
+
+    def _summary(self) -> str:       # pragma: no cover - every record defines its own
+        return ""
+
+
+def _fmt(value, spec: str = ".4f") -> str:
+    return "?" if value is None else format(float(value), spec)
+
+
+def _status_text(record) -> str:
+    status = str(getattr(record, "status", ""))
+    if status == "failed":
+        code = getattr(record, "reason_code", None)
+        reason = getattr(record, "reason", None) or ""
+        return f"failed{f' [{code}]' if code else ''}: {reason}"
+    return status
+
+
 class Match(NamedTuple):
     """One identified star: ``star`` indexes the frame's star table, ``id`` is the catalog id (HIP)."""
 
@@ -148,8 +188,8 @@ class Match(NamedTuple):
 _STAR_NUMERIC = ("sigma_px", "peak", "npix", "snr", "fwhm_px", "mag")
 
 
-@dataclass
-class StarTable:
+@dataclass(repr=False)
+class StarTable(_Record):
     """Detected (or listed) stars of one frame, brightest first, as columns.
 
     Parameters
@@ -189,6 +229,10 @@ class StarTable:
 
     def __len__(self) -> int:
         return len(self.x)
+
+    def _summary(self) -> str:
+        cols = ["x", "y", "flux"] + (["sigma_px"] if self.sigma_px is not None else []) + list(self.columns)
+        return f"{len(self)} stars; columns {', '.join(cols)}"
 
     @property
     def xy(self) -> np.ndarray:
@@ -246,8 +290,8 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
 
 
-@dataclass
-class Attitude:
+@dataclass(repr=False)
+class Attitude(_Record):
     """The ``attitude`` section: the rotation from ICRS to the camera frame and its quality.
 
     ``quaternion`` is authoritative (scalar last, ``A(q)`` maps ICRS unit
@@ -276,15 +320,38 @@ class Attitude:
     crb_cross_boresight_arcsec: float | None = schema_field(
         unit="arcsec", doc="the frame's Cramér-Rao bound, per cross-boresight axis (`startrack.accuracy`)")
     crb_roll_arcsec: float | None = schema_field(unit="arcsec", doc="the frame's Cramér-Rao bound about the boresight")
+    crb_pitch_yaw_arcsec: np.ndarray | None = schema_field(
+        kind="vector", unit="arcsec", doc="the frame's Cramér-Rao bound about camera x and y (when the stars carry "
+        "`sigma_px`)")
+    sigma_cross_boresight_arcsec: float | None = schema_field(
+        unit="arcsec", doc="1-sigma pointing uncertainty per cross-boresight axis (from `covariance_arcsec2`)")
+    sigma_pitch_yaw_arcsec: np.ndarray | None = schema_field(kind="vector", unit="arcsec",
+                                                             doc="1-sigma about camera x and y")
+    sigma_roll_arcsec: float | None = schema_field(unit="arcsec", doc="1-sigma about the boresight")
+    euler123_deg: dict | None = schema_field(kind="object", unit="deg",
+                                             doc="`yaw`, `pitch`, `roll` of `A = R3(roll) R2(pitch) R1(yaw)`")
     rejected: list = schema_field(kind="list", factory=list, doc="stars dropped by the chi-square gate")
     epoch: float | None = schema_field(unit="yr", doc="decimal year of the catalog positions")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
     details: dict = schema_field(kind="object", factory=dict,
-                                 doc="other fields (`dcm`, `euler123_deg`, `sigma_*_arcsec`, `wcs`, ...)")
+                                 doc="other fields (`dcm`, `wcs`, `apparent`, ...)")
 
     @property
     def ok(self) -> bool:
         return self.status == Status.OK
+
+    def _summary(self) -> str:
+        if not self.ok:
+            return _status_text(self)
+        text = (f"ok, {self.method}: RA {_fmt(self.ra)}, Dec {_fmt(self.dec, '+.4f')}, roll {_fmt(self.roll, '.3f')} "
+                f"deg")
+        if self.n_stars is not None:
+            text += f", {self.n_stars} stars"
+        if self.sigma_cross_boresight_arcsec is not None:
+            text += f", sigma {_fmt(self.sigma_cross_boresight_arcsec, '.2f')}\" cross-boresight"
+            if self.sigma_roll_arcsec is not None:
+                text += f", {_fmt(self.sigma_roll_arcsec, '.1f')}\" roll"
+        return text
 
     @property
     def dcm(self) -> np.ndarray | None:
@@ -311,8 +378,8 @@ class Attitude:
         return cls(Status.FAILED, method, reason=reason, reason_code=reason_code, **kw)
 
 
-@dataclass
-class Identification:
+@dataclass(repr=False)
+class Identification(_Record):
     """The ``identification`` section: which detected star is which catalog star.
 
     ``matches`` pair an index into the frame's star table with a catalog id
@@ -341,14 +408,22 @@ class Identification:
     def ok(self) -> bool:
         return self.status == Status.OK
 
+    def _summary(self) -> str:
+        text = f"{_status_text(self)}, {self.algorithm}, {len(self.matches)} matches"
+        if self.false_match_probability is not None:
+            text += f", false-match probability {self.false_match_probability:.2g}"
+        if self.time_ms is not None:
+            text += f", {self.time_ms:.1f} ms"
+        return text
+
     @classmethod
     def failed(cls, algorithm: str, reason: str, reason_code: ReasonCode | str = ReasonCode.OTHER,
                **kw) -> Identification:
         return cls(Status.FAILED, algorithm, [], reason=reason, reason_code=reason_code, **kw)
 
 
-@dataclass
-class TrackState:
+@dataclass(repr=False)
+class TrackState(_Record):
     """The ``track`` section: what the tracker did on one frame."""
 
     mode: str | None = schema_field(kind="str", doc="`tracking`, `single-star`, `lost-in-space` or `lost`")
@@ -369,9 +444,19 @@ class TrackState:
     identification: Identification | None = field(default=None, metadata={"section": "identification"})
     attitude: Attitude | None = field(default=None, metadata={"section": "attitude"})
 
+    def _summary(self) -> str:
+        text = f"{self.mode}"
+        if self.t_s is not None:
+            text += f", t {self.t_s:g} s"
+        if self.found is not None and self.predicted is not None:
+            text += f", {self.found} of {self.predicted} predicted stars found"
+        if self.attitude is not None:
+            text += f", attitude {self.attitude._summary()}"
+        return text
 
-@dataclass
-class SolveResult:
+
+@dataclass(repr=False)
+class SolveResult(_Record):
     """Everything :meth:`startrack.Solver.solve` learnt about one image.
 
     Written as the frame sections ``camera``, ``stars``, ``centroid``,
@@ -393,6 +478,13 @@ class SolveResult:
     parity: str | None = schema_field(kind="str", doc="`normal`, or `mirrored`: the image is the camera's flipped "
                                       "(`x -> 2 cx - x`); the attitude and camera are the un-mirrored camera's")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")
+    principal_point: dict | None = schema_field(kind="object", unit="deg",
+                                                doc="`ra`, `dec` of the principal point (the boresight)")
+    hint: dict | None = schema_field(kind="object", unit="deg",
+                                     doc="the search's restrictions as given: `ra`, `dec`, `radius` (the boresight "
+                                     "within `radius` of `ra`, `dec`), `fov_min`, `fov_max` (horizontal field)")
+    targets: list = schema_field(kind="list", factory=list,
+                                 doc="the pixels and sky positions asked for (`--target-pixel`, `--target-radec`)")
     details: dict = schema_field(kind="object", factory=dict, doc="other fields (`wcs_path`, `plot_path`, ...)")
     # Not part of the ``solve`` section: the other sections of the frame.
     camera: Any = field(default=None, metadata={"section": "camera"})
@@ -400,7 +492,123 @@ class SolveResult:
     centroid: dict | None = field(default=None, metadata={"section": "centroid"})
     identification: Identification | None = field(default=None, metadata={"section": "identification"})
     attitude: Attitude | None = field(default=None, metadata={"section": "attitude"})
+    image: dict | None = field(default=None, metadata={"section": "image"})
+    # Not written: the catalog positions (``ra``, ``dec``, degrees, at the attitude's epoch) and ``mag`` of the
+    # identification's matches, in their order (arrays), for :attr:`matches`.
+    matched_catalog: dict | None = field(default=None)
 
     @property
     def ok(self) -> bool:
         return self.status == Status.OK
+
+    def _summary(self) -> str:
+        n_stars = 0 if self.stars is None else len(self.stars)
+        n_matched = 0 if self.identification is None else len(self.identification.matches)
+        if not self.ok:
+            text = f"{_status_text(self)}; {n_stars} stars"
+        else:
+            att = self.attitude
+            text = f"ok: RA {_fmt(att.ra)}, Dec {_fmt(att.dec, '+.4f')}, roll {_fmt(att.roll, '.3f')} deg"
+            if self.fov_deg is not None:
+                text += f", field {_fmt(self.fov_deg[0], '.3f')} x {_fmt(self.fov_deg[1], '.3f')} deg"
+            text += f", {n_matched} of {n_stars} stars matched"
+            if att.sigma_cross_boresight_arcsec is not None:
+                text += f", sigma {_fmt(att.sigma_cross_boresight_arcsec, '.2f')}\" cross-boresight"
+        if self.time_ms is not None:
+            text += f", {self.time_ms:.0f} ms"
+        return text
+
+    # ------------------------------------------------------------------ astropy views (astropy imported here only)
+    @property
+    def wcs(self):
+        """The solution as an ``astropy.wcs.WCS`` (TAN, SIP for a distorted lens), ``None`` when not solved.
+
+        Pixel coordinates are ours (0-based, ``(0, 0)`` the centre of the top-left pixel), which is astropy's
+        0-based convention.  It maps pixels to *astrometric* (catalog) positions, as the ``--wcs`` file does
+        (its keywords are ``attitude.wcs``, :func:`startrack.attitude.wcs_keywords`).
+        """
+        keywords = None if self.attitude is None else self.attitude.details.get("wcs")
+        if not self.ok or not keywords:
+            return None
+        from astropy.io import fits
+        from astropy.wcs import WCS
+
+        header = fits.Header()
+        for key, value in keywords.items():
+            header[key] = value
+        return WCS(header)
+
+    @property
+    def center(self):
+        """The image centre's sky position (astrometric, ICRS) as an ``astropy.coordinates.SkyCoord``."""
+        if not self.ok or self.center_ra is None:
+            return None
+        from astropy.coordinates import SkyCoord
+
+        return SkyCoord(self.center_ra, self.center_dec, unit="deg", frame="icrs")
+
+    def pixel_to_world(self, x, y):
+        """Sky positions (``SkyCoord``, astrometric ICRS) of pixels ``x`` (column), ``y`` (row); scalars or arrays."""
+        return self._need_wcs("pixel_to_world").pixel_to_world(x, y)
+
+    def world_to_pixel(self, coord):
+        """Pixel ``(x, y)`` (0-based, ours) of sky positions (a ``SkyCoord``); NaN where behind the camera."""
+        return self._need_wcs("world_to_pixel").world_to_pixel(coord)
+
+    def _need_wcs(self, what):
+        w = self.wcs
+        if w is None:
+            from startrack.errors import StartrackError
+
+            raise StartrackError(f"SolveResult.{what}: the image was not solved ({self.reason})")
+        return w
+
+    @property
+    def matches(self):
+        """The identified stars as an ``astropy.table.Table`` with units, one row per match.
+
+        Columns: ``star`` (index into :attr:`stars`), ``catalog_id``, ``x``, ``y`` (pix), ``ra``, ``dec`` (deg,
+        the catalog star at the attitude's epoch), ``mag`` (the catalog's, Hp), ``field_ra``, ``field_dec``
+        (deg, where the WCS puts the detection) and ``residual`` (arcsec, the attitude's residual; NaN for a
+        star the attitude rejected or did not use).
+        """
+        from astropy import units as u
+        from astropy.table import Table
+
+        matches = [] if self.identification is None else list(self.identification.matches)
+        star = np.array([int(m[0]) for m in matches], dtype=np.int64)
+        ids = np.array([int(m[1]) for m in matches], dtype=np.int64)
+        x = self.stars.x[star] if len(star) else np.zeros(0)
+        y = self.stars.y[star] if len(star) else np.zeros(0)
+        cat = self.matched_catalog
+        if cat is None or len(cat.get("ra", ())) != len(matches):
+            cat = _catalog_of(ids)
+        resid = {}
+        if self.attitude is not None:
+            resid = {(int(r["star"]), int(r["id"])): float(r["residual_arcsec"]) for r in self.attitude.residuals
+                     if r.get("residual_arcsec") is not None}
+        residual = np.array([resid.get((int(s), int(i)), np.nan) for s, i in zip(star, ids)], dtype=np.float64)
+        field_ra = np.full(len(star), np.nan)
+        field_dec = np.full(len(star), np.nan)
+        if len(star) and self.wcs is not None:
+            sky = self.pixel_to_world(x, y)
+            field_ra, field_dec = sky.ra.deg, sky.dec.deg
+        return Table([star, ids, x * u.pix, y * u.pix, np.asarray(cat["ra"], float) * u.deg,
+                      np.asarray(cat["dec"], float) * u.deg, np.asarray(cat["mag"], float) * u.mag,
+                      field_ra * u.deg, field_dec * u.deg, residual * u.arcsec],
+                     names=["star", "catalog_id", "x", "y", "ra", "dec", "mag", "field_ra", "field_dec", "residual"])
+
+
+def _catalog_of(ids) -> dict:
+    """``ra``, ``dec`` (deg, catalog epoch) and ``mag`` of catalog ids in the shipped catalog (NaN when absent):
+    for a result read back from a file, which does not carry its matches' catalog rows."""
+    from startrack.catalog import load_catalog
+
+    cat = load_catalog()
+    rows = cat.rows_by_id()
+    out = {k: np.full(len(ids), np.nan) for k in ("ra", "dec", "mag")}
+    for i, cid in enumerate(ids):
+        r = rows.get(int(cid))
+        if r is not None:
+            out["ra"][i], out["dec"][i], out["mag"][i] = cat.ra[r], cat.dec[r], cat.mag[r]
+    return out

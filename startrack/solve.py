@@ -198,7 +198,8 @@ class SolveOptions:
     Attributes
     ----------
     fov_deg : float or None
-        Horizontal field of view hint, degrees; ``None``: unknown (4 to 32 degrees searched).
+        Horizontal field of view hint, degrees; ``None``: unknown (the blind pattern search covers about 2 to
+        70 degrees, as ``startrack solve``).
     fov_tolerance : float
         Relative tolerance of the hint (0.1 = +-10 %).
     algorithm : str
@@ -226,6 +227,17 @@ class SolveOptions:
     observer : startrack.apparent.ObserverState or None
         The observer's velocity at the image's time: the attitude is solved against the catalog's
         apparent places (stellar aberration) and is the camera's true orientation; ``None``: at rest.
+    ra_deg, dec_deg, radius_deg : float or None
+        Where the image points, as astrometry.net's ``--ra --dec --radius``: the boresight lies within
+        ``radius_deg`` of (``ra_deg``, ``dec_deg``) (ICRS, degrees; all three or none).  Pattern candidates whose
+        stars cannot be in such a field are not verified, and a solution outside the circle is refused.
+    fov_min_deg, fov_max_deg : float or None
+        The horizontal field of view lies between them (degrees; as astrometry.net's ``--scale-low`` and
+        ``--scale-high``); either may be given alone.  Instead of ``fov_deg``.
+    target_pixels : sequence of (x, y)
+        Pixels (0-based, ``x`` the column) whose sky positions the solution gives (``SolveResult.targets``).
+    target_radec : sequence of (ra, dec)
+        Sky positions (ICRS, degrees) whose pixels the solution gives.
     """
 
     fov_deg: float | None = None
@@ -242,6 +254,74 @@ class SolveOptions:
     blind: str = "patterns"
     parity: str = "auto"
     observer: object = None
+    ra_deg: float | None = None
+    dec_deg: float | None = None
+    radius_deg: float | None = None
+    fov_min_deg: float | None = None
+    fov_max_deg: float | None = None
+    target_pixels: tuple = ()
+    target_radec: tuple = ()
+
+    def __post_init__(self):
+        sky = (self.ra_deg, self.dec_deg, self.radius_deg)
+        if any(v is not None for v in sky) and any(v is None for v in sky):
+            raise ParameterError("ra_deg", "ra_deg, dec_deg and radius_deg go together (all three or none)",
+                                 "SolveOptions")
+        checks = (("ra_deg", self.ra_deg, -360.0, 360.0), ("dec_deg", self.dec_deg, -90.0, 90.0),
+                  ("radius_deg", self.radius_deg, 0.0, 180.0), ("fov_min_deg", self.fov_min_deg, 0.0, 180.0),
+                  ("fov_max_deg", self.fov_max_deg, 0.0, 180.0))
+        for name, value, lo, hi in checks:
+            if value is not None and not (math.isfinite(value) and lo <= value <= hi and (lo < 0 or value > 0)):
+                raise ParameterError(name, f"must be in [{lo:g}, {hi:g}] degrees{' and positive' if lo == 0 else ''}, "
+                                     f"got {value}", "SolveOptions")
+        if self.fov_min_deg is not None and self.fov_max_deg is not None and self.fov_min_deg > self.fov_max_deg:
+            raise ParameterError("fov_min_deg", f"must not exceed fov_max_deg ({self.fov_min_deg} > "
+                                 f"{self.fov_max_deg})", "SolveOptions")
+        if self.fov_deg is not None and (self.fov_min_deg is not None or self.fov_max_deg is not None):
+            raise ParameterError("fov_deg", "give fov_deg (with fov_tolerance) or fov_min_deg/fov_max_deg, not both",
+                                 "SolveOptions")
+
+    @property
+    def sky_hint(self) -> bool:
+        """Whether the boresight is restricted to a circle of the sky."""
+        return self.radius_deg is not None
+
+    def fov_range(self):
+        """``(smallest, largest)`` horizontal field of view searched, degrees, or ``None`` when not restricted."""
+        if self.fov_deg is not None:
+            return self.fov_deg * (1 - self.fov_tolerance), self.fov_deg * (1 + self.fov_tolerance)
+        if self.fov_min_deg is None and self.fov_max_deg is None:
+            return None
+        return (self.fov_min_deg if self.fov_min_deg is not None else BlindRange.LOW,
+                self.fov_max_deg if self.fov_max_deg is not None else BlindRange.HIGH)
+
+    def hint_record(self) -> dict | None:
+        """The restrictions given, for the ``solve.hint`` field (degrees)."""
+        out = {}
+        if self.sky_hint:
+            out.update(ra=float(self.ra_deg) % 360.0, dec=float(self.dec_deg), radius=float(self.radius_deg))
+        rng = self.fov_range()
+        if rng is not None:
+            out.update(fov_min=float(rng[0]), fov_max=float(rng[1]))
+        return out or None
+
+    def hint_text(self) -> str:
+        """The restrictions given, in words, for a failure's reason."""
+        parts = []
+        rng = self.fov_range()
+        if rng is not None:
+            parts.append(f"field of view {rng[0]:.3g} to {rng[1]:.3g} deg")
+        if self.sky_hint:
+            parts.append(f"boresight within {self.radius_deg:g} deg of RA {self.ra_deg % 360.0:g}, "
+                         f"Dec {self.dec_deg:+g}")
+        return " and ".join(parts)
+
+
+class BlindRange:
+    """The horizontal fields of view the blind pattern search covers by default (degrees)."""
+
+    LOW = 1.5
+    HIGH = 100.0
 
 
 class _SearchClock:
@@ -340,9 +420,11 @@ def _solve_with_patterns(stars, w, h, opts, index, clock):
         index = clock.setup(_process_index)
     bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                       timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)))
-    if opts.fov_deg is not None:
-        bo.fov_min_deg = opts.fov_deg * (1 - opts.fov_tolerance)
-        bo.fov_max_deg = opts.fov_deg * (1 + opts.fov_tolerance)
+    rng = opts.fov_range()
+    if rng is not None:
+        bo.fov_min_deg, bo.fov_max_deg = rng
+    if opts.sky_hint:
+        bo.sky_circle = (opts.ra_deg, opts.dec_deg, opts.radius_deg)
     clock.setup(_warm, index)
     cam, res, info = solve_blind(stars, w, h, index, bo)
     if cam is None:
@@ -488,11 +570,16 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
 
     if databases is None:
         databases = BandDatabases(catalog)
+    image_record = None
     if isinstance(image, (str, os.PathLike)):
         from startrack.imageio import read_image
 
-        image, meta = read_image(os.fspath(image))
+        path = os.fspath(image)
+        image, meta = read_image(path)
         saturation = meta["saturation"] if saturation is None else saturation
+        # As `solve` writes it; the path absolute, so that a document written anywhere finds its image.
+        image_record = {"path": os.path.abspath(path), "width": int(image.shape[1]), "height": int(image.shape[0]),
+                        "bit_depth": meta["bit_depth"]}
     image = np.asarray(image)
     if image.ndim != 2:
         raise ParameterError("image", f"must be a 2-D array (height, width), got shape {image.shape}")
@@ -626,7 +713,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     centroid = cres.section()
     if len(cres.stars) < 4:
         return _failed(cres.reason or f"only {len(cres.stars)} stars detected",
-                       ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid)
+                       ReasonCode.NO_STARS if not cres.stars else ReasonCode.TOO_FEW_STARS, t0, stars, centroid,
+                       hint=opts.hint_record(), image=image_record)
     if result is None:
         from startrack.records import Identification
 
@@ -638,11 +726,15 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             reason += ", either parity"
         elif order != ("normal", "mirrored"):
             reason += f", {searched[0]} parity only"
-        if camera is None and opts.fov_deg is None:
+        hinted = opts.hint_text()
+        if hinted:
+            reason += f"; the hint ({hinted}) may be wrong"
+        elif camera is None:
             reason += "; a field-of-view hint may help"
         log.info("not solved: %s", reason)
         return _failed(reason, code, t0, stars, centroid, hypotheses=tried,
-                       identification=Identification.failed(opts.algorithm, reason, code))
+                       identification=Identification.failed(opts.algorithm, reason, code), hint=opts.hint_record(),
+                       image=image_record)
     cam, db, res, index_rows = result
     scale = res.focal_scale
     if scale:
@@ -655,7 +747,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         rows = cat.rows_by_id()
         vec = cat.vectors()
     from startrack.formats.sections import identification_record
-    from startrack.records import SolveResult, Status
+    from startrack.records import Identification, SolveResult, Status
 
     ident = identification_record(res)
     # The epoch of the positions the attitude was solved against: the one asked for, else the catalog's
@@ -672,13 +764,43 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
                       database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
                       centroid=centroid, identification=ident, attitude=att, parity=parity)
+    out.hint = opts.hint_record()
+    if image_record is not None:
+        out.image = image_record
+    ids = [int(m[1]) for m in ident.matches]
+    if index_rows is not None and rows is not None and all(i in rows for i in ids) and hasattr(db, "star_mag"):
+        mags = np.asarray(db.star_mag)[[rows[i] for i in ids]].astype(np.float64)
+    else:
+        cat_mag = databases.catalog.mag
+        cat_rows = databases.catalog.rows_by_id()
+        mags = np.array([cat_mag[cat_rows[i]] if i in cat_rows else np.nan for i in ids], dtype=np.float64)
+    sky = np.array([vec[rows[i]] if i in rows else (np.nan,) * 3 for i in ids], dtype=np.float64).reshape(-1, 3)
+    out.matched_catalog = {"ra": np.degrees(np.arctan2(sky[:, 1], sky[:, 0])) % 360.0,
+                           "dec": np.degrees(np.arcsin(np.clip(sky[:, 2], -1.0, 1.0))), "mag": mags}
     if att.status == Status.OK:
         from startrack.apparent import astrometric_attitude
+        from startrack.attitude import wcs_keywords
 
         # The image centre's astrometric (catalog) position, as the WCS and astrometry.net give it.
-        where = pointing(*astrometric_attitude(att.dcm, cam, opts.observer), mirrored=parity == "mirrored")
+        astro = astrometric_attitude(att.dcm, cam, opts.observer)
+        mirrored = parity == "mirrored"
+        where = pointing(*astro, mirrored=mirrored)
         out.center_ra, out.center_dec = where["center_ra"], where["center_dec"]
-        out.details["principal_point"] = where["principal_point"]
+        out.principal_point = where["principal_point"]
+        att.details["wcs"] = wcs_keywords(*astro, mirrored=mirrored)
+        if opts.sky_hint:
+            off = _angle_deg(where["principal_point"]["ra"], where["principal_point"]["dec"], opts.ra_deg,
+                             opts.dec_deg)
+            if off > opts.radius_deg:
+                # A search restricted to the circle refuses candidates outside it; a k-vector or label search
+                # (a camera given) is checked here.  Never an answer outside what the user asked for.
+                reason = (f"solved at RA {where['principal_point']['ra']:.3f}, Dec "
+                          f"{where['principal_point']['dec']:+.3f}, {off:.2f} deg from the hinted position; "
+                          f"the hint ({opts.hint_text()}) may be wrong")
+                return _failed(reason, ReasonCode.NO_PATTERN, t0, stars, centroid, hypotheses=tried,
+                               identification=Identification.failed(ident.algorithm, reason, ReasonCode.NO_PATTERN),
+                               hint=out.hint, image=out.image)
+        out.targets = targets(astro[0], astro[1], opts.target_pixels, opts.target_radec, mirrored)
     out.time_ms = (time.perf_counter() - t0) * 1000
     if att.status == Status.OK:
         log.info("solved: RA %.4f, Dec %+.4f, roll %.3f deg, field %.3f deg, %d stars, %d hypotheses, %.0f ms",
@@ -688,11 +810,68 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     return out
 
 
+def _angle_deg(ra1, dec1, ra2, dec2) -> float:
+    """Angle between two sky positions (degrees in, degrees out; haversine, exact near 0)."""
+    r1, d1, r2, d2 = (math.radians(v) for v in (ra1, dec1, ra2, dec2))
+    h = math.sin((d2 - d1) / 2) ** 2 + math.cos(d1) * math.cos(d2) * math.sin((r2 - r1) / 2) ** 2
+    return math.degrees(2 * math.asin(min(1.0, math.sqrt(h))))
+
+
+def targets(dcm, camera, pixels=(), radec=(), mirrored: bool = False) -> list:
+    """The sky positions of ``pixels`` and the pixels of ``radec`` under an attitude (the ``solve.targets`` field).
+
+    Parameters
+    ----------
+    dcm : ndarray (3, 3)
+        ICRS to camera (the astrometric attitude of :func:`startrack.apparent.astrometric_attitude`, so that the
+        positions are catalog positions, as the WCS gives them).
+    camera : Camera
+    pixels : sequence of (x, y)
+        Pixels, 0-based (``x`` the column, ``y`` the row).
+    radec : sequence of (ra, dec)
+        ICRS, degrees.
+    mirrored : bool
+        The image is the camera's flipped about the principal point's column.
+
+    Returns
+    -------
+    list of dict
+        ``{"x", "y", "ra", "dec", "in_image", "given"}`` each (``given``: ``pixel`` or ``radec``); ``x``, ``y``
+        are ``None`` for a position behind the camera.
+    """
+    a = np.asarray(dcm, dtype=np.float64)
+    out = []
+
+    def inside(x, y):
+        return bool(-0.5 <= x <= camera.width - 0.5 and -0.5 <= y <= camera.height - 0.5)
+
+    for x, y in pixels:
+        xc = 2.0 * camera.cx - float(x) if mirrored else float(x)
+        v = a.T @ np.asarray(camera.pixels_to_vectors(np.array([xc]), np.array([float(y)])), dtype=np.float64)[0]
+        out.append({"given": "pixel", "x": float(x), "y": float(y),
+                    "ra": math.degrees(math.atan2(v[1], v[0])) % 360.0,
+                    "dec": math.degrees(math.asin(max(-1.0, min(1.0, float(v[2]))))), "in_image": inside(x, y)})
+    for ra, dec in radec:
+        r, d = math.radians(float(ra)), math.radians(float(dec))
+        v = a @ np.array([math.cos(d) * math.cos(r), math.cos(d) * math.sin(r), math.sin(d)])
+        px, py = (float(np.asarray(c).reshape(-1)[0]) for c in camera.vectors_to_pixels(v.reshape(1, 3)))
+        if mirrored and math.isfinite(px):
+            px = 2.0 * camera.cx - px
+        ok = math.isfinite(px) and math.isfinite(py)
+        out.append({"given": "radec", "ra": float(ra) % 360.0, "dec": float(dec), "x": px if ok else None,
+                    "y": py if ok else None, "in_image": ok and inside(px, py)})
+    return out
+
+
 def _failed(reason, code, t0, stars=None, centroid=None, **kw):
     from startrack.records import SolveResult, Status
 
     return SolveResult(Status.FAILED, reason, code, time_ms=(time.perf_counter() - t0) * 1000, stars=stars,
                        centroid=centroid, **kw)
+
+
+#: Centroid 1-sigma (px) assumed for a star that carries none, as ``startrack attitude`` and ``identify`` assume.
+DEFAULT_SIGMA_PX = 0.5
 
 
 def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
@@ -714,7 +893,7 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         Wahba solver.
     sigma_px : float, optional
         Centroid 1-sigma of every star, pixels (default: each star's ``sigma_px``,
-        else 0.1 px; never below 0.05 px).
+        else 0.5 px, as ``startrack attitude``; never below 0.05 px).
     epoch : float, optional
         Recorded in the result (decimal year).
     observer : startrack.apparent.ObserverState, optional
@@ -744,7 +923,7 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     elif stars.sigma_px is not None:
         sig_px = stars.sigma_px[star]
     else:
-        sig_px = np.full(len(star), 0.1)
+        sig_px = np.full(len(star), DEFAULT_SIGMA_PX)
     sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
     res = estimate_attitude(body, ref, sig, method, [(int(m[0]), int(m[1])) for m in idx])
     att = from_section(Attitude, res.section(), "attitude")

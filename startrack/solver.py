@@ -11,7 +11,7 @@ Example
 >>> solver = startrack.Solver()
 >>> result = solver.solve("examples/data/sky.tiff")          # doctest: +SKIP
 >>> result.status, result.attitude.ra, result.attitude.dec   # doctest: +SKIP
-(<Status.OK: 'ok'>, 83.07..., -1.84...)
+(<Status.OK: 'ok'>, 286.43..., 28.94...)
 """
 from __future__ import annotations
 
@@ -151,7 +151,10 @@ class Solver:
         return self.bands.band_labels(band, which)
 
     # ------------------------------------------------------------------ stages
-    def solve(self, image, fov_deg: float | None = None, *, camera=None, saturation: float | None = None):
+    def solve(self, image, fov_deg: float | None = None, *, camera=None, saturation: float | None = None,
+              ra_deg: float | None = None, dec_deg: float | None = None, radius_deg: float | None = None,
+              fov_min_deg: float | None = None, fov_max_deg: float | None = None, target_pixels=(),
+              target_radec=()):
         """Solve one image: centroid, identify and attitude, with an unknown field of view.
 
         Parameters
@@ -160,24 +163,38 @@ class Solver:
             An image file (TIFF, PNG, FITS, JPEG, ...) or its pixels, row 0 at the top.
         fov_deg : float, optional
             Horizontal field of view hint, degrees (searched within
-            ``options.fov_tolerance``).  Default: unknown (4 to 32 degrees searched).
+            ``options.fov_tolerance``).  Default: unknown (the blind search covers about 2 to 70 degrees,
+            as ``startrack solve``).
         camera : Camera, optional
             A calibrated camera (default: the solver's): no field-of-view search.
         saturation : float, optional
             Saturation level in DN (read from the file for a path).
+        ra_deg, dec_deg, radius_deg : float, optional
+            The boresight lies within ``radius_deg`` of ``(ra_deg, dec_deg)`` (ICRS, degrees; all three or
+            none): the search skips patterns elsewhere, and refuses a solution outside the circle.
+        fov_min_deg, fov_max_deg : float, optional
+            The horizontal field of view lies between them (degrees; instead of ``fov_deg``).
+        target_pixels : sequence of (x, y), optional
+            Pixels whose sky positions go into ``result.targets``.
+        target_radec : sequence of (ra, dec), optional
+            Sky positions (degrees) whose pixels go into ``result.targets``.
 
         Returns
         -------
         SolveResult
             ``status`` ``"ok"`` with ``attitude`` (boresight ``ra``, ``dec``
             and ``roll`` in degrees; quaternion scalar last, ICRS to camera),
-            the fitted ``camera`` and ``fov_deg``; else ``"failed"`` with
-            ``reason`` and ``reason_code``.
+            the fitted ``camera`` and ``fov_deg``, and astropy views (``wcs``,
+            ``center``, ``matches``, ``pixel_to_world``, ``world_to_pixel``);
+            else ``"failed"`` with ``reason`` and ``reason_code`` (a hint
+            that excluded the answer is named in ``reason``).
 
         Raises
         ------
         BadInputError
             An unreadable file or an image that is not 2-D.
+        ParameterError
+            A hint out of range, or ``ra_deg``/``dec_deg``/``radius_deg`` not all given.
         """
         import dataclasses
 
@@ -188,6 +205,14 @@ class Solver:
             if not 0 < fov_deg < 90:
                 raise ParameterError("fov_deg", f"must be in (0, 90) degrees, got {fov_deg}", "Solver.solve")
             opts = dataclasses.replace(opts, fov_deg=fov_deg)
+        given = {k: v for k, v in (("ra_deg", ra_deg), ("dec_deg", dec_deg), ("radius_deg", radius_deg),
+                                   ("fov_min_deg", fov_min_deg), ("fov_max_deg", fov_max_deg)) if v is not None}
+        if target_pixels:
+            given["target_pixels"] = tuple((float(x), float(y)) for x, y in target_pixels)
+        if target_radec:
+            given["target_radec"] = tuple((float(r), float(d)) for r, d in target_radec)
+        if given:
+            opts = dataclasses.replace(opts, **given)      # SolveOptions checks them (ParameterError)
         return solve_image(image, opts, camera=camera if camera is not None else self.camera, catalog=self.catalog,
                            saturation=saturation, databases=self.bands)
 
@@ -258,7 +283,7 @@ class Solver:
             Epoch of observation (decimal year); default the solver's.
         sigma_px : float, optional
             Centroid 1-sigma for every star, pixels (default: each star's
-            ``sigma_px``, else 0.1 px; never below 0.05 px).
+            ``sigma_px``, else 0.5 px, as ``startrack attitude``; never below 0.05 px).
 
         Returns
         -------

@@ -157,7 +157,9 @@ def outputs(tmp_path_factory):
         fh.write(track)
     out["plot --kind track"] = _docs(st("plot", p("track.jsonl"), "--kind", "track", "-o", p("t.png"), "-q"))
     solve = st("solve", os.path.join(ROOT, "examples", "data", "sky.tiff"), "--wcs", p("s.wcs.fits"),
-               "--plot", p("s.png"), "--fits-out", p("s.fits"), "--matches-out", p("s.csv"), "-q")
+               "--plot", p("s.png"), "--fits-out", p("s.fits"), "--matches-out", p("s.csv"), "--corr-out",
+               p("s.corr.fits"), "--axy-out", p("s.axy"), "--ra", "286", "--dec", "29", "--radius", "5",
+               "--scale-low", "8", "--scale-high", "15", "--target-pixel", "1,2", "--target-radec", "286,29", "-q")
     st("evaluate", "-d", p("db.h5"), *cam20, "--mag-max", "5", "--count", "10", "-a", "pyramid,voting",
        "--false-stars", "0,1", "--seed", "1", "--json", "-o", p("ev.json"), "-q")
     st("evaluate", "-d", p("db.h5"), "--fov-deg", "20", "--size", "640x640", "--mag-max", "5", "--accuracy",
@@ -193,7 +195,8 @@ def test_every_written_field_is_documented_and_every_documented_field_written(ou
           f"{sum(len(v) for v in outputs.values())} documents")
     # the runs reach the rare sections too
     for path in ("truth.stars[]", "stars[].streak", "centroid.rejected[]", "attitude.residuals[]", "track.stars[]",
-                 "solve.principal_point", "evaluate --json.rows[]", "evaluate --accuracy.accuracy"):
+                 "solve.principal_point", "solve.hint", "solve.targets[]", "evaluate --json.rows[]",
+                 "evaluate --accuracy.accuracy"):
         assert any(p == path for p, _ in checker.seen), path
     assert (EVERY, "bad_input") in checker.seen
 

@@ -48,9 +48,11 @@ def test_estimate_attitude_section_reads_as_an_attitude_record():
     att = from_section(Attitude, json.loads(json.dumps(section)), "<test>", "attitude")
     np.testing.assert_allclose(att.dcm, truth, atol=1e-9)
     assert att.covariance_arcsec2.shape == (3, 3)
-    # Fields without a place of their own are kept and written back.
-    assert "euler123_deg" in att.details
-    assert to_section(att)["euler123_deg"] == section["euler123_deg"]
+    # Fields without a place of their own are kept and written back; every figure has its attribute (issue 40).
+    assert "dcm" in att.details and to_section(att)["dcm"] == section["dcm"]
+    assert att.euler123_deg == section["euler123_deg"] and to_section(att)["euler123_deg"] == section["euler123_deg"]
+    assert att.sigma_roll_arcsec == section["sigma_roll_arcsec"]
+    assert to_section(att) == json.loads(json.dumps(section))
 
 
 def test_identification_round_trip_and_reason_code():

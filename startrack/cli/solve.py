@@ -8,6 +8,8 @@ from startrack.cli.options import (
     FiniteFloat,
     Int,
     NoTimeNotice,
+    NumberList,
+    OutputPath,
     apparent_from_options,
     apparent_options,
     calibration_frame_options,
@@ -161,7 +163,7 @@ def _solve_one(args):
     from startrack.imageio import read_image
     from startrack.solve import solve_image
 
-    path, (options, apparent, utc_offset), camera_doc, outputs, frames = args
+    path, (options, apparent, utc_offset, scale), camera_doc, outputs, frames = args
     t0 = time.perf_counter()
     doc = {"format": FRAME_FORMAT, "image": {"path": path}}
     try:
@@ -182,7 +184,7 @@ def _solve_one(args):
         doc["image"]["time"] = format_time(setting.time.time)
         if options.epoch is None:
             options = dataclasses.replace(options, epoch=julian_year(setting.time.time))
-    options = dataclasses.replace(options, observer=setting.state)
+    options = dataclasses.replace(options, observer=setting.state, **fov_range_of_scale(scale, image.shape[1]))
     doc["image"].update(width=image.shape[1], height=image.shape[0], bit_depth=meta["bit_depth"])
     cam = None
     if camera_doc is not None:
@@ -196,7 +198,7 @@ def _solve_one(args):
         doc["attitude"]["apparent"] = setting.record()
     if doc["solve"]["status"] == "ok":
         try:
-            _write_outputs(doc, image, path, outputs, setting.state)
+            _write_outputs(doc, image, path, outputs, result, meta["bit_depth"])
         except BadInputError as exc:
             # an output that cannot be written (disk full, /dev/full) is the command's error, not the image's
             return OutputFailure(exc.source, exc.field, exc.problem)
@@ -212,24 +214,49 @@ class OutputFailure:
     problem: str
 
 
-def _write_outputs(doc, image, path, outputs, observer=None):
-    """The solved image's WCS, FITS, matched-star CSV and picture (each named by ``outputs`` or None).
+def fov_range_of_scale(scale, width: int) -> dict:
+    """``SolveOptions`` fields ``fov_min_deg``/``fov_max_deg`` of ``--scale-low/--scale-high/--scale-units`` for an
+    image ``width`` pixels wide (``{}`` when neither is given).
 
-    ``observer`` (:class:`startrack.apparent.ObserverState`): the WCS maps pixels to astrometric (catalog)
-    positions, as astrometry.net's does, while the attitude is the camera's true orientation.
+    ``degwidth``: the image's width in degrees, the horizontal field; ``arcsecperpix``: the scale at the
+    image centre, a pinhole's ``fov = 2 atan(width / 2 tan(scale))``.
     """
-    wcs_path, plot_path, fits_path, matches_path = outputs
+    import math
+
+    low, high, units = scale
+    out = {}
+    for name, value in (("fov_min_deg", low), ("fov_max_deg", high)):
+        if value is None:
+            continue
+        if units == "arcsecperpix":
+            value = 2.0 * math.degrees(math.atan(width / 2.0 * math.tan(math.radians(value / 3600.0))))
+        out[name] = value
+    return out
+
+
+def _stored_dtype(image, bit_depth):
+    """The image as the file stored it (8 or 16 bits whole numbers), else float32 as read."""
     import numpy as np
 
-    from startrack.apparent import astrometric_attitude
-    from startrack.attitude import wcs_keywords
-    from startrack.camera import Camera
+    if bit_depth in (8, 16) and image.size:
+        lo, hi = float(image.min()), float(image.max())
+        if np.array_equal(image, np.round(image)):
+            for dtype in (np.uint8, np.uint16, np.int16):
+                info = np.iinfo(dtype)
+                if (bit_depth == 16 or dtype is np.uint8) and info.min <= lo and hi <= info.max:
+                    return image.astype(dtype)
+    return image
 
-    # the same keywords `attitude` writes (docs/formats.md, `attitude.wcs`); astropy only to write FITS
-    keywords = wcs_keywords(*astrometric_attitude(np.asarray(doc["attitude"]["dcm"]), Camera.from_dict(doc["camera"]),
-                                                  observer),
-                            mirrored=doc["solve"].get("parity") == "mirrored")
-    doc["attitude"]["wcs"] = dict(keywords)
+
+def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
+    """The solved image's WCS, FITS, matched-star CSV, corr and axy tables and picture (each named by ``outputs``
+    or None).
+
+    The WCS (``attitude.wcs``, from :func:`startrack.solve.solve_image`) maps pixels to astrometric (catalog)
+    positions, as astrometry.net's does, while the attitude is the camera's true orientation.
+    """
+    wcs_path, plot_path, fits_path, matches_path, corr_path, axy_path = outputs
+    keywords = doc["attitude"]["wcs"]
     if wcs_path or fits_path:
         from astropy.io import fits
 
@@ -244,12 +271,21 @@ def _write_outputs(doc, image, path, outputs, observer=None):
                 fits.PrimaryHDU(header=hdr).writeto(tmp, overwrite=True)
             doc["solve"]["wcs_path"] = wcs_path
         if fits_path:
-            # The image itself with its WCS, like astrometry.net's new-image.fits.
+            # The image itself with its WCS, like astrometry.net's new-image.fits, in the file's own type.
             full = hdr.copy()
             full["HISTORY"] = f"solved by startrack from {path}"
             with atomic_path(fits_path, suffix=".fits") as tmp:
-                fits.PrimaryHDU(data=image, header=full).writeto(tmp, overwrite=True)
+                fits.PrimaryHDU(data=_stored_dtype(image, bit_depth), header=full).writeto(tmp, overwrite=True)
             doc["solve"]["fits_path"] = fits_path
+    if corr_path or axy_path:
+        from startrack.formats.fits_tables import write_axy, write_corr
+
+        if corr_path:
+            write_corr(corr_path, result)
+            doc["solve"]["corr_path"] = corr_path
+        if axy_path:
+            write_axy(axy_path, result)
+            doc["solve"]["axy_path"] = axy_path
     if matches_path:
         _write_matches(matches_path, doc)
         doc["solve"]["matches_path"] = matches_path
@@ -260,10 +296,32 @@ def _write_outputs(doc, image, path, outputs, observer=None):
         doc["solve"]["plot_path"] = plot_path
 
 
-@click.command("solve", cls=Command, exclusive=[("camera_file", "fov_deg")], short_help="Solve photographs: centroid, identify and attitude in one go.")
+@click.command("solve", cls=Command,
+               exclusive=[("camera_file", "fov_deg"), ("camera_file", "scale_low"), ("camera_file", "scale_high"),
+                          ("fov_deg", "scale_low"), ("fov_deg", "scale_high")],
+               ordered=[("scale_low", "scale_high")],
+               short_help="Solve photographs: centroid, identify and attitude in one go.")
 @click.argument("images", nargs=-1, required=True, metavar="IMAGE...")
 @click.option("--fov-deg", type=FiniteFloat(0, 90, min_open=True, max_open=True), default=None, help="Horizontal field of view hint (default: unknown).")
 @click.option("--fov-tolerance", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True, help="Relative tolerance of the hint.")
+@click.option("--scale-low", type=FiniteFloat(0, None, min_open=True), default=None,
+              help="Smallest image scale searched, in --scale-units (as astrometry.net's).")
+@click.option("--scale-high", type=FiniteFloat(0, None, min_open=True), default=None,
+              help="Largest image scale searched, in --scale-units.")
+@click.option("--scale-units", type=click.Choice(["degwidth", "arcsecperpix"]), default="degwidth",
+              show_default=True, help="degwidth: the image's width in degrees; arcsecperpix: arcseconds per pixel "
+                                      "at the image centre.")
+@click.option("--ra", "hint_ra", type=FiniteFloat(0, 360, max_open=True), default=None,
+              help="Right ascension (deg, ICRS) near the image's boresight; with --dec and --radius.")
+@click.option("--dec", "hint_dec", type=FiniteFloat(-90, 90), default=None,
+              help="Declination (deg) near the image's boresight; with --ra and --radius.")
+@click.option("--radius", "hint_radius", type=FiniteFloat(0, 180, min_open=True), default=None,
+              help="The boresight lies within this many degrees of --ra/--dec: patterns elsewhere are not tried, "
+                   "and a solution outside is refused.")
+@click.option("--target-pixel", "target_pixels", type=NumberList(length=2), multiple=True, metavar="X,Y",
+              help="A pixel (0-based column, row) whose RA/Dec goes into solve.targets; repeatable.")
+@click.option("--target-radec", type=NumberList(length=2), multiple=True, metavar="RA,DEC",
+              help="A sky position (deg) whose pixel goes into solve.targets; repeatable.")
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), default=None,
               help="A calibrated camera JSON (then no field-of-view search).")
 @click.option("--epoch", type=FiniteFloat(1000, 3000), default=None, help="Epoch of observation (decimal year) for proper motion.")
@@ -289,15 +347,23 @@ def _write_outputs(doc, image, path, outputs, observer=None):
 @click.option("--matches-out", type=click.Path(), default=None,
               help="Matched stars per image as CSV (catalog id, RA/Dec, x/y, residual); a directory, a file, or "
                    "a pattern with {name}.")
+@click.option("--corr-out", type=OutputPath(), default=None,
+              help="Matched stars per image as a FITS table with astrometry.net's corr.fits columns (field_x, "
+                   "field_y, field_ra, field_dec, index_ra, index_dec, index_id, ...); a directory, a file, or a "
+                   "pattern with {name}.")
+@click.option("--axy-out", type=OutputPath(), default=None,
+              help="Detected stars per image as a FITS table of astrometry.net's .axy columns (X, Y, FLUX); a "
+                   "directory, a file, or a pattern with {name}.")
 @parity_option
 @calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
 @resume_option
 @quiet_option
 @handle_errors
-def command(images, fov_deg, fov_tolerance, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
-            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, parity, bias, dark, flat, output,
-            resume, quiet):
+def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, hint_ra, hint_dec, hint_radius,
+            target_pixels, target_radec, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
+            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, parity, bias, dark,
+            flat, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -329,6 +395,11 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, obs_time, veloci
     \b
     Example (several photos, the WCS of each as sky.wcs-NAME.fits):
       startrack solve a.tiff b.tiff --wcs out/sky.wcs.fits > solved.jsonl
+    \b
+    Example (hints as astrometry.net's: near Vega, 8 to 15 degrees wide; the RA/Dec of a pixel, the pixel of
+    a star, and astrometry.net's corr and axy tables):
+      startrack solve sky.tiff --ra 280 --dec 30 --radius 10 --scale-low 8 --scale-high 15 \\
+        --target-pixel 100,200 --target-radec 279.23,38.78 --corr-out sky.corr.fits --axy-out sky.axy > sky.json
     """
     import os
 
@@ -354,19 +425,27 @@ def command(images, fov_deg, fov_tolerance, camera_file, epoch, obs_time, veloci
     camera_doc = None
     if camera_file:
         camera_doc = load_camera_file(camera_file).to_dict()
+    sky = (hint_ra, hint_dec, hint_radius)
+    if any(v is not None for v in sky) and any(v is None for v in sky):
+        missing = [flag for flag, v in zip(("--ra", "--dec", "--radius"), sky) if v is None]
+        raise BadInputError(" ".join(missing), None, "is needed too: --ra, --dec and --radius go together")
     options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch,
-                           parity=parity)
+                           parity=parity, ra_deg=hint_ra, dec_deg=hint_dec, radius_deg=hint_radius,
+                           target_pixels=tuple(target_pixels), target_radec=tuple(target_radec))
+    scale = (scale_low, scale_high, scale_units)
     frames = None
     if bias or dark or flat:
         # Checked here (a bad calibration file is bad usage: exit 2), then read once per worker.
         frames = (tuple(bias), tuple(dark), tuple(flat))
         _calibration(frames)
     n = len(images)
-    apparent = (options, apparent_from_options(obs_time, velocity_km_s, no_aberration), utc_offset)
+    apparent = (options, apparent_from_options(obs_time, velocity_km_s, no_aberration), utc_offset, scale)
     tasks = [(path, apparent, camera_doc, (output_for(wcs_path, path, n, ".wcs.fits"),
                                           output_for(plot, path, n, ".solved.png"),
                                           output_for(fits_out, path, n, ".new.fits"),
-                                          output_for(matches_out, path, n, ".matches.csv")), frames)
+                                          output_for(matches_out, path, n, ".matches.csv"),
+                                          output_for(corr_out, path, n, ".corr.fits"),
+                                          output_for(axy_out, path, n, ".axy")), frames)
              for path in images]
     for outs in {p for t in tasks for p in t[3] if p}:
         check_writable(outs)

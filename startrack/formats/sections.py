@@ -38,6 +38,7 @@ __all__ = [
     "solve_result_to_frame",
     "solve_result_from_frame",
     "to_frame",
+    "record_to_dict",
     "identification_record",
     "camera_from_file",
 ]
@@ -248,6 +249,8 @@ def solve_result_to_frame(result: SolveResult) -> dict:
     """The frame sections of a :class:`SolveResult`: ``camera``, ``stars``, ``centroid``, ``identification``,
     ``attitude`` (those that are set) and ``solve``."""
     out = {}
+    if result.image is not None:
+        out["image"] = _json_value(result.image)
     if result.camera is not None:
         out["camera"] = result.camera.to_dict() if hasattr(result.camera, "to_dict") else result.camera
     if result.stars is not None:
@@ -291,6 +294,19 @@ def to_frame(record) -> dict:
     raise TypeError(f"not a startrack record: {type(record).__name__}")
 
 
+def record_to_dict(record) -> dict:
+    """``record.to_dict()``: a :class:`SolveResult` or :class:`TrackState` as the frame document the commands
+    write (``format`` tag first), an :class:`Identification` or :class:`Attitude` as its section, a
+    :class:`StarTable` as ``{"stars": [...]}``."""
+    if isinstance(record, (SolveResult, TrackState)):
+        from startrack.formats.frame import FRAME_FORMAT
+
+        return {"format": FRAME_FORMAT, **to_frame(record)}
+    if isinstance(record, (Identification, Attitude)):
+        return to_section(record)
+    return to_frame(record)
+
+
 def identification_record(result) -> Identification:
     """An :class:`Identification` from an identification algorithm's result (or its ``identification`` section)."""
     if isinstance(result, Identification):
@@ -331,6 +347,8 @@ def solve_result_from_frame(doc: dict, source: str = "<frame>") -> SolveResult:
     if "stars" in doc:
         result.stars = stars_from_section(doc["stars"], source)
     result.centroid = doc.get("centroid")
+    if isinstance(doc.get("image"), dict):
+        result.image = doc["image"]
     if "identification" in doc:
         result.identification = from_section(Identification, doc["identification"], source, "identification")
     if "attitude" in doc:
