@@ -264,10 +264,20 @@ def bench_speed():
     return "the whole path beside tetra3rs: solve, identify's final match, start-up, -j (issue 38)", speed_path.report()
 
 
+def bench_hints():
+    """Hints (--ra/--dec/--radius, --scale-low/--scale-high) against blind solve: the 8 ESA images, hard frames."""
+    import hint_bench
+
+    esa, esa_note = hint_bench.run(repeat=7)
+    hard, hard_note = hint_bench.run_rendered()
+    return "hints", "\n".join(["The 8 ESA images (one Solver, warm):\n", esa, f"\n{esa_note}\n",
+                                "\nRendered 12 deg frames with 25 false stars:\n", hard, f"\n{hard_note}"])
+
+
 SECTIONS = {"blind": bench_blind, "solve": bench_solve, "render": bench_render, "centroid": bench_centroid,
             "databases": bench_databases, "identify": bench_identify, "identify-compare": bench_identify_compare,
             "identify-speed": bench_identify_speed, "attitude": bench_attitude, "track": bench_track,
-            "accuracy": bench_accuracy, "speed": bench_speed}
+            "accuracy": bench_accuracy, "speed": bench_speed, "hints": bench_hints}
 
 
 def section_list():
