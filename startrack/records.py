@@ -536,7 +536,10 @@ class SolveResult(_Record):
         header = fits.Header()
         for key, value in keywords.items():
             header[key] = value
-        return WCS(header)
+        wcs = WCS(header)
+        if "IMAGEW" in keywords and "IMAGEH" in keywords:
+            wcs.pixel_shape = (int(keywords["IMAGEW"]), int(keywords["IMAGEH"]))     # so footprints work
+        return wcs
 
     @property
     def center(self):
