@@ -473,8 +473,8 @@ def warm_kernels(index: PatternIndex) -> None:
 
     xy = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 12.0]])
     query_patterns(xy, 5.0, 5.0, np.zeros((0, 4), dtype=np.int64), index.level_rho, LEVEL_RATIO,
-                   index.level_start, index.level_prefix, index.keys, index.patterns, index.star_vec, 0.5, 0.1,
-                   1.0, 2.0, 1)
+                   index.level_start, index.level_prefix, index.keys, index.patterns, index.star_vec,
+                   _every_row(len(index.star_id)), 0.5, 0.1, 1.0, 2.0, 1)
     b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]])
     b /= np.linalg.norm(b, axis=1)[:, None]
     # The catalog side is the index's own (read-only, memory-mapped) array, as in the
@@ -483,6 +483,12 @@ def warm_kernels(index: PatternIndex) -> None:
     refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
     quick_check(b, index.star_vec, rows, rows, 0.5, 0.01)
     _WARMED.add(types)
+
+
+@functools.lru_cache(maxsize=4)
+def _every_row(n: int) -> np.ndarray:
+    """``query_patterns``' ``allowed`` when the whole sky is searched (cached: callers must not modify it)."""
+    return np.ones(n, dtype=np.uint8)
 
 
 def solve_blind(stars: list, width: int, height: int, index: PatternIndex, options: BlindOptions | None = None,
@@ -546,11 +552,17 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # diagonal (at the candidate's focal length) of the boresight; those farther than that plus the radius from
     # the hinted centre are not verified, and a verified solution must have its boresight in the circle.
     hint_vec = None
+    half_diag_px = math.hypot(width, height) / 2.0
+    allowed = _every_row(len(index.star_id))
     if opts.sky_circle is not None:
         ra_h, dec_h, radius_h = (math.radians(v) for v in opts.sky_circle)
         hint_vec = np.array([math.cos(dec_h) * math.cos(ra_h), math.cos(dec_h) * math.sin(ra_h), math.sin(dec_h)])
         info["outside_hint"] = 0
-    half_diag_px = math.hypot(width, height) / 2.0
+        # The look-up compares no catalog pattern with a star beyond the widest field's half diagonal (at the
+        # smallest focal length searched; 1.2 times it for a barrel-distorted corner) from the circle: they cannot
+        # be in this image.
+        reach = min(math.pi, radius_h + 1.2 * math.atan(half_diag_px / f_lo) + math.radians(0.5))
+        allowed = (np.asarray(index.star_vec) @ hint_vec >= math.cos(reach)).astype(np.uint8)
     seen = set()
     # Patterns are looked up a few at a time (one kernel call each), the first ones alone: most images
     # are identified by their first pattern, and the candidates are verified in the same order either way.
@@ -566,13 +578,13 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             break
         block = combos[s0:s1]
         ci, cf = query_patterns(xy_pat, cx, cy, block, index.level_rho, LEVEL_RATIO, index.level_start,
-                                index.level_prefix, index.keys, index.patterns, index.star_vec, float(sigma),
+                                index.level_prefix, index.keys, index.patterns, index.star_vec, allowed, float(sigma),
                                 float(opts.tol_geom), f_lo, f_hi, 4096)
         info["patterns"] += len(block)
         info["candidates"] += len(ci)
         order = np.lexsort((cf[:, 1], ci[:, 0]))      # by image pattern (brightest first), best fit first
         if hint_vec is not None and len(order):
-            reach = radius_h + np.arctan(half_diag_px / cf[order, 0]) + math.radians(0.5)
+            reach = radius_h + 1.2 * np.arctan(half_diag_px / cf[order, 0]) + math.radians(0.5)
             # Every pattern star of the candidate within reach of the hinted centre (the farthest decides).
             cos_hint = np.min(index.star_vec[ci[order][:, 2:6].astype(np.int64)] @ hint_vec, axis=1)
             near = cos_hint >= np.cos(np.minimum(reach, math.pi))

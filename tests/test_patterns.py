@@ -74,3 +74,56 @@ def test_random_stars_are_never_identified(index):
         stars = [{"x": float(x), "y": float(y), "flux": float(1000 - i)} for i, (x, y) in enumerate(xy)]
         cam, res, _ = solve_blind(stars, 1024, 768, idx, BlindOptions(timeout_s=1.0))
         assert cam is None and res.status == "failed" and res.reason
+
+
+def test_the_lookup_mask_drops_exactly_the_patterns_with_a_star_outside(index, catalog):
+    """query_patterns with ``allowed``: its candidates are those of the whole sky whose four catalog stars are all
+    allowed (the unmasked look-up filtered afterwards is the oracle), in the same order."""
+    from startrack._kernels.patterns import query_patterns
+    from startrack.patterns import LEVEL_RATIO, _combos
+
+    _, idx = index
+    cat = catalog.filter_magnitude(None, 6.0)
+    cam = Camera.from_fov(15.0, 1024, 768)
+    rng = np.random.default_rng(40)
+    stars, _ = star_list(cat, cam, quaternion_to_dcm(random_quaternions(1, rng)[0]), Sensor(), Scene(mag_limit=6.0),
+                         rng, sigma_px=0.3, max_stars=12)
+    xy = np.array([[s["x"], s["y"]] for s in stars])
+    combos = _combos(len(xy))
+    args = (idx.level_rho, LEVEL_RATIO, idx.level_start, idx.level_prefix, idx.keys, idx.patterns, idx.star_vec)
+    every = np.ones(len(idx.star_id), dtype=np.uint8)
+    ci, cf = query_patterns(xy, 511.5, 383.5, combos, *args, every, 1.0, 0.1, 500.0, 20000.0, 100000)
+    assert len(ci) > 20
+    allowed = (rng.uniform(size=len(idx.star_id)) < 0.7).astype(np.uint8)
+    mi, mf = query_patterns(xy, 511.5, 383.5, combos, *args, allowed, 1.0, 0.1, 500.0, 20000.0, 100000)
+    keep = np.all(allowed[ci[:, 2:6]] == 1, axis=1)
+    assert 0 < len(mi) < len(ci)
+    np.testing.assert_array_equal(mi, ci[keep])
+    np.testing.assert_array_equal(mf, cf[keep])
+
+
+def test_a_position_hint_keeps_the_answer_and_refuses_elsewhere(index, catalog):
+    from startrack.rotations import dcm_to_radec_roll
+
+    _, idx = index
+    cat = catalog.filter_magnitude(None, 6.0)
+    cam = Camera.from_fov(20.0, 1024, 768)
+    rng = np.random.default_rng(41)
+    done = 0
+    for q in random_quaternions(6, rng):
+        dcm = quaternion_to_dcm(q)
+        stars, _ = star_list(cat, cam, dcm, Sensor(), Scene(mag_limit=6.0), rng, sigma_px=0.3, max_stars=40)
+        if len(stars) < 8:
+            continue
+        _, blind, _ = solve_blind(stars, 1024, 768, idx, BlindOptions(timeout_s=5.0))
+        if blind.status != "ok":
+            continue
+        ra, dec, _ = dcm_to_radec_roll(dcm)
+        near = BlindOptions(timeout_s=5.0, sky_circle=(float(ra) + 1.0, float(np.clip(dec - 1.0, -90, 90)), 3.0))
+        _, hinted, _ = solve_blind(stars, 1024, 768, idx, near)
+        assert hinted.status == "ok" and hinted.matches == blind.matches
+        far = BlindOptions(timeout_s=5.0, sky_circle=((float(ra) + 180.0) % 360.0, -float(dec), 10.0))
+        _, elsewhere, _ = solve_blind(stars, 1024, 768, idx, far)
+        assert elsewhere.status == "failed"
+        done += 1
+    assert done >= 3

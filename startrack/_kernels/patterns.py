@@ -272,7 +272,7 @@ def _best_permutation(ie, ce, perms, pairs, sig_ang, rel_geom):
 
 
 @njit(cache=True)
-def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, vec,
+def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, vec, allowed,
                    sigma_px, tol_geom, f_lo, f_hi, max_out):
     """Catalog candidates for image 4-star patterns.
 
@@ -282,6 +282,9 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
     tolerance probed, and every catalog pattern found there compared edge by
     edge (all 24 correspondences); a match fixes the focal length, which is
     then refined on the pattern and the edges compared again.
+
+    ``allowed`` (uint8, one per catalog star row): a catalog pattern with a star whose entry is 0 is not
+    compared (a position hint: stars that cannot be in the field).
 
     Returns rows ``(combo, level, i0..i3 -> catalog c0..c3 , f, misfit)`` as two arrays:
     ints (n, 6) = combo, level, c0, c1, c2, c3 (catalog star of image star combos[combo, k]),
@@ -363,6 +366,9 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         if b4 < lo_b[4] or b4 > hi_b[4]:
                             continue
                         pj = base + j
+                        if (allowed[pats[pj, 0]] == 0 or allowed[pats[pj, 1]] == 0 or allowed[pats[pj, 2]] == 0
+                                or allowed[pats[pj, 3]] == 0):
+                            continue
                         _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
                         q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
                                                           g + 0.002)
