@@ -292,8 +292,11 @@ class SolveOptions:
             return self.fov_deg * (1 - self.fov_tolerance), self.fov_deg * (1 + self.fov_tolerance)
         if self.fov_min_deg is None and self.fov_max_deg is None:
             return None
-        return (self.fov_min_deg if self.fov_min_deg is not None else BlindRange.LOW,
-                self.fov_max_deg if self.fov_max_deg is not None else BlindRange.HIGH)
+        from startrack.patterns import BlindOptions
+
+        every = BlindOptions()          # the fields the blind pattern search covers by default
+        return (self.fov_min_deg if self.fov_min_deg is not None else every.fov_min_deg,
+                self.fov_max_deg if self.fov_max_deg is not None else every.fov_max_deg)
 
     def hint_record(self) -> dict | None:
         """The restrictions given, for the ``solve.hint`` field (degrees)."""
@@ -315,13 +318,6 @@ class SolveOptions:
             parts.append(f"boresight within {self.radius_deg:g} deg of RA {self.ra_deg % 360.0:g}, "
                          f"Dec {self.dec_deg:+g}")
         return " and ".join(parts)
-
-
-class BlindRange:
-    """The horizontal fields of view the blind pattern search covers by default (degrees)."""
-
-    LOW = 1.5
-    HIGH = 100.0
 
 
 class _SearchClock:
