@@ -15,7 +15,7 @@ milliseconds) so that what a user reads in Python is what the file says;
 rotation matrices and quaternions are plain NumPy arrays (scalar-last
 quaternion, ``A`` maps ICRS to the camera frame).
 
-This module imports only NumPy.
+This module imports only NumPy (and, in the astropy views of :class:`SolveResult`, astropy).
 
 Why dataclasses and a small schema table rather than msgspec: the records hold
 NumPy arrays (star columns, rotation and covariance matrices) that msgspec does
@@ -25,6 +25,7 @@ control of every message.  The table below costs ~100 lines and no dependency.
 """
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
@@ -147,8 +148,6 @@ class _Record:
 
     def to_dict(self) -> dict:
         """The record as the frame document (or section) the commands write: JSON-ready, degrees, arcseconds."""
-        from startrack.formats.sections import record_to_dict
-
         return record_to_dict(self)
 
     def to_json(self, **kwargs) -> str:
@@ -573,7 +572,9 @@ class SolveResult(_Record):
         Columns: ``star`` (index into :attr:`stars`), ``catalog_id``, ``x``, ``y`` (pix), ``ra``, ``dec`` (deg,
         the catalog star at the attitude's epoch), ``mag`` (the catalog's, Hp), ``field_ra``, ``field_dec``
         (deg, where the WCS puts the detection) and ``residual`` (arcsec, the attitude's residual; NaN for a
-        star the attitude rejected or did not use).
+        star the attitude rejected or did not use).  ``ra``, ``dec`` and ``mag`` come from
+        :attr:`matched_catalog`, which a solve fills; a result read from a file has them when
+        :func:`startrack.formats.sections.solve_result_from_frame` is given the catalog, else NaN.
         """
         from astropy import units as u
         from astropy.table import Table
@@ -585,7 +586,7 @@ class SolveResult(_Record):
         y = self.stars.y[star] if len(star) else np.zeros(0)
         cat = self.matched_catalog
         if cat is None or len(cat.get("ra", ())) != len(matches):
-            cat = _catalog_of(ids)
+            cat = {k: np.full(len(matches), np.nan) for k in ("ra", "dec", "mag")}
         resid = {}
         if self.attitude is not None:
             resid = {(int(r["star"]), int(r["id"])): float(r["residual_arcsec"]) for r in self.attitude.residuals
@@ -602,16 +603,134 @@ class SolveResult(_Record):
                      names=["star", "catalog_id", "x", "y", "ra", "dec", "mag", "field_ra", "field_dec", "residual"])
 
 
-def _catalog_of(ids) -> dict:
-    """``ra``, ``dec`` (deg, catalog epoch) and ``mag`` of catalog ids in the shipped catalog (NaN when absent):
-    for a result read back from a file, which does not carry its matches' catalog rows."""
-    from startrack.catalog import load_catalog
 
-    cat = load_catalog()
-    rows = cat.rows_by_id()
-    out = {k: np.full(len(ids), np.nan) for k in ("ra", "dec", "mag")}
-    for i, cid in enumerate(ids):
-        r = rows.get(int(cid))
-        if r is not None:
-            out["ra"][i], out["dec"][i], out["mag"][i] = cat.ra[r], cat.dec[r], cat.mag[r]
+# ---------------------------------------------------------------------------------------------- writing
+# A record as its frame-document section (JSON-ready: lists, floats, no NaN, enum values as strings), and a
+# result as its frame's sections.  Here, beside the schema, so that ``to_dict()`` needs nothing above the
+# records; :mod:`startrack.formats.sections` reads sections and re-exports these.
+
+#: The format tag of a frame document (``docs/formats.md``).
+FRAME_FORMAT = "startrack.frame/1"
+
+
+def _schema_fields(cls):
+    return [f for f in dataclasses.fields(cls) if "kind" in f.metadata]
+
+
+def _key(f) -> str:
+    return f.metadata.get("key") or f.name
+
+
+def _json_value(value):
+    """A JSON-ready copy: NumPy to Python, non-finite floats to ``None``, enums to their value."""
+    if isinstance(value, enum_types()):
+        return value.value
+    if isinstance(value, dict):
+        return {str(k): _json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_value(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_value(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
+
+
+def enum_types():
+    return (Status, ReasonCode)
+
+
+def to_section(record) -> dict:
+    """The frame-document section of a record: only the fields that are set, in schema order.
+
+    ``details`` (algorithm-specific or other fields) are merged in last.
+    """
+    out = {}
+    for f in _schema_fields(type(record)):
+        value = getattr(record, f.name)
+        if f.name == "details":
+            continue
+        if value is None or (f.metadata["kind"] in ("list",) and not value and not f.metadata["required"]):
+            continue
+        if f.metadata["kind"] == "matches":
+            value = [{"star": int(m[0]), "id": int(m[1])} for m in value]
+        out[_key(f)] = _json_value(value)
+    details = getattr(record, "details", None)
+    if details:
+        for k, v in details.items():
+            out.setdefault(k, _json_value(v))
     return out
+
+
+def stars_to_section(stars) -> list:
+    """The ``stars`` section of a :class:`StarTable` (or a list of star objects, returned JSON-ready)."""
+    if isinstance(stars, StarTable):
+        return stars.to_list()
+    return _json_value(list(stars))
+
+
+def solve_result_to_frame(result: SolveResult) -> dict:
+    """The frame sections of a :class:`SolveResult`: ``camera``, ``stars``, ``centroid``, ``identification``,
+    ``attitude`` (those that are set) and ``solve``."""
+    out = {}
+    if result.image is not None:
+        out["image"] = _json_value(result.image)
+    if result.camera is not None:
+        out["camera"] = result.camera.to_dict() if hasattr(result.camera, "to_dict") else result.camera
+    if result.stars is not None:
+        out["stars"] = stars_to_section(result.stars)
+    if result.centroid is not None:
+        out["centroid"] = _json_value(result.centroid)
+    if result.identification is not None:
+        out["identification"] = to_section(result.identification)
+    if result.attitude is not None:
+        out["attitude"] = to_section(result.attitude)
+    out["solve"] = to_section(result)
+    return out
+
+
+def to_frame(record) -> dict:
+    """The frame-document sections of a typed record, ready for JSON.
+
+    A :class:`SolveResult` gives ``camera``, ``stars``, ``centroid``,
+    ``identification``, ``attitude`` and ``solve``; a :class:`TrackState` its
+    ``track`` section and the frame sections attached to it; an
+    :class:`Identification` or :class:`Attitude` its one section; a
+    :class:`StarTable` the ``stars`` section.
+    """
+    if isinstance(record, SolveResult):
+        return solve_result_to_frame(record)
+    if isinstance(record, TrackState):
+        out = {"track": to_section(record)}
+        if record.star_table is not None:
+            out["stars"] = stars_to_section(record.star_table)
+        if record.identification is not None:
+            out["identification"] = to_section(record.identification)
+        if record.attitude is not None:
+            out["attitude"] = to_section(record.attitude)
+        return out
+    if isinstance(record, Identification):
+        return {"identification": to_section(record)}
+    if isinstance(record, Attitude):
+        return {"attitude": to_section(record)}
+    if isinstance(record, StarTable):
+        return {"stars": stars_to_section(record)}
+    raise TypeError(f"not a startrack record: {type(record).__name__}")
+
+
+def record_to_dict(record) -> dict:
+    """``record.to_dict()``: a :class:`SolveResult` or :class:`TrackState` as the frame document the commands
+    write (``format`` tag first), an :class:`Identification` or :class:`Attitude` as its section, a
+    :class:`StarTable` as ``{"stars": [...]}``."""
+    if isinstance(record, (SolveResult, TrackState)):
+        return {"format": FRAME_FORMAT, **to_frame(record)}
+    if isinstance(record, (Identification, Attitude)):
+        return to_section(record)
+    return to_frame(record)
+
+

@@ -102,6 +102,14 @@ def test_json_round_trips_through_startrack_plot(esa, tmp_path):
     back = solve_result_from_frame(json.loads(path.read_text()))
     assert back.attitude.sigma_cross_boresight_arcsec == result.attitude.sigma_cross_boresight_arcsec
     assert [tuple(m) for m in back.identification.matches] == [tuple(m) for m in result.identification.matches]
+    # Read back, the matches know their catalog stars when given the catalog (else NaN, never a guess).
+    assert np.all(np.isnan(np.asarray(back.matches["ra"], float)))
+    from startrack.catalog import load_catalog
+
+    with_catalog = solve_result_from_frame(json.loads(path.read_text()), catalog=load_catalog()).matches
+    for name in ("ra", "dec", "mag", "x", "field_ra", "residual"):
+        np.testing.assert_allclose(np.asarray(with_catalog[name], float), np.asarray(result.matches[name], float),
+                                   atol=1e-6, err_msg=name)
 
 
 # ----------------------------------------------------------------------------------------- item 2: astropy

@@ -26,6 +26,7 @@ from startrack.formats.atomic import (
     register_input,
     write_error,
 )
+from startrack.records import FRAME_FORMAT  # the tag lives with the record schema (records write frames too)
 
 __all__ = [
     "FRAME_FORMAT",
@@ -42,8 +43,6 @@ __all__ = [
     "validate_frame",
     "validate_stars",
 ]
-
-FRAME_FORMAT = "startrack.frame/1"
 
 
 def check_format_tag(doc: dict, expected: str, source: str) -> None:

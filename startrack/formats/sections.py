@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from startrack.errors import BadInputError
-from startrack.records import (
+from startrack.records import (  # noqa: F401 - the writers live with the records (re-exported here)
     Attitude,
     Identification,
     Match,
@@ -26,6 +26,15 @@ from startrack.records import (
     StarTable,
     Status,
     TrackState,
+    _json_value,
+    _key,
+    _schema_fields,
+    enum_types,
+    record_to_dict,
+    solve_result_to_frame,
+    stars_to_section,
+    to_frame,
+    to_section,
 )
 
 __all__ = [
@@ -45,60 +54,6 @@ __all__ = [
 
 # frame-document section -> record class
 SECTIONS = {"identification": Identification, "attitude": Attitude, "track": TrackState, "solve": SolveResult}
-
-
-def _schema_fields(cls):
-    return [f for f in dataclasses.fields(cls) if "kind" in f.metadata]
-
-
-def _key(f) -> str:
-    return f.metadata.get("key") or f.name
-
-
-def _json_value(value):
-    """A JSON-ready copy: NumPy to Python, non-finite floats to ``None``, enums to their value."""
-    if isinstance(value, enum_types()):
-        return value.value
-    if isinstance(value, dict):
-        return {str(k): _json_value(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_value(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _json_value(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    return value
-
-
-def enum_types():
-    return (Status, ReasonCode)
-
-
-def to_section(record) -> dict:
-    """The frame-document section of a record: only the fields that are set, in schema order.
-
-    ``details`` (algorithm-specific or other fields) are merged in last.
-    """
-    out = {}
-    for f in _schema_fields(type(record)):
-        value = getattr(record, f.name)
-        if f.name == "details":
-            continue
-        if value is None or (f.metadata["kind"] in ("list",) and not value and not f.metadata["required"]):
-            continue
-        if f.metadata["kind"] == "matches":
-            value = [{"star": int(m[0]), "id": int(m[1])} for m in value]
-        out[_key(f)] = _json_value(value)
-    details = getattr(record, "details", None)
-    if details:
-        for k, v in details.items():
-            out.setdefault(k, _json_value(v))
-    return out
 
 
 def _number(value, source, path, integer=False):
@@ -238,75 +193,6 @@ def stars_from_section(stars, source: str = "<frame>") -> StarTable:
     return StarTable.from_list(stars)
 
 
-def stars_to_section(stars) -> list:
-    """The ``stars`` section of a :class:`StarTable` (or a list of star objects, returned JSON-ready)."""
-    if isinstance(stars, StarTable):
-        return stars.to_list()
-    return _json_value(list(stars))
-
-
-def solve_result_to_frame(result: SolveResult) -> dict:
-    """The frame sections of a :class:`SolveResult`: ``camera``, ``stars``, ``centroid``, ``identification``,
-    ``attitude`` (those that are set) and ``solve``."""
-    out = {}
-    if result.image is not None:
-        out["image"] = _json_value(result.image)
-    if result.camera is not None:
-        out["camera"] = result.camera.to_dict() if hasattr(result.camera, "to_dict") else result.camera
-    if result.stars is not None:
-        out["stars"] = stars_to_section(result.stars)
-    if result.centroid is not None:
-        out["centroid"] = _json_value(result.centroid)
-    if result.identification is not None:
-        out["identification"] = to_section(result.identification)
-    if result.attitude is not None:
-        out["attitude"] = to_section(result.attitude)
-    out["solve"] = to_section(result)
-    return out
-
-
-def to_frame(record) -> dict:
-    """The frame-document sections of a typed record, ready for JSON.
-
-    A :class:`SolveResult` gives ``camera``, ``stars``, ``centroid``,
-    ``identification``, ``attitude`` and ``solve``; a :class:`TrackState` its
-    ``track`` section and the frame sections attached to it; an
-    :class:`Identification` or :class:`Attitude` its one section; a
-    :class:`StarTable` the ``stars`` section.
-    """
-    if isinstance(record, SolveResult):
-        return solve_result_to_frame(record)
-    if isinstance(record, TrackState):
-        out = {"track": to_section(record)}
-        if record.star_table is not None:
-            out["stars"] = stars_to_section(record.star_table)
-        if record.identification is not None:
-            out["identification"] = to_section(record.identification)
-        if record.attitude is not None:
-            out["attitude"] = to_section(record.attitude)
-        return out
-    if isinstance(record, Identification):
-        return {"identification": to_section(record)}
-    if isinstance(record, Attitude):
-        return {"attitude": to_section(record)}
-    if isinstance(record, StarTable):
-        return {"stars": stars_to_section(record)}
-    raise TypeError(f"not a startrack record: {type(record).__name__}")
-
-
-def record_to_dict(record) -> dict:
-    """``record.to_dict()``: a :class:`SolveResult` or :class:`TrackState` as the frame document the commands
-    write (``format`` tag first), an :class:`Identification` or :class:`Attitude` as its section, a
-    :class:`StarTable` as ``{"stars": [...]}``."""
-    if isinstance(record, (SolveResult, TrackState)):
-        from startrack.formats.frame import FRAME_FORMAT
-
-        return {"format": FRAME_FORMAT, **to_frame(record)}
-    if isinstance(record, (Identification, Attitude)):
-        return to_section(record)
-    return to_frame(record)
-
-
 def identification_record(result) -> Identification:
     """An :class:`Identification` from an identification algorithm's result (or its ``identification`` section)."""
     if isinstance(result, Identification):
@@ -337,8 +223,12 @@ def camera_from_file(path: str):
     return Camera.from_dict(doc, path)
 
 
-def solve_result_from_frame(doc: dict, source: str = "<frame>") -> SolveResult:
-    """A :class:`SolveResult` from a frame document that ``solve`` wrote."""
+def solve_result_from_frame(doc: dict, source: str = "<frame>", catalog=None) -> SolveResult:
+    """A :class:`SolveResult` from a frame document that ``solve`` wrote.
+
+    ``catalog`` (:class:`startrack.catalog.Catalog`, optional): the matches' catalog positions (at the
+    attitude's ``epoch``) and magnitudes are taken from it, for :attr:`SolveResult.matches`.
+    """
     from startrack.camera import Camera
 
     result = from_section(SolveResult, doc.get("solve", {}), source, "solve")
@@ -353,6 +243,14 @@ def solve_result_from_frame(doc: dict, source: str = "<frame>") -> SolveResult:
         result.identification = from_section(Identification, doc["identification"], source, "identification")
     if "attitude" in doc:
         result.attitude = from_section(Attitude, doc["attitude"], source, "attitude")
+    if catalog is not None and result.identification is not None:
+        epoch = result.attitude.epoch if result.attitude is not None else None
+        cat = catalog.propagate(epoch) if epoch is not None and epoch != catalog.epoch else catalog
+        rows = cat.rows_by_id()
+        got = [rows.get(int(m[1])) for m in result.identification.matches]
+        pick = lambda column: np.array([column[r] if r is not None else np.nan for r in got],  # noqa: E731
+                                       dtype=np.float64)
+        result.matched_catalog = {"ra": pick(cat.ra), "dec": pick(cat.dec), "mag": pick(cat.mag)}
     return result
 
 
