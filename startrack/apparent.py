@@ -82,6 +82,8 @@ class ObserverState:
     spacecraft_km_s: np.ndarray
     sun_to_observer: np.ndarray
     sun_distance_au: float
+    #: The observer's barycentric position (au, ICRS axes): the Earth's (``erfa.epv00``); None: parallax unknown.
+    position_au: np.ndarray | None = None
 
     @property
     def beta(self) -> np.ndarray:
@@ -106,18 +108,18 @@ def _earth_pv(t: _dt.datetime):
     jd1, jd2 = _tdb_jd(t)
     pvh, pvb = erfa.epv00(jd1, jd2)
     # pyerfa returns structured position-velocity arrays: p (au) and v (au/day).
-    return np.asarray(pvh["p"], dtype=float), np.asarray(pvb["v"], dtype=float)
+    return np.asarray(pvh["p"], dtype=float), np.asarray(pvb["v"], dtype=float), np.asarray(pvb["p"], dtype=float)
 
 
 def earth_velocity_km_s(t: _dt.datetime) -> np.ndarray:
     """The Earth's (geocentre's) barycentric velocity at UTC ``t``, km/s, ICRS axes (``erfa.epv00``)."""
-    _, vb = _earth_pv(t)
+    _, vb, _ = _earth_pv(t)
     return vb * AU_KM / _DAY_S
 
 
 def observer_state(t: _dt.datetime, spacecraft_km_s=None) -> ObserverState:
     """The observer's state at UTC ``t``: the Earth's barycentric velocity plus ``spacecraft_km_s`` (GCRS, km/s)."""
-    ph, vb = _earth_pv(t)
+    ph, vb, pb = _earth_pv(t)
     earth = vb * AU_KM / _DAY_S
     sc = np.zeros(3) if spacecraft_km_s is None else np.asarray(spacecraft_km_s, dtype=float).reshape(3)
     if not np.all(np.isfinite(sc)):
@@ -126,7 +128,9 @@ def observer_state(t: _dt.datetime, spacecraft_km_s=None) -> ObserverState:
     if np.linalg.norm(total) >= 0.01 * C_KM_S:
         raise BadInputError("observer velocity", None, f"{np.linalg.norm(total):.0f} km/s is not an orbital speed")
     distance = float(np.linalg.norm(ph))
-    return ObserverState(total, earth, sc, ph / distance, distance)
+    # The spacecraft's offset from the geocentre (< 3e-4 au even at the Moon's distance) is left out of the
+    # parallax: it moves the nearest star's direction by under 0.3 mas.
+    return ObserverState(total, earth, sc, ph / distance, distance, pb)
 
 
 def velocity_state(velocity_km_s, sun_to_observer=(1.0, 0.0, 0.0), sun_distance_au: float = 1.0) -> ObserverState:
@@ -136,16 +140,22 @@ def velocity_state(velocity_km_s, sun_to_observer=(1.0, 0.0, 0.0), sun_distance_
     return ObserverState(v, v, np.zeros(3), e / np.linalg.norm(e), float(sun_distance_au))
 
 
-def aberrate(vectors, state: ObserverState, deflection: bool = True) -> np.ndarray:
-    """Apparent directions of stars at infinity for the observer ``state``.
+def aberrate(vectors, state: ObserverState, deflection: bool = True, parallax_mas=None) -> np.ndarray:
+    """Apparent directions of stars for the observer ``state``.
 
     Parameters
     ----------
     vectors : ndarray (n, 3) or (3,)
-        Astrometric unit vectors (ICRS, at the frame's epoch).
+        Astrometric unit vectors (ICRS, at the frame's epoch), as seen from the barycentre.
     state : ObserverState
     deflection : bool
         Light deflection by the Sun first (``erfa.ldsun``; 4 mas at 90 deg from the Sun).
+    parallax_mas : float or ndarray (n,), optional
+        The stars' parallaxes: each direction is first moved to the observer's place,
+        ``u - p * b`` renormalised with ``p`` the parallax (rad) and ``b`` the observer's
+        barycentric position (au; SOFA's ``iauPmpx`` without the space motion, which
+        :meth:`startrack.catalog.Catalog.propagate` applies); up to 0.77" (alpha Centauri).
+        Needs ``state.position_au``; without it, or without parallaxes, stars are at infinity.
 
     Returns
     -------
@@ -155,6 +165,11 @@ def aberrate(vectors, state: ObserverState, deflection: bool = True) -> np.ndarr
     import erfa
 
     u = np.ascontiguousarray(vectors, dtype=np.float64)
+    if parallax_mas is not None and state.position_au is not None:
+        p = np.asarray(parallax_mas, dtype=np.float64) * (math.pi / 180.0 / 3600.0e3)
+        if np.any(p != 0):
+            u = u - (p[..., None] if u.ndim > 1 else p) * state.position_au
+            u = u / np.linalg.norm(u, axis=-1, keepdims=True)
     if deflection:
         u = erfa.ldsun(u, state.sun_to_observer, state.sun_distance_au)
     beta = state.beta
@@ -306,11 +321,12 @@ class FrameApparent:
                 out["velocity_source"] = self.velocity_source
         return out
 
-    def apparent(self, vectors) -> np.ndarray:
-        """Catalog (astrometric) unit vectors at this frame's apparent places (unchanged without a state)."""
+    def apparent(self, vectors, parallax_mas=None) -> np.ndarray:
+        """Catalog (astrometric) unit vectors at this frame's apparent places (unchanged without a state);
+        ``parallax_mas`` the stars' parallaxes (:func:`aberrate`)."""
         if self.state is None:
             return np.ascontiguousarray(vectors, dtype=np.float64)
-        return aberrate(vectors, self.state)
+        return aberrate(vectors, self.state, parallax_mas=parallax_mas)
 
 
 def frame_apparent(doc: dict | None, options: ApparentOptions, source: str = "frame", fits_header=None,

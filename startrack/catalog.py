@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 CATALOG_FORMAT = "startrack.catalog/1"
 MAS_TO_RAD = math.pi / (180.0 * 3600.0 * 1000.0)
-_COLUMNS = ("id", "ra", "dec", "mag", "pm_ra", "pm_dec", "bv")
+_COLUMNS = ("id", "ra", "dec", "mag", "pm_ra", "pm_dec", "bv", "plx")
 
 
 def default_catalog_path() -> str:
@@ -76,10 +76,15 @@ class Catalog:
     source: str = ""
     merged: dict = field(default_factory=dict)
     """``{id of an entry: [ids of the fainter stars merged into it]}`` (see :meth:`merge_close`)."""
+    plx: np.ndarray | None = None
+    """Parallax, mas (0 where unknown; None: 0 for every star); the apparent place's parallax for an observer
+    off the barycentre (:func:`startrack.apparent.aberrate`)."""
 
     def __post_init__(self):
         self.id = np.asarray(self.id, dtype=np.int64)
-        for name in ("ra", "dec", "mag", "pm_ra", "pm_dec", "bv"):
+        if self.plx is None:
+            self.plx = np.zeros(len(self.id))
+        for name in ("ra", "dec", "mag", "pm_ra", "pm_dec", "bv", "plx"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64))
         n = len(self.id)
         for name in _COLUMNS:
@@ -469,9 +474,11 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
                 raise BadInputError(path, name, "dataset is missing")
             cols[name] = np.asarray(h5[name][rows])
         n = len(cols["id"])
-        for name in ("pm_ra", "pm_dec", "bv"):
+        for name in ("pm_ra", "pm_dec", "bv", "plx"):
             where.field = name
             cols[name] = np.asarray(h5[name][rows]) if name in h5 else np.full(n, np.nan if name == "bv" else 0.0)
+        # A parallax not measured, or measured negative (noise about a small one), is none.
+        cols["plx"] = np.where(np.isfinite(cols["plx"]) & (cols["plx"] > 0), cols["plx"], 0.0)
         merged = {}
         where.field = "merged_id"
         if "merged_id" in h5 and "merged_into" in h5:
@@ -522,6 +529,7 @@ def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> No
         "pm_ra": (catalog.pm_ra.astype(np.float32), {"unit": "mas/yr", "note": "pmRA*cos(dec)"}),
         "pm_dec": (catalog.pm_dec.astype(np.float32), {"unit": "mas/yr"}),
         "bv": (catalog.bv.astype(np.float32), {"unit": "mag"}),
+        "plx": (catalog.plx.astype(np.float32), {"unit": "mas", "note": "parallax; 0 where unknown"}),
     }
     if catalog.merged:
         into, mid = merged_arrays(catalog.merged)

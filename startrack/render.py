@@ -659,7 +659,8 @@ class RenderRun:
         return v * math.cos(angle) + np.cross(normal, v) * math.sin(angle)
 
     def apparent_vectors(self, vectors, t, t_s: float, cache: dict):
-        """The catalog's unit vectors at their apparent places at UTC ``t`` (aberration, solar deflection)."""
+        """The catalog's unit vectors at their apparent places at UTC ``t`` (parallax, solar deflection,
+        aberration)."""
         velocity = self.observer_velocity(t_s)
         if not self.aberration:
             return vectors, velocity
@@ -668,7 +669,7 @@ class RenderRun:
         key = (t, None if velocity is None else tuple(velocity))
         if key not in cache:
             cache.clear()
-            cache[key] = aberrate(vectors, observer_state(t, velocity))
+            cache[key] = aberrate(vectors, observer_state(t, velocity), parallax_mas=self.catalog.plx)
         return cache[key], velocity
 
     @property

@@ -755,8 +755,14 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         epoch = float(databases.catalog.epoch)
     ident.parity = parity
     # The attitude of the un-mirrored camera, from the star list the search identified.
+    parallax = None
+    if opts.observer is not None:
+        base = databases.catalog
+        base_rows = base.rows_by_id()
+        parallax = {int(m[1]): float(base.plx[base_rows[int(m[1])]]) for m in ident.matches
+                    if int(m[1]) in base_rows and base.plx[base_rows[int(m[1])]] > 0}
     att = identified_attitude(stars if parity == "normal" else StarTable.from_list(search_list), ident, cam, rows,
-                              vec, opts.method, epoch=epoch, observer=opts.observer)
+                              vec, opts.method, epoch=epoch, observer=opts.observer, parallax_mas=parallax)
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
                       database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
                       centroid=centroid, identification=ident, attitude=att, parity=parity)
@@ -871,7 +877,8 @@ DEFAULT_SIGMA_PX = 0.5
 
 
 def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
-                        sigma_px: float | None = None, epoch: float | None = None, observer=None):
+                        sigma_px: float | None = None, epoch: float | None = None, observer=None,
+                        parallax_mas: dict | None = None):
     """The attitude of identified stars (Wahba's problem, paper 000 Eq. 15, with outlier rejection).
 
     Parameters
@@ -894,6 +901,8 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         Recorded in the result (decimal year).
     observer : startrack.apparent.ObserverState, optional
         The catalog directions are moved to their apparent places for it (stellar aberration).
+    parallax_mas : dict, optional
+        Catalog id -> parallax (mas) of the stars that have one: their apparent places with ``observer``.
 
     Returns
     -------
@@ -913,7 +922,8 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     if observer is not None:
         from startrack.apparent import aberrate
 
-        ref = aberrate(ref, observer)
+        plx = None if not parallax_mas else np.array([parallax_mas.get(int(m[1]), 0.0) for m in idx])
+        ref = aberrate(ref, observer, parallax_mas=plx)
     if sigma_px is not None:
         sig_px = np.full(len(star), float(sigma_px))
     elif stars.sigma_px is not None:

@@ -165,3 +165,31 @@ def test_astrometric_attitude_maps_pixels_to_astrometric_directions(k1):
         # ... and the true attitude alone would be off by the aberration itself.
         plain = np.asarray(cam.pixels_to_vectors(x, y)) @ dcm
         assert np.max(_angle(exact, plain)) > 5 / 206265
+
+
+def test_parallax_agrees_with_astropy_gcrs_of_near_stars():
+    """Stars at finite distance (issue 39: "parallax for the stars that have one"): the apparent place with the
+    parallax agrees with astropy's ICRS -> GCRS of a star with that distance within 1 mas; without the parallax
+    term alpha Centauri's place is off by up to its 0.75"."""
+    from astropy import units
+    from astropy.coordinates import GCRS, SkyCoord
+    from astropy.time import Time
+
+    rng = np.random.default_rng(39)
+    u = _unit(rng, 200)
+    plx = rng.uniform(50.0, 800.0, len(u))                 # mas: 1.25 to 20 pc
+    ra = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    dec = np.degrees(np.arcsin(u[:, 2]))
+    stars = SkyCoord(ra=ra * units.deg, dec=dec * units.deg, distance=(1000.0 / plx) * units.pc, frame="icrs")
+    worst_without = 0.0
+    for when in (dt.datetime(2026, 3, 20, 6, tzinfo=UTC), dt.datetime(2026, 6, 21, 18, tzinfo=UTC)):
+        state = ap.observer_state(when)
+        assert 0.97 < np.linalg.norm(state.position_au) < 1.03
+        g = stars.transform_to(GCRS(obstime=Time(when))).cartesian.xyz.value.T
+        g /= np.linalg.norm(g, axis=1, keepdims=True)
+        assert np.max(_angle(ap.aberrate(u, state, parallax_mas=plx), g)) < 1.0 * MAS
+        worst_without = max(worst_without, float(np.max(_angle(ap.aberrate(u, state), g))))
+        # One star at a time (the attitude's per-star call) is the same.
+        np.testing.assert_allclose(ap.aberrate(u[3], state, parallax_mas=plx[3]), ap.aberrate(u, state, parallax_mas=plx)[3],
+                                   atol=1e-15)
+    assert worst_without > 0.5 / 206265

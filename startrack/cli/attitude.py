@@ -157,7 +157,7 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
             ep = float(doc["truth"]["epoch"])
         if ep is None:
             ep = base.epoch
-        _, rows, vectors = catalog_at(ep)
+        cat_ep, rows, vectors = catalog_at(ep)
         centres = photocentres_at(ep, cam, [int(m["id"]) for m in matches])
         gain = _frame_gain(doc)
         noise_frame = (doc.get("centroid") or {}).get("noise_dn")
@@ -185,7 +185,7 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
             if mirrored:
                 x = 2.0 * cam.cx - x        # identified as the un-mirrored camera's stars (startrack.parity)
             body.append(cam.pixels_to_vectors(x, y))
-            ref.append(setting.apparent(centres.get(int(m["id"]), vectors[row])))
+            ref.append(setting.apparent(centres.get(int(m["id"]), vectors[row]), cat_ep.plx[row]))
             # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
             # bound from its flux, PSF and noise (startrack.accuracy), else the sigma_px centroid wrote,
             # else --sigma-px.  The bound alone goes into the crb_* fields.

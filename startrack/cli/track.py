@@ -159,7 +159,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
             state["tracker"] = Tracker(stars, cam, db, config, init, rate, parity=parity)
         tracker = state["tracker"]
         if setting.state is not None or tracker.vectors is not tracker.astrometric:
-            tracker.set_directions(setting.apparent(tracker.astrometric))
+            tracker.set_directions(setting.apparent(tracker.astrometric, tracker.catalog.plx))
         path = (doc.get("image") or {}).get("path")
         if not path:
             raise BadInputError(src, "image.path", "is missing: tracking needs the images")

@@ -211,7 +211,7 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         Match the detections the database does not hold against this catalog
         once the attitude is known (:func:`startrack.identify.catalog_match.match_catalog`).
     apparent : callable, optional
-        ICRS unit vectors to the frame's apparent places
+        ``apparent(vectors, parallax_mas)``: ICRS unit vectors to the frame's apparent places
         (:meth:`startrack.apparent.FrameApparent.apparent`): the final match
         and ``quaternion_estimate`` then account for stellar aberration.
 

@@ -23,6 +23,8 @@ class CatalogStars:
     sky: object = None
     #: ``vectors`` minus the same stars' at the epoch they were propagated from (:meth:`moved`), or None.
     motion: np.ndarray | None = None
+    #: Parallaxes (mas; 0: none), or None: the apparent places' parallax (:func:`match_catalog`'s ``apparent``).
+    plx: np.ndarray | None = None
     _id_order: np.ndarray | None = None
 
     @classmethod
@@ -30,7 +32,25 @@ class CatalogStars:
         """From a :class:`startrack.catalog.Catalog` (its vectors and sky index, made once per catalog);
         ``since``: the same catalog at the epoch it was propagated from (the stars' ``motion``)."""
         motion = None if since is None else catalog.vectors() - since.vectors()
-        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index(), motion)
+        plx = getattr(catalog, "plx", None)
+        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index(), motion,
+                   None if plx is None or not np.any(plx > 0) else np.asarray(plx, dtype=np.float64))
+
+    def _rows(self, ids):
+        """``(rows, found)``: the row of each of ``ids`` and whether the catalog has it."""
+        order = self._id_order
+        if order is None:
+            order = self._id_order = np.argsort(self.id, kind="stable")
+        ids = np.asarray(ids, dtype=self.id.dtype)
+        rows = order[np.minimum(np.searchsorted(self.id, ids, sorter=order), len(order) - 1)]
+        return rows, self.id[rows] == ids
+
+    def parallax_of(self, ids) -> np.ndarray | None:
+        """The parallaxes (mas) of catalog ids ``ids``, 0 for an id the catalog lacks; None without parallaxes."""
+        if self.plx is None:
+            return None
+        rows, found = self._rows(ids)
+        return np.where(found, self.plx[rows], 0.0)
 
     def moved(self, ids, vectors: np.ndarray) -> np.ndarray:
         """``vectors`` (a database's stars ``ids``, at the epoch this catalog was propagated from) moved by their
@@ -38,12 +58,7 @@ class CatalogStars:
         the catalog lacks.  A database's merged photocentre moves with the star it is named after."""
         if self.motion is None:
             return vectors
-        order = self._id_order
-        if order is None:
-            order = self._id_order = np.argsort(self.id, kind="stable")
-        ids = np.asarray(ids, dtype=self.id.dtype)
-        rows = order[np.minimum(np.searchsorted(self.id, ids, sorter=order), len(order) - 1)]
-        found = self.id[rows] == ids
+        rows, found = self._rows(ids)
         out = np.array(vectors, dtype=np.float64, copy=True)
         out[found] += self.motion[rows[found]]
         return out / np.linalg.norm(out, axis=1, keepdims=True)
@@ -87,9 +102,9 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     verified stars' attitude).  Each pass starts from an attitude many times
     better; what it leaves out it leaves out evenly about the truth.
 
-    ``apparent``, when given, maps ICRS (catalog) unit vectors to the frame's
-    apparent places (:meth:`startrack.apparent.FrameApparent.apparent`:
-    stellar aberration): the catalog stars are matched at the places the
+    ``apparent(vectors, parallax_mas)``, when given, maps ICRS (catalog) unit
+    vectors to the frame's apparent places (:meth:`startrack.apparent.FrameApparent.apparent`:
+    parallax with the catalog's ``plx``, stellar aberration): the catalog stars are matched at the places the
     camera sees them, and the attitude is the camera's true orientation.
 
     Parameters
@@ -105,7 +120,7 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
     from startrack.rotations import quaternion_to_dcm
 
     if apparent is not None:
-        ref = apparent(ref)
+        ref = apparent(ref, stars.parallax_of([m.id for m in matches]))
     out, q = _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma,
                          apparent)
     for _ in range(passes - 1):
@@ -136,7 +151,7 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
     # The catalog stars in the field's cone only (the sky index), not a pass over the catalog.
     front = stars.in_cone(dcm[2], cos_fov)
     front = front[stars.mag[front] <= (np.inf if mag_limit is None else mag_limit)]
-    cone = vec[front] if apparent is None else apparent(vec[front])
+    cone = vec[front] if apparent is None else apparent(vec[front], None if stars.plx is None else stars.plx[front])
     pc = cone @ dcm.T
     x, y = camera.vectors_to_pixels(pc)
     keep = camera.in_image(x, y)
@@ -267,9 +282,11 @@ def apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, c
     stars = np.asarray(accepted.star_index, dtype=np.int64)
     body = _pixels_to_vectors(cam, np.asarray(xs)[stars], np.asarray(ys)[stars])
     ref = db.star_vector[accepted.cat_index]
+    plx = None
     if isinstance(catalog, CatalogStars):
         ref = catalog.moved(db.star_id[accepted.cat_index], ref)
-    ref = apparent(ref)
+        plx = catalog.parallax_of(db.star_id[accepted.cat_index])
+    ref = apparent(ref, plx)
     w = 1.0 / np.asarray(sig_px, dtype=np.float64)[stars] ** 2
     q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref), w / w.sum())
     q = q / math.sqrt(float(q @ q))

@@ -73,8 +73,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         A catalog to match the detections the database does not hold against
         (:func:`~startrack.identify.catalog_match.match_catalog`), e.g. the full catalog behind a shallow database.
     apparent : callable, optional
-        ICRS unit vectors to the frame's apparent places (stellar aberration,
-        :meth:`startrack.apparent.FrameApparent.apparent`): the final match and
+        ``apparent(vectors, parallax_mas)``: ICRS unit vectors to the frame's apparent places (parallax,
+        stellar aberration; :meth:`startrack.apparent.FrameApparent.apparent`): the final match and
         the reported attitude use them, so that ``quaternion_estimate`` is the
         camera's true orientation.  The search and the verification compare
         angles within the field, which aberration changes by at most 1e-4 of

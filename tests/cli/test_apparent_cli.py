@@ -131,3 +131,39 @@ def test_identify_quaternion_estimate_is_the_true_orientation(tmp_path, match, t
     # correction it is off by the aberration.
     rms = {k: math.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
     assert rms[True] < 2.0 and rms[False] > 8, rms
+
+
+def test_render_and_attitude_place_sirius_with_its_parallax():
+    """Parallax (issue 39: "parallax for the stars that have one"): render puts Sirius (HIP 32349, 379 mas) where
+    astropy's GCRS puts a star at its distance, within 0.05" (without the parallax term 0.34" off on 2026-03-01),
+    and attitude, applying the same, leaves it no residual.  (Not alpha Centauri: A and B blend into one image.)"""
+    from astropy import units
+    from astropy.coordinates import GCRS, SkyCoord
+    from astropy.time import Time
+
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.rotations import quaternion_to_dcm
+
+    when = "2026-03-01T00:00:00Z"
+    proc = run_cli("render", "--stars-only", "--count", 1, "--fov-deg", 10, "--size", "1024x1024", "--ra", 101.29,
+                   "--dec", -16.71, "--roll", 0, "--mag-max", 4.5, "--time", when, "-q", check=True)
+    doc = json.loads(proc.stdout)
+    star = next(s for s in doc["truth"]["stars"] if s["id"] == 32349)
+    cam = Camera.from_dict(doc["camera"])
+    seen = quaternion_to_dcm(np.array(doc["truth"]["quaternion"])).T @ cam.pixels_to_vectors(star["x"], star["y"])
+    cat = load_catalog()
+    r = cat.rows_by_id()[32349]
+    coord = SkyCoord(ra=cat.ra[r] * units.deg, dec=cat.dec[r] * units.deg, distance=(1000 / cat.plx[r]) * units.pc,
+                     pm_ra_cosdec=cat.pm_ra[r] * units.mas / units.yr, pm_dec=cat.pm_dec[r] * units.mas / units.yr,
+                     radial_velocity=0 * units.km / units.s, obstime=Time(cat.epoch, format="jyear"), frame="icrs")
+    t = Time(when.replace("Z", ""), scale="utc")
+    g = coord.apply_space_motion(new_obstime=t).transform_to(GCRS(obstime=t)).cartesian.xyz.value
+    g /= np.linalg.norm(g)
+    assert math.acos(min(1.0, float(seen @ g))) * ARCSEC < 0.05
+    doc["identification"] = {"status": "ok", "algorithm": "truth",
+                             "matches": [{"star": i, "id": sid} for i, sid in enumerate(doc["truth"]["star_ids"])
+                                         if sid is not None]}
+    (out,), _ = _attitude([doc])
+    resid = {r_["id"]: r_["residual_arcsec"] for r_ in out["attitude"]["residuals"]}
+    assert resid[32349] < 0.05
