@@ -28,6 +28,7 @@ from startrack.errors import BadInputError, ParameterError
 
 __all__ = [
     "CATALOG_FORMAT",
+    "CATALOG_NAMES",
     "Catalog",
     "default_catalog_path",
     "load_catalog",
@@ -441,7 +442,9 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     Parameters
     ----------
     path : str, optional
-        The file; default :func:`default_catalog_path`.
+        The file; default :func:`default_catalog_path`.  A name of :data:`CATALOG_NAMES` instead:
+        ``"hipparcos"`` (the shipped file) or ``"gaia"`` (Gaia DR3 to G 10 merged with Hipparcos,
+        :mod:`startrack.gaia`; needs the extra ``startrack[gaia]``).
     mag_max : float, optional
         Read only the stars at most this faint.  The shipped file is sorted
         brightest first, so only its first rows are read and decompressed:
@@ -456,6 +459,8 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
 
     from startrack.formats.hdf5 import corrupt_hdf5, read_hdf5
 
+    if path in CATALOG_NAMES:
+        return CATALOG_NAMES[path](mag_max)
     t0 = time.perf_counter()
     path = path or default_catalog_path()
     f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
@@ -502,6 +507,17 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     return cat
 
 
+def _load_gaia(mag_max):
+    from startrack.gaia import load_gaia_catalog
+
+    return load_gaia_catalog(mag_max=mag_max)
+
+
+CATALOG_NAMES = {"hipparcos": lambda mag_max: load_catalog(None, mag_max), "gaia": _load_gaia}
+"""Catalogs that :func:`load_catalog` (and every command's ``--catalog``) takes by name instead of a path
+(``./gaia`` names a file called ``gaia``)."""
+
+
 def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> None:
     """Write a catalog as HDF5 (``.h5``/``.hdf5``) or CSV (``.csv``, or ``-`` for stdout).
 
@@ -522,7 +538,8 @@ def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> No
     from startrack.formats.hdf5 import write_hdf5
 
     datasets = {
-        "id": (catalog.id.astype(np.int64), {"note": "Hipparcos number (HIP) for Hipparcos catalogs"}),
+        "id": (catalog.id.astype(np.int64), {"note": "Hipparcos number (HIP) for Hipparcos stars, Gaia DR3 "
+                                                     "source_id for Gaia stars (catalog gaia)"}),
         "ra": (catalog.ra, {"unit": "deg", "note": "ICRS at epoch"}),
         "dec": (catalog.dec, {"unit": "deg", "note": "ICRS at epoch"}),
         "mag": (catalog.mag.astype(np.float32), {"unit": "mag"}),

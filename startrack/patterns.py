@@ -49,7 +49,7 @@ import numpy as np
 
 from startrack.errors import BadInputError
 
-__all__ = ["INDEX_FORMAT", "LEVELS_DEG", "PatternIndex", "build_index", "save_index", "open_index", "check_index",
+__all__ = ["INDEX_FORMAT", "LEVELS_DEG", "DEEP_LEVELS_DEG", "INDEX_KINDS", "DEEP_FOV_DEG", "PatternIndex", "build_index", "save_index", "open_index", "check_index",
            "default_index_path", "default_index", "BlindOptions", "solve_blind", "cache_dir"]
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,18 @@ LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 d
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
                 "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "mag_max": 10.0,
                 "version": 1}
+DEEP_LEVELS_DEG = tuple(0.9 / LEVEL_RATIO * LEVEL_RATIO**k for k in range(14))     # 0.64 ... 57.6 degrees
+DEEP_BUILD_PARAMS = {**BUILD_PARAMS, "levels_deg": [round(v, 6) for v in DEEP_LEVELS_DEG], "catalog": "gaia"}
+"""The deep index: the same patterns over Gaia DR3 to G 10 with Hipparcos for the brightest
+(:mod:`startrack.gaia`), one level finer (patterns of 0.45 to 0.64 degrees), for fields from about 0.8 degrees."""
+INDEX_KINDS = {"default": BUILD_PARAMS, "deep": DEEP_BUILD_PARAMS}
+"""The indexes :func:`default_index` builds: ``default`` from the shipped Hipparcos catalog (fields of 1.5 to 100
+degrees), ``deep`` from the catalog ``gaia`` (the extra ``startrack[gaia]``; searched for fields under
+:data:`DEEP_FOV_DEG`'s upper end, or for every field with ``catalog="gaia"``)."""
+DEEP_FOV_DEG = (0.8, 3.0)
+"""Fields (horizontal, degrees) the blind search looks for with the deep index when the default one found nothing.
+Below 3 degrees a field holds on average fewer than 8 Hipparcos stars; from 0.8 degrees its brightest 16 stars
+still span patterns of the deep index's finest level."""
 
 
 def cache_dir() -> str:
@@ -146,6 +158,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
         if progress:
             progress(i + 1, len(rhos))
     p.update(catalog_sha256=cat.checksum(), catalog_source=os.path.basename(cat.source or ""),
+             catalog=cat.params.get("catalog", p.get("catalog", "hipparcos")),
              catalog_epoch=float(cat.epoch),
              n_stars=int(len(cat)), patterns_per_level=[int(c) for c in counts])
     return PatternIndex(cat.id.astype(np.int64), vec, cat.mag.astype(np.float32), np.array(rhos),
@@ -328,39 +341,60 @@ def _write_stamp(stamp_path: str, stamp: dict | None) -> None:
         os.replace(tmp, stamp_path)
 
 
-def default_index_path(catalog=None) -> str:
-    """The cache file of the default index for ``catalog`` (default: the shipped catalog file).
+def _kind_params(kind: str) -> dict:
+    if kind not in INDEX_KINDS:
+        from startrack.errors import ParameterError
+
+        raise ParameterError("kind", f"must be one of {', '.join(INDEX_KINDS)}, got {kind!r}")
+    return INDEX_KINDS[kind]
+
+
+def default_index_path(catalog=None, kind: str = "default") -> str:
+    """The cache file of the ``kind`` index (:data:`INDEX_KINDS`) for ``catalog`` (default: the kind's catalog).
 
     The name carries a hash of the build parameters and of the catalog: its
-    content checksum when a catalog is given, else the shipped file's path,
-    size and modification time (so that a warm start does not read the catalog).
+    content checksum when a catalog is given, else the source files' paths,
+    sizes and modification times (so that a warm start does not read the catalog).
     """
     import hashlib
 
+    params = _kind_params(kind)
     # the file layout is in the tag too: an index with checksums never shares a name with one without
-    tag = hashlib.sha256(json.dumps({**BUILD_PARAMS, "file_layout": _FILE_LAYOUT}, sort_keys=True).encode()
+    tag = hashlib.sha256(json.dumps({**params, "file_layout": _FILE_LAYOUT}, sort_keys=True).encode()
                          ).hexdigest()[:8]
     if catalog is not None:
         cat_tag = catalog.checksum()[:12]
     else:
         from startrack.catalog import default_catalog_path
 
-        path = os.path.abspath(default_catalog_path())
-        st = os.stat(path)
-        cat_tag = hashlib.sha256(f"{path}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()[:12]
-    return os.path.join(cache_dir(), f"patterns-{cat_tag}-{tag}.idx")
+        paths = [os.path.abspath(default_catalog_path())]
+        stamp = []
+        if kind == "deep":
+            from startrack.gaia import gaia_path, merge_rules
+
+            paths.append(gaia_path())
+            stamp.append(merge_rules())
+        for path in paths:
+            st = os.stat(path)
+            stamp.append(f"{path}|{st.st_size}|{st.st_mtime_ns}")
+        cat_tag = hashlib.sha256("||".join(stamp).encode()).hexdigest()[:12]
+    prefix = "patterns" if kind == "default" else f"patterns-{kind}"
+    return os.path.join(cache_dir(), f"{prefix}-{cat_tag}-{tag}.idx")
 
 
-def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
-    """The default pattern index: opened from the cache (checked, :func:`open_index`), else built once.
+def default_index(catalog=None, notice=None, progress=None, kind: str = "default") -> PatternIndex:
+    """The ``kind`` pattern index (:data:`INDEX_KINDS`): opened from the cache (checked, :func:`open_index`),
+    else built once.
 
     A missing or damaged file is built under :func:`startrack.formats.hdf5.build_lock`, one builder at a
     time: a second process waits and opens what the first built.  A damaged file gets one warning that
-    names it and what is wrong, and is rebuilt.  ``notice(text)`` is called before a build.
+    names it and what is wrong, and is rebuilt.  ``notice(text)`` is called before a build.  The ``deep``
+    kind needs the extra ``startrack[gaia]`` (``BadInputError`` naming it otherwise).
     """
     from startrack.formats.hdf5 import build_lock
 
-    path = default_index_path(catalog)
+    params = _kind_params(kind)
+    path = default_index_path(catalog, kind)
     if os.path.exists(path):
         try:
             return open_index(path)
@@ -374,16 +408,21 @@ def default_index(catalog=None, notice=None, progress=None) -> PatternIndex:
             except BadInputError as exc:
                 log.warning("pattern index %s: %s%s: rebuilding it", path, f"{exc.field}: " if exc.field else "",
                             exc.problem)
+        if catalog is None and params.get("catalog"):
+            from startrack.catalog import load_catalog
+
+            catalog = load_catalog(params["catalog"], mag_max=params.get("mag_max"))
         if notice is not None:
-            notice(f"building the star index once, ~{estimated_build_s():.0f} s, into {os.path.dirname(path)}")
-        index = build_index(catalog, progress=progress)
+            what = "star index" if kind == "default" else f"{kind} star index ({params.get('catalog')} catalog)"
+            notice(f"building the {what} once, ~{estimated_build_s(kind):.0f} s, into {os.path.dirname(path)}")
+        index = build_index(catalog, progress=progress, params=params)
         save_index(index, path)
         return open_index(path)
 
 
-def estimated_build_s() -> float:
-    """A rough build time (s) of the default index, kernels' first compilation included."""
-    return 40.0
+def estimated_build_s(kind: str = "default") -> float:
+    """A rough build time (s) of the ``kind`` index, kernels' first compilation included."""
+    return 40.0 if kind == "default" else 60.0
 
 
 # ---------------------------------------------------------------------------------------------- solving

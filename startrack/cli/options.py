@@ -384,7 +384,9 @@ def calibration_from_options(bias, dark, flat):
 
 
 catalog_option = click.option("--catalog", type=click.Path(dir_okay=False), default=None,
-                              help="Star catalog (startrack.catalog/1 HDF5); default: the shipped Hipparcos catalog.")
+                              help="Star catalog: a startrack.catalog/1 HDF5 file, or a name: hipparcos (the "
+                                   "shipped catalog, the default) or gaia (Gaia DR3 to G 10 with Hipparcos for "
+                                   "the brightest; the extra startrack[gaia]).")
 
 
 def mag_options(max_help="Faintest catalog star used.", min_help="Brightest catalog star used.", max_default=None,
