@@ -7,7 +7,8 @@ at epoch **2016.0** (Gaia DR3's reference epoch):
   :data:`HIPPARCOS_BRIGHTER_THAN` (Hp 5) is taken from Hipparcos, its position moved from 1991.25 to 2016.0
   with its proper motion (:meth:`Catalog.propagate`); its id is its HIP number and ``mag`` its Hp.  Gaia
   saturates there: the package lacks 43 of the 46 stars of Hp < 2 and holds them as Hipparcos entries
-  without proper motion, which are replaced by these.
+  without proper motion, which are replaced by these.  The Gaia sources of such a star (its counterpart, and a
+  component of similar brightness Gaia resolves) are listed under it in ``Catalog.merged``.
 * **Gaia for the rest**: every Gaia source of the package (G <= 10) with its ``source_id`` (int64),
   its 2016.0 position and ``mag`` = G.  The Gaia counterpart of each bright Hipparcos star is dropped, so no
   star is in the catalog twice.
@@ -21,7 +22,8 @@ at epoch **2016.0** (Gaia DR3's reference epoch):
 
 Cross-match: a Hipparcos star (at 2016.0) and a Gaia source are the same star when they lie within
 :data:`MATCH_ARCSEC` and their magnitudes (Hp, G) differ by less than :data:`MATCH_MAG`; each Hipparcos star
-takes its nearest such source, and a source is taken by one Hipparcos star at most.
+takes its nearest such source (whose proper motion it gives), and a source is taken by one Hipparcos star at
+most; a bright Hipparcos star replaces every source within those limits.
 
 Ids: a HIP number is below 200,000 and a Gaia DR3 ``source_id`` above 4 x 10^9, so an id says which catalog a
 star is from (:func:`is_hipparcos_id`) and which band its ``mag`` is in (Hp or G).
@@ -82,7 +84,7 @@ def gaia_path() -> str:
 
 def merge_rules() -> str:
     """The merge's rules in one line: a pattern index built from another merge has another cache name."""
-    return (f"gaia-merge/1 epoch {EPOCH} hipparcos < {HIPPARCOS_BRIGHTER_THAN} match {MATCH_ARCSEC} arcsec "
+    return (f"gaia-merge/2 epoch {EPOCH} hipparcos < {HIPPARCOS_BRIGHTER_THAN} match {MATCH_ARCSEC} arcsec "
             f"{MATCH_MAG} mag")
 
 
@@ -119,8 +121,9 @@ def read_gaia_package(path: str | None = None) -> tuple[np.ndarray, dict]:
 
 
 def _cross_match(hip, gaia_vec, gaia_mag):
-    """``(hip_rows, gaia_rows)``: each Hipparcos star's nearest Gaia source within MATCH_ARCSEC and MATCH_MAG,
-    one Hipparcos star per source (the nearest pair first)."""
+    """``(hip_rows, gaia_rows, pairs)``: each Hipparcos star's nearest Gaia source within MATCH_ARCSEC and
+    MATCH_MAG, one Hipparcos star per source (the nearest pair first); ``pairs`` = ``(hip rows, gaia rows)`` of
+    every pair within those limits."""
     from startrack.catalog import star_pairs
 
     n_hip = len(hip)
@@ -140,7 +143,7 @@ def _cross_match(hip, gaia_vec, gaia_mag):
         hip_taken[a] = gaia_taken[b] = True
         out_h.append(a)
         out_g.append(b)
-    return np.array(out_h, dtype=np.int64), np.array(out_g, dtype=np.int64)
+    return np.array(out_h, dtype=np.int64), np.array(out_g, dtype=np.int64), (h, g)
 
 
 def load_gaia_catalog(hipparcos=None, path: str | None = None, mag_max: float | None = None):
@@ -170,21 +173,28 @@ def load_gaia_catalog(hipparcos=None, path: str | None = None, mag_max: float | 
 
     gaia_vec = np.ascontiguousarray(radec_to_vector(gaia["ra"], gaia["dec"]))
     gaia_mag = gaia["mag"].astype(np.float64)
-    h_rows, g_rows = _cross_match(hip, gaia_vec, gaia_mag)
+    h_rows, g_rows, (pair_h, pair_g) = _cross_match(hip, gaia_vec, gaia_mag)
     pm_ra = np.full(len(gaia), np.nan)
     pm_dec = np.full(len(gaia), np.nan)
     bv = np.full(len(gaia), np.nan)
     pm_ra[g_rows], pm_dec[g_rows], bv[g_rows] = hip.pm_ra[h_rows], hip.pm_dec[h_rows], hip.bv[h_rows]
     bright = hip.mag < HIPPARCOS_BRIGHTER_THAN
     keep_gaia = np.ones(len(gaia), dtype=bool)
-    keep_gaia[g_rows[bright[h_rows]]] = False       # the counterparts of the bright Hipparcos stars
+    # Every source within the match limits of a bright Hipparcos star goes: its counterpart, and a component of
+    # similar brightness that Gaia resolves where Hipparcos measured the pair's light as one star (about 1 %
+    # of them).  They are listed under the Hipparcos entry (Catalog.merged), as merge_close lists its groups.
+    absorbed = bright[pair_h]
+    keep_gaia[pair_g[absorbed]] = False
+    merged = {}
+    for a, b in zip(hip.id[pair_h[absorbed]].tolist(), gaia["source_id"][pair_g[absorbed]].tolist(), strict=True):
+        merged.setdefault(int(a), []).append(int(b))
     b = np.flatnonzero(bright)
     g = np.flatnonzero(keep_gaia)
     cat = Catalog(id=np.concatenate([hip.id[b], gaia["source_id"][g]]),
                   ra=np.concatenate([hip.ra[b], gaia["ra"][g]]), dec=np.concatenate([hip.dec[b], gaia["dec"][g]]),
                   mag=np.concatenate([hip.mag[b], gaia_mag[g]]), pm_ra=np.concatenate([hip.pm_ra[b], pm_ra[g]]),
                   pm_dec=np.concatenate([hip.pm_dec[b], pm_dec[g]]), bv=np.concatenate([hip.bv[b], bv[g]]),
-                  epoch=EPOCH, source=meta["path"])
+                  epoch=EPOCH, source=meta["path"], merged=merged)
     cat = cat.sorted_by_magnitude()
     if mag_max is not None:
         cat = cat.filter_magnitude(None, mag_max)
@@ -193,6 +203,7 @@ def load_gaia_catalog(hipparcos=None, path: str | None = None, mag_max: float | 
                   "hipparcos_brighter_than_hp": HIPPARCOS_BRIGHTER_THAN, "match_arcsec": MATCH_ARCSEC,
                   "match_mag": MATCH_MAG, "n_hipparcos": int(is_hipparcos_id(cat.id).sum()),
                   "n_gaia": int((~is_hipparcos_id(cat.id)).sum()), "n_gaia_with_hipparcos_pm": int(len(g_rows)),
+                  "n_gaia_in_hipparcos_entries": int(absorbed.sum()),
                   "mag_band": "Hp for HIP ids (< 200000), Gaia G for Gaia DR3 source ids"}
     if mag_max is not None:
         cat.params["read_mag_max"] = float(mag_max)

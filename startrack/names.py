@@ -47,6 +47,9 @@ PROPER_NAMES = {
 
 
 def star_label(hip: int) -> str:
-    """``"HIP 24436 Rigel"`` for named stars, ``"HIP 12345"`` otherwise."""
+    """``"HIP 24436 Rigel"`` for named stars, ``"HIP 12345"`` otherwise; a Gaia DR3 source id (the ``gaia``
+    catalog's fainter stars, :func:`startrack.gaia.is_hipparcos_id`) is ``"Gaia DR3 4472832130942575872"``."""
+    if int(hip) >= 200_000:
+        return f"Gaia DR3 {int(hip)}"
     name = PROPER_NAMES.get(int(hip))
     return f"HIP {int(hip)} {name}" if name else f"HIP {int(hip)}"

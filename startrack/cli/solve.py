@@ -56,7 +56,8 @@ def _write_matches(path, doc):
 
     from startrack.formats.atomic import atomic_path
 
-    cat = _databases().catalog        # this process's, loaded once (its id index too)
+    # this process's catalog of the solve's ids (gaia's when the deep index identified it), loaded once
+    cat = _databases().named_catalog(_catalog_of(doc))
     rows = cat.rows_by_id()
     resid = {(r["star"], r["id"]): r["residual_arcsec"] for r in doc["attitude"].get("residuals", [])}
     with atomic_path(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as fh:
@@ -87,15 +88,28 @@ def _cluster_progress(quiet):
     return show
 
 
-def _databases():
-    """The databases of this process (the CLI's, or a -j worker's): loaded once, kept for the next image."""
+def _databases(catalog: str | None = None):
+    """The databases of this process (the CLI's, or a -j worker's) for ``--catalog``: loaded once, kept for the
+    next image."""
     from startrack.cluster import worker_cache
     from startrack.solve import BandDatabases
 
     cache = worker_cache()
-    if "band_databases" not in cache:
-        cache["band_databases"] = BandDatabases()
-    return cache["band_databases"]
+    key = "band_databases" if catalog in (None, "hipparcos") else f"band_databases-{catalog}"
+    if key not in cache:
+        if key == "band_databases":
+            cache[key] = BandDatabases()
+        else:
+            from startrack.catalog import load_catalog
+
+            cache[key] = BandDatabases(load_catalog(catalog))
+    return cache[key]
+
+
+def _catalog_of(doc):
+    """The catalog name of a solved frame's ids (``solve.catalog``), ``None`` for the shipped one."""
+    name = (doc.get("solve") or {}).get("catalog")
+    return None if name in (None, "hipparcos") else name
 
 
 def _solved(run, jobs, scheduler, progress):
@@ -191,7 +205,8 @@ def _solve_one(args):
         from startrack.camera import Camera
 
         cam = Camera.from_dict(camera_doc)
-    result = solve_image(pixels, options=options, camera=cam, saturation=saturation, databases=_databases())
+    result = solve_image(pixels, options=options, camera=cam, saturation=saturation,
+                         databases=_databases(options.catalog))
     doc.update(to_frame(result))
     doc["solve"]["time_ms"] = round((time.perf_counter() - t0) * 1000, 3)
     if isinstance(doc.get("attitude"), dict):
@@ -292,7 +307,7 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
     if plot_path:
         from startrack.plot import annotate_solution
 
-        annotate_solution(plot_path, image, doc, catalog=_databases().catalog, mag_limit=7.0)
+        annotate_solution(plot_path, image, doc, catalog=_databases().named_catalog(_catalog_of(doc)), mag_limit=7.0)
         doc["solve"]["plot_path"] = plot_path
 
 
@@ -354,6 +369,11 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
 @click.option("--axy-out", type=OutputPath(), default=None,
               help="Detected stars per image as a FITS table of astrometry.net's .axy columns (X, Y, FLUX); a "
                    "directory, a file, or a pattern with {name}.")
+@click.option("--catalog", type=click.Choice(["hipparcos", "gaia"]), default=None,
+              help="The star pattern index: gaia searches the Gaia DR3 index alone (fields from 0.8 deg, Gaia source "
+                   "ids; the extra startrack[gaia]), hipparcos the shipped catalog's alone (fields from 1.5 deg). "
+                   "Default: the Hipparcos index, then, when it finds nothing and the field may be under 3 deg, "
+                   "the Gaia one (with the extra; first when --fov-deg is under 3).")
 @parity_option
 @calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
@@ -362,8 +382,8 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
 @handle_errors
 def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, hint_ra, hint_dec, hint_radius,
             target_pixels, target_radec, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
-            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, parity, bias, dark,
-            flat, output, resume, quiet):
+            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, catalog, parity, bias,
+            dark, flat, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -431,7 +451,7 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
         raise BadInputError(" ".join(missing), None, "is needed too: --ra, --dec and --radius go together")
     options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch,
                            parity=parity, ra_deg=hint_ra, dec_deg=hint_dec, radius_deg=hint_radius,
-                           target_pixels=tuple(target_pixels), target_radec=tuple(target_radec))
+                           target_pixels=tuple(target_pixels), target_radec=tuple(target_radec), catalog=catalog)
     scale = (scale_low, scale_high, scale_units)
     frames = None
     if bias or dark or flat:
@@ -453,16 +473,17 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
     writer = FrameWriter(output, resume=resume, section="solve")
     # Build (or open) what the workers need once, before any of them starts.
     if camera_doc is None:
-        from startrack.solve import _process_index
+        from startrack.solve import _process_index, index_plan
 
-        _process_index()
+        # the first index of the search now; the deep one (narrow fields) is built when a frame first needs it
+        _process_index(index_plan(options.fov_range(), catalog)[0][0])
     else:
         from startrack.camera import Camera
         from startrack.solve import FOV_BANDS, _band_of
 
         b = _band_of(Camera.from_dict(camera_doc).fov_deg[0])
         for which in range(len(FOV_BANDS[b][2])):
-            _databases().band_database(b, which=which)
+            _databases(catalog).band_database(b, which=which)
     no_time = NoTimeNotice("solve", NoTimeNotice.IMAGES)
     bar = ProgressBar("solve", quiet)
     tally = BatchTally("solve", quiet, "image")
