@@ -17,8 +17,8 @@ at epoch **2016.0** (Gaia DR3's reference epoch):
   Alioth: 2.47 and 2.13, where the real proper motion is +111.9, -8.2 mas/yr).  A Gaia source that is a
   Hipparcos star (the cross-match below) takes the Hipparcos proper motion and B-V; the others have
   ``pm_ra``/``pm_dec``/``bv`` NaN (unknown: :meth:`Catalog.propagate` does not move them).  Of the Gaia
-  sources, the Hipparcos stars are the ones with the large motions (the nearby bright stars); a G 9-10 star
-  without one moves a median ~10 mas/yr, 0.1" in ten years.
+  sources, the Hipparcos stars hold the nearby bright stars, the fastest movers; for scale, the Hipparcos
+  stars of Hp 9-10 move a median 22 mas/yr (90 %: 118 mas/yr), 0.2" (1.2") in ten years.
 
 Cross-match: a Hipparcos star (at 2016.0) and a Gaia source are the same star when they lie within
 :data:`MATCH_ARCSEC` and their magnitudes (Hp, G) differ by less than :data:`MATCH_MAG`; each Hipparcos star

@@ -6,9 +6,12 @@ from startrack.cli.options import handle_errors, quiet_option
 
 @click.command("cache", short_help="List, build or clear the cached star index and databases.")
 @click.argument("action", type=click.Choice(["list", "build", "clear"]), default="list")
+@click.option("--catalog", type=click.Choice(["hipparcos", "gaia"]), default="hipparcos", show_default=True,
+              help="build: the index of this catalog (gaia: the deep index of 0.8-3 deg fields, ~180 MB, about a "
+                   "minute; the extra startrack[gaia]).")
 @quiet_option
 @handle_errors
-def command(action, quiet):
+def command(action, catalog, quiet):
     """List, build or clear the cache of `startrack solve`.
 
     The blind solver's star pattern index (one memory-mapped file, built from
@@ -17,7 +20,9 @@ def command(action, quiet):
     else ~/.cache/startrack.  `build` makes the default pattern index now and
     compiles the solver's kernels ahead of time (into $STARTRACK_KERNELS, else
     the default cache's kernels/ folder: one build serves every cache), so
-    that `solve` neither waits nor loads numba; `clear` deletes every cached
+    that `solve` neither waits nor loads numba (`build --catalog gaia`: the
+    deep index of narrow fields, which `solve` otherwise builds when a frame
+    first needs it); `clear` deletes every cached
     file (the compiled kernels too when they are inside the cache cleared).
 
     \b
@@ -49,9 +54,10 @@ def command(action, quiet):
         from startrack.patterns import default_index_path
         from startrack.solve import _process_index
 
+        kind = "deep" if catalog == "gaia" else "default"
         t0 = time.perf_counter()
-        existed = os.path.exists(default_index_path())
-        index = _process_index()
+        existed = os.path.exists(default_index_path(kind=kind))
+        index = _process_index(kind)
         if not quiet:
             verb = "opened" if existed else "built"
             click.echo(f"cache: {verb} {index.path} ({index.size_bytes / 1e6:.1f} MB, "

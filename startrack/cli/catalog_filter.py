@@ -39,6 +39,10 @@ def command(catalog, mag_min, mag_max, epoch, merge_arcsec, uniform, cell_deg, o
     \b
     Example (CSV of the naked-eye sky to stdout):
       startrack catalog-filter --mag-max 6 | head
+    \b
+    Example (Gaia DR3 to G 9 with Hipparcos below Hp 5, Gaia source ids, positions for 2026.9; the extra
+    startrack[gaia]):
+      startrack catalog-filter --catalog gaia --mag-max 9 --epoch 2026.9 -o deep.h5
     """
     from startrack.catalog import load_catalog, write_catalog
     from startrack.errors import BadInputError
