@@ -460,7 +460,7 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     from startrack.formats.hdf5 import corrupt_hdf5, read_hdf5
 
     if path in CATALOG_NAMES:
-        return CATALOG_NAMES[path](mag_max)
+        return _load_named(path, mag_max)
     t0 = time.perf_counter()
     path = path or default_catalog_path()
     f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
@@ -507,15 +507,22 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     return cat
 
 
-def _load_gaia(mag_max):
-    from startrack.gaia import load_gaia_catalog
+def _load_named(name: str, mag_max):
+    """The catalog registered as ``name`` in :data:`CATALOG_NAMES`: ``"module:function"``, called with ``mag_max``."""
+    import importlib
 
-    return load_gaia_catalog(mag_max=mag_max)
+    module, _, function = CATALOG_NAMES[name].partition(":")
+    return getattr(importlib.import_module(module), function)(mag_max=mag_max)
 
 
-CATALOG_NAMES = {"hipparcos": lambda mag_max: load_catalog(None, mag_max), "gaia": _load_gaia}
+def _load_hipparcos(mag_max=None) -> Catalog:
+    return load_catalog(None, mag_max)
+
+
+CATALOG_NAMES = {"hipparcos": "startrack.catalog:_load_hipparcos", "gaia": "startrack.gaia:load_gaia_catalog"}
 """Catalogs that :func:`load_catalog` (and every command's ``--catalog``) takes by name instead of a path
-(``./gaia`` names a file called ``gaia``)."""
+(``./gaia`` names a file called ``gaia``), as ``"module:function(mag_max=...)"``, the way ``startrack.identify``
+registers its algorithms (the deep catalog's module sits above this one: it builds on :class:`Catalog`)."""
 
 
 def write_catalog(catalog: Catalog, path: str, params: dict | None = None) -> None:
