@@ -73,8 +73,9 @@ degrees), ``deep`` from the catalog ``gaia`` (the extra ``startrack[gaia]``; sea
 :data:`DEEP_FOV_DEG`'s upper end, or for every field with ``catalog="gaia"``)."""
 DEEP_FOV_DEG = (0.8, 3.0)
 """Fields (horizontal, degrees) the blind search looks for with the deep index when the default one found nothing.
-Below 3 degrees a field holds on average fewer than 8 Hipparcos stars; from 0.8 degrees its brightest 16 stars
-still span patterns of the deep index's finest level."""
+Below 3 degrees (4:3) a field holds on average fewer than 7 Hipparcos stars to Hp 8.  The lower end is where the
+finest level's patterns (0.45-0.64 degrees) still fit a field's brightest stars; measured at 1 and 1.5 degrees
+(``benchmarks/narrow_solve.py``), not below."""
 
 
 def cache_dir() -> str:
@@ -422,7 +423,7 @@ def default_index(catalog=None, notice=None, progress=None, kind: str = "default
 
 def estimated_build_s(kind: str = "default") -> float:
     """A rough build time (s) of the ``kind`` index, kernels' first compilation included."""
-    return 40.0 if kind == "default" else 60.0
+    return 40.0 if kind == "default" else 50.0
 
 
 # ---------------------------------------------------------------------------------------------- solving
