@@ -856,8 +856,9 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     if index_rows is not None and rows is not None and all(i in rows for i in ids) and hasattr(db, "star_mag"):
         mags = np.asarray(db.star_mag)[[rows[i] for i in ids]].astype(np.float64)
     else:
-        cat_mag = databases.catalog.mag
-        cat_rows = databases.catalog.rows_by_id()
+        ids_catalog = databases.named_catalog(None if own else index_catalog)    # the catalog of the ids
+        cat_mag = ids_catalog.mag
+        cat_rows = ids_catalog.rows_by_id()
         mags = np.array([cat_mag[cat_rows[i]] if i in cat_rows else np.nan for i in ids], dtype=np.float64)
     sky = np.array([vec[rows[i]] if i in rows else (np.nan,) * 3 for i in ids], dtype=np.float64).reshape(-1, 3)
     out.matched_catalog = {"ra": np.degrees(np.arctan2(sky[:, 1], sky[:, 0])) % 360.0,
