@@ -177,7 +177,9 @@ def load_gaia_catalog(hipparcos=None, path: str | None = None, mag_max: float | 
     pm_ra = np.full(len(gaia), np.nan)
     pm_dec = np.full(len(gaia), np.nan)
     bv = np.full(len(gaia), np.nan)
+    plx = np.zeros(len(gaia))
     pm_ra[g_rows], pm_dec[g_rows], bv[g_rows] = hip.pm_ra[h_rows], hip.pm_dec[h_rows], hip.bv[h_rows]
+    plx[g_rows] = hip.plx[h_rows]       # the package has no parallaxes: Hipparcos's where matched
     bright = hip.mag < HIPPARCOS_BRIGHTER_THAN
     keep_gaia = np.ones(len(gaia), dtype=bool)
     # Every source within the match limits of a bright Hipparcos star goes: its counterpart, and a component of
@@ -194,7 +196,7 @@ def load_gaia_catalog(hipparcos=None, path: str | None = None, mag_max: float | 
                   ra=np.concatenate([hip.ra[b], gaia["ra"][g]]), dec=np.concatenate([hip.dec[b], gaia["dec"][g]]),
                   mag=np.concatenate([hip.mag[b], gaia_mag[g]]), pm_ra=np.concatenate([hip.pm_ra[b], pm_ra[g]]),
                   pm_dec=np.concatenate([hip.pm_dec[b], pm_dec[g]]), bv=np.concatenate([hip.bv[b], bv[g]]),
-                  epoch=EPOCH, source=meta["path"], merged=merged)
+                  plx=np.concatenate([hip.plx[b], plx[g]]), epoch=EPOCH, source=meta["path"], merged=merged)
     cat = cat.sorted_by_magnitude()
     if mag_max is not None:
         cat = cat.filter_magnitude(None, mag_max)
