@@ -178,12 +178,19 @@ def aberrate(vectors, state: ObserverState, deflection: bool = True, parallax_ma
 
 
 def unaberrate(vectors, state: ObserverState, deflection: bool = True) -> np.ndarray:
-    """Astrometric directions of apparent ones: the inverse of :func:`aberrate` (fixed point, < 1e-15 rad)."""
+    """Astrometric directions of apparent ones: the inverse of :func:`aberrate` (fixed point, < 1e-15 rad).
+
+    Each step shrinks the error by about the map's own departure from the identity: 1e-4 (v/c), but more for
+    a star a few tenths of a degree from the Sun, whose light bends by arcseconds: steps until the change is
+    below 1e-16 rad, at most 12 (4 left 4e-14 rad 0.14 deg from the Sun)."""
     target = np.ascontiguousarray(vectors, dtype=np.float64)
     u = target
-    for _ in range(4):
-        u = u - (aberrate(u, state, deflection) - target)
+    for _ in range(12):
+        step = aberrate(u, state, deflection) - target
+        u = u - step
         u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+        if float(np.max(np.abs(step))) < 1e-16:
+            break
     return u
 
 
