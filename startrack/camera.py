@@ -1,4 +1,4 @@
-"""The camera model: a pinhole with optional radial distortion.
+"""The camera model: a pinhole with optional radial distortion, or a fisheye projection.
 
 Frames and units (``docs/formats.md``): image ``x`` is the column and ``y`` the
 row, with ``(0, 0)`` the centre of the top-left pixel; the camera frame has
@@ -14,9 +14,30 @@ Paper 000 Eq. 13 gives the star vector of a centroid as
 ``W = (mu_l (x_o - x), mu_w (y_o - y), f) / norm``, with the focal length in
 metres and pixel pitches ``mu``; with ``f`` in pixels and our axis signs that is
 ``W = (x - cx, y - cy, f) / norm`` (:meth:`Camera.pixels_to_vectors`).
+
+Fisheye projections (``projection`` other than ``"pinhole"``) map the angle
+``theta`` between a direction and the boresight to a radius from the principal
+point, ``r = f g(theta_d)``, along the direction's azimuth ``(X, Y) / hypot(X, Y)``:
+
+============== ======================= ===================
+projection     ``g(theta)``            largest ``theta``
+============== ======================= ===================
+equidistant    ``theta``               180 deg
+equisolid      ``2 sin(theta / 2)``    180 deg
+stereographic  ``2 tan(theta / 2)``    below 180 deg
+orthographic   ``sin(theta)``          90 deg
+============== ======================= ===================
+
+with the radial distortion acting on the angle,
+``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``: for the
+equidistant projection that is OpenCV's fisheye model (``cv2.fisheye``, Kannala and
+Brandt 2006), which has ``r = f theta_d``.  Each ``g`` has ``g'(0) = 1``, so ``f`` is the
+focal length in pixels at the principal point for every projection.
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -24,9 +45,50 @@ import numpy as np
 
 from startrack.errors import BadInputError, ParameterError
 
-__all__ = ["Camera", "parse_size"]
+__all__ = ["Camera", "parse_size", "PROJECTIONS"]
 
 CAMERA_FORMAT = "startrack.camera/1"
+
+#: Every projection, ``"pinhole"`` first (the default); the kernels' code of each is its index.
+PROJECTIONS = ("pinhole", "equidistant", "equisolid", "stereographic", "orthographic")
+
+# The largest angle from the boresight (radians) each projection maps one-to-one.
+_THETA_MAX = {"pinhole": math.pi / 2, "equidistant": math.pi, "equisolid": math.pi, "stereographic": math.pi,
+              "orthographic": math.pi / 2}
+
+
+def projection_radius(projection: str, theta):
+    """``g(theta)`` of ``projection``: the radius over the focal length (radians in)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    if projection == "equidistant":
+        return theta
+    if projection == "equisolid":
+        return 2.0 * np.sin(theta / 2.0)
+    if projection == "stereographic":
+        return 2.0 * np.tan(theta / 2.0)
+    if projection == "orthographic":
+        return np.sin(theta)
+    if projection == "pinhole":
+        return np.tan(theta)
+    raise ParameterError("projection", f"unknown projection {projection!r}; one of {', '.join(PROJECTIONS)}")
+
+
+def projection_angle(projection: str, radius):
+    """The inverse of :func:`projection_radius`: ``theta`` (radians) of ``radius = r / f``; NaN where none."""
+    radius = np.asarray(radius, dtype=np.float64)
+    # A rounding error's worth beyond the largest radius is the largest radius (90 deg orthographic).
+    with np.errstate(invalid="ignore"):
+        if projection == "equidistant":
+            return np.where(radius <= math.pi * (1 + 1e-12), np.minimum(radius, math.pi), np.nan)
+        if projection == "equisolid":
+            return 2.0 * np.arcsin(np.where(radius <= 2.0 * (1 + 1e-12), np.minimum(radius, 2.0), np.nan) / 2.0)
+        if projection == "stereographic":
+            return 2.0 * np.arctan(radius / 2.0)
+        if projection == "orthographic":
+            return np.arcsin(np.where(radius <= 1.0 + 1e-12, np.minimum(radius, 1.0), np.nan))
+        if projection == "pinhole":
+            return np.arctan(radius)
+    raise ParameterError("projection", f"unknown projection {projection!r}; one of {', '.join(PROJECTIONS)}")
 
 
 def parse_size(text: str, source: str = "size") -> tuple[int, int]:
@@ -64,7 +126,7 @@ def _parameter(value, name, source, positive=False):
 
 @dataclass(frozen=True)
 class Camera:
-    """A pinhole camera with optional radial distortion.
+    """A pinhole camera with optional radial distortion, or a fisheye projection.
 
     Parameters
     ----------
@@ -76,9 +138,15 @@ class Camera:
         Principal point in pixels; ``((width - 1) / 2, (height - 1) / 2)`` is the
         image centre.
     k1, k2 : float
-        Radial distortion coefficients on normalised coordinates.
+        Radial distortion coefficients: on the normalised coordinates for a pinhole
+        (``1 + k1 r^2 + k2 r^4``), on the off-axis angle for a fisheye
+        (``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``).
     pixel_pitch_um : float or None
         Pixel pitch in micrometres, when known (only for reporting in mm).
+    projection : str
+        One of :data:`PROJECTIONS` (module docstring); ``"pinhole"`` by default.
+    k3, k4 : float
+        The fisheye model's higher terms (0 for a pinhole).
     """
 
     width: int
@@ -90,6 +158,17 @@ class Camera:
     k2: float = 0.0
     pixel_pitch_um: float | None = None
     extra: dict = field(default_factory=dict, compare=False, repr=False)
+    projection: str = "pinhole"
+    k3: float = 0.0
+    k4: float = 0.0
+
+    def __post_init__(self):
+        if self.projection not in PROJECTIONS:
+            raise ParameterError("projection", f"unknown projection {self.projection!r}; one of "
+                                 f"{', '.join(PROJECTIONS)}", "Camera")
+        if self.projection == "pinhole" and (self.k3 or self.k4):
+            raise ParameterError("k3", "a pinhole camera has k1 and k2 only (k3 and k4 are the fisheye model's)",
+                                 "Camera")
 
     # ------------------------------------------------------------------ builders
     @classmethod
@@ -97,14 +176,23 @@ class Camera:
         """A camera whose horizontal field of view (across ``width``) is ``fov_deg``.
 
         The field spans the full pixel extent, ``width`` pixels, so
-        ``f = (width / 2) / tan(fov / 2)``.
+        ``f = (width / 2) / g(fov / 2)`` with ``g`` the projection's radius function
+        (``tan`` for a pinhole), before any distortion.  A pinhole's field is below
+        180 degrees, an orthographic one's at most 180, the others' at most 360
+        (below it for the stereographic).
         """
         fov_deg = _parameter(fov_deg, "fov_deg", "Camera.from_fov", positive=True)
-        if not fov_deg < 180.0:
-            raise ParameterError("fov_deg", f"must be below 180 degrees, got {fov_deg:g}", "Camera.from_fov")
+        projection = kw.get("projection", "pinhole")
+        if projection not in PROJECTIONS:
+            raise ParameterError("projection", f"unknown projection {projection!r}; one of {', '.join(PROJECTIONS)}",
+                                 "Camera.from_fov")
+        limit = 2.0 * math.degrees(_THETA_MAX[projection])
+        if not (fov_deg < limit if projection in ("pinhole", "stereographic") else fov_deg <= limit):
+            raise ParameterError("fov_deg", f"must be {'below' if projection in ('pinhole', 'stereographic') else 'at most'} "
+                                 f"{limit:g} degrees for the {projection} projection, got {fov_deg:g}", "Camera.from_fov")
         if width <= 0 or height <= 0:
             raise ParameterError("width", f"width and height must be positive, got {width}x{height}")
-        f = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+        f = (width / 2.0) / float(projection_radius(projection, math.radians(fov_deg) / 2.0))
         return cls(width, height, f, (width - 1) / 2.0, (height - 1) / 2.0, **kw)
 
     @classmethod
@@ -137,19 +225,29 @@ class Camera:
             if name not in doc:
                 raise BadInputError(source, f"camera.{name}", "is missing")
             values[name] = _finite(doc[name], source, f"camera.{name}", positive=(name == "focal_length_px"))
+        projection = doc.get("projection", "pinhole")
+        if projection not in PROJECTIONS:
+            raise BadInputError(source, "camera.projection", f"must be one of {', '.join(PROJECTIONS)}, "
+                                f"got {projection!r}")
         dist = doc.get("distortion") or {}
         if not isinstance(dist, dict):
-            raise BadInputError(source, "camera.distortion", "must be an object with k1, k2")
-        k1 = _finite(dist.get("k1", 0.0), source, "camera.distortion.k1")
-        k2 = _finite(dist.get("k2", 0.0), source, "camera.distortion.k2")
+            raise BadInputError(source, "camera.distortion", "must be an object with k1, k2 (k3, k4 for a fisheye)")
+        names = ("k1", "k2") if projection == "pinhole" else ("k1", "k2", "k3", "k4")
+        unknown = sorted(set(dist) - set(names))
+        if unknown:
+            raise BadInputError(source, f"camera.distortion.{unknown[0]}",
+                                f"is not a term of the {projection} model (it has {', '.join(names)})")
+        ks = [_finite(dist.get(name, 0.0), source, f"camera.distortion.{name}") for name in ("k1", "k2", "k3", "k4")
+              if name in names]
+        ks += [0.0] * (4 - len(ks))
         pitch = doc.get("pixel_pitch_um")
         if pitch is not None:
             pitch = _finite(pitch, source, "camera.pixel_pitch_um", positive=True)
         known = {"format", "width", "height", "focal_length_px", "cx", "cy", "distortion",
-                 "pixel_pitch_um", "focal_length_mm", "fov_deg"}
+                 "pixel_pitch_um", "focal_length_mm", "fov_deg", "projection"}
         extra = {k: v for k, v in doc.items() if k not in known}
         return cls(values["width"], values["height"], values["focal_length_px"],
-                   values["cx"], values["cy"], k1, k2, pitch, extra)
+                   values["cx"], values["cy"], ks[0], ks[1], pitch, extra, projection, ks[2], ks[3])
 
     def to_dict(self, standalone: bool = False) -> dict:
         """The camera as a ``camera`` section (or a ``startrack.camera/1`` file)."""
@@ -163,8 +261,12 @@ class Camera:
             cx=float(self.cx),
             cy=float(self.cy),
         )
-        if self.k1 or self.k2:
+        if self.projection != "pinhole":
+            doc["projection"] = self.projection
+        if self.has_distortion:
             doc["distortion"] = {"k1": float(self.k1), "k2": float(self.k2)}
+            if self.projection != "pinhole":
+                doc["distortion"].update(k3=float(self.k3), k4=float(self.k4))
         if self.pixel_pitch_um is not None:
             doc["pixel_pitch_um"] = float(self.pixel_pitch_um)
             doc["focal_length_mm"] = float(self.focal_length_px * self.pixel_pitch_um / 1000.0)
@@ -175,22 +277,45 @@ class Camera:
 
     def with_focal_length(self, focal_length_px: float) -> "Camera":
         """The same camera with another focal length (e.g. a perturbed one)."""
-        return Camera(self.width, self.height, float(focal_length_px), self.cx, self.cy,
-                      self.k1, self.k2, self.pixel_pitch_um, dict(self.extra))
+        return dataclasses.replace(self, focal_length_px=float(focal_length_px), extra=dict(self.extra))
+
+    def replace(self, **changes) -> "Camera":
+        """The same camera with some fields changed (``dataclasses.replace``, ``extra`` copied)."""
+        changes.setdefault("extra", dict(self.extra))
+        return dataclasses.replace(self, **changes)
 
     # --------------------------------------------------------------- geometry
     @property
+    def is_pinhole(self) -> bool:
+        return self.projection == "pinhole"
+
+    @property
+    def projection_code(self) -> int:
+        """The projection's index in :data:`PROJECTIONS` (the kernels' ``proj`` argument)."""
+        return PROJECTIONS.index(self.projection)
+
+    @property
+    def lens_terms(self) -> tuple:
+        """``(k1, k2, k3, k4, projection_code)``: what the kernels take after the principal point."""
+        return (float(self.k1), float(self.k2), float(self.k3), float(self.k4), self.projection_code)
+
+    @property
     def has_distortion(self) -> bool:
-        return bool(self.k1 or self.k2)
+        return bool(self.k1 or self.k2 or self.k3 or self.k4)
 
     @property
     def max_valid_r2(self) -> float:
-        """Largest squared normalised radius where the lens model is one-to-one.
+        """Largest squared normalised radius where the pinhole lens model is one-to-one.
 
         ``r_d = r (1 + k1 r^2 + k2 r^4)`` turns back on itself where
         ``1 + 3 k1 r^2 + 5 k2 r^4 = 0``; directions beyond that radius would fold
         back into the image, so :meth:`vectors_to_pixels` returns NaN for them.
+        A fisheye camera has no tangent plane: ``tan^2`` of :attr:`max_theta` (inf at
+        or beyond 90 degrees).
         """
+        if not self.is_pinhole:
+            t = self.max_theta
+            return math.tan(t) ** 2 if t < math.pi / 2 else math.inf
         if not self.has_distortion:
             return math.inf
         a, b = 5.0 * self.k2, 3.0 * self.k1
@@ -202,8 +327,72 @@ class Camera:
         real = [2.0 / d for d in (-b - sq, -b + sq) if d > 0]
         return min(real) if real else math.inf
 
+    def theta_distorted(self, theta):
+        """``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`` (a fisheye's distortion)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        t2 = theta * theta
+        return theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
+
+    def _theta_slope(self, theta):
+        t2 = theta * theta
+        return 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
+
+    def theta_undistorted(self, theta_d):
+        """Invert :meth:`theta_distorted` by Newton's method (to ~1e-15 rad); NaN beyond :attr:`max_theta`."""
+        theta_d = np.asarray(theta_d, dtype=np.float64)
+        if not self.has_distortion:
+            return theta_d.copy()
+        tmax = self.max_theta
+        td_max = float(self.theta_distorted(tmax))
+        with np.errstate(invalid="ignore"):
+            bad = ~(theta_d <= td_max)
+            target = np.where(bad, 0.0, theta_d)
+        theta = np.clip(target, 0.0, tmax)
+        for _ in range(60):
+            step = (self.theta_distorted(theta) - target) / self._theta_slope(theta)
+            theta = np.clip(theta - step, 0.0, tmax)
+            if np.all(np.abs(step) <= 1e-16 * (1.0 + theta)):
+                break
+        return np.where(bad, np.nan, theta)
+
+    @functools.cached_property
+    def max_theta(self) -> float:
+        """The largest off-axis angle (radians) the model maps one-to-one onto a radius.
+
+        The projection's own limit (:data:`PROJECTIONS`' table in the module docstring),
+        or less: where ``theta_d(theta)`` stops increasing, or where ``theta_d`` reaches the
+        projection's limit.  For a pinhole, ``atan`` of ``sqrt(max_valid_r2)``.
+        """
+        if self.is_pinhole:
+            return math.atan(math.sqrt(self.max_valid_r2)) if self.has_distortion else math.pi / 2
+        limit = _THETA_MAX[self.projection]
+        if not self.has_distortion:
+            return limit
+        grid = np.linspace(0.0, limit, 20001)
+        slope = self._theta_slope(grid)
+        td = self.theta_distorted(grid)
+        ok = (slope > 0) & (td <= limit) & (td >= 0)
+        first_bad = np.flatnonzero(~ok)
+        if len(first_bad) == 0:
+            return limit
+        if first_bad[0] == 0:
+            return 0.0
+        lo, hi = float(grid[first_bad[0] - 1]), float(grid[first_bad[0]])
+        for _ in range(60):     # bisection to the boundary
+            mid = 0.5 * (lo + hi)
+            good = self._theta_slope(mid) > 0 and 0 <= float(self.theta_distorted(mid)) <= limit
+            lo, hi = (mid, hi) if good else (lo, mid)
+        return lo
+
+    @property
+    def max_radius_px(self) -> float:
+        """The radius (pixels from the principal point) of :attr:`max_theta`: the image circle (inf for a pinhole)."""
+        if self.is_pinhole:
+            return math.inf
+        return self.focal_length_px * float(projection_radius(self.projection, self.theta_distorted(self.max_theta)))
+
     def distort(self, u, v):
-        """Apply radial distortion to normalised coordinates."""
+        """Apply a pinhole's radial distortion to normalised coordinates."""
         if not self.has_distortion:
             return np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
         r2 = u * u + v * v
@@ -231,8 +420,18 @@ class Camera:
             ratio = np.where(rd > 0, r / np.where(rd > 0, rd, 1.0), 1.0)
         return ud * ratio, vd * ratio
 
+    def pixels_to_theta(self, x, y):
+        """The off-axis angle (radians) of pixel positions; NaN beyond the model's range (a fisheye's image circle)."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        if self.is_pinhole:
+            v = self.pixels_to_vectors(x, y)
+            return np.arccos(np.clip(v[..., 2], -1.0, 1.0))
+        rho = np.hypot(x - self.cx, y - self.cy) / self.focal_length_px
+        return self.theta_undistorted(projection_angle(self.projection, rho))
+
     def pixels_to_vectors(self, x, y):
-        """Unit vectors in the camera frame of pixel positions (paper 000 Eq. 13).
+        """Unit vectors in the camera frame of pixel positions (paper 000 Eq. 13 for a pinhole).
 
         Parameters
         ----------
@@ -242,14 +441,23 @@ class Camera:
         Returns
         -------
         ndarray, shape (..., 3)
-            Unit vectors, distortion removed.
+            Unit vectors, distortion removed; NaN for a fisheye's pixels outside the
+            range its model maps (beyond :attr:`max_radius_px`).
         """
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
-        u, v = self.undistort((x - self.cx) / self.focal_length_px,
-                              (y - self.cy) / self.focal_length_px)
-        vec = np.stack([u, v, np.ones_like(u)], axis=-1)
-        return vec / np.linalg.norm(vec, axis=-1, keepdims=True)
+        if self.is_pinhole:
+            u, v = self.undistort((x - self.cx) / self.focal_length_px,
+                                  (y - self.cy) / self.focal_length_px)
+            vec = np.stack([u, v, np.ones_like(u)], axis=-1)
+            return vec / np.linalg.norm(vec, axis=-1, keepdims=True)
+        dx = x - self.cx
+        dy = y - self.cy
+        rho = np.hypot(dx, dy)
+        theta = self.theta_undistorted(projection_angle(self.projection, rho / self.focal_length_px))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.where(rho > 0, np.sin(theta) / np.where(rho > 0, rho, 1.0), 0.0)
+        return np.stack([dx * s, dy * s, np.cos(theta)], axis=-1)
 
     def vectors_to_pixels(self, vectors):
         """Pixel positions of camera-frame directions.
@@ -257,10 +465,19 @@ class Camera:
         Returns
         -------
         x, y : ndarray
-            NaN where the direction points away from the sky side (``Z <= 0``)
-            or lies beyond the radius where the distortion model folds back.
+            NaN where the model maps no pixel: for a pinhole a direction away from the
+            sky side (``Z <= 0``) or beyond the radius where the distortion folds back;
+            for a fisheye an off-axis angle beyond :attr:`max_theta`.
         """
         vec = np.asarray(vectors, dtype=np.float64)
+        if not self.is_pinhole:
+            rxy = np.hypot(vec[..., 0], vec[..., 1])
+            theta = np.arctan2(rxy, vec[..., 2])
+            theta = np.where(theta <= self.max_theta, theta, np.nan)
+            radius = self.focal_length_px * projection_radius(self.projection, self.theta_distorted(theta))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                s = np.where(rxy > 0, radius / np.where(rxy > 0, rxy, 1.0), 0.0)
+            return self.cx + vec[..., 0] * s, self.cy + vec[..., 1] * s
         z = vec[..., 2]
         with np.errstate(invalid="ignore", divide="ignore"):
             zz = np.where(z > 0, z, np.nan)
@@ -280,11 +497,27 @@ class Camera:
         return ((x >= -0.5 + margin) & (x <= self.width - 0.5 - margin)
                 & (y >= -0.5 + margin) & (y <= self.height - 0.5 - margin))
 
+    def _theta_clamped(self, x, y):
+        """Off-axis angles (radians) of pixel positions, those beyond the image circle at :attr:`max_theta`."""
+        theta = self.pixels_to_theta(x, y)
+        return np.where(np.isfinite(theta), theta, self.max_theta)
+
     @property
     def fov_deg(self) -> tuple[float, float]:
-        """Horizontal and vertical field of view in degrees (edge to edge, through the centre)."""
+        """Horizontal and vertical field of view in degrees (edge to edge, through the principal point).
+
+        A fisheye's field can exceed 180 degrees: it is the sum of the two edges' off-axis
+        angles, each at most :attr:`max_theta` (a circular fisheye's image circle inside the
+        sensor gives the circle's field)."""
         xs = np.array([-0.5, self.width - 0.5])
         ys = np.array([-0.5, self.height - 0.5])
+        if not self.is_pinhole:
+            tx = self._theta_clamped(xs, np.full(2, self.cy))
+            ty = self._theta_clamped(np.full(2, self.cx), ys)
+            # Edges on either side of the principal point add up; on one side, they subtract.
+            across_x = tx[0] + tx[1] if -0.5 <= self.cx <= self.width - 0.5 else abs(tx[1] - tx[0])
+            across_y = ty[0] + ty[1] if -0.5 <= self.cy <= self.height - 0.5 else abs(ty[1] - ty[0])
+            return math.degrees(across_x), math.degrees(across_y)
         vx = self.pixels_to_vectors(xs, np.full(2, self.cy))
         vy = self.pixels_to_vectors(np.full(2, self.cx), ys)
         ax = math.degrees(math.acos(float(np.clip(vx[0] @ vx[1], -1, 1))))
@@ -293,21 +526,56 @@ class Camera:
 
     @property
     def diagonal_fov_deg(self) -> float:
-        """The largest angle between two image corners, in degrees."""
-        c = self.pixels_to_vectors(np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5]),
-                                   np.array([-0.5, self.height - 0.5, self.height - 0.5, -0.5]))
+        """The largest angle between two image corners, in degrees (a fisheye: the larger sum of two
+        opposite corners' off-axis angles, each at most :attr:`max_theta`)."""
+        xs = np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5])
+        ys = np.array([-0.5, self.height - 0.5, self.height - 0.5, -0.5])
+        if not self.is_pinhole:
+            t = self._theta_clamped(xs, ys)
+            return math.degrees(max(t[0] + t[1], t[2] + t[3]))
+        c = self.pixels_to_vectors(xs, ys)
         a = math.acos(float(np.clip(c[0] @ c[1], -1, 1)))
         b = math.acos(float(np.clip(c[2] @ c[3], -1, 1)))
         return math.degrees(max(a, b))
 
     @property
     def max_off_axis_deg(self) -> float:
-        """The largest angle between the boresight and any image corner, in degrees."""
-        c = self.pixels_to_vectors(np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5]),
-                                   np.array([-0.5, self.height - 0.5, self.height - 0.5, -0.5]))
+        """The largest angle between the boresight and any image corner, in degrees (at most
+        :attr:`max_theta`: a fisheye's corners beyond its image circle see nothing)."""
+        xs = np.array([-0.5, self.width - 0.5, -0.5, self.width - 0.5])
+        ys = np.array([-0.5, self.height - 0.5, self.height - 0.5, -0.5])
+        if not self.is_pinhole:
+            return math.degrees(float(np.max(self._theta_clamped(xs, ys))))
+        c = self.pixels_to_vectors(xs, ys)
         return math.degrees(math.acos(float(np.clip(c[:, 2].min(), -1, 1))))
+
+    def cone_cos(self, margin_deg: float = 0.0) -> float:
+        """``cos`` of the off-axis angle a catalog search around the boresight must reach: the farthest
+        corner's plus ``margin_deg`` (a fisheye: at most :attr:`max_theta`, where the model ends)."""
+        off_axis = self.max_off_axis_deg + margin_deg
+        if not self.is_pinhole:
+            off_axis = min(off_axis, math.degrees(self.max_theta))
+        return math.cos(math.radians(off_axis))
+
+    @functools.cached_property
+    def sky_fraction(self) -> float:
+        """The fraction of the whole sky the image sees (its solid angle over 4 pi sr).
+
+        A pinhole's is ``width height / f^2 / (4 pi)`` (the tangent plane's area at the centre, as the
+        verification has always counted it); a fisheye's is counted on 40,000 directions spread evenly
+        over the sphere (a Fibonacci lattice: about 0.5 % of error)."""
+        if self.is_pinhole:
+            return self.width * self.height / self.focal_length_px ** 2 / (4.0 * math.pi)
+        n = 40000
+        k = np.arange(n) + 0.5
+        z = 1.0 - 2.0 * k / n
+        phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+        s = np.sqrt(1.0 - z * z)
+        x, y = self.vectors_to_pixels(np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1))
+        return float(np.count_nonzero(self.in_image(x, y) & np.isfinite(x))) / n
 
     @property
     def pixel_scale_arcsec(self) -> float:
-        """Angular size of one pixel at the principal point, in arcseconds."""
+        """Angular size of one pixel at the principal point, in arcseconds (every projection has
+        ``g'(0) = 1``, so it is ``1 / f`` radians)."""
         return math.degrees(1.0 / self.focal_length_px) * 3600.0

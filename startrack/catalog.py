@@ -727,7 +727,7 @@ def field_statistics(catalog: Catalog, camera, n_boresights: int, rng: np.random
         dcms = np.ascontiguousarray(quaternion_to_dcm(random_quaternions(m, rng)))
         c, b = count_in_fov(svec, sdec, smag, dcms, float(camera.focal_length_px),
                             float(camera.cx), float(camera.cy), float(camera.width), float(camera.height),
-                            float(camera.k1), float(camera.k2), math.radians(camera.max_off_axis_deg) + 1e-9)
+                            *camera.lens_terms, math.acos(camera.cone_cos()) + 1e-9)
         del dcms
         bc = np.bincount(np.asarray(c, dtype=np.int64))
         if len(bc) > len(count_hist):

@@ -469,7 +469,6 @@ def _catalog_prefix(index: PatternIndex, solid_angle: float, want: int) -> int:
 
 def _fit_camera(cam, dcm, xy, ref, fit_k1):
     """Least-squares focal length (and k1) for fixed attitude: x - c = f u (1 + k1 r^2) per axis (linear in f, f k1)."""
-    from startrack.camera import Camera
 
     v = ref @ dcm.T
     u = v[:, 0] / v[:, 2]
@@ -487,7 +486,7 @@ def _fit_camera(cam, dcm, xy, ref, fit_k1):
         k1 = 0.0
     if not f > 0 or not math.isfinite(f) or abs(k1) > 1.0:
         return cam
-    return Camera(cam.width, cam.height, f, cam.cx, cam.cy, k1, 0.0, cam.pixel_pitch_um, dict(cam.extra))
+    return cam.replace(focal_length_px=f, k1=k1, k2=0.0)
 
 
 _WARMED: set = set()     # the array types of the indexes whose kernels this process has ready
@@ -520,7 +519,7 @@ def warm_kernels(index: PatternIndex) -> None:
     # The catalog side is the index's own (read-only, memory-mapped) array, as in the
     # search, so that one compiled signature serves both (each one costs a load).
     rows = np.array([0, 1])
-    refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.01, 1)
+    refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0, 0.01, 1)
     quick_check(b, index.star_vec, rows, rows, 0.5, 0.01)
     _WARMED.add(types)
 
@@ -821,11 +820,10 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     radius_px = params.match_radius_px if params.match_radius_px is not None else \
         max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
     radius = radius_px / camera.focal_length_px
-    cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
+    cos_fov = camera.cone_cos(0.5)
     match, q, n_pred = refine(np.ascontiguousarray(b_vectors), star_vec, img, cat, cos_fov,
                               float(camera.focal_length_px), float(camera.cx), float(camera.cy),
-                              float(camera.width), float(camera.height), float(camera.k1), float(camera.k2),
-                              radius, 2)
+                              float(camera.width), float(camera.height), *camera.lens_terms, radius, 2)
     dcm = quat_to_dcm(q)
     n_matched = int(np.sum(match >= 0))
     # A proposal star agrees when the refined attitude puts its catalog star

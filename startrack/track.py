@@ -71,7 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = ["MODES", "AttitudeRateFilter", "Tracker", "TrackerConfig", "empirical_stars", "single_star_attitude",
            "track_state"]
@@ -252,7 +252,6 @@ class Tracker:
 
     def __init__(self, catalog, camera, database, config: TrackerConfig | None = None, initial_dcm=None,
                  initial_rate=None, parity: str = "auto"):
-        from startrack.camera import Camera
         from startrack.parity import parities_to_try
 
         parities_to_try(parity)
@@ -264,8 +263,10 @@ class Tracker:
         self._parity_known = parity != "auto"
         self._mirrored = parity == "mirrored"
         self._camera_normal = camera
-        self._camera_flipped = Camera(camera.width, camera.height, camera.focal_length_px, camera.width - 1 - camera.cx,
-                                      camera.cy, camera.k1, camera.k2, camera.pixel_pitch_um, dict(camera.extra))
+        if not camera.is_pinhole:
+            raise ParameterError("camera", f"tracking models a pinhole camera only, not a {camera.projection} one "
+                                 "(solve each frame instead)", "Tracker")
+        self._camera_flipped = camera.replace(cx=camera.width - 1 - camera.cx)
         if self._mirrored:
             camera = self._camera_flipped
         cat = catalog if self.config.mag_limit is None else catalog.filter_magnitude(None, self.config.mag_limit)

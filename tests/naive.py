@@ -14,9 +14,10 @@ def pairs_within_naive(vectors, max_angle):
 def count_in_fov_naive(vectors, mags, dcm, camera):
     """Stars of a catalog inside the camera image at attitude ``dcm``."""
     cam_vec = vectors @ dcm.T
-    front = cam_vec[:, 2] > 0
+    # A pinhole sees the front hemisphere; a fisheye's model says itself where it ends (NaN beyond).
+    front = cam_vec[:, 2] > 0 if camera.projection == "pinhole" else np.ones(len(cam_vec), dtype=bool)
     x, y = camera.vectors_to_pixels(cam_vec[front])
-    inside = camera.in_image(x, y)
+    inside = camera.in_image(x, y) & np.isfinite(x)
     m = mags[front][inside]
     return int(inside.sum()), (float(m.min()) if m.size else np.nan)
 

@@ -188,7 +188,7 @@ def quat_to_dcm(q):
 
 
 @njit(cache=True)
-def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, margin_px, lists, pv):
+def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, margin_px, lists, pv):
     """The catalog stars in front of the camera with ``dcm`` (``z >= cos_fov``), in their order.
 
     Three lists of (star index ``lists[t]``, camera-frame direction ``pv[t] = dcm star_vec[s]``),
@@ -211,7 +211,7 @@ def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, 
             continue
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2, k3, k4, proj)
         _put_row(lists, pv, k, s, x, y, z)
         k += 1
         if not (px < -0.5 - margin_px or px > width - 0.5 + margin_px or py < -0.5 - margin_px
@@ -289,7 +289,7 @@ def match_projected(b, stars, pv, radius, match):
 
 
 @njit(cache=True)
-def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds):
+def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius, rounds):
     """Attitude from the proposal, then ``rounds`` of match-all / re-solve, and a
     last matching with the final attitude (so that the matches returned are the
     ones that attitude supports): :func:`refine_from` the proposal's QUEST attitude.
@@ -298,13 +298,14 @@ def refine(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2,
     """
     m = star_vec.shape[0]
     q, _ = quest_pairs(b, img, star_vec, cat, np.ones(img.shape[0]))
-    match, q, counts = refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds,
-                                   np.empty(3 * m, dtype=np.int64), np.empty((3 * m, 3)))
+    match, q, counts = refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius,
+                                   rounds, np.empty(3 * m, dtype=np.int64), np.empty((3 * m, 3)))
     return match, q, counts[1]
 
 
 @njit(cache=True)
-def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, radius, rounds, lists, pv):
+def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius, rounds, lists,
+                pv):
     """``rounds`` of match-all (:func:`match_projected`, candidates within ``radius`` rad beyond the
     sensor) / re-solve from the attitude ``q``, and a last matching with the final attitude.
 
@@ -325,8 +326,8 @@ def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, r
     margin = radius * focal
     for rnd in range(rounds):
         prev[:] = match
-        counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, margin, lists,
-                               pv)
+        counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
+                               margin, lists, pv)
         match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
         nm = 0
         same = rnd > 0
@@ -340,8 +341,8 @@ def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, r
         if nm < 2 or same:
             return match, q, counts
         q, _ = quest_pairs(b, mi[:nm], star_vec, mc[:nm], np.ones(nm))
-    counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, margin, lists,
-                           pv)
+    counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
+                           margin, lists, pv)
     match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
     return match, q, counts
 

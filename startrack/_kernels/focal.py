@@ -215,7 +215,7 @@ def field_tentative_matches(xs, ys, star_vec, dcm, focal, cx, cy, k1, k2, core, 
         z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        a, c = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+        a, c = project_to_pixel(x, y, z, focal, cx, cy, k1, k2, 0.0, 0.0, 0)
         if not (np.isfinite(a) and np.isfinite(c)):
             continue
         px[k] = a

@@ -5,14 +5,38 @@ from startrack._kernels._jit import njit, prange
 
 
 @njit(cache=True, inline="always")
-def project_to_pixel(x, y, z, focal, cx, cy, k1, k2):
-    """Camera-frame direction (``z`` > 0) to pixel ``(x, y)``: pinhole plus radial
-    distortion ``1 + k1 r^2 + k2 r^4``, the model of :class:`startrack.camera.Camera`."""
-    u = x / z
-    v = y / z
-    r2 = u * u + v * v
-    scale = 1.0 + k1 * r2 + k2 * r2 * r2
-    return cx + focal * u * scale, cy + focal * v * scale
+def project_to_pixel(x, y, z, focal, cx, cy, k1, k2, k3, k4, proj):
+    """Camera-frame direction to pixel ``(x, y)``, the model of :class:`startrack.camera.Camera`.
+
+    ``proj`` is the projection's index in :data:`startrack.camera.PROJECTIONS`.  A pinhole
+    (0, ``z`` > 0) with radial distortion ``1 + k1 r^2 + k2 r^4``; a fisheye ``r = f g(theta_d)``,
+    ``theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)``, ``g`` = ``theta`` (1, equidistant),
+    ``2 sin(theta / 2)`` (2, equisolid), ``2 tan(theta / 2)`` (3, stereographic), ``sin(theta)``
+    (4, orthographic).  The caller keeps ``theta`` within the model's range
+    (:attr:`startrack.camera.Camera.max_theta`: a cone cut ``z >= cos``)."""
+    if proj == 0:
+        u = x / z
+        v = y / z
+        r2 = u * u + v * v
+        scale = 1.0 + k1 * r2 + k2 * r2 * r2
+        return cx + focal * u * scale, cy + focal * v * scale
+    rxy = np.sqrt(x * x + y * y)
+    theta = np.arctan2(rxy, z)
+    t2 = theta * theta
+    td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    if proj == 1:
+        r = td
+    elif proj == 2:
+        r = 2.0 * np.sin(0.5 * td)
+    elif proj == 3:
+        r = 2.0 * np.tan(0.5 * td)
+    else:
+        r = np.sin(td)
+    if rxy > 0.0:
+        s = focal * r / rxy
+    else:
+        s = 0.0
+    return cx + x * s, cy + y * s
 
 
 @njit(cache=True, parallel=True)
@@ -63,8 +87,9 @@ def pairs_within(vectors, dec, order, max_angle, cos_max):
 
 @njit(cache=True, parallel=True)
 def count_in_fov(vectors_by_dec, dec_sorted, mags_by_dec, dcms, focal, cx, cy, width, height,
-                 k1, k2, max_off_axis):
-    """Stars inside a pinhole camera's image for many attitudes.
+                 k1, k2, k3, k4, proj, max_off_axis):
+    """Stars inside a camera's image for many attitudes (:func:`project_to_pixel`'s lens terms;
+    ``max_off_axis`` within the model's range).
 
     ``vectors_by_dec`` are ICRS unit vectors sorted by declination
     (``dec_sorted``); ``dcms`` has shape ``(m, 3, 3)``.  A star is in the
@@ -91,7 +116,7 @@ def count_in_fov(vectors_by_dec, dec_sorted, mags_by_dec, dcms, focal, cx, cy, w
                 continue
             x = dcms[k, 0, 0] * vx + dcms[k, 0, 1] * vy + dcms[k, 0, 2] * vz
             y = dcms[k, 1, 0] * vx + dcms[k, 1, 1] * vy + dcms[k, 1, 2] * vz
-            px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+            px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2, k3, k4, proj)
             if px >= -0.5 and px <= width - 0.5 and py >= -0.5 and py <= height - 0.5:
                 c += 1
                 if mags_by_dec[s] < best:

@@ -34,7 +34,7 @@ def _pixel(x, y, z, focal, cx, cy, k1, k2, max_r2):
     v = y / z
     if u * u + v * v > max_r2:
         return np.nan, np.nan
-    return project_to_pixel(x, y, z, focal, cx, cy, k1, k2)
+    return project_to_pixel(x, y, z, focal, cx, cy, k1, k2, 0.0, 0.0, 0)
 
 
 @njit(cache=True)

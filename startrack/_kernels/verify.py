@@ -383,8 +383,8 @@ def _to_global(match, sub):
 
 @njit(cache=True)
 def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius, sig_rad, flux, use_mags, cos_fov, focal,
-                cx, cy, width, height, k1, k2, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate,
-                sky_cells, sky_ra):
+                cx, cy, width, height, k1, k2, k3, k4, proj, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor,
+                mag_gate, sky_cells, sky_ra):
     """The shared verification of one proposal in one call (:func:`startrack.identify.verify.verify`).
 
     Attitude from the proposal and two rounds of match-all (``refine_from``), the
@@ -439,7 +439,8 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     # attitude stays in lists/pv for the checks below.
     lists = np.empty(3 * ns, dtype=np.int64)
     pv = np.empty((3 * ns, 3))
-    match, q, counts = refine_from(b, star_vec, q0, cos_fov, focal, cx, cy, width, height, k1, k2, rmax, 2, lists, pv)
+    match, q, counts = refine_from(b, star_vec, q0, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, rmax, 2,
+                                   lists, pv)
     dcm = quat_to_dcm(q)
     is_core = np.zeros(n, dtype=np.bool_)
     nc = min(4, img.shape[0])
@@ -602,7 +603,7 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     cos_fov = pinhole_cos_fov(focal, cx, cy, width, height)
     got = verify_core(
         b, star_vec, star_mag, mag_sorted, img, cat, radius, sig_rad, flux, use_mags, cos_fov, focal, cx, cy,
-        width, height, 0.0, 0.0, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate, sky_cells,
+        width, height, 0.0, 0.0, 0.0, 0.0, 0, min_matches, eps, scale_offset, scale_range, max_chi2, mag_floor, mag_gate, sky_cells,
         sky_ra)
     code, match, q, dcm, missing, n_bright, p_mag, bright_pred, e_core, p_hit = (
         got[0], got[1], got[2], got[3], got[6], got[7], got[8], got[9], got[10], got[11])

@@ -230,7 +230,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
             if "camera" not in doc:
                 raise BadInputError(source, "camera", "is missing (give --camera camera.json)")
             cam = Camera.from_dict(doc["camera"], source)
-        key = (cam.width, cam.height, cam.focal_length_px, cam.k1, cam.k2)
+        key = (cam.width, cam.height, cam.focal_length_px, cam.lens_terms)
         if key not in checked:
             checked[key] = _check(db, cam, kind)
         from startrack.formats.frame import validate_stars

@@ -123,7 +123,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
                   name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
                   getattr(db, "path", None) or type(db).__name__)
-    fused = FUSED_VERIFY and not (camera.k1 or camera.k2) and (params.match_radius_px is None or
+    fused = FUSED_VERIFY and not camera.has_distortion and camera.is_pinhole and (params.match_radius_px is None or
                                                                params.match_radius_px > 0)
     in_kernel = fused and FUSED_SEARCH and algorithm.fused is not None and not debug
     b_all = None if in_kernel else _pixels_to_vectors(camera, xs, ys)

@@ -124,7 +124,7 @@ def _pattern_tier(db, camera):
     return first, made
 
 
-_PATTERN_KEY = operator.attrgetter("focal_length_px", "cx", "cy", "width", "height", "k1", "k2")
+_PATTERN_KEY = operator.attrgetter("focal_length_px", "cx", "cy", "width", "height", "lens_terms")
 
 
 def _pattern_database(db, r):

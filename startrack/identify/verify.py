@@ -129,20 +129,22 @@ def _geometry(camera):
     """``cos`` of the largest off-axis angle (plus 0.5 deg) and the projection numbers of ``camera``
     (cached per camera model: the off-axis angle costs a projection of the corners)."""
     key = (float(camera.focal_length_px), float(camera.cx), float(camera.cy), int(camera.width), int(camera.height),
-           float(camera.k1), float(camera.k2))
+           camera.lens_terms)
     got = _GEOMETRY.get(key)
     if got is None:
         if len(_GEOMETRY) > 256:
             _GEOMETRY.clear()
-        if camera.k1 or camera.k2:
-            off_axis = camera.max_off_axis_deg
+        if not camera.is_pinhole:
+            cos_fov = camera.cone_cos(0.5)
+        elif camera.has_distortion:
+            cos_fov = math.cos(math.radians(camera.max_off_axis_deg + 0.5))
         else:       # a pinhole: the farthest corner's angle, without projecting the corners
             dx = max(abs(-0.5 - camera.cx), abs(camera.width - 0.5 - camera.cx))
             dy = max(abs(-0.5 - camera.cy), abs(camera.height - 0.5 - camera.cy))
             off_axis = math.degrees(math.atan(math.hypot(dx, dy) / camera.focal_length_px))
-        got = _GEOMETRY[key] = (math.cos(math.radians(off_axis + 0.5)),
-                                (float(camera.focal_length_px), float(camera.cx), float(camera.cy),
-                                 float(camera.width), float(camera.height), float(camera.k1), float(camera.k2)))
+            cos_fov = math.cos(math.radians(off_axis + 0.5))
+        got = _GEOMETRY[key] = (cos_fov, (float(camera.focal_length_px), float(camera.cx), float(camera.cy),
+                                          float(camera.width), float(camera.height)) + camera.lens_terms)
     return got
 
 
@@ -171,8 +173,8 @@ def _sky_index(db):
 
 
 def _pixels_to_vectors(camera, xs, ys):
-    """``camera.pixels_to_vectors`` (one kernel call without distortion)."""
-    if camera.k1 or camera.k2:
+    """``camera.pixels_to_vectors`` (one kernel call for a distortion-free pinhole)."""
+    if camera.has_distortion or not camera.is_pinhole:
         return camera.pixels_to_vectors(xs, ys)
     from startrack._kernels.common import pixels_to_unit
 
@@ -236,7 +238,7 @@ def verify(proposal: Proposal, b_all: np.ndarray, flux: np.ndarray, sig_px: np.n
     n_others = n_all - len(set(core.tolist()))
     core_agree = int(np.count_nonzero(match[core] >= 0))
     # Bright catalog stars predicted in the image but not detected (magnitudes).
-    p_missing = _missing_probability(missing, n_bright, camera.width * camera.height / f**2 / (4 * math.pi))
+    p_missing = _missing_probability(missing, n_bright, camera.sky_fraction)
     p_missing *= p_mag
     p_false = false_match_probability(e_core, trials, n_matched - core_agree, n_others, p_hit, p_missing)
     if p_false > params.max_false_probability:
@@ -267,13 +269,13 @@ def _field_scale(b_all, xs, ys, sig_px, camera, dcm, star_vec, core, radius_px, 
     """
     from startrack._kernels.focal import field_scale, scale_significant
 
-    if not (camera.k1 or camera.k2):
+    if not camera.has_distortion and camera.is_pinhole:
         cos_front = math.cos(math.acos(_geometry(camera)[0]) + math.radians(0.5))
         got = field_scale(b_all, xs, ys, sig_px, star_vec, dcm, cos_front, float(camera.focal_length_px),
                           float(camera.cx), float(camera.cy), 0.0, 0.0, np.asarray(core, dtype=np.int64),
                           np.asarray(radius_px, dtype=np.float64), float(max_err), *(zindex or _NO_INDEX))
         return None if math.isnan(got) else float(got)
-    front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(camera.max_off_axis_deg + 1.0)))
+    front = np.flatnonzero(star_vec @ dcm[2] > camera.cone_cos(1.0))
     if len(front) < 4:
         return None
     x, y = camera.vectors_to_pixels(star_vec[front] @ dcm.T)
