@@ -437,8 +437,40 @@ def _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, loss, t0):
     return out
 
 
+#: The FITS zenithal projection (WCS Paper II, Calabretta and Greisen 2002, Sect. 5.1) of each of our
+#: projections without distortion: their ``R_theta`` is ours, ``(180 / pi) g(theta)``.
+FITS_PROJECTIONS = {"pinhole": "TAN", "equidistant": "ARC", "equisolid": "ZEA", "stereographic": "STG",
+                    "orthographic": "SIN"}
+ZPN_DEGREE = 9          # the highest power of the ZPN polynomial fitted to a distorted fisheye (odd powers)
+
+
+def zpn_coefficients(camera):
+    """``PV2_m`` of a FITS ZPN projection, ``R = (180 / pi) sum_m PV2_m theta^m`` (theta off-axis, radians).
+
+    The equidistant projection with ``k1..k4`` (OpenCV's fisheye model) *is* a ZPN polynomial:
+    ``r / f = theta + k1 theta^3 + k2 theta^5 + k3 theta^7 + k4 theta^9``, exactly.  Another distorted
+    fisheye's ``g(theta_d(theta))`` is fitted by least squares in odd powers up to :data:`ZPN_DEGREE` over
+    the angles the image sees (0 to its farthest corner, or the model's end); returns ``(coefficients,
+    largest error in pixels over those angles)``.
+    """
+    from startrack.camera import projection_radius
+
+    if camera.projection == "equidistant":
+        return {1: 1.0, 3: float(camera.k1), 5: float(camera.k2), 7: float(camera.k3), 9: float(camera.k4)}, 0.0
+    top = min(math.radians(camera.max_off_axis_deg), camera.max_theta)
+    theta = np.linspace(0.0, top, 2001)
+    target = projection_radius(camera.projection, camera.theta_distorted(theta))
+    powers = list(range(1, ZPN_DEGREE + 1, 2))
+    design = np.stack([theta ** m for m in powers], axis=1)
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    err = float(np.max(np.abs(design @ coef - target))) * camera.focal_length_px
+    return {m: float(c) for m, c in zip(powers, coef)}, err
+
+
 def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
-    """A FITS WCS (TAN, with SIP terms when the camera has distortion) for an attitude.
+    """A FITS WCS for an attitude: TAN (with SIP terms when the camera has distortion) for a pinhole,
+    ARC / ZEA / STG / SIN for the fisheye projections, ZPN for a distorted fisheye
+    (:func:`zpn_coefficients`).
 
     Pixel ``(x, y)`` (0-based, ours) is FITS ``(x + 1, y + 1)``.  ``CRPIX`` is
     the principal point, ``CRVAL`` the boresight, and the ``CD`` matrix maps
@@ -473,8 +505,16 @@ def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dic
     cd[:, 0] *= flip
     hdr = {}
     hdr["WCSAXES"] = 2
-    hdr["CTYPE1"] = "RA---TAN-SIP" if camera.has_distortion else "RA---TAN"
-    hdr["CTYPE2"] = "DEC--TAN-SIP" if camera.has_distortion else "DEC--TAN"
+    # Every zenithal projection maps the off-axis angle theta to R(theta) along the same azimuth: the CD
+    # matrix (pixels to degrees at the centre, 1 / f rad per pixel: g'(0) = 1) is the same for all.
+    fisheye = camera.projection != "pinhole"
+    if fisheye:
+        code = "ZPN" if camera.has_distortion else FITS_PROJECTIONS[camera.projection]
+        hdr["CTYPE1"] = f"RA---{code}"
+        hdr["CTYPE2"] = f"DEC--{code}"
+    else:
+        hdr["CTYPE1"] = "RA---TAN-SIP" if camera.has_distortion else "RA---TAN"
+        hdr["CTYPE2"] = "DEC--TAN-SIP" if camera.has_distortion else "DEC--TAN"
     hdr["CRPIX1"] = camera.cx + 1.0
     hdr["CRPIX2"] = camera.cy + 1.0
     hdr["CRVAL1"] = float(ra)
@@ -486,7 +526,11 @@ def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dic
     hdr["RADESYS"] = "ICRS"
     hdr["IMAGEW"] = camera.width
     hdr["IMAGEH"] = camera.height
-    if camera.has_distortion:
+    if fisheye and camera.has_distortion:
+        coef, _ = zpn_coefficients(camera)
+        for m in range(max(coef) + 1):
+            hdr[f"PV2_{m}"] = float(coef.get(m, 0.0))
+    elif camera.has_distortion:
         f = camera.focal_length_px
         k1, k2 = camera.k1, camera.k2
         # Inverse (AP/BP): undistorted offsets (U, V) -> distorted: U (k1 r^2 + k2 r^4), r^2 = (U^2 + V^2) / f^2.

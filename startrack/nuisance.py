@@ -22,8 +22,9 @@ from startrack.errors import ParameterError
 FOREGROUNDS = ("disc", "edge", "branches")
 MIRRORS = ("x", "y")
 
-__all__ = ["FOREGROUNDS", "MIRRORS", "vignetting_map", "gradient_map", "nebulosity_map", "foreground_mask",
-           "cosmic_rays", "fractal_noise"]
+__all__ = ["FOREGROUNDS", "HORIZONS", "MIRRORS", "vignetting_map", "gradient_map", "nebulosity_map", "foreground_mask",
+           "cosmic_rays", "fractal_noise", "horizon_profile", "horizon_altitude", "ground_mask", "below_skyline",
+           "airmass"]
 
 
 def _grid(height, width):
@@ -247,3 +248,91 @@ def cosmic_rays(signal, count, rng, full_well_e):
         hits.append({"x": float(x0), "y": float(y0), "length_px": float(length), "angle_deg": math.degrees(angle),
                      "electrons": float(per_px * len(pixels))})
     return hits
+
+
+HORIZONS = ("flat", "random")
+
+
+def horizon_profile(kind, rng, n_azimuth=720):
+    """The altitude (radians) of the skyline every ``2 pi / n_azimuth`` of azimuth, from azimuth 0.
+
+    ``"flat"``: the astronomical horizon, 0 everywhere.  ``"random"``: an observatory's
+    skyline drawn from ``rng``: a low ridge (0-4 deg, smooth), a few buildings (flat
+    tops 4-25 deg high, 4-35 deg wide) and tree lines (rounded crowns 3-20 deg high,
+    1-6 deg wide each), the altitude the highest of them; at least two thirds of the
+    azimuths stay below 15 deg, so the sky keeps most of its area.
+    """
+    if kind not in HORIZONS:
+        raise ParameterError("horizon", f"must be one of {', '.join(HORIZONS)}, got {kind!r}")
+    az = np.arange(n_azimuth) * (2.0 * math.pi / n_azimuth)
+    alt = np.zeros(n_azimuth)
+    if kind == "flat":
+        return alt
+    # A ridge: a few low harmonics, 0-4 deg.
+    ridge = np.zeros(n_azimuth)
+    for h in range(1, 5):
+        ridge += rng.uniform(0, 1) / h * np.cos(h * az + rng.uniform(0, 2 * math.pi))
+    ridge -= ridge.min()
+    alt = np.maximum(alt, math.radians(rng.uniform(0.0, 4.0)) * ridge / max(float(ridge.max()), 1e-12))
+
+    def wrapped(center):
+        return np.angle(np.exp(1j * (az - center)))
+
+    for _ in range(int(rng.integers(0, 4))):     # buildings
+        width = math.radians(rng.uniform(4, 35))
+        height = math.radians(rng.uniform(4, 25))
+        alt = np.where(np.abs(wrapped(rng.uniform(0, 2 * math.pi))) <= width / 2, np.maximum(alt, height), alt)
+    for _ in range(int(rng.integers(0, 4))):     # tree lines: rows of rounded crowns
+        start = rng.uniform(0, 2 * math.pi)
+        for _ in range(int(rng.integers(2, 12))):
+            crown = math.radians(rng.uniform(1, 6))
+            height = math.radians(rng.uniform(3, 20))
+            d = wrapped(start) / crown
+            alt = np.maximum(alt, np.where(np.abs(d) < 1, height * np.sqrt(np.clip(1 - d * d, 0, 1)), 0.0))
+            start += crown * rng.uniform(0.8, 1.6)
+    # Keep the sky: at most a third of the azimuths above 15 deg (lower the skyline if not).
+    high = np.quantile(alt, 2.0 / 3.0)
+    if high > math.radians(15.0):
+        alt *= math.radians(15.0) / high
+    return alt
+
+
+def horizon_altitude(profile, azimuth):
+    """The skyline ``profile``'s altitude (radians) at ``azimuth`` (radians), linearly interpolated."""
+    n = len(profile)
+    pos = np.mod(np.asarray(azimuth, dtype=np.float64), 2.0 * math.pi) * (n / (2.0 * math.pi))
+    i0 = np.floor(pos).astype(np.int64) % n
+    frac = pos - np.floor(pos)
+    return profile[i0] * (1.0 - frac) + profile[(i0 + 1) % n] * frac
+
+
+def ground_mask(camera, profile, soft_px=1.0):
+    """Where the ground hides the sky in a zenith-pointing ``camera``'s image: 1 on the ground, 0 in the sky.
+
+    A pixel sees the ground when its direction's altitude ``90 deg - theta`` (``theta`` its angle from
+    the boresight) is below the skyline ``profile`` at its azimuth (the camera frame's, ``atan2(y, x)``),
+    or when it lies outside the model's image circle.  The edge is softened over ``soft_px`` pixels at
+    the local scale ``1 / f`` rad per pixel.
+    """
+    yy, xx = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    vec = camera.pixels_to_vectors(xx, yy)
+    theta = np.arccos(np.clip(vec[..., 2], -1.0, 1.0))
+    az = np.arctan2(vec[..., 1], vec[..., 0])
+    depth = (theta - (math.pi / 2 - horizon_altitude(profile, az))) * camera.focal_length_px / max(soft_px, 1e-9)
+    mask = np.clip(depth + 0.5, 0.0, 1.0)
+    return np.where(np.isfinite(mask), mask, 1.0)
+
+
+def below_skyline(camera_vectors, profile):
+    """True for camera-frame directions under the skyline ``profile`` (:func:`ground_mask`'s rule)."""
+    v = np.asarray(camera_vectors, dtype=np.float64)
+    theta = np.arccos(np.clip(v[..., 2], -1.0, 1.0))
+    az = np.arctan2(v[..., 1], v[..., 0])
+    return theta > math.pi / 2 - horizon_altitude(profile, az)
+
+
+def airmass(zenith_angle):
+    """Kasten and Young's (1989) relative air mass at ``zenith_angle`` (radians; 38 at the horizon)."""
+    z = np.degrees(np.asarray(zenith_angle, dtype=np.float64))
+    alt = np.clip(90.0 - z, 0.0, 90.0)
+    return 1.0 / (np.sin(np.radians(alt)) + 0.50572 * (alt + 6.07995) ** -1.6364)

@@ -167,9 +167,16 @@ class Scene:
     nebulosity_e_per_s: float = 0.0
     gradient: float = 1.0
     mirror: str | None = None
+    horizon: str | None = None
+    extinction_mag: float = 0.0
 
     def __post_init__(self):
-        from startrack.nuisance import FOREGROUNDS, MIRRORS
+        from startrack.nuisance import FOREGROUNDS, HORIZONS, MIRRORS
+
+        if self.horizon is not None and self.horizon not in HORIZONS:
+            raise ParameterError("horizon", f"must be one of {', '.join(HORIZONS)}, got {self.horizon!r}")
+        if not (self.extinction_mag >= 0 and math.isfinite(self.extinction_mag)):
+            raise ParameterError("extinction_mag", f"must be >= 0 (magnitudes per air mass), got {self.extinction_mag}")
 
         if self.foreground is not None and self.foreground not in FOREGROUNDS:
             raise ParameterError("foreground", f"must be one of {', '.join(FOREGROUNDS)}, got {self.foreground!r}")
@@ -214,7 +221,8 @@ def project_stars(vectors, dcm, camera: Camera, margin_px: float = 0.0):
         Their positions in pixels.
     """
     cam_vec = vectors @ np.asarray(dcm).T
-    cos_limit = math.cos(math.radians(min(89.0, camera.max_off_axis_deg + 1.0)))
+    # A fisheye sees to its image circle, but what lies beyond 90 deg from the boresight is below the horizon.
+    cos_limit = math.cos(math.radians(min(89.0, camera.max_off_axis_deg + 1.0))) if camera.is_pinhole else 0.0
     front = np.flatnonzero(cam_vec[:, 2] > cos_limit)
     x, y = camera.vectors_to_pixels(cam_vec[front])
     inside = camera.in_image(x, y, margin=-margin_px) & np.isfinite(x)
@@ -363,7 +371,28 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     if scene.mag_limit is not None:
         keep = mags <= scene.mag_limit
         index, x_mid, y_mid, mags = index[keep], x_mid[keep], y_mid[keep], mags[keep]
+    ground, horizon_truth = None, None
+    if scene.horizon is not None or not true_cam.is_pinhole:
+        # The camera looks at the zenith: the ground (below the skyline, and outside a fisheye's image
+        # circle) is dark and hides the stars behind it.
+        from startrack import nuisance
+
+        profile = nuisance.horizon_profile(scene.horizon or "flat", rng)
+        cam_vec = vectors[index] @ dcm.T
+        keep = ~nuisance.below_skyline(cam_vec, profile)
+        horizon_truth = {"kind": scene.horizon or "flat",
+                         "hidden_star_ids": sorted(int(i) for i in catalog.id[index[~keep]]),
+                         "max_altitude_deg": float(np.degrees(profile.max()))}
+        index, x_mid, y_mid, mags = index[keep], x_mid[keep], y_mid[keep], mags[keep]
+        ground = nuisance.ground_mask(true_cam, profile, soft_px=max(1.0, sensor.psf_sigma_px))
+        horizon_truth["ground_fraction"] = float(ground.mean())
     rendered_mag = mags + (rng.normal(0.0, scene.mag_noise, len(mags)) if scene.mag_noise > 0 else 0.0)
+    if scene.extinction_mag > 0:
+        # The atmosphere's extinction, the boresight at the zenith: mag_rendered holds it, mag is the catalog's.
+        from startrack.nuisance import airmass
+
+        zenith = np.arccos(np.clip((vectors[index] @ dcm.T)[:, 2], -1.0, 1.0))
+        rendered_mag = rendered_mag + scene.extinction_mag * airmass(zenith)
     electrons = electrons_from_magnitude(rendered_mag, sensor)
     xs, ys = _trail_positions(vectors[index], dcm, true_cam, np.radians(scene.rate_deg_s),
                               sensor.exposure_s, sensor.psf_sigma_px)
@@ -386,7 +415,9 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
         hot_levels = _hot_pixel_map(height, width, int(sensor.hot_pixels), float(sensor.full_well_e))
         hot = [{"x": int(a), "y": int(b), "electrons": float(c)} for b, a, c in zip(*hot_levels)]
     pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
-    extra_truth = _apply_nuisances(signal, sensor, scene, rng, x_mid, y_mid)
+    extra_truth = _apply_nuisances(signal, sensor, scene, rng, x_mid, y_mid, ground)
+    if horizon_truth is not None:
+        extra_truth["horizon"] = horizon_truth
     if sensor.hot_pixels:
         np.add.at(signal, hot_levels[:2], hot_levels[2])
     if sensor.cosmic_rays:
@@ -430,20 +461,21 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     return image, truth
 
 
-def _apply_nuisances(signal, sensor: Sensor, scene: Scene, rng, star_x, star_y):
+def _apply_nuisances(signal, sensor: Sensor, scene: Scene, rng, star_x, star_y, ground=None):
     """Turn ``signal`` (star electrons) into the expected electrons above the flat ``background_e``.
 
     The combination of :mod:`startrack.nuisance`: ``V (T (stars + sky G + nebulosity) + M foreground)``
     plus dark, minus the flat sky + dark the exposure kernel adds (so a pixel may be below it: the
     sky behind a dark body, a vignetted corner).  Without nuisances ``signal`` is left alone and no
-    random number is drawn.  Returns the truth of what was added.
+    random number is drawn.  ``ground``: 1 where the ground (a dark skyline, the outside of a fisheye's
+    image circle) hides the sky (:func:`startrack.nuisance.ground_mask`).  Returns the truth of what was added.
     """
     from startrack import nuisance
 
     height, width = signal.shape
     truth = {}
     spatial = (scene.gradient > 1 or scene.nebulosity_e_per_s > 0 or scene.foreground is not None
-               or sensor.vignetting < 1)
+               or sensor.vignetting < 1 or ground is not None)
     if not spatial:
         return truth
     t = sensor.exposure_s
@@ -468,6 +500,8 @@ def _apply_nuisances(signal, sensor: Sensor, scene: Scene, rng, star_x, star_y):
         row = np.clip(np.rint(star_y), 0, height - 1).astype(np.int64)
         truth["foreground"] = {"kind": scene.foreground, "fraction": float(mask.mean()),
                                "e_per_s": float(radiance), "hidden": mask[row, col] >= 0.5}
+    if ground is not None:
+        light = light * (1.0 - ground)
     if sensor.vignetting < 1:
         light *= nuisance.vignetting_map(height, width, sensor.vignetting)
     signal[:] = light - sky_e

@@ -411,13 +411,20 @@ def sigma_px_option(help_text=None):
 CAMERA_EXCLUSIVE = (("camera_file", "fov_deg"), ("camera_file", "focal_length_mm"), ("fov_deg", "focal_length_mm"))
 
 
-def camera_options(f):
-    """``--camera FILE`` or ``--fov-deg``/``--focal-length-mm``+``--pixel-pitch-um`` with ``--size``."""
+def camera_options(f=None, *, fisheye=False):
+    """``--camera FILE`` or ``--fov-deg``/``--focal-length-mm``+``--pixel-pitch-um`` with ``--size``.
+
+    ``@camera_options(fisheye=True)`` adds ``--projection``, ``--k3`` and ``--k4`` (the function then
+    takes ``projection``, ``k3``, ``k4`` after ``k2``) and lets ``--fov-deg`` reach 360 degrees."""
+    if f is None:
+        return lambda g: camera_options(g, fisheye=fisheye)
     opts = [
         click.option("--camera", "camera_file", type=click.Path(dir_okay=False, allow_dash=False),
                      default=None, help="Camera JSON (startrack.camera/1, or a frame document's camera)."),
-        click.option("--fov-deg", type=FiniteFloat(0, 180, min_open=True, max_open=True), default=None,
-                     help="Horizontal field of view in degrees (with --size)."),
+        click.option("--fov-deg", type=FiniteFloat(0, 360 if fisheye else 180, min_open=True, max_open=not fisheye),
+                     default=None, help="Horizontal field of view in degrees (with --size)" + (
+                         "; a fisheye's may exceed 180 (at most 180 orthographic, below 360 stereographic)."
+                         if fisheye else ".")),
         click.option("--focal-length-mm", type=FiniteFloat(0, min_open=True), default=None,
                      help="Lens focal length in mm (with --pixel-pitch-um and --size)."),
         click.option("--pixel-pitch-um", type=FiniteFloat(0, min_open=True), default=None,
@@ -426,21 +433,34 @@ def camera_options(f):
         click.option("--k1", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k1."),
         click.option("--k2", type=FiniteFloat(-10, 10), default=None, help="Radial distortion coefficient k2."),
     ]
+    if fisheye:
+        from startrack.camera import PROJECTIONS
+
+        opts += [
+            click.option("--projection", type=click.Choice(list(PROJECTIONS)), default=None,
+                         help="The lens's projection (default: pinhole, or the --camera file's); the fisheyes map the "
+                              "off-axis angle theta to r = f g(theta_d), theta_d = theta (1 + k1 theta^2 + k2 theta^4 + "
+                              "k3 theta^6 + k4 theta^8): equidistant with k1..k4 is OpenCV's fisheye model."),
+            click.option("--k3", type=FiniteFloat(-10, 10), default=None, help="A fisheye's distortion coefficient k3."),
+            click.option("--k4", type=FiniteFloat(-10, 10), default=None, help="A fisheye's distortion coefficient k4."),
+        ]
     for opt in reversed(opts):
         f = opt(f)
     return f
 
 
 def camera_from_options(camera_file=None, fov_deg=None, focal_length_mm=None, pixel_pitch_um=None,
-                        size=None, k1=None, k2=None, default_size=None, required=True):
+                        size=None, k1=None, k2=None, default_size=None, required=True, projection=None, k3=None,
+                        k4=None):
     """Build a :class:`~startrack.camera.Camera` from the camera options (or ``None``)."""
     from startrack.camera import Camera, parse_size
 
     kw = {}
-    if k1 is not None:
-        kw["k1"] = k1
-    if k2 is not None:
-        kw["k2"] = k2
+    for name, value in (("k1", k1), ("k2", k2), ("projection", projection), ("k3", k3), ("k4", k4)):
+        if value is not None:
+            kw[name] = value
+    if (k3 or k4) and (projection == "pinhole" or (projection is None and camera_file is None)):
+        raise BadInputError("--k3" if k3 else "--k4", None, "k3 and k4 are a fisheye's terms: give --projection too")
     if camera_file is not None:
         if fov_deg is not None or focal_length_mm is not None:
             raise BadInputError("--camera", None, "give either --camera or --fov-deg/--focal-length-mm, not both")

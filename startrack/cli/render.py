@@ -61,7 +61,7 @@ def _floats(text, name, n):
 @click.command("render", cls=Command,
                exclusive=CAMERA_EXCLUSIVE + (("sigma_px", "sigma_arcsec"), ("quaternion", "ra"), ("quaternion", "dec")), short_help="Render star images or star lists with known truth.")
 @catalog_option
-@camera_options
+@camera_options(fisheye=True)
 @click.option("--quaternion", type=NumberList(-1, 1, length=4, unit=True, as_text=True), default=None, help="Attitude q1,q2,q3,q4 (scalar last, ICRS to camera).")
 @click.option("--ra", type=FiniteFloat(-360, 360), default=None, help="Boresight right ascension, degrees.")
 @click.option("--dec", type=FiniteFloat(-90, 90), default=None, help="Boresight declination, degrees.")
@@ -105,6 +105,12 @@ def _floats(text, name, n):
 @click.option("--foreground-e-per-s", type=FiniteFloat(0), default=None,
               help="Foreground surface brightness, e-/s per pixel (default: a disc twice the full well per "
                    "exposure, saturated like a moon; an edge or branches dark).")
+@click.option("--horizon", type=click.Choice(["flat", "random"]), default=None,
+              help="The ground around a zenith-pointing camera: dark, hiding the sky and the stars below its skyline "
+                   "(flat: the astronomical horizon; random: buildings, trees and a ridge drawn from --seed). A "
+                   "fisheye camera always has at least the flat one (nothing is drawn beyond 90 deg off-axis).")
+@click.option("--extinction-mag", type=FiniteFloat(0, 10), default=0.0, show_default=True,
+              help="Atmospheric extinction, magnitudes per air mass (V band: about 0.2), the boresight at the zenith.")
 @click.option("--mirror", type=click.Choice(["x", "y"]), default=None,
               help="Write the image (or star list) mirrored: columns (x) or rows (y) flipped; truth in the written "
                    "pixels, the attitude the un-mirrored camera's.")
@@ -150,11 +156,12 @@ def _floats(text, name, n):
                    "(written by this command with the same options and --seed) and render only the rest.")
 @quiet_option
 @handle_errors
-def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, quaternion, ra, dec, roll,
+def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, projection, k3, k4,
+            quaternion, ra, dec, roll,
             output, documents, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, cosmic_rays,
             dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
-            foreground_e_per_s, mirror, no_noise, mag_noise,
+            foreground_e_per_s, horizon, extinction_mag, mirror, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, velocity_km_s,
             orbit_period_s, no_aberration, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, resume, quiet):
@@ -187,6 +194,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
       startrack render --fov-deg 10 --size 640x480 --bit-depth 8 --gain-e-per-dn 2 --dark-subtracted \\
           --hot-pixels 50 --foreground branches --foreground-fraction 0.3 --mirror x --seed 4 -o tree.png > tree.json
     \b
+    Example (an all-sky camera: equidistant fisheye, 180 deg across, trees and buildings on the horizon):
+      startrack render --projection equidistant --fov-deg 180 --size 800x800 --ra 80 --dec 40 --mag-max 5.5 \
+          --horizon random --extinction-mag 0.2 --seed 5 -o allsky.png > allsky.json
+    \b
     Example (star lists as a low-Earth-orbit camera sees them on 22 September 2026: the Earth's
     velocity and the camera's own, turning once an orbit, make stellar aberration):
       startrack render --stars-only --count 5 --fov-deg 15 --size 1024x1024 --sigma-px 0.3 --seed 3 \\
@@ -209,7 +220,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     from startrack.timeutil import julian_year, parse_time
 
     cam = camera_from_options(camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2,
-                              default_size="1024x1024")
+                              default_size="1024x1024", projection=projection, k3=k3, k4=k4)
     if count < 1:
         raise BadInputError("--count", None, f"must be at least 1, got {count}")
     from startrack.imageio import max_image_pixels
@@ -284,7 +295,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     scene = Scene(mag_max, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)),
                   foreground=foreground, foreground_fraction=foreground_fraction,
                   foreground_e_per_s=foreground_e_per_s, nebulosity_e_per_s=nebulosity_e_per_s, gradient=gradient,
-                  mirror=mirror)
+                  mirror=mirror, horizon=horizon, extinction_mag=extinction_mag)
     t0 = parse_time(start_time) if start_time else None
     cat = load_catalog(catalog, mag_max=mag_max)
     if mag_max is not None:
@@ -305,7 +316,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                "focal_error_pct": focal_error_pct, "rate_deg_s": list(scene.rate_deg_s),
                "foreground": foreground, "foreground_fraction": foreground_fraction if foreground else None,
                "foreground_e_per_s": foreground_e_per_s, "nebulosity_e_per_s": nebulosity_e_per_s,
-               "gradient": gradient, "mirror": mirror},
+               "gradient": gradient, "mirror": mirror, "horizon": horizon,
+               "extinction_mag": extinction_mag or None},
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
         time=start_time, aberration=not no_aberration, velocity_km_s=velocity_km_s,
