@@ -181,9 +181,9 @@ def test_with_focal_length_keeps_projection():
 @pytest.mark.parametrize("projection", PROJECTIONS)
 def test_kernel_projection_matches_camera(projection):
     """The kernels' projection (``project_to_pixel``) against :meth:`Camera.vectors_to_pixels`."""
-    from startrack._kernels.sphere import count_in_fov
-
     from naive import count_in_fov_naive
+
+    from startrack._kernels.sphere import count_in_fov
 
     ks = (0.01, -0.002, 0.0, 0.0) if projection == "pinhole" else (0.02, -0.004, 3e-4, -2e-5)
     fov = 60.0 if projection == "pinhole" else 170.0
@@ -240,3 +240,47 @@ def test_wcs_maps_pixels_as_the_camera(projection, ks, fov, mirrored):
     limit = 0.05 if projection == "equidistant" or not any(ks) else \
         0.05 + zpn_coefficients(cam)[1] * cam.pixel_scale_arcsec * 1.5
     assert np.max(err_arcsec) < limit
+
+
+def _calibration_frames(cam, n_frames=3, n_stars=150, sigma_px=0.1, seed=11):
+    """Frames of ``cam``: random attitudes, random sky directions in its image, pixel noise ``sigma_px``."""
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    rng = np.random.default_rng(seed)
+    frames = []
+    for a in quaternion_to_dcm(random_quaternions(n_frames, rng)):
+        xs = rng.uniform(0, cam.width - 1, 4 * n_stars)
+        ys = rng.uniform(0, cam.height - 1, 4 * n_stars)
+        v = cam.pixels_to_vectors(xs, ys)
+        ok = np.all(np.isfinite(v), axis=1) & (v[:, 2] > 0.02)
+        xs, ys, v = xs[ok][:n_stars], ys[ok][:n_stars], v[ok][:n_stars]
+        xy = np.column_stack([xs, ys]) + rng.normal(0, sigma_px, (len(xs), 2))
+        frames.append((a, xy, v @ a))            # ref: ICRS directions, A ref = camera vectors
+    return frames
+
+
+@pytest.mark.parametrize("projection", FISHEYES)
+def test_calibrate_chooses_the_projection(projection):
+    from startrack.calibrate import calibrate_projection
+
+    truth = Camera.from_fov(170.0 if projection != "orthographic" else 178.0, 900, 700, projection=projection)
+    frames = _calibration_frames(truth)
+    # Start from a pinhole of the wrong focal length: every projection is tried from its own start.
+    start = Camera.from_fov(100.0, 900, 700)
+    res = calibrate_projection(frames, start)
+    assert res.camera.projection == projection, res.projections
+    assert res.camera.focal_length_px == pytest.approx(truth.focal_length_px, rel=2e-4)
+    assert res.rms_after_px < 0.2
+    assert "pinhole" not in res.projections          # stars beyond 85 deg: no pinhole
+
+
+def test_calibrate_fits_opencv_distortion():
+    from startrack.calibrate import calibrate_projection
+
+    truth = Camera.from_fov(180.0, 1000, 1000, projection="equidistant", k1=0.02, k2=-0.01)
+    frames = _calibration_frames(truth, n_frames=4, n_stars=250)
+    res = calibrate_projection(frames, Camera.from_fov(150.0, 1000, 1000, projection="equisolid"), ["equidistant"])
+    assert res.camera.projection == "equidistant"
+    assert res.camera.k1 == pytest.approx(0.02, abs=4 * res.sigma["k1"] + 1e-4)
+    assert res.camera.k2 == pytest.approx(-0.01, abs=4 * res.sigma["k2"] + 1e-4)
+    assert res.rms_after_px < 0.2

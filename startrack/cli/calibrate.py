@@ -7,14 +7,19 @@ from startrack.cli.options import Command, NameList, catalog_option, handle_erro
 @click.command("calibrate", cls=Command, short_help="Fit focal length, principal point and k1, k2 from solved frames.")
 @input_argument
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
-@click.option("--fit", type=NameList(lambda: ["auto", "focal_length_px", "cx", "cy", "k1", "k2"], as_text=True),
+@click.option("--fit", type=NameList(lambda: ["auto", "focal_length_px", "cx", "cy", "k1", "k2", "k3", "k4"],
+                                     as_text=True),
               default="auto", show_default=True,
-              help="Parameters to fit (focal_length_px,cx,cy,k1,k2), or auto: all of them, then those the data do "
-                   "not constrain (under 3 sigma from no distortion / the image centre) left out.")
+              help="Parameters to fit (focal_length_px,cx,cy,k1,k2; a fisheye also k3,k4), or auto: all of them, then "
+                   "those the data do not constrain (under 3 sigma from no distortion / the image centre) left out.")
+@click.option("--projection", type=click.Choice(["auto", "pinhole", "equidistant", "equisolid", "stereographic",
+                                                 "orthographic"]), default=None,
+              help="The lens projection to fit (default: the frames' camera's); auto: each one the stars allow, "
+                   "the one of least BIC (residual with a ln(n) penalty per parameter) kept.")
 @catalog_option
 @quiet_option
 @handle_errors
-def command(input, output, fit, catalog, quiet):
+def command(input, output, fit, projection, catalog, quiet):
     """Calibrate the camera from frames with identification and attitude (paper 000's ground calibration).
 
     A least-squares bundle adjustment over all frames: the camera intrinsics
@@ -30,12 +35,15 @@ def command(input, output, fit, catalog, quiet):
       startrack solve photos/*.tiff > solved.jsonl
       startrack calibrate solved.jsonl -o lens.json
       startrack solve photos/*.tiff --camera lens.json > solved2.jsonl
+    \b
+    Example (an all-sky camera: which projection, and its distortion):
+      startrack calibrate allsky-solved.jsonl --projection auto -o allsky-lens.json
     """
     import json
 
     import numpy as np
 
-    from startrack.calibrate import calibrate, calibrate_significant
+    from startrack.calibrate import PARAMS, calibrate, calibrate_projection, calibrate_significant
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError
@@ -83,10 +91,16 @@ def command(input, output, fit, catalog, quiet):
         frames.append((dcm, np.array(xy), np.array(ref)))
     if camera is None:
         raise BadInputError(input, "attitude", "no frame with a solved attitude to calibrate from")
-    if fit.strip() == "auto":
+    names = PARAMS if fit.strip() == "auto" else [p.strip() for p in fit.split(",") if p.strip()]
+    if projection == "auto" or (projection is not None and projection != camera.projection):
+        if fit.strip() != "auto":
+            raise BadInputError("--projection", None, "a projection to fit needs --fit auto (its terms are chosen "
+                                "by their significance)")
+        result = calibrate_projection(frames, camera, None if projection == "auto" else [projection])
+    elif fit.strip() == "auto":
         result = calibrate_significant(frames, camera)
     else:
-        result = calibrate(frames, camera, [p.strip() for p in fit.split(",") if p.strip()])
+        result = calibrate(frames, camera, names)
     doc = result.to_dict()
     with atomic_open(output, "w") as fh:
         json.dump(doc, fh, indent=1)
@@ -96,7 +110,11 @@ def command(input, output, fit, catalog, quiet):
                 f"residual RMS {c['rms_residual_before_arcsec']:.2f}\" -> {c['rms_residual_after_arcsec']:.2f}\" -> {output}")
     if not quiet:
         sig = c.get("significance_sigma", {})
-        for name in ("focal_length_px", "cx", "cy", "k1", "k2"):
+        if result.projections:
+            for name, row in result.projections.items():
+                text = (f"BIC {row['bic']:.1f}, RMS {row['rms_px']:.3f} px" if "bic" in row else row["error"])
+                click.echo(f"  {'*' if name == result.camera.projection else ' '} {name:14s} {text}", err=True)
+        for name in PARAMS:
             if name in result.sigma:
                 click.echo(f"  {name:16s} {getattr(result.camera, name):14.6g} +- {result.sigma[name]:.3g}"
                            + (f"  ({sig[name]:.1f} sigma)" if name in sig else ""), err=True)
