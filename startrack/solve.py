@@ -275,6 +275,11 @@ class SolveOptions:
         ``gaia`` catalog (:data:`startrack.patterns.DEEP_FOV_DEG`; first when the hint is under 3 degrees;
         only with the extra ``startrack[gaia]``); ``"gaia"``: the deep index only, for every field
         (Gaia DR3 source ids); ``"hipparcos"``: the Hipparcos index only.
+    projection : str
+        The lens of a blind solve: ``auto`` (a pinhole first, as ``pinhole``; when that finds nothing,
+        an all-sky or fisheye frame, :mod:`startrack.allsky`, its projection fitted), ``pinhole`` (the
+        searches of fields up to about 70 degrees only), or a fisheye projection of
+        :data:`startrack.camera.PROJECTIONS` (the all-sky search only, that projection fitted).
     """
 
     fov_deg: float | None = None
@@ -299,8 +304,14 @@ class SolveOptions:
     target_pixels: tuple = ()
     target_radec: tuple = ()
     catalog: str | None = None
+    projection: str = "auto"
 
     def __post_init__(self):
+        from startrack.camera import PROJECTIONS
+
+        if self.projection != "auto" and self.projection not in PROJECTIONS:
+            raise ParameterError("projection", f"must be auto or one of {', '.join(PROJECTIONS)}, "
+                                 f"got {self.projection!r}")
         sky = (self.ra_deg, self.dec_deg, self.radius_deg)
         if any(v is not None for v in sky) and any(v is None for v in sky):
             raise ParameterError("ra_deg", "ra_deg, dec_deg and radius_deg go together (all three or none)",
@@ -665,8 +676,14 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     # The detections of a second, deeper pass (below) are searched when the first ones give nothing, unless the
     # caller chose the detection's settings.
     depths = ("plain",) if centroid_options is not None else ("plain", "deep")
-    # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does.
-    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / (len(order) * len(depths)))
+    # A blind frame the pinhole searches cannot solve may be an all-sky or fisheye one (startrack.allsky).
+    allsky = camera is None and opts.projection != "pinhole" and opts.fov_range() is None
+    if camera is None and opts.projection not in ("auto", "pinhole"):
+        depths = ()         # a fisheye projection given: the all-sky search only
+    # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does
+    # (the all-sky search one share per parity).
+    shares = len(order) * (len(depths) + (1 if allsky else 0))
+    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / shares)
 
     def search(search_list):
         tried = 0
@@ -778,6 +795,13 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             log.info("%s parity: no star pattern identified", parity)
         if result is not None:
             break
+    allsky_info = None
+    if result is None and allsky and (not searched or not clock.expired()):
+        got, n, done = _allsky_search(image, saturation, w, h, order, opts, index, clock, databases)
+        tried += n
+        searched += done
+        if got is not None:
+            result, cres, search_list, parity, allsky_info = got
     stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
     centroid = cres.section()
     if len(cres.stars) < 4:
@@ -793,7 +817,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
             reason, code = f"no star pattern identified ({tried} attempts)", ReasonCode.NO_PATTERN
         if len(set(searched)) > 1:
             reason += ", either parity"
-        elif order != ("normal", "mirrored"):
+        elif order != ("normal", "mirrored") and searched:
             reason += f", {searched[0]} parity only"
         hinted = opts.hint_text()
         if hinted:
@@ -863,6 +887,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     sky = np.array([vec[rows[i]] if i in rows else (np.nan,) * 3 for i in ids], dtype=np.float64).reshape(-1, 3)
     out.matched_catalog = {"ra": np.degrees(np.arctan2(sky[:, 1], sky[:, 0])) % 360.0,
                            "dec": np.degrees(np.arcsin(np.clip(sky[:, 2], -1.0, 1.0))), "mag": mags}
+    if allsky_info is not None:
+        out.details["allsky"] = allsky_info
     if att.status == Status.OK:
         from startrack.apparent import astrometric_attitude
         from startrack.attitude import wcs_keywords
@@ -947,6 +973,57 @@ def targets(dcm, camera, pixels=(), radec=(), mirrored: bool = False) -> list:
         out.append({"given": "radec", "ra": float(ra) % 360.0, "dec": float(dec), "x": px if ok else None,
                     "y": py if ok else None, "in_image": ok and inside(px, py)})
     return out
+
+
+#: Detections an all-sky search keeps: a 180 deg frame to magnitude 5.5 holds over a thousand stars, and the
+#: centre's square (startrack.allsky) needs its faint ones too.
+ALLSKY_MAX_STARS = 1500
+
+
+def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases):
+    """The all-sky search of :func:`solve_image` (:mod:`startrack.allsky`): detect deeper, propose a camera
+    from the image centre outward, then identify the whole frame with it (the k-vector databases of the
+    widest band, the ordinary verification).  Returns ``((result, centroid result, star list, parity,
+    details) or None, attempts, parities searched)``."""
+    from startrack.allsky import AllSkyOptions, propose_camera
+    from startrack.centroid import CentroidOptions, find_stars
+    from startrack.identify import IdentifyParams
+
+    sky = clock.first_use("centroid-allsky", find_stars, image, CentroidOptions(max_stars=ALLSKY_MAX_STARS),
+                          saturation=saturation)
+    if len(sky.stars) < 10:
+        return None, 0, []
+    log.info("all-sky search: %d stars detected", len(sky.stars))
+    if index is None:
+        index = clock.setup(_process_index)
+    projections = None if opts.projection == "auto" else [opts.projection]
+    id_config = _pyramid_config(opts.algorithm, opts.max_triads)
+    tried, done = 0, []
+    for parity in order:
+        if done and clock.expired():
+            break
+        done.append(parity)
+        search_list = sky.stars if parity == "normal" else mirror_stars(sky.stars, (w - 1) / 2.0)
+        remaining = max(1.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s))
+        sky_opts = AllSkyOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
+                                 timeout_s=min(2.0, remaining))
+        cam, info = propose_camera(search_list, w, h, index, databases.catalog, sky_opts,
+                                   deadline=time.perf_counter() + remaining, projections=projections)
+        tried += 1
+        if cam is None:
+            log.info("all-sky search, %s parity: %s", parity, info)
+            continue
+        params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
+                                max_false_probability=opts.max_false_probability)
+        result, n = _identify_in_band(search_list, cam, _band_of(min(cam.fov_deg)), databases, opts.algorithm,
+                                      params, clock, id_config)
+        tried += n
+        if result is not None:
+            info = {"projection": cam.projection, **info}
+            return (result, sky, search_list, parity, info), tried, done
+        log.info("all-sky search, %s parity: the %s camera proposed (f %.1f px) gave no verified identification",
+                 parity, cam.projection, cam.focal_length_px)
+    return None, tried, done
 
 
 def _failed(reason, code, t0, stars=None, centroid=None, **kw):

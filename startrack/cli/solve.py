@@ -375,6 +375,11 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
                    "Default: the Hipparcos index, then, when it finds nothing and the field may be under 3 deg, "
                    "the Gaia one (with the extra; first when --fov-deg is under 3).")
 @parity_option
+@click.option("--projection", type=click.Choice(["auto", "pinhole", "equidistant", "equisolid", "stereographic",
+                                                 "orthographic"]), default="auto", show_default=True,
+              help="The lens of a blind solve: auto tries a pinhole (fields to about 70 deg), then an all-sky or "
+                   "fisheye frame (100-200 deg) with its projection and distortion fitted; pinhole: the first only; "
+                   "a fisheye projection: the all-sky search with that projection.")
 @calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
 @resume_option
@@ -382,12 +387,13 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
 @handle_errors
 def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, hint_ra, hint_dec, hint_radius,
             target_pixels, target_radec, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
-            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, catalog, parity, bias,
-            dark, flat, output, resume, quiet):
+            timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, catalog, parity,
+            projection, bias, dark, flat, output, resume, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
-    process.  The field of view may be unknown (about 2 to 70 degrees): a
+    process.  The field of view may be unknown (about 2 to 70 degrees, and
+    all-sky or fisheye frames of about 100 to 200 degrees: --projection): a
     scale-free index of 4-star patterns, built once from the shipped catalog
     and cached (in $STARTRACK_CACHE, else ~/.cache/startrack; see `startrack
     cache`), identifies the stars and measures the focal length (and, for
@@ -420,6 +426,10 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
     a star, and astrometry.net's corr and axy tables):
       startrack solve sky.tiff --ra 280 --dec 30 --radius 10 --scale-low 8 --scale-high 15 \\
         --target-pixel 100,200 --target-radec 279.23,38.78 --corr-out sky.corr.fits --axy-out sky.axy > sky.json
+    \b
+    Example (an all-sky camera's frame: the projection, focal length and distortion fitted, an ARC/ZEA/STG/SIN
+    or ZPN WCS written):
+      startrack solve allsky.png --wcs allsky.wcs.fits | jq -c .camera
     """
     import os
 
@@ -451,7 +461,8 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
         raise BadInputError(" ".join(missing), None, "is needed too: --ra, --dec and --radius go together")
     options = SolveOptions(fov_deg=fov_deg, fov_tolerance=fov_tolerance, timeout_s=timeout_s, epoch=epoch,
                            parity=parity, ra_deg=hint_ra, dec_deg=hint_dec, radius_deg=hint_radius,
-                           target_pixels=tuple(target_pixels), target_radec=tuple(target_radec), catalog=catalog)
+                           target_pixels=tuple(target_pixels), target_radec=tuple(target_radec), catalog=catalog,
+                           projection=projection)
     scale = (scale_low, scale_high, scale_units)
     frames = None
     if bias or dark or flat:

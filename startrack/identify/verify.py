@@ -41,8 +41,18 @@ def _binomial_sf(m: int, n: int, p: float) -> float:
     if m > n:
         return 0.0
     total = 0.0
+    if n <= 1000:
+        for k in range(m, n + 1):
+            total += math.comb(n, k) * p**k * (1 - p) ** (n - k)
+        return min(1.0, total)
+    # Beyond ~1000 stars (an all-sky frame) the coefficient overflows a float: its logarithm instead.
+    if p <= 0.0:
+        return 0.0
+    if p >= 1.0:
+        return 1.0
+    lp, lq, lgn = math.log(p), math.log1p(-p), math.lgamma(n + 1)
     for k in range(m, n + 1):
-        total += math.comb(n, k) * p**k * (1 - p) ** (n - k)
+        total += math.exp(lgn - math.lgamma(k + 1) - math.lgamma(n - k + 1) + k * lp + (n - k) * lq)
     return min(1.0, total)
 
 
