@@ -36,7 +36,10 @@ def command(input, output, fit, projection, catalog, quiet):
       startrack calibrate solved.jsonl -o lens.json
       startrack solve photos/*.tiff --camera lens.json > solved2.jsonl
     \b
-    Example (an all-sky camera: which projection, and its distortion):
+    Example (an all-sky camera, rendered here: which projection, and its distortion):
+      startrack render --projection equisolid --fov-deg 160 --size 640x640 --ra 30 --dec 50 --mag-max 5.5 \\
+          --seed 1 -o allsky.png > allsky.json
+      startrack solve allsky.png > allsky-solved.jsonl
       startrack calibrate allsky-solved.jsonl --projection auto -o allsky-lens.json
     """
     import json

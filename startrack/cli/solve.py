@@ -427,8 +427,10 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
       startrack solve sky.tiff --ra 280 --dec 30 --radius 10 --scale-low 8 --scale-high 15 \\
         --target-pixel 100,200 --target-radec 279.23,38.78 --corr-out sky.corr.fits --axy-out sky.axy > sky.json
     \b
-    Example (an all-sky camera's frame: the projection, focal length and distortion fitted, an ARC/ZEA/STG/SIN
-    or ZPN WCS written):
+    Example (an all-sky camera's frame, rendered here: the projection, focal length and distortion fitted, an
+    ARC/ZEA/STG/SIN or ZPN WCS written):
+      startrack render --projection equidistant --fov-deg 180 --size 640x640 --ra 80 --dec 40 --mag-max 5.5 \\
+          --horizon random --seed 5 -o allsky.png > allsky.json
       startrack solve allsky.png --wcs allsky.wcs.fits | jq -c .camera
     """
     import os
