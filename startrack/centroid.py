@@ -374,9 +374,11 @@ def _workspace(shape, max_blobs):
     ws = getattr(_WORKSPACE, "buffers", None)
     if ws is None or ws["shape"] != shape or ws["table"].shape[0] < max_blobs + 1:
         h, w = shape
+        # Labels in uint16 (max_blobs < 65535): 2 bytes a pixel, not 4 (an 8000 x 6000 frame's scratch is then
+        # 370 MB, not 470: issue 41).
         ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32), "mask": np.empty(shape, dtype=np.uint8),
-              "labels": np.zeros(shape, dtype=np.int32), "table": np.empty((max_blobs + 1, 16)),
-              "stack": np.empty(min(h * w, 4_000_000), dtype=np.int64)}
+              "labels": np.zeros(shape, dtype=np.uint16 if max_blobs < 65535 else np.int32),
+              "table": np.empty((max_blobs + 1, 16)), "stack": np.empty(min(h * w, 4_000_000), dtype=np.int64)}
         _WORKSPACE.buffers = ws
     return ws
 

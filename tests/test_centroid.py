@@ -328,3 +328,23 @@ def test_mesh_paths_agree_with_pixels_without_value():
     assert np.isnan(level[:, 0]).all() and np.isfinite(level[:3, 1:4]).all()
     assert (counts[np.isnan(level.ravel())] < MIN_TILE_SAMPLES).all()
     assert abs(np.nanmedian(level) - 50) < 1
+
+
+def test_scratch_memory_per_pixel_is_bounded():
+    """The per-frame scratch of find_stars is 7 bytes a pixel (residual float32, mask uint8, labels uint16; issue
+    41: an 8000 x 6000 frame's was 470 MB at 9 bytes a pixel with int32 labels), and the labels still hold every
+    blob id (max_blobs < 65535)."""
+    import startrack.centroid as c
+
+    rng = np.random.default_rng(41)
+    img = rng.normal(100.0, 5.0, (300, 400)).astype(np.float32)
+    yy, xx = np.mgrid[0:300, 0:400]
+    for x0, y0 in rng.uniform(10, 290, (40, 2)):
+        img += 400.0 * np.exp(-((xx - x0 - 50) ** 2 + (yy - y0) ** 2) / 4.5)
+    res = c.find_stars(img)
+    assert len(res.stars) >= 30
+    ws = c._WORKSPACE.buffers
+    full = [a for a in ws.values() if isinstance(a, np.ndarray) and a.shape == img.shape]
+    assert {a.dtype for a in full} == {np.dtype(np.float32), np.dtype(np.uint8), np.dtype(np.uint16)}
+    assert sum(a.nbytes for a in full) / img.size <= 7
+    assert ws["table"].shape[0] - 1 < np.iinfo(ws["labels"].dtype).max

@@ -386,7 +386,8 @@ def label_blobs(residual, mask, image, saturation, max_blobs):
 def label_blobs_into(residual, mask, image, saturation, max_blobs, labels, table, stack):
     """:func:`label_blobs` into caller-owned buffers, returning ``n``.
 
-    ``labels`` (int32, the image's shape) must be all zero on entry; ``table``
+    ``labels`` (the image's shape; an integer type holding ``max_blobs``: uint16 below 65535) must be all zero
+    on entry; ``table``
     needs ``max_blobs + 1`` rows (each row is cleared when its blob is found);
     ``stack`` is scratch.  Reusing the buffers across frames avoids faulting
     ~10 MB of fresh pages per 1024 x 1024 frame.
