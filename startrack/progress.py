@@ -23,10 +23,13 @@ class ProgressBar:
         No bar at all.
     stream : file, optional
         Where to draw (default stderr); a bar is drawn only when it is a terminal.
+    unit : str, optional
+        What is counted (``"frame"``): the bar then shows frames per second.
     """
 
-    def __init__(self, label: str, quiet: bool = False, stream=None):
+    def __init__(self, label: str, quiet: bool = False, stream=None, unit: str = ""):
         self.stream = stream or sys.stderr
+        self.unit = unit
         self.enabled = not quiet and hasattr(self.stream, "isatty") and self.stream.isatty()
         self.label = label
         self._bar = None
@@ -37,7 +40,7 @@ class ProgressBar:
         if self._bar is None:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total, desc=self.label, file=self.stream, unit="", leave=True,
+            self._bar = tqdm(total=total, desc=self.label, file=self.stream, unit=self.unit, leave=True,
                              dynamic_ncols=True, mininterval=0.1)
         if total != self._bar.total:
             self._bar.total = total

@@ -110,7 +110,8 @@ def _legacy_json_path(ctx, args):
 @click.option("--resume", is_flag=True,
               help="Go on from the checkpoint (-o FILE's FILE.partial.json) that a run cut short left, with the same "
                    "options; the frames are the same, so the rows are those of an uninterrupted run (times aside).")
-@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG chart: success and time vs condition.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="Chart (.png, .pdf or .svg): success with its 95 % interval, and time, against the condition.")
 @click.option("--accuracy", is_flag=True,
               help="Instead: render --count images (stars to --mag-max + 1) and report the attitude error against "
                    "each frame's Cramér-Rao bound, per axis, and NEES (identification by the first database and "
@@ -125,8 +126,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     """Compare identification algorithms over random attitudes, as the papers do.
 
     Every combination of the comma-separated condition values is one row per
-    algorithm: success rate, ID failures, bad matches, mean / median / 95th
-    percentile time.  Each condition uses the same attitudes (the same --seed)
+    algorithm: success rate and its Wilson 95 % interval, ID failures, bad
+    matches and the interval of their rate, mean / median / 95th percentile
+    time.  The progress bar counts frames and shows the time left.  Each condition uses the same attitudes (the same --seed)
     for every algorithm.  Bad matches are listed with the frame seed that
     reproduces them.
 
@@ -152,7 +154,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     from startrack.catalog import load_catalog
     from startrack.errors import BadInputError
-    from startrack.evaluate import conditions_grid, evaluate, summarise
+    from startrack.evaluate import conditions_grid, evaluate, summarise, with_intervals
     from startrack.formats.atomic import atomic_open, check_writable
     from startrack.identify import IdentifyParams
     from startrack.plot import plot_results
@@ -167,6 +169,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
     for path in (csv_path, None if output == "-" else output, plot):
         if path:
             check_writable(path)
+    from startrack.imageio import check_plot_output
+
+    check_plot_output(plot)
     loaded = {}
     for path in databases:
         tag = _peek_format(path)
@@ -230,7 +235,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, None if output == "-" else output,
                   quiet)
         return
-    bar = ProgressBar("evaluate", quiet)
+    # One step per identified frame (each algorithm's), so the bar moves within a condition and shows the
+    # rate and the time left (tqdm's ETA), not a jump from 0 to 100 % at the end of each condition.
+    bar = ProgressBar("evaluate", quiet, unit=" frame")
     saved = _Checkpoint(None if output == "-" else output, resume, seed, {
         "count": count, "camera": cam.to_dict(), "mag_limit": lim, "databases": [os.path.abspath(d) for d in databases],
         "catalog": catalog, "algorithms": algos, "conditions": [dataclasses.asdict(c) for c in conds],
@@ -258,7 +265,8 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
                         f"{b['wrong']}")
     from dataclasses import asdict
 
-    meta = {"seed": seed, "count": count, "camera": cam.to_dict(), "mag_limit": lim,
+    rows = [with_intervals(r) for r in rows]        # rows of a checkpoint written before the intervals
+    meta = {"seed": seed, "count": count, "camera": cam.to_dict(), "mag_max": lim,
             "databases": list(databases), "settings": {a: asdict(c) for a, c in configs.items()}}
     from startrack._version import __version__
 
