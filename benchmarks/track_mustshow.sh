@@ -45,8 +45,8 @@ run() {  # name, render options...
     $ST track --database "$W/db.h5" < "$W/$name.jsonl" > "$W/$name-track.jsonl" || rc=$?
     echo "  exit status $rc"
     summary "$W/$name-track.jsonl"
-    echo "+ startrack plot --kind track -o $W/$name-track.png < $W/$name-track.jsonl"
-    $ST plot --kind track -o "$W/$name-track.png" -q < "$W/$name-track.jsonl"
+    echo "+ startrack plot --kind track -o $W/$name-track.png --json < $W/$name-track.jsonl"
+    $ST plot --kind track -o "$W/$name-track.png" --json -q < "$W/$name-track.jsonl"
 }
 
 run seq --frames 60 --rate-deg-s 0.3,-0.2,0.5 --frame-interval-s 0.1 --seed 1

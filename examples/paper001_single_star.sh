@@ -31,7 +31,7 @@ $ST render "${SEQ[@]}" --exposure-ms 0.2 -o "$W/short/frame.png" -q > "$W/short.
   sed -n "$((2 * N + 1)),$((3 * N))p" "$W/long.jsonl"; } > "$W/sequence.jsonl"
 $ST track "$W/sequence.jsonl" -d "$W/db.h5" -q > "$W/track.jsonl" || [ $? -eq 1 ]
 $ST plot "$W/track.jsonl" --kind track --title "paper 001: one star in frames $N-$((2 * N - 1))" \
-    -o "$OUT/track-single-star.png" -q > "$W/summary.json"
+    -o "$OUT/track-single-star.png" --json -q > "$W/summary.json"
 $PY - "$W/track.jsonl" "$W/summary.json" "$OUT/track-single-star.json" "$N" <<'EOF'
 import json
 import sys

@@ -26,7 +26,7 @@ $ST render --fov-deg 12 --size 1024x768 --frames 40 --rate-deg-s 0.3,-0.2,0.2 --
     --blackout 20:5 --seed 1 -o "$WORK/seq/frame.png" -q > "$WORK/seq.jsonl"
 $ST track -d "$WORK/db12.h5" -q < "$WORK/seq.jsonl" > "$WORK/track.jsonl" || [ $? -eq 1 ]
 $ST plot "$WORK/track.jsonl" --kind track --title "tracking at 0.4 deg/s, frames 20-24 black" \
-    -o "$OUT/picture-track.png" -q > /dev/null
+    -o "$OUT/picture-track.png" -q
 # evaluate: success rate and time of three algorithms against false stars (paper 003's sensor)
 $ST build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.0 -o "$WORK/p003.h5" -q
 $ST evaluate -d "$WORK/p003.h5" -a pyramid,voting,brightness --fov-deg 20 --size 1024x1024 --mag-max 5 \

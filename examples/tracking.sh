@@ -17,11 +17,11 @@ $ST render --fov-deg 12 --size 1024x768 --ra 120 --dec 30 --roll 15 --frames "$N
     -o "$W/slow/frame.png" -q > "$W/slow.jsonl"
 $ST track "$W/slow.jsonl" -d "$W/track-db.h5" -q > "$W/slow-track.jsonl" || [ $? -eq 1 ]
 $ST plot "$W/slow-track.jsonl" --kind track --title "0.5 deg/s, 10 black frames" -o examples/track-0.5deg-s.png \
-    -q > "$R/track-0.5deg-s.json"
+    --json -q > "$R/track-0.5deg-s.json"
 $ST render --fov-deg 12 --size 1024x768 --ra 250 --dec -20 --roll -40 --frames "$N" --rate-deg-s 0.0,3.0,0.0 \
     --frame-interval-s 0.1 --time 2026-11-21T22:00:00Z --mag-max 7 --exposure-ms 20 --seed 22 \
     -o "$W/slew/frame.png" -q > "$W/slew.jsonl"
 $ST track "$W/slew.jsonl" -d "$W/track-db.h5" -q > "$W/slew-track.jsonl" || [ $? -eq 1 ]
 $ST plot "$W/slew-track.jsonl" --kind track --title "3 deg/s slew, 5 px smear" -o examples/track-3deg-s-slew.png \
-    -q > "$R/track-3deg-s-slew.json"
+    --json -q > "$R/track-3deg-s-slew.json"
 echo "results in $R and examples/track-*.png"

@@ -39,17 +39,20 @@ def check_image_output(path: str) -> str:
     return ext
 
 
-PLOT_EXTENSIONS = (".png",)
+#: Picture formats, by the output's suffix: PNG (raster), PDF and SVG (charts as vectors; an annotated image as
+#: its raster with the drawing on it, embedded at one image pixel per point).
+PLOT_EXTENSIONS = (".png", ".pdf", ".svg")
 
 
 def check_plot_output(path: str | None) -> None:
-    """Refuse a picture name that is not ``.png`` (pictures are PNG: no PNG named ``.txt``)."""
+    """Refuse a picture name that is not ``.png``, ``.pdf`` or ``.svg`` (the format follows the name: no PNG
+    named ``.txt``)."""
     if path is None:
         return
     ext = os.path.splitext(path)[1].lower()
     if ext not in PLOT_EXTENSIONS:
-        raise BadInputError(path, None, f"unknown picture extension {ext or '(none)'!r}: pictures are PNG, "
-                            "name it .png")
+        raise BadInputError(path, None, f"unknown picture extension {ext or '(none)'!r}: pictures are PNG, PDF "
+                            "or SVG, name it .png, .pdf or .svg")
     check_writable(path)
 
 

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-__all__ = ["stretch", "annotate_stars"]
+__all__ = ["stretch", "annotate_stars", "annotate_solution", "picture_format", "plot_results", "write_preview"]
 
 
 # One marker vocabulary for every annotated picture (BGR colours for OpenCV), explained by
@@ -18,6 +18,7 @@ MARKERS = {
     "detected": ((175, 175, 175), "detected"),
     "predicted": ((255, 170, 60), "catalog star predicted"),
     "rejected": ((70, 70, 255), "rejected (hot pixel, trail)"),
+    "constellation": ((200, 110, 230), "constellation figure"),
 }
 _LABEL = (120, 240, 255)
 _PANEL = (34, 30, 28)
@@ -52,6 +53,19 @@ def stretch(image: np.ndarray) -> np.ndarray:
     x = np.clip((img - lo) / (hi - lo), 0.0, 1.0)
     y = AsinhStretch(a=0.02)(x, clip=True)
     return np.clip(y * 255.0, 0, 255).astype(np.uint8)
+
+
+def write_preview(path: str, image: np.ndarray) -> None:
+    """An 8-bit PNG of ``image`` stretched for people (:func:`stretch`): a 16-bit frame whose stars use a
+    few per cent of the range looks black in an ordinary viewer.  Written atomically."""
+    import cv2
+
+    from startrack.errors import BadInputError
+    from startrack.formats.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(tmp, stretch(image), [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+            raise BadInputError(path, None, "could not write the PNG")
 
 
 class _Picture:
@@ -95,7 +109,8 @@ class _Picture:
             self.occupied.append((c[0] - r, c[1] - r, c[0] + r, c[1] + r))
         return c
 
-    def label(self, text: str, centre: tuple[int, int], radius: float) -> tuple[int, int, int, int] | None:
+    def label(self, text: str, centre: tuple[int, int], radius: float,
+              colour: tuple = _LABEL) -> tuple[int, int, int, int] | None:
         """Place ``text`` beside a marker: inside the image, over no other label or identified star."""
         tw, th = self.text_size(text)
         r = int(round(radius * self.scale)) + 3
@@ -123,17 +138,26 @@ class _Picture:
         x0, y0 = best
         box = (x0, y0 - th, x0 + tw, y0)
         self.occupied.append(box)
-        self.labels.append((text, (x0, y0)))
+        self.labels.append((text, (x0, y0), colour))
         return box
 
     def draw_labels(self) -> None:
         cv2 = self.cv2
-        for text, (x0, y0) in self.labels:
+        for text, (x0, y0), colour in self.labels:
             # A dark outline keeps the label readable over stars and bright sky.
             cv2.putText(self.canvas, text, (x0, y0 - 3), self.font, self.font_scale, (0, 0, 0), self.thick + 2,
                         cv2.LINE_AA)
-            cv2.putText(self.canvas, text, (x0, y0 - 3), self.font, self.font_scale, _LABEL, self.thick,
+            cv2.putText(self.canvas, text, (x0, y0 - 3), self.font, self.font_scale, colour, self.thick,
                         cv2.LINE_AA)
+
+    def polyline(self, points: np.ndarray, colour: tuple) -> None:
+        """A line through ``points`` (image x, y), clipped to the image."""
+        cv2 = self.cv2
+        pts = np.round(np.asarray(points, dtype=float)).astype(np.int64)
+        for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:]):
+            ok, p0, p1 = cv2.clipLine((0, 0, self.w, self.h), (int(x0), int(y0)), (int(x1), int(y1)))
+            if ok:
+                cv2.line(self.canvas, p0, p1, colour, self.thick, cv2.LINE_AA)
 
     def panel(self, lines: list[str], kinds: list[str], compass=None) -> None:
         """Text lines, the legend of the markers used and the compass, on the panel below the image."""
@@ -153,6 +177,9 @@ class _Picture:
                 cv2.circle(self.canvas, c, r, colour, self.thick + (kind == "identified"), lineType=cv2.LINE_AA)
             elif kind == "predicted":
                 cv2.rectangle(self.canvas, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r), colour, self.thick)
+            elif kind == "constellation":
+                cv2.line(self.canvas, (c[0] - r, c[1] + r // 2), (c[0] + r, c[1] - r // 2), colour, self.thick,
+                         cv2.LINE_AA)
             else:
                 cv2.drawMarker(self.canvas, c, colour, cv2.MARKER_TILTED_CROSS, 2 * r, self.thick + 1)
             cv2.putText(self.canvas, words, (x + int(20 * self.scale), y), self.font, self.font_scale, _TEXT,
@@ -181,14 +208,37 @@ class _Picture:
                         self.font_scale, colour, self.thick, cv2.LINE_AA)
 
     def save(self, path: str) -> None:
+        """Write the picture: PNG, or PDF/SVG (by the suffix) holding the same raster at one pixel per point."""
         from startrack.errors import BadInputError
         from startrack.formats.atomic import atomic_path
 
         self.draw_labels()
+        fmt = picture_format(path)
+        if fmt != "png":
+            fig = _figure(figsize=(self.canvas.shape[1] / 72.0, self.canvas.shape[0] / 72.0), dpi=72)
+            ax = fig.add_axes((0, 0, 1, 1))
+            ax.imshow(self.canvas[:, :, ::-1], interpolation="nearest")    # OpenCV's BGR -> RGB
+            ax.set_axis_off()
+            _save(fig, path)
+            return
         with atomic_path(path, suffix=".png") as tmp:
             # zlib's best level: a third smaller than the default for a noisy sky, and still lossless
             if not self.cv2.imwrite(tmp, self.canvas, [self.cv2.IMWRITE_PNG_COMPRESSION, 9]):
                 raise BadInputError(path, None, "could not write the PNG")
+
+
+def picture_format(path: str) -> str:
+    """``"png"``, ``"pdf"`` or ``"svg"`` from the picture's suffix; any other is refused, naming the file."""
+    import os
+
+    from startrack.errors import BadInputError
+    from startrack.imageio import PLOT_EXTENSIONS
+
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext not in PLOT_EXTENSIONS:
+        raise BadInputError(str(path), None, f"unknown picture extension {ext or '(none)'!r}: pictures are PNG, PDF "
+                                             "or SVG, name it .png, .pdf or .svg")
+    return ext[1:]
 
 
 def _overlap(a, b) -> float:
@@ -256,12 +306,14 @@ def _figure(**kwargs):
 
 
 def _save(fig, path):
-    import os
-
+    """Write a matplotlib figure atomically, in the format of its suffix (PNG, PDF or SVG)."""
     from startrack.formats.atomic import atomic_path
 
-    with atomic_path(path, suffix=os.path.splitext(path)[1] or ".png") as tmp:
-        fig.savefig(tmp, format="png")
+    fmt = picture_format(path)
+    with atomic_path(path, suffix="." + fmt) as tmp:
+        # no creation date in PDF/SVG: the same figure gives the same file
+        metadata = {"CreationDate": None} if fmt == "pdf" else {"Date": None} if fmt == "svg" else None
+        fig.savefig(tmp, format=fmt, metadata=metadata)
 
 
 def plot_track_errors(docs: list, path: str, title: str = "") -> dict:
@@ -393,10 +445,15 @@ def plot_residuals(doc: dict, path: str, scale: float = 200.0) -> None:
     _save(fig, path)
 
 
-def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: float | None = None) -> None:
+def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: float | None = None,
+                      constellations: bool = False) -> None:
     """The picture of a solved frame: detections, identified stars labelled (HIP and proper name), catalog
     stars predicted from the attitude (at the attitude's epoch), a north/east compass and the boresight
-    coordinates, in the vocabulary of :data:`MARKERS`."""
+    coordinates, in the vocabulary of :data:`MARKERS`.
+
+    With ``constellations``, the stick figures of :mod:`startrack.constellations` (the shipped table) are
+    drawn beneath the markers, with the constellations' names.  ``path`` is PNG, PDF or SVG by its suffix.
+    """
     from startrack.camera import Camera
     from startrack.catalog import load_catalog
     from startrack.names import star_label
@@ -415,10 +472,13 @@ def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: floa
         if mag_limit is not None:
             cat = cat.filter_magnitude(None, mag_limit)
         a = _attitude_matrix(att)
+        mirrored = (doc.get("solve") or {}).get("parity") == "mirrored"
+        if constellations:
+            _draw_constellations(pic, cat, a, cam, mirrored)
+            kinds.append("constellation")
         cam_vec = cat.vectors() @ a.T
         front = cam_vec[:, 2] > 0
         x, y = cam.vectors_to_pixels(cam_vec[front])
-        mirrored = (doc.get("solve") or {}).get("parity") == "mirrored"
         if mirrored:
             x = 2.0 * cam.cx - x            # the image is the camera's flipped (startrack.parity)
         inside = cam.in_image(x, y)
@@ -443,6 +503,22 @@ def annotate_solution(path: str, image, doc: dict, catalog=None, mag_limit: floa
         title += f" ({ident['algorithm']})"
     pic.panel([title] + lines, ["identified", "detected"] + kinds, compass)
     pic.save(path)
+
+
+def _draw_constellations(pic, catalog, a, cam, mirrored: bool) -> None:
+    """The stick figures and names of the constellations in view, beneath everything else."""
+    from startrack.constellations import figure_segments_in_image, load_figures
+
+    colour = MARKERS["constellation"][0]
+    for figure, polylines, where in figure_segments_in_image(load_figures(), catalog, a, cam):
+        for pts in polylines:
+            if mirrored:
+                pts = np.column_stack([2.0 * cam.cx - pts[:, 0], pts[:, 1]])
+            pic.polyline(pts, colour)
+        x = 2.0 * cam.cx - where[0] if mirrored else where[0]
+        x = float(min(max(x, 0.0), cam.width - 1.0))
+        y = float(min(max(where[1], 0.0), cam.height - 1.0))
+        pic.label(figure.name.upper(), (int(round(x)), int(round(y))), 0.0, colour)
 
 
 def _attitude_matrix(att: dict) -> np.ndarray:
@@ -478,18 +554,51 @@ def _north_east_in_image(a: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
+#: A success panel whose every interval lies above this is drawn on a broken axis (0 and the data's band);
+#: below it, on one axis from 0 to 100 %.
+BROKEN_AXIS_ABOVE = 0.8
+
+
+def success_axis_range(lows) -> tuple[float, float] | None:
+    """The band (per cent) a broken success axis shows above its stub at 0, or None for one zero-based axis.
+
+    The band holds every Wilson interval with a margin of a tenth of its span, widened to at least
+    1 percentage point (so 99.9 % and 99.8 % are told apart without looking like 0 and 100), its
+    bottom rounded down to a tick of the span's order, and it ends at 100 %.  None when any interval
+    reaches below :data:`BROKEN_AXIS_ABOVE`: then the whole axis from 0 is drawn.
+    """
+    lows = [v for v in lows if v == v]
+    if not lows or min(lows) < BROKEN_AXIS_ABOVE:
+        return None
+    lo = 100.0 * min(lows)
+    span = max(1.0, 1.1 * (100.0 - lo))
+    step = 10 ** math.floor(math.log10(span)) / 2
+    bottom = max(100.0 * BROKEN_AXIS_ABOVE, math.floor((100.0 - span) / step) * step)
+    return bottom, 100.0
+
+
 def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -> str:
-    """Success rate and median time against the swept condition, one line per algorithm.
+    """Success rate (with its Wilson 95 % interval) and median time against the swept condition, one line per
+    algorithm.
+
+    The success axis does not exaggerate: it runs from 0 to 100 %, or, when every interval lies above
+    :data:`BROKEN_AXIS_ABOVE`, it is drawn broken (:func:`success_axis_range`): a stub at 0, break marks,
+    and the band the intervals occupy, so 99.9 % never looks like a crash.
 
     Parameters
     ----------
     rows : list of dict
-        :func:`startrack.evaluate.summarise` rows (``algorithm``, ``success_rate``, ``median_ms``, conditions).
+        :func:`startrack.evaluate.evaluate` rows (``algorithm``, ``success``, ``frames``, ``success_rate``,
+        ``median_ms``, conditions); rows without their intervals get them from their counts.
     path : str
-        The PNG to write (atomically).
+        The picture to write (atomically): PNG, PDF or SVG by its suffix.
     x_field : str, optional
         The swept condition (default: the first that varies).
     """
+    from startrack.evaluate import with_intervals
+
+    picture_format(path)
+    rows = [with_intervals(r) for r in rows]
     fields = ["false_stars", "focal_error_pct", "sigma_arcsec" if rows and rows[0].get("sigma_arcsec") is not None
               else "sigma_px", "mag_noise", "drop_fraction", "min_stars"]
     if x_field is None:
@@ -498,10 +607,14 @@ def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -
              "sigma_px": "centroid noise (px, 1 sigma)", "sigma_arcsec": "centroid noise (arcsec, 1 sigma)",
              "mag_noise": "magnitude noise (mag)",
              "drop_fraction": "fraction of stars dropped", "min_stars": "minimum stars per frame"}
-    from matplotlib.ticker import MaxNLocator, NullFormatter, ScalarFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
-    fig = _figure(figsize=(11, 4.6), dpi=110)
-    ax1, ax2 = fig.subplots(1, 2)
+    fig = _figure(figsize=(11, 4.8), dpi=110)
+    band = success_axis_range([r["success_rate_low"] for r in rows])
+    grid = fig.add_gridspec(2, 2, height_ratios=(7, 1), hspace=0.05, wspace=0.25)
+    ax1 = fig.add_subplot(grid[0, 0] if band else grid[:, 0])
+    stub = fig.add_subplot(grid[1, 0], sharex=ax1) if band else None
+    ax2 = fig.add_subplot(grid[:, 1])
     algorithms = list(dict.fromkeys(r["algorithm"] for r in rows))
     styles = ["-", "--", "-.", ":"]
     markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
@@ -515,21 +628,44 @@ def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -
         xs = [r[x_field] + shift for r in sub]
         style = dict(marker=markers[k % len(markers)], linestyle=styles[k % len(styles)], label=algorithm,
                      markersize=5, linewidth=1.4, alpha=0.9)
-        ax1.plot(xs, [100 * r["success_rate"] for r in sub], **style)
+        rate = [100 * r["success_rate"] for r in sub]
+        err = [[100 * (r["success_rate"] - r["success_rate_low"]) for r in sub],
+               [100 * (r["success_rate_high"] - r["success_rate"]) for r in sub]]
+        for ax in (ax1, stub) if stub is not None else (ax1,):
+            ax.errorbar(xs, rate, yerr=err, capsize=3, elinewidth=1.0, **style)
         ax2.plot(xs, [r["median_ms"] for r in sub], **style)
     integer = x_field in ("false_stars", "min_stars")
-    for ax in (ax1, ax2):
+    for ax in (stub if stub is not None else ax1, ax2):
         ax.set_xlabel(names.get(x_field, x_field))
         if integer:
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         else:
             ax.set_xticks(values)
-    ax1.set_ylabel("success rate (%)")
+    ax1.set_ylabel("success rate (%), 95 % interval")
     ax1.grid(alpha=0.3)
-    ax1.legend(fontsize=8)
+    ax1.legend(fontsize=8, loc="lower left")
+    if band is None:
+        ax1.set_ylim(0, 102)
+    else:
+        ax1.set_ylim(band[0], band[1] + 0.02 * (band[1] - band[0]))
+        stub.set_ylim(0, 1.02 * (band[1] - band[0]) / 7)     # the stub: zero, at the band's scale
+        stub.set_yticks([0])
+        stub.grid(alpha=0.3)
+        ax1.tick_params(labelbottom=False, bottom=False)
+        ax1.spines["bottom"].set_visible(False)
+        stub.spines["top"].set_visible(False)
+        # break marks across both axes' y spines (matplotlib's broken-axis idiom)
+        mark = dict(marker=[(-1, -0.5), (1, 0.5)], markersize=10, linestyle="none", color="k", mec="k", mew=1,
+                    clip_on=False)
+        ax1.plot([0, 1], [0, 0], transform=ax1.transAxes, **mark)
+        stub.plot([0, 1], [1, 1], transform=stub.transAxes, **mark)
+        ax1.text(0.99, 0.02, f"axis broken: 0 to {band[0]:g} % left out", transform=ax1.transAxes, ha="right",
+                 va="bottom", fontsize=8, color="0.3")
     ax2.set_ylabel("median identification time (ms)")
     ax2.set_yscale("log")
-    ax2.yaxis.set_major_formatter(ScalarFormatter())
+    # 1-2-5 ticks with plain numbers: a range within one decade still has labels
+    ax2.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax2.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
     ax2.yaxis.set_minor_formatter(NullFormatter())
     ax2.grid(alpha=0.3, which="both")
     n = rows[0]["frames"] if rows else 0
@@ -537,6 +673,6 @@ def plot_results(rows, path: str, x_field: str | None = None, title: str = "") -
              rows[0].get(f) and len({r[f] for r in rows}) == 1]
     conditions = f"{n:,} random attitudes per point" + (f"; {', '.join(fixed)}" if fixed else "")
     fig.suptitle(f"{title}\n{conditions}" if title else conditions, fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.12, top=0.86)
     _save(fig, path)
     return path

@@ -155,7 +155,7 @@ def outputs(tmp_path_factory):
     track = st("track", "-d", p("db12.h5"), "-q", input=seq, ok=(0, 1))
     with open(p("track.jsonl"), "w") as fh:
         fh.write(track)
-    out["plot --kind track"] = _docs(st("plot", p("track.jsonl"), "--kind", "track", "-o", p("t.png"), "-q"))
+    out["plot --kind track"] = _docs(st("plot", p("track.jsonl"), "--kind", "track", "-o", p("t.png"), "--json", "-q"))
     solve = st("solve", os.path.join(ROOT, "examples", "data", "sky.tiff"), "--wcs", p("s.wcs.fits"),
                "--plot", p("s.png"), "--fits-out", p("s.fits"), "--matches-out", p("s.csv"), "--corr-out",
                p("s.corr.fits"), "--axy-out", p("s.axy"), "--ra", "286", "--dec", "29", "--radius", "5",
