@@ -190,14 +190,23 @@ class StreamNames:
 
 
 def resolve_image_path(rec) -> None:
-    """Make a relative ``image.path`` of a document read from a file resolve against that file's directory."""
+    """Make a relative ``image.path`` of a document read from a file resolve against that file's directory.
+
+    A relative path stays relative (now to the current directory), so the document this command writes
+    names its image relative to its own directory again (:class:`~startrack.formats.frame.FrameWriter`).
+    """
     from startrack.formats.frame import resolve_path
 
     doc = rec.doc
     if rec.base_dir and isinstance(doc, dict) and isinstance(doc.get("image"), dict):
         path = doc["image"].get("path")
-        if isinstance(path, str) and path:
-            doc["image"]["path"] = resolve_path(path, rec.base_dir)
+        if isinstance(path, str) and path and path != "-" and not os.path.isabs(path):
+            resolved = resolve_path(path, rec.base_dir)
+            try:
+                resolved = os.path.relpath(resolved)
+            except ValueError:      # another drive (Windows): keep it absolute
+                pass
+            doc["image"]["path"] = resolved
 
 
 def run_frames(input_path: str, output: str, section: str, process, quiet: bool, label: str,

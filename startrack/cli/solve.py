@@ -383,12 +383,15 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
 @calibration_frame_options
 @output_option("Frame documents (JSON Lines).")
 @resume_option
+@click.option("--retry-failed", is_flag=True,
+              help="With --resume: solve again the images whose document in the -o file failed; the file is "
+                   "rewritten (atomically) without them and their new documents are appended.")
 @quiet_option
 @handle_errors
 def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, hint_ra, hint_dec, hint_radius,
             target_pixels, target_radec, camera_file, epoch, obs_time, velocity_km_s, no_aberration, utc_offset,
             timeout_s, jobs, scheduler, wcs_path, plot, fits_out, matches_out, corr_out, axy_out, catalog, parity,
-            projection, bias, dark, flat, output, resume, quiet):
+            projection, bias, dark, flat, output, resume, retry_failed, quiet):
     """Solve night-sky photographs with no other input.
 
     Each image is centroided, identified and its attitude solved in one
@@ -415,6 +418,9 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
     Example (on a Dask cluster: 'local' here, or tcp://HOST:8786 for a running `dask scheduler`;
     rerun with --resume after an interruption):
       startrack solve a.tiff b.tiff --scheduler local -j 2 -o solved.jsonl --resume
+    \b
+    Example (the same batch again: only the images that failed are solved again, their documents replaced):
+      startrack solve a.tiff b.tiff -o solved.jsonl --resume --retry-failed
     \b
     Example (one photo with a field-of-view hint):
       startrack solve sky.tiff --fov-deg 11.4 | jq .solve.center_ra,.solve.center_dec
@@ -449,6 +455,9 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
         raise BadInputError("--fov-deg", None, f"must be in (0, 90), got {fov_deg}")
     if resume and output == "-":
         raise BadInputError("--resume", None, "needs an output file (-o FILE) to resume into")
+    if retry_failed and not resume:
+        raise BadInputError("--retry-failed", None, "goes with --resume -o FILE: it solves again the failed images "
+                                                     "of FILE")
     from startrack.imageio import check_plot_output
 
     for t in (plot,):
@@ -483,7 +492,7 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
     for outs in {p for t in tasks for p in t[3] if p}:
         check_writable(outs)
     # The output checked (--resume: this command's documents only) before the index is built or opened.
-    writer = FrameWriter(output, resume=resume, section="solve")
+    writer = FrameWriter(output, resume=resume, section="solve", retry_failed=retry_failed)
     # Build (or open) what the workers need once, before any of them starts.
     if camera_doc is None:
         from startrack.solve import _process_index, index_plan
@@ -502,6 +511,8 @@ def command(images, fov_deg, fov_tolerance, scale_low, scale_high, scale_units, 
     tally = BatchTally("solve", quiet, "image")
     todo = [t for t in tasks if not writer.skip({"image": {"path": t[0]}})]
     tally.skipped = n - len(todo)
+    if retry_failed:
+        tally.notes.append(f"{len(writer.retried)} failed image(s) solved again (--retry-failed)")
     run, progress = todo, None
     if scheduler is not None and todo:
         from startrack.cluster import check_readable_on_workers

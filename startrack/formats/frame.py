@@ -423,16 +423,22 @@ def dumps_frame(doc: dict) -> str:
     return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
 
 
-def frame_key(doc) -> str | None:
+def frame_key(doc, base_dir: str | None = None) -> str | None:
     """The identity of a frame, for ``--resume``: its image path and render seed, time and frame number.
 
+    With ``base_dir`` (the directory the document's relative paths resolve against, :func:`resolve_path`)
+    the image path is made absolute, so a document written beside its output (paths relative to that
+    directory) and the same frame named from the current directory have one key.
     ``None`` when the document carries none of them (then frames are matched by position).
     """
     if not isinstance(doc, dict):
         return None
     image = doc.get("image") if isinstance(doc.get("image"), dict) else {}
     render = doc.get("render") if isinstance(doc.get("render"), dict) else {}
-    parts = [image.get("path"), image.get("time"), render.get("frame_seed"), doc.get("frame")]
+    path = image.get("path")
+    if base_dir is not None and isinstance(path, str) and path and path != "-":
+        path = os.path.abspath(resolve_path(path, base_dir))
+    parts = [path, image.get("time"), render.get("frame_seed"), doc.get("frame")]
     if all(p is None for p in parts):
         return None
     return json.dumps(parts, default=str)
@@ -453,23 +459,43 @@ def _check_finished(doc, section: str, source: str) -> None:
         raise BadInputError(source, f"{section}.status", f"is {status!r}, expected 'ok' or 'failed'")
 
 
-def read_finished(path: str, section: str | None = None):
+def relative_image_path(doc, base_dir: str):
+    """``doc`` with a relative ``image.path`` (relative to the current directory) rewritten relative to
+    ``base_dir``, the directory of the document's own file (docs/formats.md: paths inside a document resolve
+    against its directory).  Absolute paths and ``-`` stay as they are; ``doc`` itself is not changed."""
+    image = doc.get("image") if isinstance(doc, dict) else None
+    path = image.get("path") if isinstance(image, dict) else None
+    if not isinstance(path, str) or not path or path == "-" or os.path.isabs(path):
+        return doc
+    try:
+        rel = os.path.relpath(os.path.abspath(path), base_dir)
+    except ValueError:          # another drive (Windows): no relative path exists
+        rel = os.path.abspath(path)
+    if rel == path:
+        return doc
+    return {**doc, "image": {**image, "path": rel}}
+
+
+def read_finished(path: str, section: str | None = None, base_dir: str | None = None, retry_failed: bool = False):
     """Read the complete frame documents of a batch output, for ``--resume``.
 
-    Returns ``(keys, n_unkeyed, good_bytes)``: a multiset (dict key -> count) of
+    Returns ``(keys, n_unkeyed, good_bytes, failed_lines)``: a multiset (dict key -> count) of
     :func:`frame_key` of every complete line, the number of complete lines
-    without a key, and the byte length of the complete lines.  A last line
+    without a key, the byte length of the complete lines, and (with ``retry_failed``) the
+    ``(line number, key)`` of every line whose ``section`` has status ``failed``: those are not counted as done.  A last line
     without its newline, or one that is not valid JSON (a write cut short by
     ``kill -9``), is not counted: the writer truncates the file to
-    ``good_bytes`` before appending.  With ``section`` (the command's own section,
+    ``good_bytes`` before appending.  ``base_dir`` makes the keys' image paths absolute (:func:`frame_key`).
+    With ``section`` (the command's own section,
     ``"solve"``), every complete line must be a frame document holding it with a
     status ``ok`` or ``failed`` (or none): else :class:`BadInputError` names the line.
     """
     keys: dict[str, int] = {}
     n_unkeyed = 0
     good = 0
+    failed: list[tuple[int, str | None]] = []
     if not os.path.exists(path) or is_special(path):
-        return keys, n_unkeyed, good
+        return keys, n_unkeyed, good, failed
     with open(path, "rb") as handle:
         for line_no, raw in enumerate(handle, start=1):
             if not raw.endswith(b"\n"):
@@ -481,13 +507,16 @@ def read_finished(path: str, section: str | None = None):
                     break
                 if section is not None:
                     _check_finished(doc, section, f"{path}:{line_no}")
-                key = frame_key(doc)
-                if key is None:
-                    n_unkeyed += 1
+                key = frame_key(doc, base_dir)
+                if retry_failed and section is not None and doc[section].get("status") == "failed":
+                    failed.append((line_no, key))
                 else:
-                    keys[key] = keys.get(key, 0) + 1
+                    if key is None:
+                        n_unkeyed += 1
+                    else:
+                        keys[key] = keys.get(key, 0) + 1
             good += len(raw)
-    return keys, n_unkeyed, good
+    return keys, n_unkeyed, good, failed
 
 
 class FrameWriter:
@@ -503,12 +532,19 @@ class FrameWriter:
       complete lines already there are kept (a cut-off last line is dropped) and
       new frames are appended; :attr:`done` holds their :func:`frame_key`.  With
       ``section`` the lines kept must be this command's results (:func:`read_finished`).
+      A relative ``image.path`` (relative to the current directory) is written relative
+      to the file's directory (:func:`relative_image_path`), as docs/formats.md says, so
+      the document can be read from anywhere; standard output keeps it as it is.
 
     Use as a context manager.
     """
 
-    def __init__(self, path: str = "-", resume: bool = False, section: str | None = None):
+    def __init__(self, path: str = "-", resume: bool = False, section: str | None = None, retry_failed: bool = False):
         self.path = path
+        #: ``retry_failed``: the failed documents of the file, ``(line number, key)``; those of the frames this
+        #: run does again (:meth:`skip` says False for them) are :attr:`retried` and leave the file
+        self.failed_lines: list[tuple[int, str | None]] = []
+        self.retried: list[int] = []
         self.count = 0
         self.resume = resume
         self._handle: io.TextIOBase | None = None
@@ -516,6 +552,8 @@ class FrameWriter:
         self.done: dict[str, int] = {}
         self.done_unkeyed = 0
         self._good_bytes = 0
+        #: the directory relative image paths are written against (None: as given, for stdout and devices)
+        self.base_dir: str | None = None
         if path == "-":
             if sys.stdout is None:
                 raise BadInputError("<stdout>", None, "is closed: give -o FILE or let the output go somewhere")
@@ -523,22 +561,35 @@ class FrameWriter:
         check_writable(path)
         self.target = output_target(path)
         self.special = is_special(self.target)
+        if not self.special:
+            self.base_dir = os.path.dirname(os.path.abspath(path))
+        if retry_failed and not (resume and section):
+            raise ValueError("retry_failed needs resume and a section")      # a caller's bug, not the input's
         if resume and not self.special:
-            self.done, self.done_unkeyed, self._good_bytes = read_finished(self.target, section)
+            self.done, self.done_unkeyed, self._good_bytes, self.failed_lines = read_finished(
+                self.target, section, self.base_dir, retry_failed)
 
     def skip(self, doc) -> bool:
         """True (and the frame counted as done) if ``doc``'s frame is already in the output (``--resume``)."""
         if not self.resume:
             return False
-        key = frame_key(doc)
+        key = frame_key(doc, os.getcwd() if self.base_dir is not None else None)
         if key is None:
             if self.done_unkeyed > 0:
                 self.done_unkeyed -= 1
                 return True
-            return False
-        if self.done.get(key, 0) > 0:
+        elif self.done.get(key, 0) > 0:
             self.done[key] -= 1
             return True
+        # a failed document of this frame is done again: it leaves the file when the first line is written
+        # (so every frame to retry must be asked about before the first write)
+        for i, (line_no, failed_key) in enumerate(self.failed_lines):
+            if failed_key == key:
+                if self._handle is not None:
+                    raise RuntimeError("FrameWriter.skip after the first write with retry_failed")
+                self.retried.append(line_no)
+                del self.failed_lines[i]
+                break
         return False
 
     @property
@@ -554,6 +605,8 @@ class FrameWriter:
             if self.special:
                 self._handle = open(self.target, "w", encoding="utf-8")  # noqa: SIM115 - a journal kept open
             elif self.resume and os.path.exists(self.target):
+                if self.retried:
+                    self._drop_failed()
                 self._handle = open(self.target, "r+", encoding="utf-8")  # noqa: SIM115 - a journal kept open
                 self._handle.truncate(self._good_bytes)
                 self._handle.seek(self._good_bytes)
@@ -563,10 +616,32 @@ class FrameWriter:
             raise write_error(self.path, exc) from None
         self._own = True
 
+    def _drop_failed(self) -> None:
+        """Replace the file, atomically, by its complete lines without the failed ones (``retry_failed``):
+        their new documents are appended as they are solved again.  A run cut short after this has lost
+        nothing: those images are simply not in the file, and the next ``--resume`` does them."""
+        from startrack.formats.atomic import atomic_path
+
+        drop = set(self.retried)
+        kept = 0
+        with atomic_path(self.path, suffix=".jsonl") as tmp:
+            with open(self.target, "rb") as src, open(tmp, "wb") as dst:
+                seen = 0
+                for line_no, raw in enumerate(src, start=1):
+                    seen += len(raw)
+                    if seen > self._good_bytes:
+                        break
+                    if line_no not in drop:
+                        dst.write(raw)
+                        kept += len(raw)
+        self._good_bytes = kept
+
     def __enter__(self):
         return self
 
     def write(self, doc: dict) -> None:
+        if self.base_dir is not None:
+            doc = relative_image_path(doc, self.base_dir)
         line = dumps_frame(doc) + "\n"
         if self._handle is None:
             self._open()
