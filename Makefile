@@ -34,12 +34,14 @@ demo: install
 	@echo
 	@echo "== 4. Render Orion, then centroid | identify | attitude, and compare with the truth"
 	$(ST) build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.5 -o $(OUT)/db20.h5
-	$(ST) render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --roll 30 --seed 1 -o $(OUT)/orion.png -q \
+	$(ST) render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --roll 30 --seed 1 -o $(OUT)/orion.png \
+	  --preview $(OUT)/orion-preview.png -q \
 	  | $(ST) centroid -q | $(ST) identify -d $(OUT)/db20.h5 -q | $(ST) attitude -q > $(OUT)/orion.json
 	@$(PY) -c "import json; from startrack.rotations import attitude_error, quaternion_to_dcm as A; \
 	d = json.load(open('$(OUT)/orion.json')); t, c, r = attitude_error(A(d['attitude']['quaternion']), A(d['truth']['quaternion'])); \
 	print(f\"   truth RA 83.8 Dec -1.2 roll 30 -> solved RA {d['attitude']['ra']:.4f} Dec {d['attitude']['dec']:+.4f} \
 	roll {d['attitude']['roll']:.3f}; error {c*3600:.2f}\\\" cross-boresight, {r*3600:.1f}\\\" roll\")"
+	@echo "   pictures: $(OUT)/orion-preview.png (8-bit, stretched; orion.png keeps the sensor's 16 bits for the pipeline)"
 	@echo
 	@echo "Outputs are in $(OUT)/.  Next: startrack --help"
 

@@ -30,20 +30,26 @@ class _ImagePath:
         return numbered_path(self.output, index, self.total)
 
 
-def _write_images(items):
-    """The frame documents of ``(doc, image, path)`` items, their images written."""
+def _write_images(items, preview=None):
+    """The frame documents of ``(doc, image, path)`` items, their images written (and with ``preview``,
+    an ``index -> path`` such as :class:`_ImagePath`, an 8-bit stretched PNG of each for people to look at)."""
     from startrack.imageio import write_image
 
     for doc, image, path in items:
         if image is not None and path:
             write_image(path, image, header={"STVER": doc["render"]["startrack_version"],
                                              "FRSEED": str(doc["render"]["frame_seed"])})
+        if image is not None and preview is not None:
+            from startrack.plot import write_preview
+
+            write_preview(preview(int(doc["render"]["frame_index"])), image)
         yield doc
 
 
-def _render_chunk(run):
+def _render_chunk(task):
     """Dask task: render one chunk of a Monte Carlo set; images written here, documents returned."""
-    return list(_write_images(run.frames_iter()))
+    run, preview = task
+    return list(_write_images(run.frames_iter(), preview))
 
 
 def _floats(text, name, n):
@@ -70,6 +76,10 @@ def _floats(text, name, n):
               help="Image file (.png, .tif/.tiff, .fits); numbered (sky-0000.png) for several frames.")
 @click.option("--documents", type=click.Path(dir_okay=False, allow_dash=True), default="-", show_default=True,
               help="Where the frame documents (JSON Lines) go.")
+@click.option("--preview", type=click.Path(dir_okay=False), default=None,
+              help="Also an 8-bit PNG of each image, stretched for people to look at (the -o image keeps the "
+                   "sensor's bit depth for the pipeline, and a 16-bit PNG looks black in most viewers); numbered "
+                   "like -o for several frames.")
 @mag_options(max_help="Faintest magnitude rendered (default: the sensor's 5-sigma detection limit).", with_min=False)
 @click.option("--zero-point", "zero_point", type=FiniteFloat(0, min_open=True), default=2.0e6, show_default=True,
               help="Photo-electrons per second from a magnitude-0 star (aperture, optics, QE folded in).")
@@ -158,7 +168,8 @@ def _floats(text, name, n):
 @handle_errors
 def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size, k1, k2, projection, k3, k4,
             quaternion, ra, dec, roll,
-            output, documents, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth, gain_e_per_dn,
+            output, documents, preview, mag_max, zero_point, exposure_ms, psf_sigma_px, full_well_e, bit_depth,
+            gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, cosmic_rays,
             dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
             foreground_e_per_s, horizon, extinction_mag, mirror, no_noise, mag_noise,
@@ -258,8 +269,18 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             # A numbered set goes into its own folder, made on demand.
             os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
         check_image_output(output)
+        if preview is not None:
+            if os.path.splitext(preview)[1].lower() != ".png":
+                raise BadInputError(preview, None, "the preview is an 8-bit PNG: name it .png")
+            if count * frames > 1:
+                os.makedirs(os.path.dirname(os.path.abspath(preview)), exist_ok=True)
+            from startrack.formats.atomic import check_writable
+
+            check_writable(preview)
     elif output is not None:
         raise BadInputError("--output", None, "--stars-only writes no image; drop --output")
+    elif preview is not None:
+        raise BadInputError("--preview", None, "--stars-only writes no image; drop --preview")
 
     attitude = None
     if quaternion is not None:
@@ -352,9 +373,10 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     n_stars = 0
     from startrack.cluster import TaskFailure
 
+    previews = None if preview is None else _ImagePath(preview, count * frames)
     with FrameWriter(documents, resume=resume, section="render") as writer:
         if scheduler is None:
-            results = ((i, [item]) for i, item in enumerate(_write_images(run.frames_iter())))
+            results = ((i, [item]) for i, item in enumerate(_write_images(run.frames_iter(), previews)))
         else:
             # Chunks of random attitudes (or of whole sequences) rendered by the Dask workers, which write
             # their image files themselves (a shared filesystem); the documents come back in order.
@@ -366,7 +388,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                 run = dataclasses.replace(run, image_path=_ImagePath(os.path.abspath(output), count * frames))
             parts = [dataclasses.replace(run, count=b - a, first_index=a * frames)
                      for a, b in chunks(count, default_chunk(count, jobs))]
-            results = ordered_map(_render_chunk, parts, jobs=jobs, scheduler=scheduler)
+            previews = None if preview is None else _ImagePath(os.path.abspath(preview), count * frames)
+            results = ordered_map(_render_chunk, [(part, previews) for part in parts], jobs=jobs, scheduler=scheduler)
         done = 0
         for _, docs in results:
             if isinstance(docs, TaskFailure):
