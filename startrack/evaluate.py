@@ -319,6 +319,10 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
     configs : dict, optional
         Algorithm name -> its configuration (:func:`startrack.identify.make_config`);
         the defaults for the others.
+    progress : callable, optional
+        ``progress(done, total)``: frames identified (each algorithm's) of ``len(conditions) * n *
+        len(algorithms)``, called as they finish (per frame on one process, per piece with ``jobs`` or a
+        cluster).
     resume, checkpoint : optional
         ``checkpoint(state)`` is called after every chunk with a JSON-able ``state`` (rows done, the
         condition under way, its frames done and tallies); ``resume=state`` goes on from it, with the
@@ -468,12 +472,13 @@ def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_p
         cond = specs[i][5]
         for algorithm, res in part.items():
             results.setdefault(algorithm, Tally()).add(res)
+            done += len(res)
+        # frames identified (each algorithm's), as the one-machine path counts them
+        if progress:
+            progress(done, len(conditions) * n * len(algorithms))
         if (i + 1) % per_cond == 0:
             for algorithm in algorithms:
                 rows.append(results.pop(algorithm).row(algorithm, cond, n))
-                done += 1
-                if progress:
-                    progress(done, len(conditions) * len(algorithms))
     return rows
 
 
