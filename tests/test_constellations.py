@@ -4,7 +4,11 @@ import os
 import numpy as np
 import pytest
 
-from startrack.constellations import FIGURES_PATH, figure_segments_in_image, load_figures
+
+def load_figures(path=None):
+    from startrack.constellations import load_figures
+
+    return load_figures(path)
 
 #: Stars a figure borrows from a neighbour, as every drawing does (the table's header names them).
 BORROWED = {("Peg", 677), ("Aur", 25428)}
@@ -16,6 +20,8 @@ Vul""".split())
 
 
 def test_the_table_is_a_package_file_with_its_provenance_and_licence():
+    from startrack.constellations import FIGURES_PATH
+
     # in the package directory (a wheel ships every file under startrack/), not beside the repository
     assert os.path.dirname(FIGURES_PATH) == os.path.join(os.path.dirname(os.path.abspath(
         __import__("startrack").__file__)), "data")
@@ -60,6 +66,7 @@ def test_segments_land_on_the_stars_they_join(catalog):
     """Orion seen from its centre: the belt's polyline starts and ends at Alnitak's and Alnilam's projected
     pixels, and a figure behind the camera draws nothing."""
     from startrack.camera import Camera
+    from startrack.constellations import figure_segments_in_image
     from startrack.rotations import radec_roll_to_dcm
 
     cam = Camera.from_fov(30, 1200, 900)

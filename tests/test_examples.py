@@ -47,7 +47,8 @@ def test_pictures_script_draws_one_picture_of_each_kind(tmp_path):
                           text=True, env=_env(), timeout=1200)
     assert proc.returncode == 0, proc.stderr[-2000:]
     kinds = ["sky-solved.png", "picture-centroid.png", "picture-identify.png", "picture-residuals.png",
-             "picture-track.png", "picture-evaluate.png"]
+             "picture-track.png", "picture-evaluate.png", "picture-constellations.png", "orion.png",
+             "compare-false-stars.png", "robustness-focal-error.png"]
     for name in kinds:
         for path in (tmp_path / name, os.path.join(ROOT, "examples", name)):
             assert os.path.getsize(path) < 300_000, (path, os.path.getsize(path))

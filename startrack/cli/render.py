@@ -7,6 +7,7 @@ from startrack.cli.options import (
     FiniteFloat,
     Int,
     NumberList,
+    OutputPath,
     camera_from_options,
     camera_options,
     catalog_option,
@@ -76,7 +77,7 @@ def _floats(text, name, n):
               help="Image file (.png, .tif/.tiff, .fits); numbered (sky-0000.png) for several frames.")
 @click.option("--documents", type=click.Path(dir_okay=False, allow_dash=True), default="-", show_default=True,
               help="Where the frame documents (JSON Lines) go.")
-@click.option("--preview", type=click.Path(dir_okay=False), default=None,
+@click.option("--preview", type=OutputPath(dir_okay=False), default=None,
               help="Also an 8-bit PNG of each image, stretched for people to look at (the -o image keeps the "
                    "sensor's bit depth for the pipeline, and a 16-bit PNG looks black in most viewers); numbered "
                    "like -o for several frames.")

@@ -124,6 +124,10 @@ def test_render_preview_is_an_8_bit_picture_people_can_see(tmp_path):
     assert np.median(shown) < 30 and np.percentile(shown, 99.99) > 200
     assert_refused(run_cli("render", "--fov-deg", "20", "--size", "64x64", "-o", tmp_path / "a.png", "--preview",
                            tmp_path / "a.jpg"), "a.jpg", "8-bit PNG")
+    # the preview is an output: written again over the last one, never taken for an input
+    run_cli("render", "--fov-deg", "20", "--size", "64x64", "-o", tmp_path / "a.png", "--preview",
+            tmp_path / "o-preview.png", "-q", check=True)
+    assert cv2.imread(str(tmp_path / "o-preview.png"), cv2.IMREAD_UNCHANGED).shape == (64, 64)
 
 
 def test_solve_retry_failed_solves_the_failed_images_again(solve_cache, tmp_path, monkeypatch):
