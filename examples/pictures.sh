@@ -32,4 +32,16 @@ $ST build-kvector --fov-deg 20 --size 1024x1024 --mag-max 5.0 -o "$WORK/p003.h5"
 $ST evaluate -d "$WORK/p003.h5" -a pyramid,voting,brightness --fov-deg 20 --size 1024x1024 --mag-max 5 \
     --sigma-arcsec 1.667 --false-stars 0,1,2,3 --count 200 --seed 1 -j 2 --plot "$OUT/picture-evaluate.png" -q \
     > /dev/null
-ls -l "$OUT"/sky-solved.png "$OUT"/picture-*.png
+# constellations: a rendered 40 x 30 deg field of Orion, solved blind and drawn with the stick figures and names
+$ST render --fov-deg 40 --size 1200x900 --ra 84 --dec 3 --roll 10 --seed 3 --mag-max 6.5 -o "$WORK/wide.png" -q \
+    > /dev/null
+$ST solve "$WORK/wide.png" --no-aberration -o "$WORK/wide.json" -q
+$ST plot "$WORK/wide.json" --constellations --mag-max 4.5 -o "$OUT/picture-constellations.png" -q
+# the demo's Orion frame (make demo): the 16-bit image for the pipeline, and the 8-bit stretched preview people see
+$ST render --fov-deg 20 --size 1024x1024 --ra 83.8 --dec -1.2 --roll 30 --seed 1 -o "$WORK/orion.png" \
+    --preview "$OUT/orion.png" -q > /dev/null
+# the papers' charts drawn again from the results reproduce-papers.sh wrote (Wilson 95 % bars, an honest axis)
+$ST plot results/p004-fig9-false-stars.json --kind evaluate -o "$OUT/compare-false-stars.png" -q
+$ST plot results/p004-fig7-focal.json --kind evaluate -o "$OUT/robustness-focal-error.png" -q
+ls -l "$OUT"/sky-solved.png "$OUT"/picture-*.png "$OUT"/orion.png "$OUT"/compare-false-stars.png \
+    "$OUT"/robustness-focal-error.png
