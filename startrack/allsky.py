@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 
 import numpy as np
+
+from startrack.timeutil import search_clock
 
 __all__ = ["AllSkyOptions", "propose_camera", "CROP_FRACTIONS"]
 
@@ -75,7 +76,7 @@ def _centre_solve(stars, width, height, index, options, deadline):
 
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     for frac in CROP_FRACTIONS:
-        if time.perf_counter() > deadline:
+        if search_clock() > deadline:
             return None
         half = frac * min(width, height)
         crop, rows = _crop(stars, cx, cy, half)
@@ -84,7 +85,7 @@ def _centre_solve(stars, width, height, index, options, deadline):
             continue
         size = int(round(2 * half))
         bo = BlindOptions(sigma_px=options.sigma_px, max_false_probability=options.max_false_probability,
-                          timeout_s=min(options.timeout_s, max(0.0, deadline - time.perf_counter())))
+                          timeout_s=min(options.timeout_s, max(0.0, deadline - search_clock())))
         cam, res, info = solve_blind(crop, size, size, index, bo)
         if cam is None:
             log.info("all-sky: the centre (%d px square, %d stars) as a pinhole: nothing (%d candidates)", size,
@@ -212,7 +213,7 @@ def propose_camera(stars, width: int, height: int, index, catalog, options: AllS
 
     opts = options or AllSkyOptions()
     if deadline is None:
-        deadline = time.perf_counter() + 3 * opts.timeout_s
+        deadline = search_clock() + 3 * opts.timeout_s
     centre = _centre_solve(stars, width, height, index, opts, deadline)
     if centre is None:
         return None, "the image centre gave no star pattern as a pinhole frame"

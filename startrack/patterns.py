@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from startrack.errors import BadInputError
+from startrack.timeutil import search_clock
 
 __all__ = ["INDEX_FORMAT", "LEVELS_DEG", "DEEP_LEVELS_DEG", "INDEX_KINDS", "DEEP_FOV_DEG", "PatternIndex", "build_index", "save_index", "open_index", "check_index",
            "default_index_path", "default_index", "BlindOptions", "solve_blind", "cache_dir"]
@@ -543,7 +544,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     index : PatternIndex
     options : BlindOptions
     deadline : float, optional
-        ``time.perf_counter()`` value after which the search stops.
+        :func:`startrack.timeutil.search_clock` (CPU seconds) value after which the search stops.
 
     Returns
     -------
@@ -559,7 +560,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     warm_kernels(index)
     t0 = time.perf_counter()
     if deadline is None:
-        deadline = t0 + opts.timeout_s
+        deadline = search_clock() + opts.timeout_s
     info = {"patterns": 0, "candidates": 0, "verified": 0}
     n_all = len(stars)
     if n_all < 4:
@@ -612,7 +613,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     for s0, s1 in zip(starts, starts[1:] + [len(combos)]):
         if s0 >= len(combos):
             break
-        if time.perf_counter() > deadline:
+        if search_clock() > deadline:
             reason = f"no solution within {opts.timeout_s:g} s of search"
             break
         block = combos[s0:s1]
@@ -630,7 +631,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             info["outside_hint"] += int(len(order) - np.count_nonzero(near))
             order = order[near]
         for row, (f, _err) in zip(ci[order], cf[order], strict=True):
-            if time.perf_counter() > deadline:
+            if search_clock() > deadline:
                 break
             img = [int(v) for v in block[row[0]]]
             cat_rows = [int(v) for v in row[2:6]]

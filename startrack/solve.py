@@ -247,7 +247,8 @@ class SolveOptions:
         Largest accepted probability that an identification is a coincidence, shared
         among all hypotheses tried.
     timeout_s : float
-        Search time limit per image, seconds (database builds and first-use compilation excluded).
+        Search time limit per image, CPU seconds of this process (:func:`startrack.timeutil.search_clock`: a busy
+        machine searches as far as an idle one; database builds and first-use compilation excluded).
     epoch : float or None
         Epoch of observation, decimal year (proper motion).
     method : str
@@ -379,7 +380,10 @@ class _SearchClock:
     """
 
     def __init__(self, limit_s: float, warmed: set | None = None):
+        from startrack.timeutil import search_clock
+
         self.t0 = time.perf_counter()
+        self.c0 = search_clock()
         # The kinds whose first use was already paid, owned by the caller (a Solver lives as long as its
         # process's compiled kernels and loaded databases).
         self.warmed = set() if warmed is None else warmed
@@ -387,11 +391,13 @@ class _SearchClock:
         self.setup_s = 0.0
 
     def setup(self, fn, *args, **kwargs):
-        t = time.perf_counter()
+        from startrack.timeutil import search_clock
+
+        t = search_clock()
         try:
             return fn(*args, **kwargs)
         finally:
-            self.setup_s += time.perf_counter() - t
+            self.setup_s += search_clock() - t
 
     def first_use(self, kind, fn, *args, **kwargs):
         """``fn(...)``, counted as set-up the first time ``kind`` runs in this process."""
@@ -402,8 +408,14 @@ class _SearchClock:
         finally:
             self.warmed.add(kind)
 
+    def remaining(self) -> float:
+        """CPU seconds of search left (:func:`startrack.timeutil.search_clock`), set-up not counted."""
+        from startrack.timeutil import search_clock
+
+        return self.limit_s - (search_clock() - self.c0 - self.setup_s)
+
     def expired(self) -> bool:
-        return time.perf_counter() - self.t0 - self.setup_s > self.limit_s
+        return self.remaining() < 0
 
 
 def _label_scale(lab):
@@ -498,7 +510,7 @@ def _solve_with_patterns(stars, w, h, opts, index, clock):
             break
         idx = kind if not isinstance(kind, str) else clock.setup(_process_index, kind)
         bo = BlindOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability / len(plan),
-                          timeout_s=max(0.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s)),
+                          timeout_s=max(0.0, clock.remaining()),
                           fov_min_deg=lo, fov_max_deg=hi)
         if opts.sky_hint:
             bo.sky_circle = (opts.ra_deg, opts.dec_deg, opts.radius_deg)
@@ -988,6 +1000,7 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
     from startrack.allsky import AllSkyOptions, propose_camera
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.identify import IdentifyParams
+    from startrack.timeutil import search_clock
 
     sky = clock.first_use("centroid-allsky", find_stars, image, CentroidOptions(max_stars=ALLSKY_MAX_STARS),
                           saturation=saturation)
@@ -1004,11 +1017,11 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
             break
         done.append(parity)
         search_list = sky.stars if parity == "normal" else mirror_stars(sky.stars, (w - 1) / 2.0)
-        remaining = max(1.0, opts.timeout_s - (time.perf_counter() - clock.t0 - clock.setup_s))
+        remaining = max(1.0, clock.remaining())
         sky_opts = AllSkyOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                                  timeout_s=min(2.0, remaining))
         cam, info = propose_camera(search_list, w, h, index, databases.catalog, sky_opts,
-                                   deadline=time.perf_counter() + remaining, projections=projections)
+                                   deadline=search_clock() + remaining, projections=projections)
         tried += 1
         if cam is None:
             log.info("all-sky search, %s parity: %s", parity, info)

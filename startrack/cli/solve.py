@@ -345,8 +345,9 @@ def _write_outputs(doc, image, path, outputs, result, bit_depth=None):
               help="Hours local time is ahead of UTC where a photo's EXIF DateTimeOriginal was taken (EXIF has no "
                    "zone; without it an EXIF time is not used).")
 @click.option("--timeout-s", type=FiniteFloat(0, 86400, min_open=True), default=5.0, show_default=True,
-              help="Give up on an image after this many seconds of search (building a cached database and "
-                   "compiling kernels on first use do not count).")
+              help="Give up on an image after this many seconds of search, in CPU time, so that a busy machine "
+                   "solves what an idle one does (building a cached database and compiling kernels on first use "
+                   "do not count).")
 @click.option("--jobs", "-j", type=Int(1, 1024), default=1, show_default=True, help="Images solved in parallel.")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Solve on a Dask cluster: 'local' starts a LocalCluster of -j workers here; an address "
