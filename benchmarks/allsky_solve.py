@@ -22,7 +22,8 @@ import os
 import statistics
 import subprocess
 import sys
-import time
+
+from common import rendered_image_path, solve_saved
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PROJECTIONS = ("equidistant", "equisolid", "stereographic", "orthographic")
@@ -56,11 +57,6 @@ def render_set(projection: str, fov: float, count: int, size: int, out: str, see
     return docs
 
 
-def _image_path(doc, out):
-    p = doc["image"]["path"]
-    return p if os.path.isabs(p) else os.path.join(out, os.path.basename(p))
-
-
 def score(truth: dict, solved: dict) -> dict:
     """``verdict`` (``right``, ``wrong``, ``failed``) and, when right, what was fitted against the truth."""
     import numpy as np
@@ -87,24 +83,9 @@ def score(truth: dict, solved: dict) -> dict:
 
 
 def solve_set(docs, out, pythonpath, label, projection, score_only=False) -> dict:
-    paths = [_image_path(d, out) for d in docs]
-    saved = os.path.join(out, f"solved-{label}.jsonl")
-    t0 = time.perf_counter()
-    if score_only:
-        stdout = open(saved).read()
-    else:
-        proc = _cli(["solve", "-q", "--no-aberration", *paths], pythonpath)
-        if proc.returncode == 2:
-            raise SystemExit(f"solve refused its input:\n{proc.stderr}")
-        stdout = proc.stdout
-        with open(saved, "w") as f:
-            f.write(stdout)
-    wall = time.perf_counter() - t0
-    solved = {}
-    for line in stdout.splitlines():
-        if line.strip():
-            d = json.loads(line)
-            solved[os.path.basename(d["image"]["path"])] = d
+    paths = [rendered_image_path(d, out) for d in docs]
+    solved, wall = solve_saved(lambda a: _cli(a, pythonpath), ["solve", "-q", "--no-aberration", *paths],
+                               os.path.join(out, f"solved-{label}.jsonl"), score_only)
     rows = [score(d, solved.get(os.path.basename(p), {})) for d, p in zip(docs, paths)]
     right = [r for r in rows if r["verdict"] == "right"]
     reasons: dict = {}

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import json
 import math
 import os
 import statistics
@@ -171,3 +172,32 @@ def table(headers, rows):
     sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
     body = ["| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |" for r in rows]
     return "\n".join([line, sep, *body])
+
+
+def rendered_image_path(doc: dict, out: str) -> str:
+    """The image of a rendered frame document: its ``image.path``, relative ones taken from ``out``."""
+    p = doc["image"]["path"]
+    return p if os.path.isabs(p) else os.path.join(out, os.path.basename(p))
+
+
+def solve_saved(run, args: list, saved: str, score_only: bool = False) -> tuple[dict, float]:
+    """``startrack solve`` of ``args`` through ``run(args)`` (a subprocess result), its documents kept in ``saved``
+    (read back instead with ``score_only``): ``({image file name: document}, wall seconds)``."""
+    t0 = time.perf_counter()
+    if score_only:
+        with open(saved) as f:
+            stdout = f.read()
+    else:
+        proc = run(args)
+        if proc.returncode == 2:
+            raise SystemExit(f"solve refused its input:\n{proc.stderr}")
+        stdout = proc.stdout
+        with open(saved, "w") as f:
+            f.write(stdout)
+    wall = time.perf_counter() - t0
+    solved = {}
+    for line in stdout.splitlines():
+        if line.strip():
+            d = json.loads(line)
+            solved[os.path.basename(d["image"]["path"])] = d
+    return solved, wall

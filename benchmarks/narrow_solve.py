@@ -21,7 +21,8 @@ import math
 import os
 import subprocess
 import sys
-import time
+
+from common import solve_saved
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WIDTH, HEIGHT, EXPOSURE_MS = 1024, 768, 2000
@@ -137,24 +138,8 @@ def score(truth: dict, solved: dict, tolerance_px: float, positions: Positions) 
 
 def solve_set(docs: list, out: str, jobs: int, score_only: bool = False) -> tuple[list, float]:
     paths = [d["image"]["path"] for d in docs]
-    saved = os.path.join(out, "solved.jsonl")
-    t0 = time.perf_counter()
-    if score_only:
-        with open(saved) as f:
-            stdout = f.read()
-    else:
-        proc = _cli(["solve", "-q", "-j", str(jobs), *paths])
-        if proc.returncode == 2:
-            raise SystemExit(f"solve refused its input:\n{proc.stderr}")
-        stdout = proc.stdout
-        with open(saved, "w") as f:
-            f.write(stdout)
-    wall = time.perf_counter() - t0
-    by_path = {}
-    for line in stdout.splitlines():
-        if line.strip():
-            d = json.loads(line)
-            by_path[os.path.basename(d["image"]["path"])] = d
+    by_path, wall = solve_saved(_cli, ["solve", "-q", "-j", str(jobs), *paths], os.path.join(out, "solved.jsonl"),
+                                score_only)
     return [by_path.get(os.path.basename(p), {}) for p in paths], wall
 
 

@@ -23,7 +23,8 @@ import math
 import os
 import subprocess
 import sys
-import time
+
+from common import rendered_image_path, solve_saved
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -81,11 +82,6 @@ def render_set(name: str, count: int, out: str, seed: int, stars: bool, pythonpa
     return docs
 
 
-def _image_path(doc, out):
-    p = doc["image"]["path"]
-    return p if os.path.isabs(p) else os.path.join(out, os.path.basename(p))
-
-
 def score(truth: dict, solved: dict) -> str:
     """``right``, ``wrong`` (status ok, attitude off) or ``failed``.
 
@@ -109,22 +105,9 @@ def score(truth: dict, solved: dict) -> str:
 
 
 def solve_set(docs: list, out: str, pythonpath: str, label: str, score_only: bool = False) -> dict:
-    paths = [_image_path(d, out) for d in docs]
-    saved = os.path.join(out, f"solved-{label}.jsonl")
-    t0 = time.perf_counter()
-    if score_only:
-        stdout = open(saved).read()
-    else:
-        proc = _cli(["solve", "-q", *paths], pythonpath)
-        if proc.returncode == 2:
-            raise SystemExit(f"solve refused its input:\n{proc.stderr}")
-        stdout = proc.stdout
-    wall = time.perf_counter() - t0
-    solved = {}
-    for line in stdout.splitlines():
-        if line.strip():
-            d = json.loads(line)
-            solved[os.path.basename(d["image"]["path"])] = d
+    paths = [rendered_image_path(d, out) for d in docs]
+    solved, wall = solve_saved(lambda a: _cli(a, pythonpath), ["solve", "-q", *paths],
+                               os.path.join(out, f"solved-{label}.jsonl"), score_only)
     counts = {"right": 0, "wrong": 0, "failed": 0}
     reasons: dict = {}
     for d, p in zip(docs, paths):
@@ -135,9 +118,6 @@ def solve_set(docs: list, out: str, pythonpath: str, label: str, score_only: boo
             r = (s.get("solve") or {}).get("reason", "no document")
             r = r.split(" (")[0].split(";")[0]
             reasons[r] = reasons.get(r, 0) + 1
-    if not score_only:
-        with open(saved, "w") as f:
-            f.write(stdout)
     return {**counts, "n": len(docs), "wall_s": wall, "reasons": reasons}
 
 

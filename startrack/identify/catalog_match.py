@@ -140,7 +140,6 @@ def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.nda
 def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos_fov, mag_limit, sigma, apparent):
     """One pass of :func:`match_catalog`: the detections matched with the attitude ``dcm`` and the attitude
     refined with them."""
-    from startrack._kernels.attitude import quest
 
     done = np.zeros(len(b_all), dtype=bool)
     done[[m.star for m in matches]] = True
@@ -200,11 +199,9 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
     out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
     body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
     ref_all = np.vstack([ref, cone[[k for _, (_, _, k) in new]]])
-    w = 1.0 / radius[[m.star for m in out]] ** 2
-    q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref_all), w / w.sum())
-    q = q / math.sqrt(float(q @ q))
+    q = _quest(body, ref_all, 1.0 / radius[[m.star for m in out]] ** 2)
     out.sort(key=lambda m: m.star)
-    return out, (-q if q[3] < 0 else q)
+    return out, q
 
 
 def _frame_depth(flux, star_index, mags, margin: float = 1.0):
@@ -275,7 +272,6 @@ def apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, c
     ``1 / sigma^2``): the camera's true orientation when no catalog match refined it
     (:func:`match_catalog`'s ``apparent``).  With ``catalog`` (a :class:`CatalogStars`) the database's
     stars are first moved to its epoch (:meth:`CatalogStars.moved`); else they are at the database's."""
-    from startrack._kernels.attitude import quest
     from startrack.identify.verify import _pixels_to_vectors
 
     cam = camera if scale is None else camera.with_focal_length(camera.focal_length_px / scale)
@@ -287,7 +283,13 @@ def apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, c
         ref = catalog.moved(db.star_id[accepted.cat_index], ref)
         plx = catalog.parallax_of(db.star_id[accepted.cat_index])
     ref = apparent(ref, plx)
-    w = 1.0 / np.asarray(sig_px, dtype=np.float64)[stars] ** 2
+    return _quest(body, ref, 1.0 / np.asarray(sig_px, dtype=np.float64)[stars] ** 2)
+
+
+def _quest(body, ref, w):
+    """QUEST's unit quaternion (scalar last, non-negative) of ``body`` against ``ref`` with weights ``w``."""
+    from startrack._kernels.attitude import quest
+
     q, _ = quest(np.ascontiguousarray(body), np.ascontiguousarray(ref), w / w.sum())
     q = q / math.sqrt(float(q @ q))
     return -q if q[3] < 0 else q
