@@ -150,15 +150,17 @@ def estimate_background(image: np.ndarray, options: CentroidOptions, saturation:
     cell = options.mesh_px
     mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
     img32 = np.ascontiguousarray(image, dtype=np.float32)
-    if saturation is not None:
-        img32 = np.where(img32 >= saturation, np.float32(np.nan), img32)
     ny, nx = -(-h // cell), -(-w // cell)
     if ny * nx * -(-min(cell, h) // mstep) * -(-min(cell, w) // mstep) <= 4_000_000:
         # The tiles' samples sorted by numpy (vectorised; ~0.07 ms for 192 tiles of 121 samples against
-        # ~0.4 ms of insertion sorts in background_mesh), then the same clipped statistics.
-        samples, counts, sampled = mesh_samples(img32, cell, mstep)
+        # ~0.4 ms of insertion sorts in background_mesh), then the same clipped statistics.  Saturated pixels are
+        # left out as they are sampled (no copy of the frame).
+        samples, counts, sampled = mesh_samples(img32, cell, mstep, math.inf if saturation is None else
+                                                float(np.float32(saturation)))
         level, sigma = mesh_core_stats(np.sort(samples, axis=1), counts, sampled, ny, nx)
     else:       # a fine mesh on a large frame: no copy of every sample
+        if saturation is not None:
+            img32 = np.where(img32 >= saturation, np.float32(np.nan), img32)
         level, sigma = background_mesh(img32, cell, mstep)
     # Tiles without data (NaN: mostly NaN pixels) take their neighbours' median, else the frame's level.
     level = _median3(level)
@@ -229,7 +231,45 @@ def _pixel_noise_mesh(residual, sigma_mesh, cell):
         return sigma_mesh
     sig = np.ascontiguousarray(sigma_mesh, dtype=np.float64)
     out = tile_clipped_std(residual, int(cell), sig, _CLIP_KAPPA, _CLIP_STD, 1, np.empty_like(sig))
-    return np.maximum(_median3(out), 0.25 * float(np.median(sigma_mesh)))
+    return _noise_floor(out, sigma_mesh)
+
+
+def _noise_floor(tile_std, sigma_mesh):
+    """:func:`_pixel_noise_mesh`'s last step: the tiles' clipped standard deviations 3 x 3 median-filtered, at
+    least a quarter of the mesh's typical noise."""
+    return np.maximum(_median3(tile_std), 0.25 * float(np.median(sigma_mesh)))
+
+
+#: Pixels a thread of :func:`_subtract_background` gets at least (measured: on 2 cores a 1024 x 768 frame's pass
+#: takes ~0.25 ms on one thread; a hand-off to a thread costs ~0.05 ms), and in one chunk.
+_PIXELS_PER_THREAD = 200_000
+_PIXELS_PER_CHUNK = 100_000
+
+
+def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, mask, sigma_mesh, noise: bool):
+    """``residual``, ``mask`` (:func:`startrack._kernels.centroid.subtract_background`) and, when ``noise``, the
+    pixel-noise mesh of :func:`_pixel_noise_mesh` from the same pass (else None); strips of whole tile rows
+    on :func:`threads` threads (the same values whatever their number)."""
+    from startrack._kernels.centroid import subtract_background_rows
+
+    h, w = image.shape
+    ny, nx = level_mesh.shape
+    noise = noise and (ny, nx) != (1, 1) and cell * ny >= h and cell * nx >= w
+    sig = np.ascontiguousarray(sigma_mesh, dtype=np.float64)
+    out = np.empty_like(sig) if noise else np.empty((0, 0))
+    args = (image, np.ascontiguousarray(level_mesh, dtype=np.float64),
+            np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
+    n_threads = min(threads(), h * w // _PIXELS_PER_THREAD)
+    if n_threads <= 1 or (ny, nx) == (1, 1):
+        subtract_background_rows(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out)
+    else:
+        kernel = subtract_background_rows.resolve((*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out))
+        # Chunks of whole tile rows, about _PIXELS_PER_CHUNK pixels each.
+        step = max(1, _PIXELS_PER_CHUNK // (int(cell) * w))
+        rows = [min(h, int(cell) * j) for j in range(0, ny, step)] + [h]
+        _run_chunks(lambda i: kernel(*args, rows[i], rows[i + 1], sig, _CLIP_KAPPA, _CLIP_STD, out),
+                    len(rows) - 1, n_threads)
+    return _noise_floor(out, sigma_mesh) if noise else None
 
 
 def _flag_misfits(stars, p_value, min_stars=5):
@@ -362,6 +402,98 @@ def _com_uncertainty(flux, peak, sig_est, psf_sigma, thresh, noise, gain, intege
 
 _WORKSPACE = threading.local()
 
+#: Threads of :func:`find_stars` set by :func:`set_threads` (None: from the environment, see :func:`threads`).
+_THREADS: int | None = None
+_POOL = None            # (pid, size, ThreadPoolExecutor): a forked child's copy has no threads and is replaced
+
+
+def set_threads(n: int | None) -> None:
+    """The number of threads :func:`find_stars` may use in this process (``None``: back to :func:`threads`' default).
+
+    The results are the same whatever the number: the threads split independent work (image strips, stars).
+    """
+    global _THREADS
+    if n is not None and (not isinstance(n, int) or n < 1):
+        raise ParameterError("threads", f"must be a whole number >= 1, got {n!r}")
+    _THREADS = n
+
+
+def threads() -> int:
+    """Threads :func:`find_stars` uses: :func:`set_threads`'s number, else ``$STARTRACK_THREADS``, else
+    ``$NUMBA_NUM_THREADS``, else 1 in a worker process of a pool (``solve -j N``, ``evaluate -j N``, Dask's
+    workers: the pool already uses the cores), else the CPUs this process may run on (at most 4)."""
+    import os
+
+    if _THREADS is not None:
+        return _THREADS
+    for var in ("STARTRACK_THREADS", "NUMBA_NUM_THREADS"):
+        value = os.environ.get(var, "").strip()
+        if value.isdigit() and int(value) >= 1:
+            return int(value)
+    import multiprocessing
+
+    if multiprocessing.parent_process() is not None:
+        return 1
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, 4))
+
+
+def _run_chunks(run, n_chunks: int, n_threads: int) -> None:
+    """``run(i)`` for every chunk ``i < n_chunks`` (independent work, kernels that release the GIL), on this
+    thread and up to ``n_threads - 1`` of the pool's.
+
+    The chunks are handed out one at a time to whichever thread is free, and this thread takes them too: on a
+    busy machine, where a pool thread may not get a core for milliseconds, this thread does the work itself
+    and returns without waiting for it (it waits only for chunks a pool thread has started).  Raises the first
+    error of a chunk.
+    """
+    import os
+
+    global _POOL
+    if n_threads <= 1 or n_chunks <= 1:
+        for i in range(n_chunks):
+            run(i)
+        return
+    lock = threading.Condition()
+    state = [0, 0, None]        # next chunk, chunks running, first error
+
+    def work():
+        while True:
+            with lock:
+                i = state[0]
+                if i >= n_chunks or state[2] is not None:
+                    return
+                state[0] = i + 1
+                state[1] += 1
+            try:
+                run(i)
+            except BaseException as exc:  # noqa: BLE001 - raised again on the calling thread
+                with lock:
+                    state[2] = state[2] or exc
+            finally:
+                with lock:
+                    state[1] -= 1
+                    if state[1] == 0:
+                        lock.notify_all()
+
+    pid = os.getpid()
+    helpers = min(n_threads, n_chunks) - 1
+    if _POOL is None or _POOL[0] != pid or _POOL[1] < helpers:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = (pid, helpers, ThreadPoolExecutor(helpers, thread_name_prefix="startrack-centroid"))
+    for _ in range(helpers):
+        _POOL[2].submit(work)
+    work()
+    with lock:
+        while state[1] > 0:
+            lock.wait()
+    if state[2] is not None:
+        raise state[2]
+
 
 def _workspace(shape, max_blobs):
     """Per-thread buffers for one frame shape, reused across frames.
@@ -472,8 +604,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     max_blobs = 20000
     ws = _workspace(img.shape, max_blobs)
     residual, mask = ws["residual"], ws["mask"]
-    subtract_background(det_img, np.ascontiguousarray(level_mesh, dtype=np.float64),
-                        np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
+    noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, mask, sigma_mesh,
+                                      options.method == "gauss")
     if options.matched_filter:
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
         # the filtered image is the pixel noise times the kernel's L2 norm.
@@ -487,7 +619,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     labels, table = ws["labels"], ws["table"]
     n_found = label_blobs_into(residual, mask, img, float(sat), max_blobs, labels, table, ws["stack"])
     try:
-        noise_mesh = _pixel_noise_mesh(residual, sigma_mesh, cell) if options.method == "gauss" else sigma_mesh
+        noise_mesh = sigma_mesh if noise_mesh is None else noise_mesh
         return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel, gsigma,
                         result, thresh_mesh, integer)
     finally:
@@ -543,44 +675,59 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         flux = table[1:n_found + 1, 0]
         keep = np.argpartition(-flux, _blob_budget(options.max_stars))[:_blob_budget(options.max_stars)]
         labs = np.sort(keep) + 1
-    rows = table[labs, :16].tolist()
+    # The blobs' shape, and what each is, for all of them at once (numpy); the Python loop below visits only the
+    # blobs that are not plain candidates (set aside, or tried for deblending).
+    arr = table[labs, :16]
+    flux, cx, cy, peak, npix, mxx, myy, mxy, nsat, ratio = (arr[:, k] for k in (0, 1, 2, 3, 6, 7, 8, 9, 10, 11))
+    tr = mxx + myy
+    disc = np.sqrt(np.maximum(tr * tr / 4 - (mxx * myy - mxy * mxy), 0.0))
+    l2 = np.maximum(tr / 2 - disc, 1e-6)
+    elong = np.sqrt((tr / 2 + disc) / l2)
+    minor = np.sqrt(np.maximum(l2, 0.25))
+    hot = (ratio >= options.hot_pixel_ratio) & (nsat == 0)
+    plain = ((flux > 0) & (npix >= options.min_pixels) & (npix <= options.max_pixels) & ~hot
+             & ~((elong > options.max_elongation) & (npix >= 8)))
+    if options.deblend:
+        plain &= ~((npix >= 6) & (elong > 1.35))
+    plain_rows = list(zip(cx.tolist(), cy.tolist(), peak.tolist(), npix.tolist(), nsat.tolist(), minor.tolist(),
+                          [False] * len(labs), flux.tolist()))
     peak_buf = np.empty((64, 2), dtype=np.int64)
-    for lab, row in zip(labs.tolist(), rows):
-        flux, cx, cy, peak, px, py, npix, mxx, myy, mxy, nsat, ratio = row[:12]
-        area = int(npix)
+    done = 0
+    for k in np.flatnonzero(~plain).tolist():
+        candidates.extend(plain_rows[done:k])
+        done = k + 1
+        row = arr[k].tolist()
+        f, x, y, pk, px, py, n, _, _, _, ns, rt = row[:12]
+        area = int(n)
         px, py = int(px), int(py)
-        if flux <= 0:
+        if f <= 0:
             continue
         if area < options.min_pixels:
-            if ratio >= options.hot_pixel_ratio and area <= 2 and nsat == 0 and peak > 0:
-                rejected.append({"x": float(px), "y": float(py), "flux": float(flux), "reason": "hot pixel"})
+            if rt >= options.hot_pixel_ratio and area <= 2 and ns == 0 and pk > 0:
+                rejected.append({"x": float(px), "y": float(py), "flux": float(f), "reason": "hot pixel"})
             continue
         if area > options.max_pixels:
-            rejected.append({"x": float(cx), "y": float(cy), "flux": float(flux), "npix": area, "reason": "too large"})
+            rejected.append({"x": float(x), "y": float(y), "flux": float(f), "npix": area, "reason": "too large"})
             continue
-        if ratio >= options.hot_pixel_ratio and nsat == 0:
-            rejected.append({"x": float(px), "y": float(py), "flux": float(flux), "reason": "hot pixel or cosmic ray"})
+        if rt >= options.hot_pixel_ratio and ns == 0:
+            rejected.append({"x": float(px), "y": float(py), "flux": float(f), "reason": "hot pixel or cosmic ray"})
             continue
-        tr = mxx + myy
-        det2 = mxx * myy - mxy * mxy
-        disc = math.sqrt(max(tr * tr / 4 - det2, 0.0))
-        l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 1e-6)
-        elong = math.sqrt(l1 / l2)
-        if options.deblend and area >= 6 and elong > 1.35:
-            n_peaks = split_blob(residual, labels, lab, int(row[12]), int(row[13]), int(row[14] - row[12] + 1),
-                                 int(row[15] - row[13] + 1), 2.5, 0.7, peak_buf)
+        e = float(elong[k])
+        if options.deblend and area >= 6 and e > 1.35:
+            n_peaks = split_blob(residual, labels, int(labs[k]), int(row[12]), int(row[13]),
+                                 int(row[14] - row[12] + 1), int(row[15] - row[13] + 1), 2.5, 0.7, peak_buf)
             if n_peaks >= 2:
                 peaks = peak_buf[:n_peaks].tolist()
                 for (qx, qy) in peaks:
-                    candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), nsat,
-                                       math.sqrt(max(l2, 0.25)), True, flux / len(peaks)))
+                    candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), ns,
+                                       plain_rows[k][5], True, f / len(peaks)))
                 continue
-        if elong > options.max_elongation and area >= 8:
-            rejected.append({"x": float(cx), "y": float(cy), "flux": float(flux), "npix": area,
-                             "elongation": float(elong), "reason": "elongated (trail or extended object)"})
+        if e > options.max_elongation and area >= 8:
+            rejected.append({"x": float(x), "y": float(y), "flux": float(f), "npix": area,
+                             "elongation": e, "reason": "elongated (trail or extended object)"})
             continue
-        candidates.append((float(cx), float(cy), float(peak), float(npix), nsat, math.sqrt(max(l2, 0.25)), False,
-                           float(flux)))
+        candidates.append(plain_rows[k])
+    candidates.extend(plain_rows[done:])
     if options.max_stars is not None and len(candidates) > 3 * options.max_stars + 20:
         # Only the brightest blobs can be among the max_stars brightest stars: centroid those
         # (with room for duplicates and shape rejections) and skip the faint majority.
@@ -725,6 +872,12 @@ def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_va
     return stars
 
 
+#: Candidates a thread of :func:`_measure_gauss` gets at least (a fit takes ~10 us; handing work to a thread ~50),
+#: and in one chunk.
+_FITS_PER_THREAD = 16
+_FITS_PER_CHUNK = 8
+
+
 def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
     """The stars of ``candidates`` with the ``gauss`` method: every fit in one kernel call
     (:func:`startrack._kernels.psf_fit.measure_candidates`), then the records."""
@@ -735,8 +888,17 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
     cand = np.array([(c[0], c[1], c[5], 1.0 if c[6] else 0.0) for c in candidates], dtype=np.float64)
     out = np.zeros((len(candidates), 12))
     inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
-    measure_candidates(residual, cand, float(options.psf_sigma_px or 0.0),
-                       np.ascontiguousarray(noise_mesh, dtype=np.float64), int(cell), float(quant_var), inv_g, out)
+    args = (float(options.psf_sigma_px or 0.0), np.ascontiguousarray(noise_mesh, dtype=np.float64), int(cell),
+            float(quant_var), inv_g)
+    n_threads = min(threads(), len(candidates) // _FITS_PER_THREAD)
+    if n_threads > 1:
+        # Each fit is independent: chunks of _FITS_PER_CHUNK candidates, to whichever thread is free.
+        kernel = measure_candidates.resolve((residual, cand, *args, out))
+        cuts = list(range(0, len(candidates), _FITS_PER_CHUNK)) + [len(candidates)]
+        _run_chunks(lambda i: kernel(residual, cand[cuts[i]:cuts[i + 1]], *args, out[cuts[i]:cuts[i + 1]]),
+                    len(cuts) - 1, n_threads)
+    else:
+        measure_candidates(residual, cand, *args, out)
     gain = options.gain_e_per_dn
     stars = []
     for (_, _, peak, npix, nsat, _, deblended, _), row in zip(candidates, out.tolist(), strict=True):

@@ -320,7 +320,7 @@ def test_mesh_paths_agree_with_pixels_without_value():
     img = rng.normal(50, 3, (200, 260)).astype(np.float32)
     img[:, :70] = np.nan            # tiles 0 (all) and 1 (partly) of each row
     img[150:, 200:] = np.inf
-    samples, counts, sampled = mesh_samples(img, 64, 6)
+    samples, counts, sampled = mesh_samples(img, 64, 6, math.inf)
     level, sigma = mesh_core_stats(np.sort(samples, axis=1), counts, sampled, 4, 5)
     level2, sigma2 = background_mesh(img, 64, 6)
     np.testing.assert_array_equal(level, level2)

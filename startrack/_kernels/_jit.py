@@ -438,12 +438,6 @@ def build_aot(directory: str | None = None, kernels=None) -> tuple[str, int]:
 
 def _build(path, module, cpu, kernels):
     """:func:`build_aot`'s compilation (codegen already set for the host)."""
-    import re
-    import tempfile
-    import warnings
-
-    from numba.pycc import CC
-
     entries = []
     for k in (list(kernels) if kernels is not None else _KERNELS):
         # Entry points only (kernels called from Python): the others are compiled into them.
@@ -454,6 +448,34 @@ def _build(path, module, cpu, kernels):
             if None not in key:
                 entries.append((k, args, key))
     skipped: list = []
+    # ``nogil=True`` kernels release the GIL in the AOT build too (numba.pycc compiles every export with one set
+    # of flags, without ``release_gil``): threads of one process then run them at once.
+    import numba.pycc.compiler as pycc_compiler
+
+    nogil = {k.py_func for k, _, _ in entries if k.options.get("nogil")}
+    compile_extra = pycc_compiler.compile_extra
+
+    def compile_nogil(typing_context, target_context, func, args, return_type, flags, *rest, **kwargs):
+        if func in nogil:
+            flags = flags.copy()
+            flags.release_gil = True
+        return compile_extra(typing_context, target_context, func, args, return_type, flags, *rest, **kwargs)
+
+    pycc_compiler.compile_extra = compile_nogil
+    try:
+        return _build_entries(path, module, cpu, entries, skipped)
+    finally:
+        pycc_compiler.compile_extra = compile_extra
+
+
+def _build_entries(path, module, cpu, entries, skipped):
+    """:func:`_build`'s compilation of ``entries`` (a kernel numba.pycc cannot compile is left to the JIT)."""
+    import re
+    import tempfile
+    import warnings
+
+    from numba.pycc import CC
+
     while entries:
         cc = CC(module)
         cc.target_cpu = cpu

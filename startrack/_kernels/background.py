@@ -231,11 +231,12 @@ MIN_TILE_SAMPLES = 10
 
 
 @njit(cache=True)
-def mesh_samples(image, cell, step):
+def mesh_samples(image, cell, step, saturation):
     """The samples of :func:`background_mesh`'s tiles, one row a tile (row-major tiles), for a sort by numpy.
 
-    Returns ``(samples (ny * nx, n_max) float32, counts, sampled)``: a tile's finite samples (NaN and
-    infinite pixels are no data), then +inf; ``counts[t]`` their number, ``sampled[t]`` the pixels sampled.
+    Returns ``(samples (ny * nx, n_max) float32, counts, sampled)``: a tile's finite samples below
+    ``saturation`` (NaN, infinite and saturated pixels are no data; ``inf``: no saturation level), then
+    +inf; ``counts[t]`` their number, ``sampled[t]`` the pixels sampled.
     """
     h, w = image.shape
     ny = (h + cell - 1) // cell
@@ -253,7 +254,7 @@ def mesh_samples(image, cell, step):
             for x in range(x0, min(w, x0 + cell), step):
                 v = image[y, x]
                 m += 1
-                if np.isfinite(v):
+                if np.isfinite(v) and v < saturation:
                     samples[t, k] = v
                     k += 1
         counts[t] = k

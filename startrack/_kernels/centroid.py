@@ -360,6 +360,104 @@ def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask)
                 mask_run[q] = 1 if r > ta + dt * t else 0
 
 
+@njit(cache=True, nogil=True)
+def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, mask, row0, row1, noise_mesh, kappa,
+                             truncated_std, noise_out):
+    """:func:`subtract_background` of the rows ``row0 <= y < row1``, with the pixel noise of their mesh tiles in
+    the same pass (independent rows: threads take strips of them).
+
+    When ``noise_out`` has the mesh's shape (else it is empty and ignored), the tile rows wholly inside
+    the strip get :func:`startrack._kernels.background.tile_clipped_std`'s one iteration (the residual
+    within ``kappa`` times ``noise_mesh`` of zero, its standard deviation divided by ``truncated_std``; a
+    tile of fewer than 50 such pixels, or no spread, keeps ``noise_mesh``): the same sums in the same
+    order (per column over a tile row's rows, then over a tile's columns), so the same values to the bit,
+    when the strip's bounds are tile-row bounds.  The mesh must cover the image (``cell`` times its
+    shape at least the image's).
+    """
+    h, w = image.shape
+    ny, nx = level_mesh.shape
+    noise = noise_out.shape[0] == ny and noise_out.shape[1] == nx
+    tx = np.empty(w)
+    ra = np.empty(w, dtype=np.int64)
+    rb = np.empty(w, dtype=np.int64)
+    starts = np.empty(w + 1, dtype=np.int64)
+    n_runs = 0
+    for x in range(w):
+        fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
+        a = min(int(fx), nx - 2) if nx > 1 else 0
+        tx[x] = fx - a
+        if n_runs == 0 or a != ra[n_runs - 1]:
+            ra[n_runs] = a
+            rb[n_runs] = min(a + 1, nx - 1)
+            starts[n_runs] = x
+            n_runs += 1
+    starts[n_runs] = w
+    lrow = np.empty(nx)
+    trow = np.empty(nx)
+    lim = np.empty(w)
+    cn = np.zeros(w)
+    c1 = np.zeros(w)
+    c2 = np.zeros(w)
+    icell = int(cell)
+    for y in range(row0, row1):
+        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
+        j0 = min(int(fy), ny - 2) if ny > 1 else 0
+        j1 = min(j0 + 1, ny - 1)
+        ty = fy - j0
+        for i in range(nx):
+            lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
+            trow[i] = threshold_mesh[j0, i] * (1.0 - ty) + threshold_mesh[j1, i] * ty
+        jt = y // icell
+        if noise and (y % icell == 0 or y == row0):
+            for x in range(w):
+                lim[x] = kappa * noise_mesh[jt, x // icell]
+                cn[x] = 0.0
+                c1[x] = 0.0
+                c2[x] = 0.0
+        for k in range(n_runs):
+            la = lrow[ra[k]]
+            dl = lrow[rb[k]] - la
+            ta = trow[ra[k]]
+            dt = trow[rb[k]] - ta
+            x0 = starts[k]
+            x1 = starts[k + 1]
+            t_run = tx[x0:x1]
+            im_run = image[y, x0:x1]
+            res_run = residual[y, x0:x1]
+            mask_run = mask[y, x0:x1]
+            for q in range(x1 - x0):
+                t = t_run[q]
+                r = im_run[q] - (la + dl * t)
+                res_run[q] = r
+                mask_run[q] = 1 if r > ta + dt * t else 0
+            if noise:
+                lim_run = lim[x0:x1]
+                cn_run = cn[x0:x1]
+                c1_run = c1[x0:x1]
+                c2_run = c2[x0:x1]
+                for q in range(x1 - x0):
+                    v = res_run[q]
+                    keep = abs(v) <= lim_run[q]
+                    cn_run[q] += 1.0 if keep else 0.0
+                    c1_run[q] += v if keep else 0.0
+                    c2_run[q] += v * v if keep else 0.0     # the square in the residual's precision
+        if noise and ((y + 1) % icell == 0 or y + 1 == h):
+            for i in range(nx):
+                n = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                for x in range(i * icell, min(w, (i + 1) * icell)):
+                    n += cn[x]
+                    s1 += c1[x]
+                    s2 += c2[x]
+                noise_out[jt, i] = noise_mesh[jt, i]
+                if n < 50:
+                    continue
+                var = (s2 - s1 * s1 / n) / (n - 1)
+                if var > 0.0:
+                    noise_out[jt, i] = math.sqrt(var) / truncated_std
+
+
 @njit(cache=True)
 def label_blobs(residual, mask, image, saturation, max_blobs):
     """Label 8-connected foreground blobs and measure each as it is found.

@@ -186,7 +186,7 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
     return p[0], p[1], p[2], p[3], ok, cov[0, 0], 0.5 * (cov[0, 1] + cov[1, 0]), cov[1, 1], cost, n_pix
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, inv_gain, out):
     """Centroid and photometry of every candidate blob in one call (:func:`startrack.centroid.find_stars`,
     method ``gauss``): per candidate, the unweighted Gaussian fit, then the inverse-variance weighted fit
