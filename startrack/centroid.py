@@ -109,6 +109,16 @@ class CentroidResult:
         return out
 
 
+def _median(values) -> float:
+    """``np.median`` of finite values, to the bit (the middle value, or the mean of the middle two), without its
+    overhead (~15 us a call on the small arrays here)."""
+    v = np.sort(np.asarray(values, dtype=np.float64), axis=None)
+    n = v.shape[0]
+    if n == 0:
+        return math.nan
+    return float(v[n // 2]) if n & 1 else float((v[n // 2 - 1] + v[n // 2]) / 2)
+
+
 def _median3(a):
     """3 x 3 median filter of a small 2-D array (edges replicated)."""
     from startrack._kernels.background import median3
@@ -169,7 +179,7 @@ def estimate_background(image: np.ndarray, options: CentroidOptions, saturation:
     if have.any():
         # The frame's level and noise are its typical tile's: a foreground body, a dark horizon or a bright moon
         # over part of the frame makes the frame's histogram two-humped, and its core's width is not a noise.
-        glevel, gsigma = float(np.median(level[have])), float(np.median(sigma[have]))
+        glevel, gsigma = _median(level[have]), _median(sigma[have])
     else:
         glevel, gsigma = frame_stats()
     level = np.where(np.isfinite(level), level, glevel)
@@ -237,7 +247,7 @@ def _pixel_noise_mesh(residual, sigma_mesh, cell):
 def _noise_floor(tile_std, sigma_mesh):
     """:func:`_pixel_noise_mesh`'s last step: the tiles' clipped standard deviations 3 x 3 median-filtered, at
     least a quarter of the mesh's typical noise."""
-    return np.maximum(_median3(tile_std), 0.25 * float(np.median(sigma_mesh)))
+    return np.maximum(_median3(tile_std), 0.25 * _median(sigma_mesh))
 
 
 #: Pixels a thread of :func:`_subtract_background` gets at least (measured: on 2 cores a 1024 x 768 frame's pass
@@ -923,30 +933,15 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
 
 def _unique(stars: list) -> list:
     """Drop a detection within 1.5 px (or half its FWHM) of a brighter one: two peaks of one blob that converged."""
-    kept = []
-    grid: dict = {}     # cell -> positions of the kept stars there
-    cell = 8.0
-    for s_ in stars:
-        x, y = s_["x"], s_["y"]
-        r = max(1.5, 0.5 * s_.get("fwhm_px", 0.0))
-        r2 = r * r
-        gx, gy = int(x // cell), int(y // cell)
-        reach = int(r // cell) + 1
-        dup = False
-        for ix in range(gx - reach, gx + reach + 1):
-            for iy in range(gy - reach, gy + reach + 1):
-                for kx, ky in grid.get((ix, iy), ()):
-                    if (x - kx) ** 2 + (y - ky) ** 2 <= r2:
-                        dup = True
-                        break
-                if dup:
-                    break
-            if dup:
-                break
-        if not dup:
-            kept.append(s_)
-            grid.setdefault((gx, gy), []).append((x, y))
-    return kept
+    from startrack._kernels.centroid import unique_positions
+
+    if not stars:
+        return []
+    xs = np.array([s_["x"] for s_ in stars], dtype=np.float64)
+    ys = np.array([s_["y"] for s_ in stars], dtype=np.float64)
+    radii = np.array([max(1.5, 0.5 * s_.get("fwhm_px", 0.0)) for s_ in stars], dtype=np.float64)
+    keep = unique_positions(xs, ys, radii, np.empty(len(stars), dtype=np.bool_))
+    return [s_ for s_, k in zip(stars, keep.tolist()) if k]
 
 
 #: The point-spread function's width is taken from at most this many of the frame's best stars.
@@ -962,7 +957,7 @@ def _shorth_centre(values) -> float:
     h = (len(v) + 1) // 2
     widths = v[h - 1:] - v[:len(v) - h + 1]
     i = int(np.argmin(widths))
-    return float(np.median(v[i:i + h]))
+    return _median(v[i:i + h])
 
 
 def frame_psf(stars: list):
@@ -982,7 +977,7 @@ def frame_psf(stars: list):
         return None
     logs = np.log([s_["fwhm_px"] for s_ in best])
     centre = _shorth_centre(logs)
-    spread = 1.4826 * float(np.median(np.abs(logs - centre)))
+    spread = 1.4826 * _median(np.abs(logs - centre))
     return math.exp(centre), spread
 
 

@@ -430,17 +430,15 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
                 r = im_run[q] - (la + dl * t)
                 res_run[q] = r
                 mask_run[q] = 1 if r > ta + dt * t else 0
-            if noise:
-                lim_run = lim[x0:x1]
-                cn_run = cn[x0:x1]
-                c1_run = c1[x0:x1]
-                c2_run = c2[x0:x1]
-                for q in range(x1 - x0):
-                    v = res_run[q]
-                    keep = abs(v) <= lim_run[q]
-                    cn_run[q] += 1.0 if keep else 0.0
-                    c1_run[q] += v if keep else 0.0
-                    c2_run[q] += v * v if keep else 0.0     # the square in the residual's precision
+        if noise:
+            # The row again, from the cache: one loop over the whole row vectorises.
+            row = residual[y]
+            for x in range(w):
+                v = row[x]
+                keep = abs(v) <= lim[x]
+                cn[x] += 1.0 if keep else 0.0
+                c1[x] += v if keep else 0.0
+                c2[x] += v * v if keep else 0.0     # the square in the residual's precision
         if noise and ((y + 1) % icell == 0 or y + 1 == h):
             for i in range(nx):
                 n = 0.0
@@ -822,3 +820,50 @@ def annulus_medians(residual, xs, ys, r_in, r_out, out):
                         m += 1
         out[k] = np.median(buf[:m]) if m >= 8 else np.nan
     return out
+
+
+@njit(cache=True)
+def unique_positions(xs, ys, radii, keep):
+    """``keep[k]`` False for a position within ``radii[k]`` of an earlier kept one (positions in priority order).
+
+    Kept positions are found through a grid of 8 px cells (at most 2048 a side: positions beyond share the
+    edge cells, which only adds pairs to test), so the cost grows with the positions, not their square.
+    """
+    n = xs.shape[0]
+    if n == 0:
+        return keep
+    cell = 8.0
+    gx0 = math.floor(xs.min() / cell)
+    gy0 = math.floor(ys.min() / cell)
+    gw = int(min(math.floor(xs.max() / cell) - gx0 + 1, 2048))
+    gh = int(min(math.floor(ys.max() / cell) - gy0 + 1, 2048))
+    head = np.full(gw * gh, -1, dtype=np.int64)
+    nxt = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        x = xs[k]
+        y = ys[k]
+        r2 = radii[k] * radii[k]
+        gx = int(min(max(math.floor(x / cell) - gx0, 0), gw - 1))
+        gy = int(min(max(math.floor(y / cell) - gy0, 0), gh - 1))
+        reach = int(radii[k] // cell) + 1
+        dup = False
+        for iy in range(max(gy - reach, 0), min(gy + reach, gh - 1) + 1):
+            for ix in range(max(gx - reach, 0), min(gx + reach, gw - 1) + 1):
+                j = head[iy * gw + ix]
+                while j >= 0:
+                    dx = x - xs[j]
+                    dy = y - ys[j]
+                    if dx * dx + dy * dy <= r2:
+                        dup = True
+                        break
+                    j = nxt[j]
+                if dup:
+                    break
+            if dup:
+                break
+        keep[k] = not dup
+        if not dup:
+            c = gy * gw + gx
+            nxt[k] = head[c]
+            head[c] = k
+    return keep
