@@ -256,9 +256,10 @@ _PIXELS_PER_THREAD = 200_000
 _PIXELS_PER_CHUNK = 100_000
 
 
-def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, mask, sigma_mesh, noise: bool):
-    """``residual``, ``mask`` (:func:`startrack._kernels.centroid.subtract_background`) and, when ``noise``, the
-    pixel-noise mesh of :func:`_pixel_noise_mesh` from the same pass (else None); strips of whole tile rows
+def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, labels, foreground, row_counts, sigma_mesh,
+                         noise: bool):
+    """``residual``, the mask in ``labels`` (:func:`startrack._kernels.centroid.subtract_background_rows`) and,
+    when ``noise``, the pixel-noise mesh of :func:`_pixel_noise_mesh` from the same pass (else None); strips of whole tile rows
     on :func:`threads` threads (the same values whatever their number)."""
     from startrack._kernels.centroid import subtract_background_rows
 
@@ -268,7 +269,8 @@ def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, mask, s
     sig = np.ascontiguousarray(sigma_mesh, dtype=np.float64)
     out = np.empty_like(sig) if noise else np.empty((0, 0))
     args = (image, np.ascontiguousarray(level_mesh, dtype=np.float64),
-            np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, mask)
+            np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, labels, int(foreground),
+            row_counts)
     n_threads = min(threads(), h * w // _PIXELS_PER_THREAD)
     if n_threads <= 1 or (ny, nx) == (1, 1):
         subtract_background_rows(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out)
@@ -508,19 +510,21 @@ def _run_chunks(run, n_chunks: int, n_threads: int) -> None:
 def _workspace(shape, max_blobs):
     """Per-thread buffers for one frame shape, reused across frames.
 
-    A 1024 x 1024 frame needs ~10 MB of scratch (residual, mask, labels,
-    blob table, fill stack); allocating it afresh for every frame costs more
+    A 1024 x 1024 frame needs ~8 MB of scratch (residual, labels, blob
+    table, fill stack); allocating it afresh for every frame costs more
     in page faults than the labelling itself once the allocator has started
     returning large blocks to the system.  ``labels`` is all zero between calls.
     """
     ws = getattr(_WORKSPACE, "buffers", None)
     if ws is None or ws["shape"] != shape or ws["table"].shape[0] < max_blobs + 1:
         h, w = shape
-        # Labels in uint16 (max_blobs < 65535): 2 bytes a pixel, not 4 (an 8000 x 6000 frame's scratch is then
-        # 370 MB, not 470: issue 41).
-        ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32), "mask": np.empty(shape, dtype=np.uint8),
+        # Labels in uint16 (max_blobs < 65535): 2 bytes a pixel, not 4, and they are the detection mask too
+        # (``_FOREGROUND`` until labelled): 6 bytes a pixel with the residual (issue 41: an 8000 x 6000 frame's
+        # scratch was 470 MB at 9 bytes a pixel).  The fill stack holds pixel indices: int32 below 2^31 pixels.
+        ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32),
               "labels": np.zeros(shape, dtype=np.uint16 if max_blobs < 65535 else np.int32),
-              "table": np.empty((max_blobs + 1, 16)), "stack": np.empty(min(h * w, 4_000_000), dtype=np.int64)}
+              "table": np.empty((max_blobs + 1, 16)), "row_counts": np.zeros(h, dtype=np.int64),
+              "stack": np.empty(min(h * w, 4_000_000), dtype=np.int32 if h * w < 2**31 else np.int64)}
         _WORKSPACE.buffers = ws
     return ws
 
@@ -560,7 +564,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     """
     import cv2
 
-    from startrack._kernels.centroid import clear_labels, label_blobs_into, subtract_background
+    from startrack._kernels.centroid import clear_labels, label_blobs_into
 
     options = options or CentroidOptions()
     t0 = time.perf_counter()
@@ -613,9 +617,11 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
     max_blobs = 20000
     ws = _workspace(img.shape, max_blobs)
-    residual, mask = ws["residual"], ws["mask"]
-    noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, mask, sigma_mesh,
-                                      options.method == "gauss")
+    residual, labels, table = ws["residual"], ws["labels"], ws["table"]
+    foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
+    counts = ws["row_counts"]
+    noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, labels, foreground, counts,
+                                      sigma_mesh, options.method == "gauss")
     if options.matched_filter:
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
         # the filtered image is the pixel noise times the kernel's L2 norm.
@@ -623,11 +629,9 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         det = cv2.GaussianBlur(residual, (k, k), options.filter_sigma_px)
         g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
         norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
-        zero = np.zeros((1, 1))
-        subtract_background(det, zero, np.ascontiguousarray(thresh_mesh * norm, dtype=np.float64), float(cell),
-                            np.empty_like(det), mask)
-    labels, table = ws["labels"], ws["table"]
-    n_found = label_blobs_into(residual, mask, img, float(sat), max_blobs, labels, table, ws["stack"])
+        _subtract_background(det, np.zeros((1, 1)), thresh_mesh * norm, cell, np.empty_like(det), labels, foreground,
+                             counts, sigma_mesh, False)
+    n_found = label_blobs_into(residual, img, float(sat), max_blobs, labels, foreground, counts, table, ws["stack"])
     try:
         noise_mesh = sigma_mesh if noise_mesh is None else noise_mesh
         return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel, gsigma,

@@ -361,10 +361,12 @@ def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask)
 
 
 @njit(cache=True, nogil=True)
-def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, mask, row0, row1, noise_mesh, kappa,
-                             truncated_std, noise_out):
-    """:func:`subtract_background` of the rows ``row0 <= y < row1``, with the pixel noise of their mesh tiles in
-    the same pass (independent rows: threads take strips of them).
+def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
+                             row1, noise_mesh, kappa, truncated_std, noise_out):
+    """:func:`subtract_background` of the rows ``row0 <= y < row1`` into ``residual`` and ``labels`` (``foreground``
+    above the threshold, else 0: what :func:`label_blobs_into` labels; no separate mask; ``row_counts[y]`` their
+    number in row ``y``), with the pixel noise
+    of their mesh tiles in the same pass (independent rows: threads take strips of them).
 
     When ``noise_out`` has the mesh's shape (else it is empty and ignored), the tile rows wholly inside
     the strip get :func:`startrack._kernels.background.tile_clipped_std`'s one iteration (the residual
@@ -377,6 +379,7 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
     h, w = image.shape
     ny, nx = level_mesh.shape
     noise = noise_out.shape[0] == ny and noise_out.shape[1] == nx
+    fg = foreground
     tx = np.empty(w)
     ra = np.empty(w, dtype=np.int64)
     rb = np.empty(w, dtype=np.int64)
@@ -407,6 +410,7 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
         for i in range(nx):
             lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
             trow[i] = threshold_mesh[j0, i] * (1.0 - ty) + threshold_mesh[j1, i] * ty
+        count = 0
         jt = y // icell
         if noise and (y % icell == 0 or y == row0):
             for x in range(w):
@@ -424,12 +428,15 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
             t_run = tx[x0:x1]
             im_run = image[y, x0:x1]
             res_run = residual[y, x0:x1]
-            mask_run = mask[y, x0:x1]
+            lab_run = labels[y, x0:x1]
             for q in range(x1 - x0):
                 t = t_run[q]
                 r = im_run[q] - (la + dl * t)
                 res_run[q] = r
-                mask_run[q] = 1 if r > ta + dt * t else 0
+                m = 1 if r > ta + dt * t else 0
+                lab_run[q] = fg * m
+                count += m
+        row_counts[y] = count
         if noise:
             # The row again, from the cache: one loop over the whole row vectorises.
             row = residual[y]
@@ -471,29 +478,48 @@ def label_blobs(residual, mask, image, saturation, max_blobs):
     right, bottom.
     """
     h, w = residual.shape
+    fg = np.iinfo(np.int32).max
     labels = np.zeros((h, w), dtype=np.int32)
+    counts = np.zeros(h, dtype=np.int64)
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x] != 0:
+                labels[y, x] = fg
+                counts[y] += 1
     table = np.empty((max_blobs + 1, 16))
     stack = np.empty(min(h * w, 4_000_000), dtype=np.int64)
-    n = label_blobs_into(residual, mask, image, saturation, max_blobs, labels, table, stack)
+    n = label_blobs_into(residual, image, saturation, max_blobs, labels, fg, counts, table, stack)
+    if n > max_blobs:
+        for y in range(h):
+            for x in range(w):
+                if labels[y, x] == fg:
+                    labels[y, x] = 0
     return labels, table, n
 
 
 @njit(cache=True)
-def label_blobs_into(residual, mask, image, saturation, max_blobs, labels, table, stack):
+def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground, row_counts, table, stack):
     """:func:`label_blobs` into caller-owned buffers, returning ``n``.
 
-    ``labels`` (the image's shape; an integer type holding ``max_blobs``: uint16 below 65535) must be all zero
-    on entry; ``table``
+    ``labels`` (the image's shape; an integer type holding ``max_blobs``: uint16 below 65535) holds
+    ``foreground`` (above ``max_blobs``) on the pixels to label, 0 elsewhere, on entry (the mask, written by
+    :func:`subtract_background_rows`; ``row_counts[y]``, their number in row ``y``: rows without any are not
+    scanned); on return each of those pixels holds its blob's number (some keep
+    ``foreground`` when there are more than ``max_blobs`` blobs); ``table``
     needs ``max_blobs + 1`` rows (each row is cleared when its blob is found);
     ``stack`` is scratch.  Reusing the buffers across frames avoids faulting
     ~10 MB of fresh pages per 1024 x 1024 frame.
     """
     h, w = residual.shape
+    fg = foreground
     table[0, :] = 0.0
     n = 0
     for y0 in range(h):
+        if row_counts[y0] == 0:
+            continue
+        lrow = labels[y0]
         for x0 in range(w):
-            if mask[y0, x0] == 0 or labels[y0, x0] != 0:
+            if lrow[x0] != fg:
                 continue
             n += 1
             if n > max_blobs:
@@ -547,7 +573,7 @@ def label_blobs_into(residual, mask, image, saturation, max_blobs, labels, table
                         continue
                     for dx in range(-1, 2):
                         xx = x + dx
-                        if xx < 0 or xx >= w or labels[yy, xx] != 0 or mask[yy, xx] == 0:
+                        if xx < 0 or xx >= w or labels[yy, xx] != fg:
                             continue
                         labels[yy, xx] = n
                         if top < stack.shape[0]:
