@@ -331,9 +331,9 @@ def test_mesh_paths_agree_with_pixels_without_value():
 
 
 def test_scratch_memory_per_pixel_is_bounded():
-    """The per-frame scratch of find_stars is 7 bytes a pixel (residual float32, mask uint8, labels uint16; issue
-    41: an 8000 x 6000 frame's was 470 MB at 9 bytes a pixel with int32 labels), and the labels still hold every
-    blob id (max_blobs < 65535)."""
+    """The per-frame scratch of find_stars is 6 bytes a pixel (residual float32, labels uint16 that are the detection
+    mask too; issue 41: an 8000 x 6000 frame's was 470 MB at 9 bytes a pixel with int32 labels and a mask), and the
+    labels still hold every blob id and the foreground mark (max_blobs < 65535)."""
     import startrack.centroid as c
 
     rng = np.random.default_rng(41)
@@ -345,6 +345,151 @@ def test_scratch_memory_per_pixel_is_bounded():
     assert len(res.stars) >= 30
     ws = c._WORKSPACE.buffers
     full = [a for a in ws.values() if isinstance(a, np.ndarray) and a.shape == img.shape]
-    assert {a.dtype for a in full} == {np.dtype(np.float32), np.dtype(np.uint8), np.dtype(np.uint16)}
-    assert sum(a.nbytes for a in full) / img.size <= 7
+    # The residual (float32) and the labels (uint16, the detection mask too): 6 bytes a pixel.
+    assert {a.dtype for a in full} == {np.dtype(np.float32), np.dtype(np.uint16)}
+    assert sum(a.nbytes for a in full) / img.size <= 6
     assert ws["table"].shape[0] - 1 < np.iinfo(ws["labels"].dtype).max
+    assert ws["stack"].dtype == np.int32
+
+
+def _field(shape, n_stars, seed, sigma=1.3, saturate=False):
+    """A star field of ``n_stars`` Gaussian stars on a sloped background (float32), some saturated when asked."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = 200.0 + 0.05 * xx + 0.03 * yy + rng.normal(0.0, 4.0, shape)
+    for x0, y0, f in zip(rng.uniform(3, w - 3, n_stars), rng.uniform(3, h - 3, n_stars),
+                         10 ** rng.uniform(2.5, 4.5, n_stars)):
+        img += f / (2 * np.pi * sigma**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sigma**2))
+    if saturate:
+        img = np.minimum(img, 3000.0)
+    return img.astype(np.float32)
+
+
+@pytest.mark.parametrize("method,max_stars", [("gauss", 60), ("gauss", None), ("com", None)])
+def test_results_do_not_depend_on_the_thread_count(method, max_stars):
+    """find_stars splits the background pass (strips of tile rows) and the fits (chunks of candidates) over
+    threads: 1, 2 and 3 threads give the same stars, bit for bit, on a frame large enough to be split."""
+    import startrack.centroid as c
+
+    img = _field((768, 1024), 300, 5, saturate=True)
+    opts = CentroidOptions(method=method, max_stars=max_stars)
+    runs = []
+    try:
+        for n in (1, 2, 3):
+            c.set_threads(n)
+            assert c.threads() == n
+            res = find_stars(img, opts, saturation=3000.0)
+            runs.append(([tuple(sorted(s_.items())) for s_ in res.stars], res.rejected, res.background_sigma))
+    finally:
+        c.set_threads(None)
+    assert len(runs[0][0]) >= (60 if max_stars else 150)
+    assert runs[1] == runs[0] and runs[2] == runs[0]
+
+
+def test_thread_count_settings(monkeypatch):
+    """set_threads wins over $STARTRACK_THREADS, which wins over $NUMBA_NUM_THREADS; a pool's worker process
+    (solve -j N) uses one thread; nonsense is refused."""
+    import startrack.centroid as c
+    from startrack.errors import ParameterError
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")
+    monkeypatch.setenv("STARTRACK_THREADS", "2")
+    assert c.threads() == 2
+    monkeypatch.delenv("STARTRACK_THREADS")
+    assert c.threads() == 3
+    monkeypatch.delenv("NUMBA_NUM_THREADS")
+    try:
+        c.set_threads(1)
+        assert c.threads() == 1
+    finally:
+        c.set_threads(None)
+    with pytest.raises(ParameterError):
+        c.set_threads(0)
+    import multiprocessing
+
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        assert pool.apply(c.threads) == 1
+
+
+def test_run_chunks_does_every_chunk_once_and_raises_a_chunks_error():
+    import threading
+
+    import startrack.centroid as c
+
+    seen = []
+    lock = threading.Lock()
+
+    def run(i):
+        with lock:
+            seen.append(i)
+
+    c._run_chunks(run, 50, 3)
+    assert sorted(seen) == list(range(50))
+
+    def fail(i):
+        if i == 7:
+            raise ValueError("chunk 7")
+
+    with pytest.raises(ValueError, match="chunk 7"):
+        c._run_chunks(fail, 20, 2)
+
+
+def test_background_pass_noise_equals_the_separate_clipped_std():
+    """The pixel-noise mesh made in the background pass, by strips of tile rows, is tile_clipped_std's (one
+    iteration) to the bit, and its residual and mask are subtract_background's."""
+    from startrack._kernels.background import tile_clipped_std
+    from startrack._kernels.centroid import subtract_background, subtract_background_rows
+
+    img = _field((300, 420), 40, 8)
+    rng = np.random.default_rng(2)
+    level = rng.uniform(190, 230, (5, 7))
+    sigma = rng.uniform(3, 5, (5, 7))
+    thresh = 5 * sigma
+    res0, mask0 = np.empty(img.shape, np.float32), np.empty(img.shape, np.uint8)
+    subtract_background(img, level, thresh, 64.0, res0, mask0)
+    want = tile_clipped_std(res0, 64, sigma, 3.0, 0.986, 1, np.empty_like(sigma))
+    res, labels, counts, noise = np.empty_like(res0), np.zeros(img.shape, np.uint16), np.zeros(300, np.int64), \
+        np.full_like(sigma, np.nan)
+    for a, b in ((0, 128), (128, 192), (192, 300)):
+        subtract_background_rows(img, level, thresh, 64.0, res, labels, 65535, counts, a, b, sigma, 3.0, 0.986, noise)
+    np.testing.assert_array_equal(res, res0)
+    np.testing.assert_array_equal(labels == 65535, mask0 == 1)
+    np.testing.assert_array_equal(counts, mask0.sum(axis=1))
+    np.testing.assert_array_equal(noise, want)
+
+
+def test_mesh_samples_leave_out_saturated_pixels():
+    """Saturated pixels left out as the mesh is sampled: the same samples as the frame with them set to NaN."""
+    from startrack._kernels.background import mesh_samples
+
+    img = _field((200, 260), 30, 4)
+    sat = float(np.float32(np.percentile(img, 99.5)))
+    a = mesh_samples(img, 64, 6, sat)
+    b = mesh_samples(np.where(img >= sat, np.float32(np.nan), img), 64, 6, math.inf)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    assert (a[1] < a[2]).any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_unique_positions_matches_pairwise_distances(seed):
+    """The grid kernel keeps exactly what the pairwise test keeps: a position is dropped when within its radius
+    of an earlier kept one (positions clustered and spread, some far outside the grid's 2048 cells)."""
+    from startrack._kernels.centroid import unique_positions
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    xs = np.concatenate([rng.uniform(0, 60, n // 2), rng.uniform(-50, 3000, n // 2)])
+    ys = np.concatenate([rng.uniform(0, 60, n // 2), rng.uniform(-50, 2000, n // 2)])
+    xs[:3] = [1e6, -1e6, 5e5]
+    radii = rng.uniform(1.5, 20.0, n)
+    got = unique_positions(xs, ys, radii, np.empty(n, dtype=np.bool_))
+    kept = []
+    want = np.zeros(n, dtype=bool)
+    for k in range(n):
+        if all((xs[k] - xs[j]) ** 2 + (ys[k] - ys[j]) ** 2 > radii[k] ** 2 for j in kept):
+            kept.append(k)
+            want[k] = True
+    np.testing.assert_array_equal(got, want)
+    assert 10 < want.sum() < n
