@@ -153,7 +153,7 @@ def _axis_factors(coords, c, s, g, dg_dc, dg_ds):
 
 
 @njit(cache=True)
-def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr):
+def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes):
     """Cost of the pixel-integrated Gaussian model at ``p`` and its normal equations.
 
     The model is separable, so the row and column factors are computed once
@@ -161,12 +161,13 @@ def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr):
     per pair of parameters, in scalars.
     """
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
-    gy = np.empty(ys.shape[0])
-    dgy_dc = np.empty(ys.shape[0])
-    dgy_ds = np.empty(ys.shape[0])
-    gx = np.empty(xs.shape[0])
-    dgx_dc = np.empty(xs.shape[0])
-    dgx_ds = np.empty(xs.shape[0])
+    # The axis factors in the caller's scratch (rows 0-2 along y, 3-5 along x): no allocation per evaluation.
+    gy = axes[0, :ys.shape[0]]
+    dgy_dc = axes[1, :ys.shape[0]]
+    dgy_ds = axes[2, :ys.shape[0]]
+    gx = axes[3, :xs.shape[0]]
+    dgx_dc = axes[4, :xs.shape[0]]
+    dgx_ds = axes[5, :xs.shape[0]]
     _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
     _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
     cost = 0.0
@@ -263,7 +264,8 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
     jtr = np.zeros(5)
     jtj2 = np.zeros((5, 5))
     jtr2 = np.zeros(5)
-    cost = _gauss_normal_equations(residual, ys, xs, p, jtj, jtr)
+    axes = np.empty((6, max(ys.shape[0], xs.shape[0])))
+    cost = _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes)
     lam = 1e-3
     ok = False
     for _ in range(n_iter):
@@ -279,7 +281,7 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
             if lam > 1e8:
                 break
             continue
-        new_cost = _gauss_normal_equations(residual, ys, xs, trial, jtj2, jtr2)
+        new_cost = _gauss_normal_equations(residual, ys, xs, trial, jtj2, jtr2, axes)
         if new_cost < cost:
             p = trial
             cost = new_cost

@@ -27,14 +27,15 @@ from startrack._kernels.centroid import (
 
 
 @njit(cache=True)
-def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr):
+def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr, axes):
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
-    gy = np.empty(ys.shape[0])
-    dgy_dc = np.empty(ys.shape[0])
-    dgy_ds = np.empty(ys.shape[0])
-    gx = np.empty(xs.shape[0])
-    dgx_dc = np.empty(xs.shape[0])
-    dgx_ds = np.empty(xs.shape[0])
+    # The axis factors in the caller's scratch (rows 0-2 along y, 3-5 along x): no allocation per evaluation.
+    gy = axes[0, :ys.shape[0]]
+    dgy_dc = axes[1, :ys.shape[0]]
+    dgy_ds = axes[2, :ys.shape[0]]
+    gx = axes[3, :xs.shape[0]]
+    dgx_dc = axes[4, :xs.shape[0]]
+    dgx_ds = axes[5, :xs.shape[0]]
     _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
     _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
     cost = 0.0
@@ -135,7 +136,8 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
     jtr = np.zeros(5)
     jtj2 = np.zeros((5, 5))
     jtr2 = np.zeros(5)
-    cost = _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr)
+    axes = np.empty((6, max(ys.shape[0], xs.shape[0])))
+    cost = _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr, axes)
     lam = 1e-4
     ok = False
     for _ in range(n_iter):
@@ -151,7 +153,7 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
             if lam > 1e8:
                 break
             continue
-        new_cost = _weighted_normal_equations(residual, ys, xs, trial, noise_var, inv_gain, jtj2, jtr2)
+        new_cost = _weighted_normal_equations(residual, ys, xs, trial, noise_var, inv_gain, jtj2, jtr2, axes)
         # The weights move with the model, so the cost is compared at the new weights (IRLS).
         if new_cost <= cost * (1.0 + 1e-9) or lam < 1e-3:
             p = trial
