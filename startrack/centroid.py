@@ -435,6 +435,7 @@ def threads() -> int:
     ``$NUMBA_NUM_THREADS``, else 1 in a worker process of a pool (``solve -j N``, ``evaluate -j N``, Dask's
     workers: the pool already uses the cores), else the CPUs this process may run on (at most 4)."""
     import os
+    import sys
 
     if _THREADS is not None:
         return _THREADS
@@ -442,9 +443,10 @@ def threads() -> int:
         value = os.environ.get(var, "").strip()
         if value.isdigit() and int(value) >= 1:
             return int(value)
-    import multiprocessing
-
-    if multiprocessing.parent_process() is not None:
+    # A pool's worker imported multiprocessing to start (spawn) or inherited it (fork); a process that never
+    # imported it is no worker, and does not pay its import here.
+    mp = sys.modules.get("multiprocessing")
+    if mp is not None and mp.parent_process() is not None:
         return 1
     try:
         cpus = len(os.sched_getaffinity(0))
