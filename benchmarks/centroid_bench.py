@@ -202,31 +202,45 @@ def speed_and_completeness(n_frames=12, seed=3):
 def beside_tetra3rs(reps=9):
     """Issue 38: ``find_stars`` beside tetra3rs's ``extract_centroids`` on the 8 ESA images, alternated image by
     image in one process (each image's median of ``reps`` warm runs; the median over the images, and of the
-    per-image ratios).  ``None`` when tetra3rs is not installed."""
+    per-image ratios): find_stars with its default threads (:func:`startrack.centroid.threads`; tetra3rs uses
+    its own) and on one thread.  ``None`` when tetra3rs is not installed."""
     try:
         import tetra3rs
     except ImportError:
         return None
+    import startrack.centroid as centroid
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.imageio import read_image
 
     images = [read_image(p) for p in esa_images()]
     opts = CentroidOptions(max_stars=60)
+    threads = centroid.threads()
     ours = [[] for _ in images]
+    one = [[] for _ in images]
     theirs = [[] for _ in images]
-    for rep in range(reps + 1):
-        for k, (img, meta) in enumerate(images):
-            arr = np.ascontiguousarray(img)
-            t0 = time.perf_counter()
-            find_stars(img, opts, saturation=meta["saturation"])
-            t1 = time.perf_counter()
-            tetra3rs.extract_centroids(arr, sigma_threshold=5.0, max_centroids=60)
-            t2 = time.perf_counter()
-            if rep:         # the first pass warms both up
-                ours[k].append((t1 - t0) * 1000)
-                theirs[k].append((t2 - t1) * 1000)
+    try:
+        for rep in range(reps + 1):
+            for k, (img, meta) in enumerate(images):
+                arr = np.ascontiguousarray(img)
+                centroid.set_threads(None)
+                t0 = time.perf_counter()
+                find_stars(img, opts, saturation=meta["saturation"])
+                t1 = time.perf_counter()
+                tetra3rs.extract_centroids(arr, sigma_threshold=5.0, max_centroids=60)
+                t2 = time.perf_counter()
+                centroid.set_threads(1)
+                find_stars(img, opts, saturation=meta["saturation"])
+                t3 = time.perf_counter()
+                if rep:         # the first pass warms all up
+                    ours[k].append((t1 - t0) * 1000)
+                    theirs[k].append((t2 - t1) * 1000)
+                    one[k].append((t3 - t2) * 1000)
+    finally:
+        centroid.set_threads(None)
     a = np.array([np.median(v) for v in ours])
     b = np.array([np.median(v) for v in theirs])
+    c = np.array([np.median(v) for v in one])
     return {"find_stars_ms": float(np.median(a)), "extract_centroids_ms": float(np.median(b)),
             "ratio_of_medians": float(np.median(a) / np.median(b)), "median_ratio": float(np.median(a / b)),
-            "load": os.getloadavg()[0]}
+            "threads": threads, "find_stars_1_thread_ms": float(np.median(c)),
+            "ratio_1_thread": float(np.median(c) / np.median(b)), "load": os.getloadavg()[0]}
