@@ -763,9 +763,10 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         candidates, wide = _extended_blobs(candidates)
         rejected.extend(wide)
     stars = []
+    memo: dict = {}
     method = options.method
     if method == "gauss":
-        stars = _measure_brightest(residual, candidates, options, sigma_mesh, cell, quant)
+        stars = _measure_brightest(residual, candidates, options, sigma_mesh, cell, quant, memo)
         candidates = []
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
@@ -825,9 +826,12 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         # Without the gain the weights lack the stars' shot noise and chi-square cannot test the model.
         _flag_misfits(stars, options.misfit_p)
     stars.sort(key=lambda s: -s["flux"])
-    stars = _unique(stars)
+    # The last probe of _measure_brightest saw these very stars in this order: its results stand (the misfit
+    # flags set since are not read by either).
+    same = memo.get("ids") == [id(s_) for s_ in stars]
+    stars = memo["unique"] if same else _unique(stars)
     if options.star_likeness:
-        stars, unlike = _star_likeness(stars, residual)
+        stars, unlike = memo["likeness"] if same else _star_likeness(stars, residual)
         rejected.extend(unlike)
     for s_ in stars:
         del s_["_nsat"]
@@ -874,13 +878,15 @@ def _extended_blobs(candidates: list):
     return keep, out
 
 
-def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_var):
+def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_var, memo=None):
     """:func:`_measure_gauss` of the candidates, brightest blob first: ``max_stars + 10`` of them, then
     batches of half as many until ``max_stars`` distinct star-like detections are in hand (all of them
     without ``max_stars``).
 
     The fit is most of find_stars' time; a frame of many blobs (a photograph's texture, noise) is fitted
-    only as deep as its brightest stars need.
+    only as deep as its brightest stars need.  ``memo`` (a dict) receives the last probe: the identities of
+    the stars it sorted, and what :func:`_unique` and :func:`_star_likeness` made of them, which the caller
+    reuses when it is given the same stars in the same order (no batch fitted after the probe).
     """
     if options.max_stars is None:
         return _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var)
@@ -889,10 +895,12 @@ def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_va
     stars = _measure_gauss(residual, candidates[:first], options, noise_mesh, cell, quant_var)
     batch = first // 2
     for i in range(first, len(candidates), batch):
-        probe = _unique(sorted(stars, key=lambda s_: -s_["flux"]))
-        if options.star_likeness:
-            probe = _star_likeness(probe, residual)[0]
-        if len(probe) >= options.max_stars:
+        ordered = sorted(stars, key=lambda s_: -s_["flux"])
+        probe = _unique(ordered)
+        liked = _star_likeness(probe, residual) if options.star_likeness else None
+        if memo is not None:
+            memo.update(ids=[id(s_) for s_ in ordered], unique=probe, likeness=liked)
+        if len(probe if liked is None else liked[0]) >= options.max_stars:
             break
         stars += _measure_gauss(residual, candidates[i:i + batch], options, noise_mesh, cell, quant_var)
     return stars
