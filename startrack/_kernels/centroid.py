@@ -94,9 +94,16 @@ def _solve_small(a, b):
     numba's ``np.linalg`` needs SciPy's BLAS; these systems are 5 x 5.
     Returns ``(x, ok)``.
     """
-    n = b.shape[0]
-    m = a.copy()
     x = b.copy()
+    ok = _solve_small_into(a.copy(), x)
+    return x, ok
+
+
+@njit(cache=True)
+def _solve_small_into(m, x):
+    """:func:`_solve_small` in place: ``m`` is overwritten, ``x`` (the right-hand side) becomes the solution;
+    returns ok.  The fits' loops call it on their own scratch (no allocation an iteration)."""
+    n = x.shape[0]
     for col in range(n):
         piv = col
         best = abs(m[col, col])
@@ -105,7 +112,7 @@ def _solve_small(a, b):
                 best = abs(m[r, col])
                 piv = r
         if best < 1e-300:
-            return x, False
+            return False
         if piv != col:
             for c in range(n):
                 m[col, c], m[piv, c] = m[piv, c], m[col, c]
@@ -120,7 +127,7 @@ def _solve_small(a, b):
         for c in range(col + 1, n):
             acc -= m[col, c] * x[c]
         x[col] = acc / m[col, col]
-    return x, True
+    return True
 
 
 @njit(cache=True, inline="always")
@@ -268,14 +275,20 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
     cost = _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes)
     lam = 1e-3
     ok = False
+    a = np.empty((5, 5))
+    delta = np.empty(5)
+    trial = np.empty(5)
     for _ in range(n_iter):
-        a = jtj.copy()
+        for r in range(5):
+            for c in range(5):
+                a[r, c] = jtj[r, c]
+            delta[r] = jtr[r]
         for d in range(5):
             a[d, d] += lam * (jtj[d, d] + 1e-12)
-        delta, solved = _solve_small(a, jtr)
-        if not solved:
+        if not _solve_small_into(a, delta):
             break
-        trial = p + delta
+        for d in range(5):
+            trial[d] = p[d] + delta[d]
         if trial[2] <= 0.2 or trial[2] > 4 * half or trial[3] <= 0:
             lam *= 10.0
             if lam > 1e8:
@@ -283,7 +296,7 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
             continue
         new_cost = _gauss_normal_equations(residual, ys, xs, trial, jtj2, jtr2, axes)
         if new_cost < cost:
-            p = trial
+            p[:] = trial
             cost = new_cost
             jtj[:, :] = jtj2
             jtr[:] = jtr2

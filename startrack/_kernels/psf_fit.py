@@ -19,6 +19,7 @@ from startrack._kernels._jit import njit
 from startrack._kernels.centroid import (
     _axis_factors,
     _solve_small,
+    _solve_small_into,
     _store_normal,
     aperture_flux,
     gaussian_fit,
@@ -140,14 +141,20 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
     cost = _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr, axes)
     lam = 1e-4
     ok = False
+    a = np.empty((5, 5))
+    delta = np.empty(5)
+    trial = np.empty(5)
     for _ in range(n_iter):
-        a = jtj.copy()
+        for r in range(5):
+            for c in range(5):
+                a[r, c] = jtj[r, c]
+            delta[r] = jtr[r]
         for d in range(5):
             a[d, d] += lam * (jtj[d, d] + 1e-12)
-        delta, solved = _solve_small(a, jtr)
-        if not solved:
+        if not _solve_small_into(a, delta):
             break
-        trial = p + delta
+        for d in range(5):
+            trial[d] = p[d] + delta[d]
         if trial[2] <= 0.2 or trial[2] > 4 * half or trial[3] <= 0:
             lam *= 10.0
             if lam > 1e8:
@@ -156,7 +163,7 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
         new_cost = _weighted_normal_equations(residual, ys, xs, trial, noise_var, inv_gain, jtj2, jtr2, axes)
         # The weights move with the model, so the cost is compared at the new weights (IRLS).
         if new_cost <= cost * (1.0 + 1e-9) or lam < 1e-3:
-            p = trial
+            p[:] = trial
             cost = new_cost
             jtj[:, :] = jtj2
             jtr[:] = jtr2
