@@ -502,9 +502,11 @@ class Camera:
         theta = self.pixels_to_theta(x, y)
         return np.where(np.isfinite(theta), theta, self.max_theta)
 
-    @property
+    @functools.cached_property
     def fov_deg(self) -> tuple[float, float]:
         """Horizontal and vertical field of view in degrees (edge to edge, through the principal point).
+
+        Computed once per camera (a frozen dataclass: a changed camera is a new object).
 
         A fisheye's field can exceed 180 degrees: it is the sum of the two edges' off-axis
         angles, each at most :attr:`max_theta` (a circular fisheye's image circle inside the
@@ -538,7 +540,7 @@ class Camera:
         b = math.acos(float(np.clip(c[2] @ c[3], -1, 1)))
         return math.degrees(max(a, b))
 
-    @property
+    @functools.cached_property
     def max_off_axis_deg(self) -> float:
         """The largest angle between the boresight and any image corner, in degrees (at most
         :attr:`max_theta`: a fisheye's corners beyond its image circle see nothing)."""

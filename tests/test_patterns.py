@@ -127,3 +127,48 @@ def test_a_position_hint_keeps_the_answer_and_refuses_elsewhere(index, catalog):
         assert elsewhere.status == "failed"
         done += 1
     assert done >= 3
+
+
+def _confidence_reference(b, img, cat, star_vec, dcm, cos_fov, radius, eps):
+    """The numpy form of the blind verification's confidence numbers (as the search computed them before
+    startrack._kernels.verify.blind_confidence)."""
+    from startrack.patterns import _pattern_chance
+
+    predicted = star_vec[cat] @ dcm.T
+    ok = np.einsum("ij,ij->i", b[img], predicted) >= math.cos(radius)
+    others = np.delete(np.arange(len(b)), img[:4])
+    pred = star_vec[star_vec @ dcm[2] > cos_fov] @ dcm.T
+    p_local = -1.0
+    if len(others) and len(pred):
+        counts = np.sum((b[others] @ pred.T) >= math.cos(10.0 * radius), axis=1)
+        p_local = float(np.mean(np.minimum(1.0, counts * 0.01)))
+    return int(ok.sum()), int(ok[:4].sum()), p_local, _pattern_chance(len(star_vec), eps, b[img[:4]])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_blind_confidence_kernel_matches_its_numpy_reference(seed):
+    from startrack._kernels.verify import blind_confidence
+
+    rng = np.random.default_rng(seed)
+    q = random_quaternions(1, rng)[0]
+    dcm = quaternion_to_dcm(q)
+    # Catalog stars around the boresight (and elsewhere), the image: some of them seen with noise, some not.
+    star_vec = rng.normal(size=(400, 3)) * [0.08, 0.08, 1.0] * rng.choice([1, -1], size=(400, 1))
+    star_vec = dcm.T @ (star_vec / np.linalg.norm(star_vec, axis=1)[:, None]).T
+    star_vec = np.ascontiguousarray(star_vec.T)
+    front = np.flatnonzero(star_vec @ dcm[2] > math.cos(0.15))
+    seen = rng.choice(front, size=min(len(front), 3 + seed * 5), replace=False)
+    b = (star_vec[seen] @ dcm.T) + rng.normal(scale=2e-4, size=(len(seen), 3))
+    b = np.vstack([b, rng.normal(size=(seed, 3)) * [0.05, 0.05, 1.0] + [0, 0, 1.0]])
+    b = np.ascontiguousarray(b / np.linalg.norm(b, axis=1)[:, None])
+    n_img = min(len(seen), 4 + seed)
+    img = np.arange(n_img, dtype=np.int64)
+    cat = np.array(seen[:n_img], dtype=np.int64)
+    if seed % 2:
+        cat[-1] = front[0] if front[0] != cat[-1] else front[1]    # a proposal star that does not agree
+    for radius in (3e-4, 2e-3):
+        got = blind_confidence(b, img, cat, star_vec, dcm, math.cos(0.15), radius, len(star_vec), 1e-4)
+        want = _confidence_reference(b, img, cat, star_vec, dcm, math.cos(0.15), radius, 1e-4)
+        assert got[:2] == want[:2]
+        assert got[2] == pytest.approx(want[2], rel=1e-12, abs=1e-15)
+        assert got[3] == pytest.approx(want[3], rel=1e-9)

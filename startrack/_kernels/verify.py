@@ -749,3 +749,68 @@ def _verdict(code, match, q, dcm, p_false, missing, bright_pred, nm, total, b, s
             ss += r * r
     rms = math.sqrt(ss / t) if t > 0 else np.nan
     return code, match, qn, dcm, p_false, missing, bright_pred, nm, total, matched[:t], rms
+
+
+@njit(cache=True)
+def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
+    """The numbers of the blind search's confidence in a refined attitude (:func:`startrack.patterns._verify_blind`).
+
+    ``img``/``cat``: the proposal's image rows of ``b`` and catalog rows of ``star_vec``; ``dcm`` ICRS to
+    camera.  Returns ``(agree, core_agree, p_local, e_core)``: how many of the proposal's stars (of its first
+    four) lie within ``radius`` (rad) of their catalog star under ``dcm``; the mean chance that one of the
+    other detections lands within ``radius`` of a star predicted in the field (``star_vec . boresight >
+    cos_fov``) by accident, from the predicted stars within ten radii of it (-1 when there are no other
+    detections or no predicted stars: the caller's floor decides); and the expected chance matches of the
+    first four stars' pattern (:func:`pattern_chance` with ``n_cat`` stars and tolerance ``eps``).
+    """
+    n = b.shape[0]
+    k = img.shape[0]
+    cos_r = math.cos(radius)
+    agree = 0
+    core_agree = 0
+    for t in range(k):
+        s = cat[t]
+        dot = 0.0
+        for a in range(3):
+            p = dcm[a, 0] * star_vec[s, 0] + dcm[a, 1] * star_vec[s, 1] + dcm[a, 2] * star_vec[s, 2]
+            dot += b[img[t], a] * p
+        if dot >= cos_r:
+            agree += 1
+            if t < 4:
+                core_agree += 1
+    nc = min(k, 4)
+    core = np.empty((nc, 3))
+    is_core = np.zeros(n, dtype=np.bool_)
+    for t in range(nc):
+        core[t, :] = b[img[t], :]
+        is_core[img[t]] = True
+    e_core = pattern_chance(n_cat, eps, core)
+    # The other detections in the catalog frame (b_i . (A^T s) = (A b_i) . s), counted against the predicted
+    # stars within ten match radii.
+    n_others = n - nc
+    p_local = -1.0
+    if n_others > 0:
+        cos_local = math.cos(10.0 * radius)
+        ref = np.empty((n, 3))
+        for i in range(n):
+            for a in range(3):
+                ref[i, a] = dcm[0, a] * b[i, 0] + dcm[1, a] * b[i, 1] + dcm[2, a] * b[i, 2]
+        counts = np.zeros(n, dtype=np.int64)
+        n_front = 0
+        for s in range(star_vec.shape[0]):
+            if dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2] <= cos_fov:
+                continue
+            n_front += 1
+            for i in range(n):
+                if is_core[i]:
+                    continue
+                if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cos_local:
+                    counts[i] += 1
+        if n_front > 0:
+            total = 0.0
+            frac = (radius / (10.0 * radius)) ** 2
+            for i in range(n):
+                if not is_core[i]:
+                    total += min(1.0, counts[i] * frac)
+            p_local = total / n_others
+    return agree, core_agree, p_local, e_core
