@@ -378,7 +378,10 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
 
 def image_time_tags(path: str):
     """``(fits_header, exif_datetime)`` of an image file: the primary FITS header of a FITS file, the EXIF
-    ``DateTimeOriginal`` (else ``DateTime``) of another; ``None`` for what the file does not carry."""
+    ``DateTimeOriginal`` (else ``DateTime``) of another; ``None`` for what the file does not carry.
+
+    A TIFF or JPEG file's tags are read directly (:func:`_exif_datetime`: a few hundred bytes, no imaging
+    library to load); other files, and any such file this reader does not follow, through Pillow."""
     import os
 
     ext = os.path.splitext(str(path))[1].lower()
@@ -389,6 +392,14 @@ def image_time_tags(path: str):
             return dict(fits.getheader(path)), None
         except (OSError, ValueError):
             return None, None
+    import struct
+
+    try:
+        found, value = _exif_datetime(path)
+    except (OSError, ValueError, struct.error):
+        found = False
+    if found:
+        return None, value
     from PIL import Image  # a core dependency (pyproject.toml)
 
     try:
@@ -398,3 +409,74 @@ def image_time_tags(path: str):
     except (OSError, ValueError, SyntaxError):
         return None, None
     return None, (value if isinstance(value, str) else None)
+
+
+#: TIFF field types whose values are text (ASCII; 129 is TIFF's UTF-8 extension, which Pillow also reads).
+_TIFF_TEXT = {2: "latin-1", 129: "utf-8"}
+
+
+def _exif_datetime(path: str):
+    """``(True, DateTimeOriginal or DateTime or None)`` read from a classic TIFF file's first directory (and its
+    EXIF directory), or a JPEG file's EXIF segment, as Pillow reads them; ``(False, None)`` for any other file
+    (the caller asks Pillow).  Raises ``ValueError``/``struct.error`` for a file it cannot follow."""
+    import io
+    import struct
+
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+        if head[:2] == b"\xff\xd8":                  # JPEG: the EXIF block is an APP1 segment before the image
+            fh.seek(2)
+            while True:
+                marker = fh.read(4)
+                if len(marker) < 4 or marker[0] != 0xFF:
+                    return False, None
+                kind, size = marker[1], struct.unpack(">H", marker[2:])[0]
+                if kind in (0xDA, 0xD9):               # start of scan / end: no EXIF
+                    return True, None
+                body = fh.read(size - 2)
+                if kind == 0xE1 and body[:6] == b"Exif\0\0":
+                    return True, _tiff_datetime(io.BytesIO(body[6:]))
+        if head not in (b"II*\0", b"MM\0*"):
+            return False, None
+        return True, _tiff_datetime(fh)
+
+
+def _tiff_datetime(fh):
+    """EXIF ``DateTimeOriginal`` (tag 0x9003 of the EXIF directory, 0x8769), else ``DateTime`` (0x0132 of the
+    first directory), of the TIFF structure that starts at offset 0 of the binary file ``fh``; ``None`` when
+    neither is text."""
+    import struct
+
+    def read(offset, size):
+        fh.seek(offset)
+        out = fh.read(size)
+        if len(out) < size:
+            raise ValueError("a TIFF directory or tag lies beyond the file")
+        return out
+
+    head = read(0, 8)
+    order = "<" if head[:2] == b"II" else ">"
+    if head[:2] not in (b"II", b"MM") or struct.unpack(order + "H", head[2:4])[0] != 42:
+        raise ValueError("not a classic TIFF structure")
+
+    def directory(offset):
+        (n,) = struct.unpack(order + "H", read(offset, 2))
+        raw = read(offset + 2, 12 * n)
+        return {tag: (kind, count, value) for tag, kind, count, value in
+                (struct.unpack_from(order + "HHI4s", raw, 12 * k) for k in range(n))}
+
+    def text(entry):
+        if entry is None or entry[0] not in _TIFF_TEXT:
+            return None
+        kind, count, value = entry
+        raw = value[:count] if count <= 4 else read(struct.unpack(order + "I", value)[0], count)
+        if raw.endswith(b"\0"):                        # as Pillow: one terminating NUL dropped
+            raw = raw[:-1]
+        return raw.decode(_TIFF_TEXT[kind], "replace")
+
+    first = directory(struct.unpack(order + "I", head[4:8])[0])
+    original = None
+    pointer = first.get(0x8769)
+    if pointer is not None and pointer[0] in (4, 13) and pointer[1] == 1:      # LONG or IFD, one value
+        original = text(directory(struct.unpack(order + "I", pointer[2])[0]).get(0x9003))
+    return original or text(first.get(0x0132))

@@ -193,3 +193,57 @@ def test_parallax_agrees_with_astropy_gcrs_of_near_stars():
         np.testing.assert_allclose(ap.aberrate(u[3], state, parallax_mas=plx[3]), ap.aberrate(u, state, parallax_mas=plx)[3],
                                    atol=1e-15)
     assert worst_without > 0.5 / 206265
+
+
+def _pillow_time_tag(path):
+    from PIL import Image
+
+    with Image.open(path) as img:
+        exif = img.getexif()
+        value = exif.get_ifd(0x8769).get(0x9003) or exif.get(0x0132)
+    return value if isinstance(value, str) else None
+
+
+@pytest.mark.parametrize("fmt", ["tiff", "jpeg", "png"])
+@pytest.mark.parametrize("tags", [{}, {"dt": "2019:07:29 20:47:26"}, {"dto": "2021:01:02 03:04:05"},
+                                  {"dt": "2019:07:29 20:47:26", "dto": "2021:01:02 03:04:05"},
+                                  {"dt": "2019:07:29 20:47:26", "dto": ""}, {"dt": "abc"}])
+def test_image_time_tags_read_directly_agree_with_pillow(tmp_path, fmt, tags):
+    """The direct TIFF/JPEG tag reader gives what Pillow gives (a PNG goes to Pillow itself)."""
+    from PIL import Image
+
+    exif = Image.Exif()
+    if "dt" in tags:
+        exif[0x0132] = tags["dt"]
+    if "dto" in tags:
+        exif.get_ifd(0x8769)[0x9003] = tags["dto"]
+    img = Image.fromarray((np.arange(64 * 48) % 251).astype(np.uint8).reshape(48, 64))
+    path = str(tmp_path / f"frame.{fmt}")
+    img.save(path, exif=exif)
+    want = _pillow_time_tag(path)
+    if fmt == "jpeg" or "dto" not in tags:      # Pillow writes a TIFF or PNG EXIF directory, or not, by version
+        assert want == (tags.get("dto") or tags.get("dt"))      # the oracle holds what was written
+    found, got = ap._exif_datetime(path)
+    assert found == (fmt != "png")
+    if found:
+        assert got == want
+    assert ap.image_time_tags(path) == (None, want)
+
+
+def test_image_time_tags_of_a_big_endian_tiff(tmp_path):
+    """A Motorola-order TIFF whose EXIF directory holds DateTimeOriginal (written by hand)."""
+    import struct
+
+    text = b"2020:02:03 04:05:06\0"
+    # header, IFD0 at 8: one entry (ExifIFD -> 26), next 0; EXIF IFD at 26: one entry (DateTimeOriginal -> 44)
+    ifd0 = struct.pack(">H", 1) + struct.pack(">HHII", 0x8769, 4, 1, 26) + struct.pack(">I", 0)
+    exif = struct.pack(">H", 1) + struct.pack(">HHII", 0x9003, 2, len(text), 44) + struct.pack(">I", 0)
+    data = b"MM\0*" + struct.pack(">I", 8) + ifd0 + exif + text
+    assert len(b"MM\0*" + struct.pack(">I", 8) + ifd0) == 26 and len(data) - len(text) == 44
+    path = tmp_path / "be.tif"
+    path.write_bytes(data)
+    assert ap._exif_datetime(str(path)) == (True, "2020:02:03 04:05:06")
+    path.write_bytes(data[:30])          # truncated: the reader refuses, Pillow decides
+    with pytest.raises(ValueError):
+        ap._exif_datetime(str(path))
+    assert ap.image_time_tags(str(path)) == (None, None)

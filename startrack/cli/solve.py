@@ -123,6 +123,7 @@ def _solved(run, jobs, scheduler, progress):
     measured as its CPU time so far), so that ``-j N`` does not lose to ``-j 1``.
     """
     import logging
+    import os
     import resource
     import time
 
@@ -132,6 +133,10 @@ def _solved(run, jobs, scheduler, progress):
         yield from ordered_map(_solve_one, run, jobs=max(1, min(jobs, len(run))), scheduler=scheduler,
                                progress=progress)
         return
+    # The images this process solves before the pool starts are solved on one thread: find_stars' threads
+    # (startrack.centroid reads STARTRACK_THREADS) would make forking the workers unsafe (cluster.fork_safe),
+    # and the workers, one per CPU, each run single-threaded anyway.
+    os.environ.setdefault("STARTRACK_THREADS", "1")
     ru = resource.getrusage(resource.RUSAGE_SELF)
     startup = ru.ru_utime + ru.ru_stime
     # The first image pays this process's remaining first-use costs (image readers' imports ...):

@@ -15,11 +15,24 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+from typing import TYPE_CHECKING
 
-from startrack.identify.algorithm import Algorithm, NoConfig, Proposal, SearchContext
-from startrack.identify.driver import run
 from startrack.identify.params import IdentifyParams
 from startrack.records import Identification, Match
+
+# The algorithm interface and the driver load on first use (a blind `solve` needs neither): module attributes
+# of :mod:`startrack.identify.algorithm` named here.
+_LAZY = {"Algorithm", "NoConfig", "Proposal", "SearchContext"}
+if TYPE_CHECKING:
+    from startrack.identify.algorithm import Algorithm
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        from startrack.identify import algorithm
+
+        return getattr(algorithm, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["Algorithm", "BUILTIN", "IdentifyParams", "Identification", "Match", "NoConfig", "Proposal",
            "RETIRED", "SearchContext", "algorithm_names", "config_fields", "get_algorithm", "identify_stars",
@@ -47,7 +60,7 @@ _registered: dict = {}
 def _load(ref: str) -> Algorithm:
     module, _, attr = ref.partition(":")
     alg = getattr(importlib.import_module(module), attr)
-    if not isinstance(alg, Algorithm):
+    if not isinstance(alg, _algorithm_class()):
         raise TypeError(f"{ref} is not a startrack.identify.Algorithm")
     return alg
 
@@ -61,14 +74,20 @@ def _registry() -> dict:
 
         for ep in entry_points(group=ENTRY_POINT_GROUP):
             alg = ep.load()
-            if isinstance(alg, Algorithm) and alg.name not in _registered:
+            if isinstance(alg, _algorithm_class()) and alg.name not in _registered:
                 _registered[alg.name] = alg
     return _registered
 
 
+def _algorithm_class():
+    from startrack.identify.algorithm import Algorithm
+
+    return Algorithm
+
+
 def register(algorithm: Algorithm) -> Algorithm:
     """Add ``algorithm`` to the registry (replacing one of the same name); returns it."""
-    if not isinstance(algorithm, Algorithm):
+    if not isinstance(algorithm, _algorithm_class()):
         raise TypeError("register() takes a startrack.identify.Algorithm")
     _registry()[algorithm.name] = algorithm
     return algorithm
@@ -228,4 +247,6 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         from startrack.errors import BadInputError
 
         raise BadInputError("config", None, f"{algorithm} takes a {alg.config.__name__}, got {type(config).__name__}")
+    from startrack.identify.driver import run
+
     return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog, apparent)

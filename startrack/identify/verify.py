@@ -24,12 +24,15 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from startrack.identify.algorithm import Proposal
 from startrack.identify.params import IdentifyParams
 from startrack.records import Match, ReasonCode
+
+if TYPE_CHECKING:
+    from startrack.identify.algorithm import Proposal
 
 __all__ = ["AMBIGUITY_CHI2", "MAG_GATE", "MAG_SIGMA_FLOOR", "false_match_probability", "pattern_chance", "verify"]
 
