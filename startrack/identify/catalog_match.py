@@ -243,10 +243,10 @@ def match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_
         ``quaternion`` None when nothing was added; ``depth`` the magnitude limit used (None: no
         detection was left to match, or no fluxes).
     """
-    from startrack.identify.verify import _geometry, _pixels_to_vectors
-
     if len(accepted.matches) >= len(xs):
         return accepted.matches, None, None        # every detection identified: nothing for the catalog
+    from startrack.identify.verify import _geometry, _pixels_to_vectors
+
     has_flux = int(np.count_nonzero(np.isfinite(flux))) >= 3
     depth = _frame_depth(flux if has_flux else None, accepted.star_index, db.star_mag[accepted.cat_index])
     if not isinstance(catalog, CatalogStars):

@@ -172,8 +172,10 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         details["searches"] = searches
     if prepare_ms:
         details["prepare_ms"] = round(prepare_ms, 1)
-    rms = accepted.residual_rms if accepted.residual_rms is not None else \
-        float(np.sqrt(np.mean(accepted.residual_arcsec**2)))
+    rms = accepted.residual_rms
+    if rms is None:
+        res = np.asarray(accepted.residual_arcsec, dtype=np.float64)
+        rms = math.sqrt(float(res @ res) / len(res))
     details["residual_arcsec_rms"] = round(rms, 3)
     matches, quaternion, scale = accepted.matches, accepted.quaternion, out.scale
     if swept is not None:
