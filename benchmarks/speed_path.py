@@ -223,11 +223,18 @@ def section_startup(runs: int = 9) -> str:
                 subprocess.run(commands[key], capture_output=True, env=env, check=True, cwd=_startrack_where())
                 wall[key].append(time.perf_counter() - t0)
     a, b = statistics.median(wall["startrack"]), statistics.median(wall["tetra3rs"])
+    from startrack._kernels._jit import aot_path
+
+    # Without the ahead-of-time build of this code's kernels (`startrack cache build`, run by `make install`) a
+    # process imports numba and loads its JIT cache: not the installed start-up.
+    aot = os.path.exists(aot_path())
     rows = [["`startrack solve IMAGE -q` (blind)", f"{a:.3f}", f"{a / b:.2f}"],
             [f"tetra3rs script (import tetra3rs + cv2, load {os.path.basename(db_path)}, extract, solve with FOV)",
              f"{b:.3f}", "1.00"]]
     text = (f"One ESA image ({os.path.basename(image)}), warm processes (database and compiled kernels cached, "
-            f"files in the page cache), {runs} runs each, alternated; wall time of the whole process.\n\n"
+            f"files in the page cache), {runs} runs each, alternated; wall time of the whole process; "
+            + ("kernels from their ahead-of-time build" if aot else "**no ahead-of-time build of these kernels "
+               "(`startrack cache build`): numba's JIT cache, not an installation's start-up**") + ".\n\n"
             + _table(["process", "median s", "ratio to tetra3rs"], rows)
             + "\n\nThe script:\n\n```python" + TETRA3RS_SCRIPT + "```")
     return text + _footer(load0)
@@ -247,11 +254,18 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
         env = _process_env()
         base = [sys.executable, "-m", "startrack", "solve", *paths, "-q", "-o", os.devnull]
         subprocess.run(base[:5] + ["-q"], capture_output=True, env=env, cwd=_startrack_where())        # warm
+        from startrack.cluster import idle_cpus
+
         rate = {1: [], 2: []}
         loads = []
+        idle = []
         for rep in range(runs):
             for jobs in ((1, 2) if rep % 2 == 0 else (2, 1)):
                 loads.append(os.getloadavg()[0])
+                if jobs == 2:
+                    # What the command's gate will see a moment later (this process counts itself out, as the
+                    # command does): -j 2 uses two worker processes only with two idle CPUs.
+                    idle.append(idle_cpus())
                 t0 = time.perf_counter()
                 proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env,
                                       cwd=_startrack_where())
@@ -264,7 +278,10 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
     text = (f"`startrack solve IMAGES -q -o /dev/null -j N`, {n_images} images (the 8 ESA images, 8 names each), "
             f"{runs} runs each, alternated; images per second from the whole process's wall time.  -j 2 uses "
             "two worker processes only when the machine has two idle CPUs (`startrack.cluster.idle_cpus`); "
-            f"1-minute load before each run: {', '.join(f'{v:.2f}' for v in loads)}.\n\n"
+            f"1-minute load before each run: {', '.join(f'{v:.2f}' for v in loads)}; idle CPUs seen just before "
+            f"each -j 2 run: {', '.join(map(str, idle))}"
+            + ("" if min(idle) >= 2 else " (not idle: a -j 2 run that saw fewer than 2 solved its images in one "
+               "process, and its figure is not the pool's)") + ".\n\n"
             + _table(["jobs", "median images/s", "ratio to -j 1"], rows))
     return text + _footer(load0)
 
