@@ -82,3 +82,22 @@ def test_parse_size_refuses(text):
 
 def test_parse_size():
     assert parse_size("1024x768") == (1024, 768)
+
+
+@pytest.mark.parametrize("fov", [3.0, 11.4, 40.0])
+def test_cached_field_of_view_follows_every_changed_camera(fov):
+    """fov_deg and max_off_axis_deg are computed once per camera: a changed camera (a new frozen object) has its
+    own, equal to a fresh camera's, and the cached values do not enter equality."""
+    import pickle
+
+    cam = Camera.from_fov(fov, 1024, 768)
+    first = cam.fov_deg
+    assert first[0] == pytest.approx(fov, rel=1e-9)
+    for other in (cam.with_focal_length(cam.focal_length_px * 1.1), cam.replace(k1=0.05),
+                  cam.replace(cx=cam.cx + 40.0)):
+        fresh = Camera(**{f: getattr(other, f) for f in ("width", "height", "focal_length_px", "cx", "cy", "k1")})
+        assert other.fov_deg == fresh.fov_deg != first
+        assert other.max_off_axis_deg == fresh.max_off_axis_deg
+        assert other.cone_cos(0.5) == fresh.cone_cos(0.5)
+    assert cam == Camera.from_fov(fov, 1024, 768) and hash(cam) == hash(Camera.from_fov(fov, 1024, 768))
+    assert pickle.loads(pickle.dumps(cam)).fov_deg == first

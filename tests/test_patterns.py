@@ -172,3 +172,14 @@ def test_blind_confidence_kernel_matches_its_numpy_reference(seed):
         assert got[:2] == want[:2]
         assert got[2] == pytest.approx(want[2], rel=1e-12, abs=1e-15)
         assert got[3] == pytest.approx(want[3], rel=1e-9)
+
+
+@pytest.mark.parametrize("fov, cx_shift", [(2.0, 0.0), (11.4, 0.0), (30.0, 37.5), (70.0, -120.0)])
+def test_pinhole_cone_without_corner_projection_is_the_cameras(fov, cx_shift):
+    from startrack.patterns import _cone_cos
+
+    cam = Camera.from_fov(fov, 1024, 768).replace(cx=511.5 + cx_shift)
+    for margin in (0.0, 0.5):
+        assert _cone_cos(cam, margin) == pytest.approx(cam.cone_cos(margin), rel=0, abs=1e-13)
+    distorted = cam.replace(k1=-0.1)           # the camera's own computation
+    assert _cone_cos(distorted, 0.5) == distorted.cone_cos(0.5)
