@@ -183,3 +183,13 @@ def test_pinhole_cone_without_corner_projection_is_the_cameras(fov, cx_shift):
         assert _cone_cos(cam, margin) == pytest.approx(cam.cone_cos(margin), rel=0, abs=1e-13)
     distorted = cam.replace(k1=-0.1)           # the camera's own computation
     assert _cone_cos(distorted, 0.5) == distorted.cone_cos(0.5)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_median_is_numpys(seed):
+    from startrack.patterns import _median
+
+    rng = np.random.default_rng(seed)
+    for n in range(1, 70):
+        values = list(rng.lognormal(-1.0, 1.5, size=n))
+        assert _median(values) == float(np.median(values))
