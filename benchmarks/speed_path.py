@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import glob
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -257,6 +258,7 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
         from startrack.cluster import idle_cpus
 
         rate = {1: [], 2: []}
+        busy = {1: [], 2: []}
         loads = []
         idle = []
         for rep in range(runs):
@@ -266,15 +268,21 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
                     # What the command's gate will see a moment later (this process counts itself out, as the
                     # command does): -j 2 uses two worker processes only with two idle CPUs.
                     idle.append(idle_cpus())
+                c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.perf_counter()
                 proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env,
                                       cwd=_startrack_where())
                 dt = time.perf_counter() - t0
+                c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 if proc.returncode not in (0, 1):
                     raise RuntimeError(proc.stderr)
                 rate[jobs].append(n_images / dt)
+                # CPUs the run had on average (its processes' CPU seconds over its wall time): about 2 for a -j 2
+                # run whose workers each had a core, about 1 when the machine gave it one.
+                busy[jobs].append((c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime) / dt)
     a, b = statistics.median(rate[1]), statistics.median(rate[2])
-    rows = [["-j 1", f"{a:.1f}", "1.00"], ["-j 2", f"{b:.1f}", f"{b / a:.2f}"]]
+    rows = [["-j 1", f"{a:.1f}", "1.00", ", ".join(f"{v:.2f}" for v in busy[1])],
+            ["-j 2", f"{b:.1f}", f"{b / a:.2f}", ", ".join(f"{v:.2f}" for v in busy[2])]]
     text = (f"`startrack solve IMAGES -q -o /dev/null -j N`, {n_images} images (the 8 ESA images, 8 names each), "
             f"{runs} runs each, alternated; images per second from the whole process's wall time.  -j 2 uses "
             "two worker processes only when the machine has two idle CPUs (`startrack.cluster.idle_cpus`); "
@@ -282,7 +290,9 @@ def section_jobs(n_images: int = 64, runs: int = 3) -> str:
             f"each -j 2 run: {', '.join(map(str, idle))}"
             + ("" if min(idle) >= 2 else " (not idle: a -j 2 run that saw fewer than 2 solved its images in one "
                "process, and its figure is not the pool's)") + ".\n\n"
-            + _table(["jobs", "median images/s", "ratio to -j 1"], rows))
+            + _table(["jobs", "median images/s", "ratio to -j 1", "CPUs used per run (CPU s / wall s)"], rows)
+            + "\n\nA -j 2 run that used about one CPU had no second core to use (another process held it), "
+            "whatever the idle count said when it started: its ratio is not the pool's.")
     return text + _footer(load0)
 
 
