@@ -164,6 +164,23 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
                                               **({"search_stars": searched} if searched > use else {}),
                                               **({"searches": searches} if searches > 1 else {}),
                                               **({"prepare_ms": round(prepare_ms, 1)} if prepare_ms else {})})
+    matches, quaternion, scale = accepted.matches, accepted.quaternion, out.scale
+    if swept is not None:
+        # The verification's scale is of the swept camera's focal length: the frame's is their product.
+        scale = swept * (1.0 if scale is None else scale)
+    depth = q = None
+    if catalog is not None:
+        n_db = len(matches)
+        matches, q, depth = match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db,
+                                             params, apparent)
+        if q is not None:
+            quaternion = q
+    if apparent is not None and (catalog is None or q is None):
+        quaternion = apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, catalog)
+    if catalog is not None or apparent is not None:
+        # The final match and the apparent refit are identification; the record's bookkeeping below is not,
+        # with or without them (as the time taken before them).
+        elapsed = (time.perf_counter() - t0) * 1000
     details = out.details
     details["patterns"] = int(patterns)
     if searched > use:
@@ -177,23 +194,10 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         res = np.asarray(accepted.residual_arcsec, dtype=np.float64)
         rms = math.sqrt(float(res @ res) / len(res))
     details["residual_arcsec_rms"] = round(rms, 3)
-    matches, quaternion, scale = accepted.matches, accepted.quaternion, out.scale
-    if swept is not None:
-        # The verification's scale is of the swept camera's focal length: the frame's is their product.
-        scale = swept * (1.0 if scale is None else scale)
-    if catalog is not None:
-        n_db = len(matches)
-        matches, q, depth = match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db,
-                                             params, apparent)
-        if depth is not None:
-            details["match_mag_limit"] = round(depth, 2)
-        if q is not None:
-            quaternion = q
-            details["matched_beyond_database"] = len(matches) - n_db
-    if apparent is not None and (catalog is None or q is None):
-        quaternion = apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, catalog)
-    if catalog is not None or apparent is not None:
-        elapsed = (time.perf_counter() - t0) * 1000
+    if depth is not None:
+        details["match_mag_limit"] = round(depth, 2)
+    if q is not None:
+        details["matched_beyond_database"] = len(matches) - n_db
     if info:
         log.info("%s: %d of %d stars identified at proposal %d (%d pattern(s)), false-match probability %.2g, "
                  "%.0f ms", name, len(matches), n_all, tried, patterns, float(accepted.p_false), elapsed)
