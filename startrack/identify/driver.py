@@ -169,7 +169,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         # The verification's scale is of the swept camera's focal length: the frame's is their product.
         scale = swept * (1.0 if scale is None else scale)
     depth = q = None
-    if catalog is not None:
+    # (every detection identified: nothing for the catalog, as match_identified says)
+    matched_all = catalog is not None and len(matches) >= n_all
+    if catalog is not None and not matched_all:
         n_db = len(matches)
         matches, q, depth = match_identified(catalog, accepted, scale, camera, xs, ys, b_all, flux, sig_px, db,
                                              params, apparent)
@@ -177,7 +179,7 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
             quaternion = q
     if apparent is not None and (catalog is None or q is None):
         quaternion = apparent_quaternion(accepted, scale, camera, xs, ys, sig_px, db, apparent, catalog)
-    if catalog is not None or apparent is not None:
+    if (catalog is not None and not matched_all) or apparent is not None:
         # The final match and the apparent refit are identification; the record's bookkeeping below is not,
         # with or without them (as the time taken before them).
         elapsed = (time.perf_counter() - t0) * 1000
