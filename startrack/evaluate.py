@@ -326,7 +326,8 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
     resume, checkpoint : optional
         ``checkpoint(state)`` is called after every chunk with a JSON-able ``state`` (rows done, the
         condition under way, its frames done and tallies); ``resume=state`` goes on from it, with the
-        same frames (frame k's attitude depends on ``seed`` and k only).  Not with ``scheduler``.
+        same frames (frame k's attitude depends on ``seed`` and k only), on one machine or a cluster alike
+        (a checkpoint of either resumes on the other).
 
     Returns
     -------
@@ -343,7 +344,7 @@ def evaluate(algorithms, conditions, n, databases: dict, camera, catalog, seed: 
     params = params or IdentifyParams()
     if scheduler is not None:
         return _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params,
-                                    mag_limit, progress, scheduler, configs)
+                                    mag_limit, progress, scheduler, configs, resume, checkpoint)
     vectors = catalog.vectors()
     state = resume or {"rows": [], "condition": 0, "frames_done": 0, "tallies": None}
     rows = list(state["rows"])
@@ -451,7 +452,9 @@ def _cluster_chunk(spec):
 
 
 def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_path, seed, jobs, params, mag_limit,
-                         progress, scheduler, configs=None):
+                         progress, scheduler, configs=None, resume=None, checkpoint=None):
+    """:func:`evaluate` on a Dask cluster: the chunks' outcomes reduced in input order, so a checkpoint after a chunk
+    is the one-process path's state after the same frames, and ``resume`` sends only the frames not yet tallied."""
     from startrack.cluster import TaskFailure, chunks, default_chunk, ordered_map
 
     paths = {}
@@ -461,24 +464,36 @@ def _evaluate_on_cluster(algorithms, conditions, n, databases, camera, catalog_p
         paths[kind] = os.path.abspath(db.path)
     if catalog_path is not None:
         catalog_path = os.path.abspath(catalog_path)
+    state = resume or {"rows": [], "condition": 0, "frames_done": 0, "tallies": None}
+    rows = list(state["rows"])
+    first = int(state["condition"])
+    start = int(state["frames_done"]) if resume is not None and state["tallies"] else 0
+    tallies = {a: Tally.from_dict(state["tallies"][a]) if start else Tally() for a in algorithms}
     size = default_chunk(n, jobs)
-    specs = [(paths, catalog_path, mag_limit, camera.to_dict(), params, cond, list(algorithms), seed, a, b, configs)
-             for cond in conditions for a, b in chunks(n, size)]
-    per_cond = len(chunks(n, size))
-    rows, results, done = [], {}, 0
+    spans = [(ci, max(a, start) if ci == first else a, b) for ci in range(first, len(conditions))
+             for a, b in chunks(n, size) if ci > first or b > start]
+    specs = [(paths, catalog_path, mag_limit, camera.to_dict(), params, conditions[ci], list(algorithms), seed, a, b,
+              configs) for ci, a, b in spans]
+    done = len(rows) * n + start * len(algorithms)
     for i, part in ordered_map(_cluster_chunk, specs, jobs=jobs, scheduler=scheduler):
         if isinstance(part, TaskFailure):
             raise BadInputError("scheduler", None, f"a chunk of frames failed on the cluster: {part.error}")
-        cond = specs[i][5]
+        ci, _, stop = spans[i]
         for algorithm, res in part.items():
-            results.setdefault(algorithm, Tally()).add(res)
+            tallies[algorithm].add(res)
             done += len(res)
         # frames identified (each algorithm's), as the one-machine path counts them
         if progress:
             progress(done, len(conditions) * n * len(algorithms))
-        if (i + 1) % per_cond == 0:
-            for algorithm in algorithms:
-                rows.append(results.pop(algorithm).row(algorithm, cond, n))
+        if stop < n:
+            if checkpoint is not None:
+                checkpoint({"rows": list(rows), "condition": ci, "frames_done": stop,
+                            "tallies": {a: t.to_dict() for a, t in tallies.items()}})
+            continue
+        rows += [tallies[a].row(a, conditions[ci], n) for a in algorithms]
+        tallies = {a: Tally() for a in algorithms}
+        if checkpoint is not None:
+            checkpoint({"rows": list(rows), "condition": ci + 1, "frames_done": 0, "tallies": None})
     return rows
 
 

@@ -226,9 +226,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     import numpy as np
 
-    if resume and (output == "-" or accuracy or scheduler is not None):
+    if resume and (output == "-" or accuracy):
         raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json), without "
-                                              "--accuracy or --scheduler")
+                                              "--accuracy")
     if seed is None and not (resume and os.path.exists(f"{output}.partial.json")):
         seed = int(np.random.SeedSequence().entropy % (2**31))
     if accuracy:
@@ -253,7 +253,7 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         done = len(rows)
         rows += evaluate(algos, [cond], count, loaded, cam, cat, seed, jobs, params, lim, scheduler=scheduler,
                          catalog_path=catalog, configs=configs, resume=saved.partial(ci),
-                         checkpoint=None if scheduler is not None else saved.saver(ci, rows[:done]),
+                         checkpoint=saved.saver(ci, rows[:done]),
                          progress=lambda d, _t, k=done: bar(k * count + d, len(conds) * len(algos) * count))
     for r in rows:
         if r.get("double_frames"):

@@ -326,8 +326,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             raise BadInputError("--mag-max", None, f"no catalog star is at or brighter than {mag_max}")
     if t0 is not None:
         cat = cat.propagate(julian_year(t0))
-    if resume and (documents == "-" or frame_seed is not None or scheduler is not None):
-        raise BadInputError("--resume", None, "needs --documents FILE, without --frame-seed or --scheduler")
+    if resume and (documents == "-" or frame_seed is not None):
+        raise BadInputError("--resume", None, "needs --documents FILE, without --frame-seed")
     if seed is None and resume:
         seed = _seed_of(documents)
     if seed is None:
@@ -387,17 +387,19 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
 
             if output:
                 run = dataclasses.replace(run, image_path=_ImagePath(os.path.abspath(output), count * frames))
-            parts = [dataclasses.replace(run, count=b - a, first_index=a * frames)
-                     for a, b in chunks(count, default_chunk(count, jobs))]
+            # --resume: only the sequences not yet in the documents go to the cluster (run.first_index on)
+            parts = [dataclasses.replace(run, count=b - a, first_index=run.first_index + a * frames)
+                     for a, b in chunks(run.count, default_chunk(run.count, jobs))]
             previews = None if preview is None else _ImagePath(os.path.abspath(preview), count * frames)
             results = ordered_map(_render_chunk, [(part, previews) for part in parts], jobs=jobs, scheduler=scheduler)
         done = 0
-        for _, docs in results:
+        for _, docs in results:  # each chunk's documents written (and flushed) as it arrives, in order
             if isinstance(docs, TaskFailure):
                 raise BadInputError("--scheduler", None, f"a chunk of frames failed on the cluster: {docs.error}")
             for doc in docs:
                 if scheduler is not None and output and "path" in doc["image"]:
-                    doc["image"]["path"] = numbered_path(output, done, run.total)   # as the user named it
+                    # as the user named it (the number of the whole set's frame, --resume or not)
+                    doc["image"]["path"] = numbered_path(output, skipped + done, count * frames)
                 writer.write(doc)
                 n_stars += len(doc["truth"]["stars"])
                 done += 1

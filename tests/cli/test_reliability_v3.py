@@ -500,3 +500,77 @@ def test_a_signal_inside_a_kernel_is_an_interruption_not_an_internal_error():
     except SystemError as exc:
         assert isinstance(_signal_behind(exc), Terminated) and _signal_behind(exc).exit_code == 143
     assert _signal_behind(ValueError("x")) is None
+
+
+# == session 3: the items left ===================================================================================
+
+def _start(*args, env=None):
+    full = {**os.environ, **(env or {})}
+    full.pop("STARTRACK_DEBUG", None)
+    return subprocess.Popen([sys.executable, "-m", "startrack", *map(str, args)], env=full,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _kill_when(proc, ready, timeout=120):
+    """SIGKILL ``proc`` as soon as ``ready()``; True when it was still running then (the kill cut it short)."""
+    import signal
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not ready() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    running = proc.poll() is None
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    return running
+
+
+def _lines(path):
+    return path.read_bytes().count(b"\n") if path.exists() else 0
+
+
+def test_render_resume_on_a_cluster_after_kill_9(tmp_path):
+    """main: `render --resume --scheduler` was refused ("needs --documents FILE, without --frame-seed or
+    --scheduler").  Now a cluster run killed (-9) mid-set and resumed on the cluster gives the documents of an
+    uninterrupted one-process run, byte for byte: every frame once, in order, only the rest sent to the workers."""
+    pytest.importorskip("distributed")
+    common = ["render", "--stars-only", "--fov-deg", "20", "--size", "512x512", "--mag-max", "5", "--count", "240",
+              "--seed", "11", "-q"]
+    run_cli(*common, "--documents", tmp_path / "whole.jsonl", check=True)
+    whole = (tmp_path / "whole.jsonl").read_bytes()
+    cut = tmp_path / "cut.jsonl"
+    proc = _start(*common, "--scheduler", "local", "-j", "1", "--documents", cut)
+    assert _kill_when(proc, lambda: _lines(cut) >= 30), "the run ended before it could be killed"
+    kept = _lines(cut)
+    assert 30 <= kept < 240
+    again = run_cli(*common[:-1], "--scheduler", "local", "-j", "1", "--documents", cut, "--resume")
+    assert again.returncode == 0, again.stderr
+    assert f"render: {kept} frame(s) already in" in again.stderr
+    assert cut.read_bytes() == whole
+
+
+def test_evaluate_resume_on_a_cluster_after_kill_9(db20, tmp_path):
+    """main: `evaluate --resume --scheduler` was refused and a cluster run wrote no checkpoint.  Now a cluster run
+    killed (-9) after a checkpoint resumes on the cluster (or on one process) to the rows of an uninterrupted
+    one-process run; the checkpoint is the one-process path's, so either resumes the other's."""
+    pytest.importorskip("distributed")
+    common = ["evaluate", "-d", str(db20), "--fov-deg", "20", "--size", "512x512", "-a", "pyramid", "-n", "4000",
+              "--seed", "3", "--json", "-q"]
+    run_cli(*common, "-o", tmp_path / "whole.json", check=True)
+    whole = json.loads((tmp_path / "whole.json").read_text())
+
+    def untimed(rows):
+        return [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in rows]
+
+    out = tmp_path / "cut.json"
+    partial = tmp_path / "cut.json.partial.json"
+    proc = _start(*common, "--scheduler", "local", "-j", "1", "-o", out, env={"STARTRACK_CHECKPOINT_S": "0"})
+    assert _kill_when(proc, partial.exists), "the run ended before it could be killed"
+    state = json.loads(partial.read_text())
+    assert 0 < state["partial"]["state"]["frames_done"] < 4000 and not out.exists()
+    saved = partial.read_bytes()
+    run_cli(*common, "--scheduler", "local", "-j", "1", "-o", out, "--resume", check=True)
+    assert untimed(json.loads(out.read_text())["rows"]) == untimed(whole["rows"]) and not partial.exists()
+    partial.write_bytes(saved)               # the cluster's checkpoint, resumed on one process
+    run_cli(*common, "-o", out, "--resume", check=True)
+    assert untimed(json.loads(out.read_text())["rows"]) == untimed(whole["rows"])
