@@ -100,8 +100,9 @@ class CalibrationFrames:
         """
         image = np.asarray(image, dtype=np.float32)
         if image.shape != self.shape:
+            names = ", ".join(f"{f['kind']} {f['path']}" for f in self.files[:3])
             raise BadInputError(source, None, f"is {image.shape[1]}x{image.shape[0]} pixels, the calibration frames "
-                                f"{self.shape[1]}x{self.shape[0]}")
+                                f"({names}) {self.shape[1]}x{self.shape[0]}")
         offset = self.dark if self.dark is not None else self.bias
         out = image - offset if offset is not None else image.copy()
         if self.flat is not None:

@@ -465,6 +465,8 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     path = path or default_catalog_path()
     f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
     mag = np.asarray(f["mag"])
+    if mag.dtype.kind not in "iuf" or mag.ndim != 1:
+        raise BadInputError(path, "mag", f"holds {mag.dtype} values of shape {mag.shape}, expected one number per star")
     rows = slice(None)
     if mag_max is not None:
         if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
@@ -490,11 +492,31 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
             into_ids = np.asarray(h5["merged_into"]).tolist()
             for into, mid in zip(into_ids, np.asarray(h5["merged_id"]).tolist(), strict=True):
                 merged.setdefault(int(into), []).append(int(mid))
+    n = len(cols["mag"])
+    for name, value in cols.items():
+        numeric = "iu" if name == "id" else "iubf"
+        if value.dtype.kind not in numeric or value.ndim != 1:
+            raise BadInputError(path, name, f"holds {value.dtype} values of shape {value.shape}, expected one "
+                                            f"{'integer' if name == 'id' else 'number'} per star")
+        if len(value) != n:
+            raise BadInputError(path, name, f"has {len(value)} rows, expected {n} (as mag)")
+    if isinstance(rows, slice) and rows == slice(None):
+        from startrack.formats.hdf5 import _checksums, verify_dataset
+
+        sums = _checksums(path, f.attrs)
+        for name in ("id", "ra", "dec", "pm_ra", "pm_dec", "bv"):
+            if sums is not None and name in sums:
+                verify_dataset(path, sums, name, cols[name])
     for name in ("ra", "dec", "mag"):
         bad = ~np.isfinite(cols[name])
         if bad.any():
             raise BadInputError(path, name, f"has {int(bad.sum())} non-finite values (first at row {int(np.argmax(bad))})")
-    epoch = float(f.attrs.get("epoch", f.params.get("epoch", 2000.0)))
+    if n and (cols["dec"].min() < -90 or cols["dec"].max() > 90):
+        raise BadInputError(path, "dec", "holds declinations outside [-90, 90] deg")
+    try:
+        epoch = float(f.attrs.get("epoch", f.params.get("epoch", 2000.0)))
+    except (TypeError, ValueError):
+        raise BadInputError(path, "epoch", "is not a number") from None
     params = dict(f.params)
     if mag_max is not None:
         params["read_mag_max"] = float(mag_max)

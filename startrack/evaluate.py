@@ -54,6 +54,46 @@ def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
     return lo, hi
 
 
+#: Row fields (``evaluate --json``) that are numbers, and the conditions a chart may sweep.
+_ROW_COUNTS = ("frames", "success", "failure", "bad")
+_ROW_NUMBERS = ("success_rate", "success_rate_low", "success_rate_high", "mean_ms", "median_ms", "p95_ms",
+                "false_stars", "focal_error_pct", "sigma_px", "sigma_arcsec", "mag_noise", "drop_fraction", "min_stars")
+
+
+def validate_rows(rows, source: str) -> list:
+    """Check the ``rows`` of an ``evaluate --json`` document before they are drawn or tabled.
+
+    Raises :class:`BadInputError` naming ``source``, the row and the field: a list of objects, each with an
+    ``algorithm`` name, whole counts (``success`` and ``bad`` at most ``frames``), finite numbers, rates in [0, 1]
+    with ``success_rate_low <= success_rate <= success_rate_high``.
+    """
+    if not isinstance(rows, list) or not rows:
+        raise BadInputError(source, "rows", "must be a non-empty list of rows")
+    for i, row in enumerate(rows):
+        where = f"rows[{i}]"
+        if not isinstance(row, dict):
+            raise BadInputError(source, where, "must be a JSON object")
+        if not isinstance(row.get("algorithm"), str):
+            raise BadInputError(source, f"{where}.algorithm", "must be an algorithm name")
+        for name in _ROW_COUNTS:
+            v = row.get(name)
+            if name in ("frames", "success", "bad") or v is not None:
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise BadInputError(source, f"{where}.{name}", f"must be a whole number >= 0, got {v!r}"[:120])
+        if row["success"] > row["frames"] or row["bad"] > row["frames"]:
+            raise BadInputError(source, f"{where}.success", "success and bad must be at most frames")
+        for name in _ROW_NUMBERS:
+            v = row.get(name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+                raise BadInputError(source, f"{where}.{name}", f"must be a finite number, got {v!r}"[:120])
+        rates = [row.get(k) for k in ("success_rate_low", "success_rate", "success_rate_high")]
+        if any(r is not None and not 0 <= r <= 1 for r in rates) or (
+                None not in rates and not rates[0] <= rates[1] <= rates[2]):
+            raise BadInputError(source, f"{where}.success_rate", "must lie in [0, 1], within its interval "
+                                                                 "success_rate_low .. success_rate_high")
+    return rows
+
+
 def with_intervals(row: dict) -> dict:
     """``row`` with the Wilson 95 % intervals of its success and bad-match rates (from its counts).
 

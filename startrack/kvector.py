@@ -342,15 +342,35 @@ def load_kvector(path: str) -> KVectorDatabase:
     for attr in ("catalog_sha256", "max_angle_deg", "kvector_line", "quadratic"):
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
-    get = lambda name, dtype: np.ascontiguousarray(f[name], dtype=dtype)  # noqa: E731
+    # Every array checked against the others before any kernel indexes with it (a damaged file is named here,
+    # never a crash in a kernel).
+    star_id = f.array("star_id", np.int64)
+    n = len(star_id)
+    if n < 2:
+        raise BadInputError(path, "star_id", f"holds {n} star(s): a database needs at least 2")
+    pair_cos = f.array("pair_cos", np.float64, within=(-1.0, 1.0), ascending=True)
+    m = len(pair_cos)
+    if m < 1:
+        raise BadInputError(path, "pair_cos", "holds no pair")
+    neighbor_idx = f.array("neighbor_idx", np.int32, (2 * m,), index_of=n)
+    line = f.numbers("kvector_line", 2)
+    if not line[0] > 0:
+        raise BadInputError(path, "kvector_line", f"slope must be positive, got {line[0]}")
+    merged_into = f.array("merged_into", np.int64) if "merged_into" in f else np.zeros(0, dtype=np.int64)
+    merged_id = (f.array("merged_id", np.int64, (len(merged_into),)) if "merged_id" in f
+                 else np.zeros(0, dtype=np.int64))
     db = KVectorDatabase(
-        get("star_id", np.int64), get("star_vector", np.float64), get("star_mag", np.float64),
-        get("pair_i", np.int32), get("pair_j", np.int32), get("pair_cos", np.float64),
-        get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]), get("kquad", np.int64),
-        tuple(float(v) for v in f.attrs["quadratic"]), get("neighbor_ptr", np.int64), get("neighbor_idx", np.int32),
-        float(f.attrs["max_angle_deg"]), str(f.attrs["catalog_sha256"]), f.params, path,
-        get("merged_into", np.int64) if "merged_into" in f else np.zeros(0, dtype=np.int64),
-        get("merged_id", np.int64) if "merged_id" in f else np.zeros(0, dtype=np.int64))
+        star_id, f.array("star_vector", np.float64, (n, 3), within=(-1.0, 1.0)),
+        f.array("star_mag", np.float64, (n,), finite=True),
+        f.array("pair_i", np.int32, (m,), index_of=n), f.array("pair_j", np.int32, (m,), index_of=n), pair_cos,
+        f.array("kvector", np.int64, within=(0, m), ascending=True), line,
+        f.array("kquad", np.int64, within=(0, m), ascending=True), f.numbers("quadratic", 3),
+        f.array("neighbor_ptr", np.int64, (n + 1,), within=(0, 2 * m), ascending=True), neighbor_idx,
+        f.numbers("max_angle_deg", positive=True), str(f.attrs["catalog_sha256"]), f.params, path,
+        merged_into, merged_id)
+    for name in ("kvector", "kquad"):
+        if len(getattr(db, name)) < 1:
+            raise BadInputError(path, name, "is empty: the file is damaged")
     log.info("k-vector database %s: %d stars, %d pairs up to %g deg, read in %.0f ms", path, db.n_stars, db.n_pairs,
              db.max_angle_deg, (time.perf_counter() - t0) * 1000)
     return db

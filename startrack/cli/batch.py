@@ -251,10 +251,15 @@ def run_frames(input_path: str, output: str, section: str, process, quiet: bool,
         except Exception as exc:  # noqa: BLE001 - one frame's bug must not sink the batch
             if os.environ.get("STARTRACK_DEBUG"):
                 raise
+            from startrack.errors import input_of
+
             msg = str(exc).splitlines()[0] if str(exc) else ""
+            where = input_of(exc)   # a file this frame named (its image) that the exception came from reading
+            inner = f" while reading {where[0]}{f': {where[1]}' if where[1] else ''}" if where and where[2] else ""
+            reason = f"internal error{inner}: {type(exc).__name__}: {msg}"
             out = _failed_doc(rec, section, f"{type(exc).__name__}: {msg}")
-            out[section] = {"status": "failed", "reason": f"internal error: {type(exc).__name__}: {msg}"}
-            return rec, out, InternalFrameError(f"{rec.source}: internal error: {type(exc).__name__}: {msg}")
+            out[section] = {"status": "failed", "reason": reason}
+            return rec, out, InternalFrameError(f"{rec.source}: {reason}")
 
     def numbered():
         index = 0

@@ -43,6 +43,7 @@ def command(input, output, fit, projection, catalog, quiet):
       startrack calibrate allsky-solved.jsonl --projection auto -o allsky-lens.json
     """
     import json
+    import math
 
     import numpy as np
 
@@ -66,7 +67,7 @@ def command(input, output, fit, projection, catalog, quiet):
         ident = doc.get("identification") or {}
         if att.get("status") != "ok" or ident.get("status") != "ok":
             continue                    # unsolved frames carry nothing to calibrate from
-        validate_frame(doc, rec.source, ("camera", "stars"))
+        validate_frame(doc, rec.source, ("camera", "stars", "identification"))
         if "mirrored" in (ident.get("parity"), (doc.get("solve") or {}).get("parity")):
             # Its camera is the un-mirrored one of flipped pixels: a principal point fitted from it would not be
             # the image's.
@@ -78,13 +79,16 @@ def command(input, output, fit, projection, catalog, quiet):
             camera = cam
         elif (cam.width, cam.height) != (camera.width, camera.height):
             raise BadInputError(rec.source, "camera", "frames of different image sizes cannot share a calibration")
-        ep = float(att.get("epoch", base.epoch))
+        ep = att.get("epoch", base.epoch)
+        if isinstance(ep, bool) or not isinstance(ep, (int, float)) or not math.isfinite(ep):
+            raise BadInputError(rec.source, "attitude.epoch", f"must be a decimal year, got {json.dumps(ep)[:40]}")
+        ep = float(ep)
         if ep not in cache:
             cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
             cache[ep] = (cat.rows_by_id(), cat.vectors())
         rows, vec = cache[ep]
         xy, ref = [], []
-        for m in ident["matches"]:
+        for m in ident.get("matches", []):
             k = rows.get(int(m["id"]))
             if k is None:
                 continue

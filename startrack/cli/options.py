@@ -593,12 +593,29 @@ def handle_errors(func):
                 # a file the operating system refused (missing, disk full, too large ...): named, as bad input
                 _echo_err(f"{command_path()}: error: {exc.filename}: {exc.strerror or type(exc).__name__}")
                 sys.exit(2)
-            msg = str(exc).splitlines()[0] if str(exc) else ""
-            _echo_err(f"{command_path()}: internal error: {type(exc).__name__}: {msg} "
-                      "(set STARTRACK_DEBUG=1 for a traceback)")
+            _echo_err(f"{command_path()}: {internal_error_message(exc)} (set STARTRACK_DEBUG=1 for a traceback)")
             sys.exit(1)
 
     return wrapper
+
+
+def internal_error_message(exc) -> str:
+    """``internal error while reading FILE: FIELD: Type: message``: an unexpected exception, named by the input it
+    happened on (:func:`startrack.errors.input_of`), else by the command's input files."""
+    from startrack.errors import input_of
+
+    msg = str(exc).splitlines()[0] if str(exc) else ""
+    what = f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+    where = input_of(exc)
+    if where is not None:
+        source, fld, read = where
+        return f"internal error while {'reading' if read else 'processing'} {source}{f': {fld}' if fld else ''}: {what}"
+    from startrack.formats.atomic import registered_inputs
+
+    inputs = registered_inputs()
+    if inputs:
+        return f"internal error (inputs: {', '.join(inputs[:4])}{' ...' if len(inputs) > 4 else ''}): {what}"
+    return f"internal error: {what}"
 
 
 #: Parameters that name files a command writes (besides any of type :class:`OutputPath`).

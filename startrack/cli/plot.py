@@ -59,16 +59,28 @@ def command(input, kind, output, mag_max, title, constellations, as_json, quiet)
         doc = read_json_file(input)
         if "rows" not in doc:
             raise BadInputError(input, "rows", "is missing: give the JSON of `startrack evaluate --json`")
-        plot_results(doc["rows"], output, title=title or _evaluate_title(doc))
+        from startrack.evaluate import validate_rows
+
+        plot_results(validate_rows(doc["rows"], input), output, title=title or _evaluate_title(doc))
         info(quiet, f"plot: {output}")
         return
     from startrack.cli.batch import resolve_image_path
-    docs = []
+    from startrack.formats.frame import read_frame_image, validate_frame
+
+    docs, sources = [], []
     for rec in read_frames(input):
         if rec.error is not None:
             raise rec.error
+        # every frame checked where it is read: a bad one is named by its line and field, never an internal error
+        doc = rec.doc if isinstance(rec.doc, dict) else {}
+        need = ("stars",) if "stars" in doc else ()
+        solved = isinstance(doc.get("attitude"), dict) and doc["attitude"].get("status") == "ok"
+        if kind == "image" or (kind == "residuals" and solved):
+            need += ("camera",)       # what the picture is drawn with (unsolved frames are skipped)
+        validate_frame(rec.doc, rec.source, need)
         resolve_image_path(rec)
         docs.append(rec.doc)
+        sources.append(rec.source)
     if not docs:
         raise BadInputError(input, None, "holds no frame document")
     if kind == "track":
@@ -98,13 +110,9 @@ def command(input, kind, output, mag_max, title, constellations, as_json, quiet)
                 continue
             plot_residuals(doc, path)
         else:
-            from startrack.imageio import read_image
             from startrack.plot import annotate_solution
 
-            p = (doc.get("image") or {}).get("path")
-            if not p:
-                raise BadInputError(input, "image.path", "is missing: --kind image needs the image")
-            image, _ = read_image(p)
+            image, _ = read_frame_image(doc, sources[i], "--kind image needs the image")
             annotate_solution(path, image, doc, cat, mag_max, constellations=constellations)
         made.append(path)
     if not made:

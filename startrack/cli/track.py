@@ -53,11 +53,14 @@ from startrack.cli.options import (
 @calibration_frame_options
 @apparent_options
 @output_option()
+@click.option("--resume", is_flag=True,
+              help="Keep the frames already in the -o file (a run cut short) and track only the rest: the first of "
+                   "them is solved lost in space (as after a gap), the times go on from the file's.")
 @quiet_option
 @handle_errors
 def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, initial_quaternion, rate_prior,
             window_px, sigma_px, exposure_ms, max_gap_s, algorithm, parity, bias, dark, flat, obs_time,
-            velocity_km_s, no_aberration, output, quiet):
+            velocity_km_s, no_aberration, output, resume, quiet):
     """Track the attitude frame by frame: adds `identification`, `attitude` and `track`.
 
     Input: frame documents naming images (JSON Lines, e.g. from `startrack
@@ -92,8 +95,7 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
     from startrack.catalog import load_catalog
     from startrack.cli.batch import run_frames
     from startrack.errors import BadInputError
-    from startrack.formats.frame import FRAME_FORMAT
-    from startrack.imageio import read_image
+    from startrack.formats.frame import FRAME_FORMAT, read_frame_image
     from startrack.kvector import check_database, load_kvector
     from startrack.rotations import normalize_quaternion, quaternion_to_dcm
     from startrack.timeutil import julian_year, parse_time
@@ -123,6 +125,8 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
                            window_px=window_px, sigma_px=sigma_px, max_gap_s=max_gap_s,
                            exposure_s=(exposure_ms if exposure_ms is not None else 100.0) / 1000, algorithm=algorithm)
     state = {"tracker": None, "t0": None, "t_prev": None, "modes": {m: 0 for m in MODES}}
+    if resume and output != "-":
+        state["t0"], state["t_prev"] = _resumed_times(output, parse_time)
 
     # Bare image files become minimal frame documents.
     names = list(inputs) or ["-"]
@@ -160,10 +164,8 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         tracker = state["tracker"]
         if setting.state is not None or tracker.vectors is not tracker.astrometric:
             tracker.set_directions(setting.apparent(tracker.astrometric, tracker.catalog.plx))
-        path = (doc.get("image") or {}).get("path")
-        if not path:
-            raise BadInputError(src, "image.path", "is missing: tracking needs the images")
-        image, meta = read_image(path)
+        image, meta = read_frame_image(doc, src, "tracking needs the images")
+        path = doc["image"]["path"]
         saturation = meta["saturation"]
         if calibration is not None:
             image, saturation = calibration.apply(image, saturation, path)
@@ -199,15 +201,40 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         doc["track"] = out["track"]
         return doc
 
-    tally = run_frames(source, output, "attitude", process, quiet, "track", finish=False)
+    tally = run_frames(source, output, "attitude", process, quiet, "track", finish=False, resume=resume)
     modes = state["modes"]
     n = sum(modes.values())
     with_att = n - modes["lost"]
     if not quiet or modes["lost"]:
         click.echo(f"track: {with_att} of {n} frame(s) with an attitude ("
-                    + ", ".join(f"{modes[m]} {m}" for m in MODES if m != "lost") + f"), {modes['lost']} lost",
-                    err=True)
+                    + ", ".join(f"{modes[m]} {m}" for m in MODES if m != "lost") + f"), {modes['lost']} lost"
+                    + (f"; {tally.skipped} already in the output (--resume)" if tally.skipped else ""), err=True)
     if tally.bad:
         click.echo(f"track: {tally.bad} frame(s) with bad input", err=True)
     if tally.exit_code or modes["lost"]:
         raise SystemExit(tally.exit_code or 1)
+
+
+def _resumed_times(output, parse_time):
+    """``(t0, t_prev)`` of the sequence already in ``output`` (``--resume``): the first frame's time (its
+    image.time less its track.t_s) and the last frame's track.t_s, so that a resumed run's times go on from them."""
+    import datetime
+    import json
+    import os
+
+    t0 = t_prev = None
+    if not os.path.exists(output):
+        return t0, t_prev
+    with open(output, "rb") as fh:
+        for raw in fh:
+            if not raw.endswith(b"\n"):
+                break
+            try:
+                doc = json.loads(raw)
+                t_s = float(doc["track"]["t_s"])
+            except (ValueError, KeyError, TypeError):
+                continue     # the batch runner's own resume check names a document that is not this command's
+            if t0 is None and isinstance((doc.get("image") or {}).get("time"), str):
+                t0 = parse_time(doc["image"]["time"], f"{output}: image.time") - datetime.timedelta(seconds=t_s)
+            t_prev = t_s
+    return t0, t_prev

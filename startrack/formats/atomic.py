@@ -37,6 +37,7 @@ __all__ = [
     "output_target",
     "refuse_input",
     "register_input",
+    "registered_inputs",
     "write_error",
 ]
 
@@ -63,6 +64,11 @@ def register_input(path, name: str | None = None) -> None:
     st = _stat(path)
     if st is not None and stat.S_ISREG(st.st_mode):
         _INPUTS[(st.st_dev, st.st_ino)] = (str(name if name is not None else path), path)
+
+
+def registered_inputs() -> list[str]:
+    """The names of the files this process has read (:func:`register_input`), in the order first read."""
+    return list(dict.fromkeys(name for name, _ in _INPUTS.values()))
 
 
 def input_named_by(path: str) -> str | None:
@@ -180,6 +186,11 @@ class Terminated(KeyboardInterrupt):
 
 
 def _on_sigterm(signum, frame):  # noqa: ARG001 - the caller's signature
+    # The first SIGTERM ends the process; a second (GNU `timeout` signals the child, then its whole process group)
+    # must not raise again while the first is being handled or at interpreter shutdown ("Exception ignored in
+    # threading._shutdown" and a traceback after the one-line message).
+    with contextlib.suppress(ValueError):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise Terminated()
 
 

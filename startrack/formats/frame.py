@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, note_input
 from startrack.formats.atomic import (
     check_writable,
     is_special,
@@ -124,6 +124,42 @@ def validate_attitude(doc: dict, source: str) -> np.ndarray:
     return out
 
 
+#: The frame document's sections (``docs/formats.md``) and their JSON types.
+SECTION_TYPES = {"image": dict, "observer": dict, "camera": dict, "truth": dict, "stars": list, "centroid": dict,
+                 "identification": dict, "attitude": dict, "track": dict, "solve": dict, "render": dict}
+
+
+def _json_type(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true/false"
+    if isinstance(value, (int, float)):
+        return "a number"
+    return {str: "a string", list: "a list", dict: "an object"}.get(type(value), type(value).__name__)
+
+
+def read_frame_image(doc: dict, source: str, why: str = "this command needs the image"):
+    """The image a frame document names (``image.path``), read by :func:`startrack.imageio.read_image`.
+
+    Every problem names the document and the field: ``FILE:LINE: image.path: sky.png: no such file``.
+    """
+    from startrack.imageio import read_image
+
+    image = doc.get("image") if isinstance(doc, dict) else None
+    path = image.get("path") if isinstance(image, dict) else None
+    if path is None or path == "":
+        raise BadInputError(source, "image.path", f"is missing: {why}")
+    if not isinstance(path, str):
+        raise BadInputError(source, "image.path", f"must be a file name, got {_json_type(path)}")
+    try:
+        return read_image(path)
+    except BadInputError as exc:
+        if exc.source != path:
+            raise
+        raise BadInputError(source, "image.path", f"{path}: {exc.problem}") from None
+
+
 def validate_frame(doc, source: str, need: tuple[str, ...] = ()) -> dict:
     """Validate a frame document and the sections a stage needs.
 
@@ -150,6 +186,13 @@ def validate_frame(doc, source: str, need: tuple[str, ...] = ()) -> dict:
     if not isinstance(doc, dict):
         raise BadInputError(source, None, "a frame document must be a JSON object")
     check_format_tag(doc, FRAME_FORMAT, source)
+    # Every section, needed or not, has its JSON type (a stage that passes one on reads it too: `"image": 7` must
+    # be named here, not fail as an internal error where some stage first looks inside it).
+    for name, value in doc.items():
+        kind = SECTION_TYPES.get(name)
+        if kind is not None and not isinstance(value, kind):
+            expected = "a JSON object" if kind is dict else "a JSON list"
+            raise BadInputError(source, name, f"must be {expected}, got {_json_type(value)}")
     if "camera" in need:
         from startrack.camera import Camera
 
@@ -342,13 +385,16 @@ def read_frames(path: str):
             items = value if isinstance(value, list) else [value]
             for i, item in enumerate(items):
                 src = name if len(items) == 1 else f"{name}[{i}]"
+                note_input(src)
                 yield FrameRecord(src, item, None, base)
             return
+        note_input(f"{name}:{first_no}")
         yield FrameRecord(f"{name}:{first_no}", value, None, base)
         for line_no, line in enumerate(handle, start=first_no + 1):
             if not line.strip():
                 continue
             src = f"{name}:{line_no}"
+            note_input(src)   # what an unexpected exception while it is processed is named by
             try:
                 yield FrameRecord(src, _loads(line), None, base)
             except ValueError as exc:
@@ -504,6 +550,12 @@ def read_finished(path: str, section: str | None = None, base_dir: str | None = 
                 try:
                     doc = _loads(raw.decode("utf-8"))
                 except (ValueError, UnicodeDecodeError):
+                    if handle.read(1):
+                        # not the last line: no write cut short leaves this, and cutting the file here would
+                        # destroy what follows (a file that is not this command's output)
+                        raise BadInputError(f"{path}:{line_no}", None, "is not a JSON frame document and lines "
+                                            "follow it: not a batch output to resume (the file is left as it "
+                                            "is)") from None
                     break
                 if section is not None:
                     _check_finished(doc, section, f"{path}:{line_no}")
