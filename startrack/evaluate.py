@@ -84,7 +84,7 @@ def validate_rows(rows, source: str) -> list:
             raise BadInputError(source, f"{where}.success", "success and bad must be at most frames")
         for name in _ROW_NUMBERS:
             v = row.get(name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+            if (v is not None or name == "success_rate") and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
                 raise BadInputError(source, f"{where}.{name}", f"must be a finite number, got {v!r}"[:120])
         rates = [row.get(k) for k in ("success_rate_low", "success_rate", "success_rate_high")]
         if any(r is not None and not 0 <= r <= 1 for r in rates) or (

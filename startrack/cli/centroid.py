@@ -87,8 +87,8 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
     from startrack.centroid import CentroidOptions, centroid_windows, find_stars
     from startrack.cli.batch import StreamNames, run_frames
     from startrack.errors import BadInputError
-    from startrack.formats.frame import FRAME_FORMAT, FrameRecord, read_frames
-    from startrack.imageio import check_plot_output, read_image
+    from startrack.formats.frame import FRAME_FORMAT, FrameRecord, read_frame_image, read_frames
+    from startrack.imageio import check_plot_output
 
     options = CentroidOptions(method, threshold_sigma, threshold_dn, background, mesh_px, matched_filter,
                               filter_sigma_px, min_pixels, max_pixels, max_elongation, 0.7, not no_deblend, max_stars,
@@ -112,12 +112,10 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
     n_stars = [0]
 
     def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
-        path = (doc.get("image") or {}).get("path") if isinstance(doc.get("image"), dict) else None
-        if not path or not isinstance(path, str):
-            raise BadInputError(source, "image.path", "is missing: no image to centroid")
+        image, meta = read_frame_image(doc, source, "no image to centroid")
+        path = doc["image"]["path"]
         out = doc
         out["format"] = FRAME_FORMAT
-        image, meta = read_image(path)
         height, width = image.shape
         out["image"] = {**out["image"], "path": path, "width": width, "height": height,
                         "bit_depth": meta["bit_depth"]}
@@ -130,6 +128,15 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
             prior = (doc.get("truth") or {}).get("stars", []) if windows_from == "truth" else doc.get("stars", [])
             if not prior:
                 raise BadInputError(source, windows_from, "has no positions for --windows-from")
+            field = "truth.stars" if windows_from == "truth" else "stars"
+            if not isinstance(prior, list):
+                raise BadInputError(source, field, "must be a list of stars")
+            for i, p in enumerate(prior):
+                for axis in ("x", "y"):
+                    v = p.get(axis) if isinstance(p, dict) else None
+                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                        raise BadInputError(source, f"{field}[{i}].{axis}", "must be a finite number (a position "
+                                                                             "for --windows-from)")
             found = centroid_windows(image, [(p["x"], p["y"]) for p in prior], window_px,
                                      _with_render_gain(options, doc), saturation=meta["saturation"])
             stars = [dict(f, prior=i) for i, f in enumerate(found) if f is not None]

@@ -182,8 +182,10 @@ def command(inputs, database, camera_file, catalog, mag_max, frame_interval_s, i
         else:
             raise BadInputError(src, "image.time", "is missing (give --frame-interval-s)")
         exp_ms = image_doc.get("exposure_ms")
-        if exp_ms is not None and not (isinstance(exp_ms, (int, float)) and exp_ms > 0):
-            raise BadInputError(src, "image.exposure_ms", f"must be a positive number, got {exp_ms!r}")
+        if exp_ms is not None and (isinstance(exp_ms, bool) or not isinstance(exp_ms, (int, float))
+                                   or not 0 < exp_ms <= 3.6e6):
+            raise BadInputError(src, "image.exposure_ms", f"must be a positive number of ms up to an hour, got "
+                                                          f"{exp_ms!r}"[:160])
         exposure_s = exp_ms / 1000.0 if exp_ms is not None else config.exposure_s
         doc["image"] = {**(doc.get("image") or {}), "width": image.shape[1], "height": image.shape[0]}
         if calibration is not None:

@@ -105,7 +105,7 @@ def validate_attitude(doc: dict, source: str) -> np.ndarray:
             raise BadInputError(source, "attitude.quaternion", "must be a list of 4 numbers")
         for i, v in enumerate(q):
             _require_number(v, source, f"attitude.quaternion[{i}]")
-        norm = math.sqrt(sum(float(v) ** 2 for v in q))
+        norm = math.hypot(*(float(v) for v in q))       # no overflow for huge components
         if abs(norm - 1.0) > 1e-6:
             raise BadInputError(source, "attitude.quaternion", f"is not a unit quaternion (norm {norm:.6g})")
         out = quaternion_to_dcm(np.asarray(q, dtype=float))
