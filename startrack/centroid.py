@@ -644,7 +644,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         det = cv2.GaussianBlur(residual, (k, k), options.filter_sigma_px)
         g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
         norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
-        _subtract_background(det, np.zeros((1, 1)), thresh_mesh * norm, cell, np.empty_like(det), labels, foreground,
+        # The smoothed residual's level is 0 everywhere; its threshold follows the frame's own noise mesh.
+        _subtract_background(det, np.zeros(thresh_mesh.shape), thresh_mesh * norm, cell, np.empty_like(det), labels, foreground,
                              counts, sigma_mesh, False)
     n_found = label_blobs_into(residual, img, float(sat), max_blobs, labels, foreground, counts, table, ws["stack"])
     try:

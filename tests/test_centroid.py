@@ -493,3 +493,25 @@ def test_unique_positions_matches_pairwise_distances(seed):
             want[k] = True
     np.testing.assert_array_equal(got, want)
     assert 10 < want.sum() < n
+
+
+def test_matched_filter_threshold_follows_the_noise_across_the_frame():
+    """The matched filter's detection threshold is the frame's noise mesh, tile by tile.
+
+    Before the fix the smoothed frame was thresholded with the top-left tile's threshold alone: on a frame
+    whose right half is ten times noisier, 2,443 noise peaks there came out as stars.  Faint stars in the
+    quiet half must still be found, and the noisy half must give no more than a chance peak or two."""
+    rng = np.random.default_rng(3)
+    h, w = 512, 512
+    img = 100.0 + rng.normal(0.0, 2.0, (h, w))
+    img[:, w // 2:] = 100.0 + rng.normal(0.0, 20.0, (h, w // 2))
+    yy, xx = np.mgrid[0:h, 0:w]
+    truth = [(40.0 + 45.0 * (i % 5) + 0.3, 40.0 + 100.0 * (i // 5) + 0.6) for i in range(20)]   # quiet half
+    for x, y in truth:
+        img += 60.0 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.2 ** 2))
+    stars = find_stars(img.astype(np.float32), CentroidOptions(matched_filter=True, max_stars=10000)).stars
+    xs = np.array([s["x"] for s in stars])
+    ys = np.array([s["y"] for s in stars])
+    assert (xs >= w // 2).sum() <= 2
+    found = sum(bool(np.any(np.hypot(xs - x, ys - y) < 1.0)) for x, y in truth)
+    assert found == len(truth)
