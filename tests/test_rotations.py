@@ -194,3 +194,44 @@ def test_readme_roll_example(catalog):
     x, y = cam.vectors_to_pixels(a @ betel)
     assert y < cam.cy - 300
     assert abs(x - cam.cx) < 0.1 * (cam.cy - y)
+
+
+def _array_path_quaternion(a):
+    """dcm_to_quaternion's array path (a stack of one matrix never takes the single-matrix fast path)."""
+    return rot.dcm_to_quaternion(np.asarray(a, dtype=np.float64)[None])[0]
+
+
+@settings(max_examples=300, deadline=None)
+@given(quats)
+def test_dcm_to_quaternion_single_matrix_path_is_the_array_path_to_the_bit(q):
+    a = rot.quaternion_to_dcm(rot.normalize_quaternion(q))
+    fast = rot.dcm_to_quaternion(a)
+    assert fast.shape == (4,) and fast.dtype == np.float64
+    assert fast.tobytes() == _array_path_quaternion(a).tobytes()
+
+
+def test_dcm_to_quaternion_single_matrix_path_every_pivot_ties_and_odd_matrices():
+    rng = np.random.default_rng(38)
+    cases = [np.eye(3), -np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]),
+             np.zeros((3, 3)), np.full((3, 3), 0.5), np.diag([0.2, 0.2, 0.2]), np.diag([-0.3, 0.4, 0.4])]
+    # Rotations by ~180 degrees about each axis and about random axes (every pivot of Shepperd's method wins).
+    for axis in range(1, 4):
+        for ang in (179.9999, 180.0, 90.0, 1e-9):
+            cases.append(rot.elementary_rotation(axis, ang))
+    for _ in range(2000):
+        cases.append(rot.quaternion_to_dcm(rot.normalize_quaternion(rng.normal(size=4) * [1, 1, 1, 1e-3])))
+        cases.append(rng.normal(size=(3, 3)) * 10.0 ** rng.integers(-6, 6))   # not rotations: same arithmetic
+    seen = set()
+    for a in cases:
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        with np.errstate(all="ignore"):
+            fast, slow = rot.dcm_to_quaternion(a), _array_path_quaternion(a)
+        assert fast.tobytes() == slow.tobytes(), a
+        d = [a[0, 0], a[1, 1], a[2, 2], np.trace(a)]
+        seen.add(int(np.argmax(d)))
+    assert seen == {0, 1, 2, 3}
+    # Not finite: the array path's answer (NaN), as before.
+    bad = np.eye(3)
+    bad[0, 1] = np.nan
+    with np.errstate(all="ignore"):
+        assert np.isnan(rot.dcm_to_quaternion(bad)).any()
