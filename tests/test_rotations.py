@@ -235,3 +235,38 @@ def test_dcm_to_quaternion_single_matrix_path_every_pivot_ties_and_odd_matrices(
     bad[0, 1] = np.nan
     with np.errstate(all="ignore"):
         assert np.isnan(rot.dcm_to_quaternion(bad)).any()
+
+
+def _euler123_reference(a):
+    """_dcm_to_euler123_rad as it was before its single-matrix path (stacked elementary rotations)."""
+    a = np.asarray(a, dtype=np.float64)
+    pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
+    yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
+    rest = a @ np.swapaxes(rot._elementary_rotation_rad(2, pitch) @ rot._elementary_rotation_rad(1, yaw), -1, -2)
+    return yaw, pitch, np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
+
+
+def _same_bits(x, y):
+    return all(np.asarray(u, dtype=np.float64).tobytes() == np.asarray(v, dtype=np.float64).tobytes()
+               for u, v in zip(x, y))
+
+
+@settings(max_examples=300, deadline=None)
+@given(quats)
+def test_dcm_to_euler123_single_matrix_path_is_the_array_path_to_the_bit(q):
+    a = rot.quaternion_to_dcm(rot.normalize_quaternion(q))
+    assert _same_bits(rot._dcm_to_euler123_rad(a), _euler123_reference(a))
+    assert _same_bits(rot.dcm_to_euler123(a), [np.degrees(v) for v in _euler123_reference(a)])
+    # A stack of matrices still takes the array path, with the same numbers.
+    np.testing.assert_allclose(np.ravel(rot.dcm_to_euler123(a[None])), rot.dcm_to_euler123(a), rtol=0, atol=1e-12)
+
+
+def test_dcm_to_euler123_single_matrix_path_gimbal_lock_and_odd_matrices():
+    rng = np.random.default_rng(38)
+    cases = [np.eye(3), -np.eye(3), np.zeros((3, 3)), rot.euler123_to_dcm(10.0, 90.0, 20.0),
+             rot.euler123_to_dcm(-30.0, -90.0, 5.0), rot.euler123_to_dcm(0.0, 89.9999999, 0.0)]
+    cases += [rng.normal(size=(3, 3)) for _ in range(500)]
+    cases += [rot.quaternion_to_dcm(rot.normalize_quaternion(rng.normal(size=4))) for _ in range(500)]
+    for a in cases:
+        assert _same_bits(rot._dcm_to_euler123_rad(a), _euler123_reference(a))
+        assert _same_bits(rot._dcm_to_euler123_rad(a.tolist()), _euler123_reference(a))
