@@ -282,9 +282,25 @@ def _dcm_to_radec_roll_rad(dcm):
     undefined; the returned triple then still reproduces ``dcm`` exactly.
     """
     a = np.asarray(dcm, dtype=np.float64)
+    if a.shape == (3, 3):
+        return _dcm_to_radec_roll_one(a)
     bore = a[..., 2, :]
     ra, dec = _vector_to_radec_rad(bore)
     east, north = _east_north_rad(ra, dec)
+    up = -a[..., 1, :]
+    roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
+    return ra, dec, roll
+
+
+def _dcm_to_radec_roll_one(a):
+    """:func:`_dcm_to_radec_roll_rad` of one 3 x 3 matrix, to the bit: the same ufuncs on the same values, east
+    and north built directly rather than stacked (called per frame)."""
+    bore = a[..., 2, :]
+    ra = np.mod(np.arctan2(bore[..., 1], bore[..., 0]), 2 * np.pi)
+    dec = np.arctan2(bore[..., 2], np.hypot(bore[..., 0], bore[..., 1]))
+    sr, cr, sd = np.sin(ra), np.cos(ra), np.sin(dec)
+    east = np.array([-sr, cr, 0.0])
+    north = np.array([-sd * cr, -sd * sr, np.cos(dec)])
     up = -a[..., 1, :]
     roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
     return ra, dec, roll

@@ -270,3 +270,33 @@ def test_dcm_to_euler123_single_matrix_path_gimbal_lock_and_odd_matrices():
     for a in cases:
         assert _same_bits(rot._dcm_to_euler123_rad(a), _euler123_reference(a))
         assert _same_bits(rot._dcm_to_euler123_rad(a.tolist()), _euler123_reference(a))
+
+
+def _radec_roll_reference(a):
+    """_dcm_to_radec_roll_rad as it was before its single-matrix path (stacked east and north)."""
+    a = np.asarray(a, dtype=np.float64)
+    ra, dec = rot._vector_to_radec_rad(a[..., 2, :])
+    east, north = rot._east_north_rad(ra, dec)
+    up = -a[..., 1, :]
+    return ra, dec, np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
+
+
+@settings(max_examples=300, deadline=None)
+@given(ras, decs, angles)
+def test_dcm_to_radec_roll_single_matrix_path_is_the_array_path_to_the_bit(ra, dec, roll):
+    a = rot.radec_roll_to_dcm(ra, dec, roll)     # poles and RA 0/360 among the strategies
+    assert _same_bits(rot._dcm_to_radec_roll_rad(a), _radec_roll_reference(a))
+    ref = _radec_roll_reference(a)
+    assert _same_bits(rot.dcm_to_radec_roll(a), (np.mod(np.degrees(ref[0]), 360.0), np.degrees(ref[1]),
+                                                 np.degrees(ref[2])))
+
+
+def test_dcm_to_radec_roll_single_matrix_path_odd_matrices():
+    rng = np.random.default_rng(38)
+    cases = [np.eye(3), -np.eye(3), np.zeros((3, 3)), rot.radec_roll_to_dcm(0.0, 90.0, 0.0),
+             rot.radec_roll_to_dcm(359.9999999, -90.0, 180.0)]
+    cases += [rng.normal(size=(3, 3)) for _ in range(500)]
+    cases += [rot.quaternion_to_dcm(rot.normalize_quaternion(rng.normal(size=4))) for _ in range(500)]
+    for a in cases:
+        assert _same_bits(rot._dcm_to_radec_roll_rad(a), _radec_roll_reference(a))
+        assert _same_bits(rot._dcm_to_radec_roll_rad(a.tolist()), _radec_roll_reference(a))
