@@ -110,11 +110,12 @@ class CentroidResult:
 
 
 def _median(values) -> float:
-    """``np.median`` of finite values, to the bit (the middle value, or the mean of the middle two), without its
-    overhead (~15 us a call on the small arrays here)."""
+    """``np.median`` of values, to the bit (the middle value, or the mean of the middle two; NaN when one is NaN),
+    without its overhead (~15 us a call on the small arrays here) nor its import of ``numpy.ma`` (~4 ms of a
+    process that calls it first)."""
     v = np.sort(np.asarray(values, dtype=np.float64), axis=None)
     n = v.shape[0]
-    if n == 0:
+    if n == 0 or math.isnan(v[-1]):      # NaN sorts last
         return math.nan
     return float(v[n // 2]) if n & 1 else float((v[n // 2 - 1] + v[n // 2]) / 2)
 
@@ -301,7 +302,7 @@ def _flag_misfits(stars, p_value, min_stars=5):
         return
     fitted = [s_ for s_ in stars if "fit_chi2" in s_ and s_.get("snr", 0) > 0 and math.isfinite(s_["snr"])]
     excess = [(s_["fit_chi2"] - s_["fit_dof"]) / s_["snr"] ** 2 for s_ in fitted]
-    c = max(0.0, float(np.median(excess))) if len(fitted) >= min_stars else 0.0
+    c = max(0.0, _median(excess)) if len(fitted) >= min_stars else 0.0
     for s_ in fitted:
         if _chi2_p_value(s_["fit_chi2"] - c * s_["snr"] ** 2, s_["fit_dof"]) < p_value:
             s_["misfit"] = True
@@ -1086,7 +1087,7 @@ def _by_shape(stars: list, max_ratio: float):
     widths = [s_["fwhm_px"] for s_ in stars[:60] if not s_["saturated"]]
     if len(widths) < 5:
         return stars, []
-    med = float(np.median(widths))
+    med = _median(widths)
     keep, out = [], []
     for s_ in stars:
         if s_["saturated"] or s_["fwhm_px"] <= max_ratio * med:

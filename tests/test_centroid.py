@@ -515,3 +515,22 @@ def test_matched_filter_threshold_follows_the_noise_across_the_frame():
     assert (xs >= w // 2).sum() <= 2
     found = sum(bool(np.any(np.hypot(xs - x, ys - y) < 1.0)) for x, y in truth)
     assert found == len(truth)
+
+
+def test_centroid_median_is_numpys_to_the_bit():
+    """find_stars' misfit and shape medians (centroid._median) are numpy.median's, NaN and infinities included."""
+    from startrack.centroid import _median
+
+    rng = np.random.default_rng(38)
+    for n in range(1, 40):
+        for _ in range(30):
+            v = rng.normal(size=n) * 10.0 ** rng.uniform(-3, 3)
+            if rng.random() < 0.2:
+                v[rng.integers(0, n)] = rng.choice([np.inf, -np.inf])
+            for values in (v, v.tolist()):
+                with np.errstate(invalid="ignore"):
+                    got, want = _median(values), float(np.median(values))
+                assert np.float64(got).tobytes() == np.float64(want).tobytes(), (values, got, want)
+    with np.errstate(invalid="ignore"):
+        assert math.isnan(_median([1.0, np.nan, 2.0])) and math.isnan(float(np.median([1.0, np.nan, 2.0])))
+        assert math.isnan(_median([np.inf, -np.inf])) and math.isnan(float(np.median([np.inf, -np.inf])))
