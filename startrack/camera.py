@@ -105,6 +105,35 @@ def parse_size(text: str, source: str = "size") -> tuple[int, int]:
     return width, height
 
 
+#: Bounds a camera read from a document must lie within: physically generous, finite (the largest sensors are about
+#: 100k px a side; 1e9 px of focal length is 0.0002"/px, beyond any telescope; a focal length of 1e-4 of the
+#: image's longer side is a pinhole field of 179.98 deg and a stereographic one of over 359 deg).  The principal
+#: point may lie off the image (a crop), but within one image size of it.
+MAX_SIDE_PX = 1_000_000
+MAX_FOCAL_LENGTH_PX = 1e9
+MIN_FOCAL_LENGTH_PER_SIDE = 1e-4
+
+
+def _check_geometry(values: dict, source: str) -> None:
+    """Refuse finite but absurd camera values (bounds above), naming the field."""
+    w, h = values["width"], values["height"]
+    for name in ("width", "height"):
+        if values[name] > MAX_SIDE_PX:
+            raise BadInputError(source, f"camera.{name}", f"{values[name]:g} px is larger than any sensor "
+                                f"(at most {MAX_SIDE_PX:g} px a side)")
+    for name, size in (("cx", w), ("cy", h)):
+        v = values[name]
+        if not -size <= v <= 2 * size:
+            side = "width" if name == "cx" else "height"
+            raise BadInputError(source, f"camera.{name}", f"{v:g} is outside the image (0..{side} = 0..{size}, "
+                                f"within one {side} of it: {-size}..{2 * size})")
+    f = values["focal_length_px"]
+    lo = MIN_FOCAL_LENGTH_PER_SIDE * max(w, h)
+    if not lo <= f <= MAX_FOCAL_LENGTH_PX:
+        raise BadInputError(source, "camera.focal_length_px", f"{f:g} px is outside {lo:g}..{MAX_FOCAL_LENGTH_PX:g} "
+                            f"px (1e-4 of the image's longer side, {max(w, h)} px, up to 0.0002 arcsec per pixel)")
+
+
 def _finite(value, source, name, positive=False):
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
         raise BadInputError(source, name, f"must be a number, got {type(value).__name__}")
@@ -225,6 +254,7 @@ class Camera:
             if name not in doc:
                 raise BadInputError(source, f"camera.{name}", "is missing")
             values[name] = _finite(doc[name], source, f"camera.{name}", positive=(name == "focal_length_px"))
+        _check_geometry(values, source)
         projection = doc.get("projection", "pinhole")
         if projection not in PROJECTIONS:
             raise BadInputError(source, "camera.projection", f"must be one of {', '.join(PROJECTIONS)}, "

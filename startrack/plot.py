@@ -92,13 +92,22 @@ class _Picture:
         (tw, th), base = self.cv2.getTextSize(text, self.font, self.font_scale, self.thick)
         return tw, th + base
 
+    def visible(self, x: float, y: float, r: float = 0.0) -> bool:
+        """Whether a marker of radius ``r`` at ``(x, y)`` touches the image (a position far outside is skipped:
+        OpenCV takes 32-bit coordinates)."""
+        try:
+            x, y = float(x), float(y)
+        except (OverflowError, TypeError, ValueError):
+            return False
+        return -r - 1 <= x <= self.w + r and -r - 1 <= y <= self.h + r     # False for NaN
+
     def marker(self, kind: str, x: float, y: float, size: float | None = None) -> tuple[int, int] | None:
-        if not (np.isfinite(x) and np.isfinite(y)):
+        r = int(round((size or 7.0) * self.scale))
+        if not self.visible(x, y, r):
             return None
         cv2 = self.cv2
         colour = MARKERS[kind][0]
         c = (int(round(x)), int(round(y)))
-        r = int(round((size or 7.0) * self.scale))
         if kind in ("identified", "detected"):
             cv2.circle(self.canvas, c, r, colour, self.thick + (kind == "identified"), lineType=cv2.LINE_AA)
         elif kind == "predicted":
@@ -111,9 +120,13 @@ class _Picture:
 
     def label(self, text: str, centre: tuple[int, int], radius: float,
               colour: tuple = _LABEL) -> tuple[int, int, int, int] | None:
-        """Place ``text`` beside a marker: inside the image, over no other label or identified star."""
+        """Place ``text`` beside a marker: inside the image, over no other label or identified star.
+
+        A marker off the image gets no label (None)."""
         tw, th = self.text_size(text)
         r = int(round(radius * self.scale)) + 3
+        if not self.visible(centre[0], centre[1], r):
+            return None
         cx, cy = centre
         own = (cx - r + 3, cy - r + 3, cx + r - 3, cy + r - 3)
         best, best_cost = None, None

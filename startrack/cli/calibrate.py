@@ -68,6 +68,9 @@ def command(input, output, fit, projection, catalog, quiet):
         if att.get("status") != "ok" or ident.get("status") != "ok":
             continue                    # unsolved frames carry nothing to calibrate from
         validate_frame(doc, rec.source, ("camera", "stars", "identification"))
+        if "matches" not in ident:
+            raise BadInputError(rec.source, "identification.matches", "is missing: an identified frame's matches are "
+                                "what calibrate fits")
         if "mirrored" in (ident.get("parity"), (doc.get("solve") or {}).get("parity")):
             # Its camera is the un-mirrored one of flipped pixels: a principal point fitted from it would not be
             # the image's.

@@ -398,7 +398,7 @@ def read_frames(path: str):
             try:
                 yield FrameRecord(src, _loads(line), None, base)
             except ValueError as exc:
-                yield FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({exc})"), base)
+                yield FrameRecord(src, None, _bad_line(src, line, exc), base)
     except UnicodeDecodeError:
         yield FrameRecord(name, None, BadInputError(name, None, "is not a UTF-8 text file"))
     except OSError as exc:
@@ -406,6 +406,13 @@ def read_frames(path: str):
     finally:
         if handle is not sys.stdin:
             handle.close()
+
+
+def _bad_line(src: str, line: str, exc: ValueError) -> BadInputError:
+    """The error of a line that is not JSON: ``(truncated?)`` when it is the text's last, cut without its newline."""
+    if not line.endswith("\n"):
+        return BadInputError(src, None, "is not valid JSON (truncated?)")
+    return BadInputError(src, None, f"is not valid JSON ({exc})")
 
 
 def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
@@ -432,7 +439,8 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
             value = _loads(line)
             parsed.append(FrameRecord(src, value, None, base))
         except ValueError as line_exc:
-            parsed.append(FrameRecord(src, None, BadInputError(src, None, f"is not valid JSON ({line_exc})"), base))
+            ended = line + "\n" if k < len(rows) - 1 else line     # the text's last row has no newline
+            parsed.append(FrameRecord(src, None, _bad_line(src, ended, line_exc), base))
     if any_good:
         yield from parsed
     else:

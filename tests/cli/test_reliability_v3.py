@@ -851,3 +851,119 @@ def test_evaluate_rows_are_checked_before_they_are_drawn(tmp_path):
         path.write_text(json.dumps({"rows": [bad]}).replace("Infinity", "1e400"))
         proc = run_cli("plot", path, "--kind", "evaluate", "-o", tmp_path / "p.png")
         assert_refused(proc, f"ev{k}.json: {field}")
+
+
+# -- fuzz leftovers (2): camera bounds, calibrate's matches, a truncated last line, far positions in a plot ------
+
+def _identified_frames(n, seed=4, **changes):
+    """``n`` frame documents of a 20 deg 1024x1024 pinhole, identified and solved from the catalog (Hp <= 5)."""
+    from startrack.camera import Camera
+    from startrack.catalog import load_catalog
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    cam = Camera.from_fov(20, 1024, 1024)
+    cat = load_catalog(mag_max=5.0).filter_magnitude(None, 5.0)
+    vec = cat.vectors()
+    docs = []
+    for q in random_quaternions(n, np.random.default_rng(seed)):
+        dcm = quaternion_to_dcm(q)
+        cam_vec = vec @ dcm.T
+        seen = np.flatnonzero(cam_vec[:, 2] > 0.95)
+        x, y = cam.vectors_to_pixels(cam_vec[seen])
+        inside = (x > 0) & (x < 1023) & (y > 0) & (y < 1023)
+        stars = [{"x": float(a), "y": float(b), "flux": 100.0} for a, b in zip(x[inside], y[inside])]
+        matches = [{"star": i, "id": int(cat.id[j])} for i, j in enumerate(seen[inside])]
+        docs.append({"format": "startrack.frame/1", "camera": {**cam.to_dict(), **changes}, "stars": stars,
+                     "identification": {"status": "ok", "algorithm": "pyramid", "matches": matches},
+                     "attitude": {"status": "ok", "method": "quest", "quaternion": [float(v) for v in q],
+                                  "dcm": dcm.tolist()}})
+    return docs
+
+
+def test_absurd_camera_values_are_named_where_the_frame_is_read(db20, tmp_path):
+    """main (fuzz): a frame whose camera had cx or width 1e300, or a focal length of 1e-300 or 1e300, passed the
+    checks, and `identify` blamed the database ("kv.h5: max_angle_deg: ... diagonal field is 90.00 deg").  Now the
+    frame's camera field is named (FILE:LINE: camera.FIELD), and real cameras, from a 360 deg fisheye to a
+    100k px sensor at 0.01"/px, are still read."""
+    from startrack.camera import Camera
+    from startrack.errors import BadInputError
+
+    good = Camera.from_fov(20, 512, 512).to_dict()
+    absurd = [("cx", 1e300), ("cx", -1e300), ("cy", 5e5), ("width", 1e300), ("height", 2e6),
+              ("focal_length_px", 1e-300), ("focal_length_px", 1e300), ("focal_length_px", 1e-3)]
+    for name, value in absurd:
+        with pytest.raises(BadInputError) as info:
+            Camera.from_dict({**good, name: value}, "f.jsonl:1")
+        assert info.value.source == "f.jsonl:1" and info.value.field == f"camera.{name}", (name, value, info.value)
+    with pytest.raises(BadInputError, match="negative|positive"):
+        Camera.from_dict({**good, "width": -512}, "f.jsonl:1")
+    real = [Camera.from_fov(360, 4000, 4000, projection="equidistant"),
+            Camera.from_fov(359, 3000, 2000, projection="stereographic"),
+            Camera.from_fov(179.5, 6000, 4000),
+            Camera(100_000, 100_000, 206265 / 0.01, 50_000.0, 50_000.0),      # 0.01"/px on a 100k px sensor
+            Camera(640, 480, 800.0, -300.0, 900.0)]                             # a crop: principal point off it
+    for cam in real:
+        assert Camera.from_dict(cam.to_dict(), "real") == cam
+    doc = {"format": "startrack.frame/1", "camera": {**good, "cx": 1e300},
+           "stars": [{"x": 10.0 * k, "y": 20.0 + 7 * k, "flux": 100.0} for k in range(8)]}
+    (tmp_path / "f.jsonl").write_text(json.dumps(doc) + "\n")
+    proc = run_cli("identify", tmp_path / "f.jsonl", "-d", db20)
+    assert_refused(proc, "f.jsonl:1: camera.cx: 1e+300 is outside the image")
+
+
+def test_calibrate_names_the_frame_without_matches(tmp_path):
+    """main (fuzz): `calibrate` on a solved frame whose identification.matches was deleted: exit 2 with "frames: 0
+    identified stars in 0 frame(s): too few ..." (no file).  Now FILE:LINE: identification.matches: is missing."""
+    docs = _identified_frames(2)
+    del docs[1]["identification"]["matches"]
+    (tmp_path / "solved.jsonl").write_text("".join(json.dumps(d) + "\n" for d in docs))
+    proc = run_cli("calibrate", tmp_path / "solved.jsonl", "-o", tmp_path / "lens.json")
+    assert_refused(proc, "solved.jsonl:2: identification.matches: is missing")
+    assert not (tmp_path / "lens.json").exists()
+
+
+def test_a_truncated_last_line_is_named_as_such_and_the_good_frames_go_on(db20, tmp_path):
+    """main: a batch file whose last line was cut mid-JSON gave "FILE:3: is not valid JSON (Expecting ',' delimiter:
+    line 1 column 1638 ...)".  Now, as a bad line in the middle: the good frames are processed, exit 2, and the cut
+    last line is "FILE:3: is not valid JSON (truncated?)"; a bad line in the middle keeps the decoder's detail."""
+    lines = [json.dumps(d) for d in _identified_frames(3)]
+    cut = tmp_path / "cut.jsonl"
+    cut.write_text(lines[0] + "\n" + lines[1] + "\n" + lines[2][: len(lines[2]) // 2])
+    middle = tmp_path / "middle.jsonl"
+    middle.write_text(lines[0] + "\n" + lines[2][: len(lines[2]) // 2] + "\n" + lines[1] + "\n")
+    for command, section, extra in (("attitude", "attitude", ()), ("identify", "identification", ("-d", db20))):
+        for path, bad_line in ((cut, 3), (middle, 2)):
+            proc = run_cli(command, path, *extra)
+            assert proc.returncode == 2, proc.stderr
+            out = [json.loads(line) for line in proc.stdout.splitlines()]
+            assert len(out) == 3, (command, path.name, proc.stderr)
+            bad = [d for d in out if d[section].get("bad_input")]
+            assert [d["source"] for d in bad] == [f"{path}:{bad_line}"], bad
+            assert all(d[section]["status"] == "ok" for d in out if d not in bad), proc.stderr
+            lines_err = [line for line in proc.stderr.splitlines() if "is not valid JSON" in line]
+            assert len(lines_err) == 1, proc.stderr
+            assert (f"{path.name}:{bad_line}: is not valid JSON (truncated?)" in lines_err[0]) == (path == cut), \
+                lines_err
+
+
+def test_plot_skips_positions_far_outside_the_image(tmp_path):
+    """main (fuzz): `plot` of a frame with a star at x = 1e300 gave "internal error ... OpenCV ... (-5:Bad argument)
+    in function 'circle'".  Now a marker (and its label) far outside the image is skipped, and the rest drawn."""
+    import cv2
+
+    from tests.conftest import png_pixels
+
+    img = np.zeros((256, 256), np.uint8)
+    img[100:103, 100:103] = 200
+    cv2.imwrite(str(tmp_path / "img.png"), img)
+    from startrack.camera import Camera
+
+    doc = {"format": "startrack.frame/1", "image": {"path": "img.png", "width": 256, "height": 256},
+           "camera": Camera.from_fov(20, 256, 256).to_dict(),
+           "stars": [{"x": 101.0, "y": 101.0, "flux": 900.0}, {"x": 1e300, "y": 50.0, "flux": 800.0},
+                     {"x": 40.0, "y": -1e300, "flux": 700.0}, {"x": -3e9, "y": 3e9, "flux": 600.0}]}
+    (tmp_path / "f.jsonl").write_text(json.dumps(doc) + "\n")
+    proc = run_cli("plot", tmp_path / "f.jsonl", "-o", tmp_path / "p.png")
+    assert proc.returncode == 0, proc.stderr
+    assert "internal error" not in proc.stderr
+    assert png_pixels(tmp_path / "p.png").shape[1] == 256
