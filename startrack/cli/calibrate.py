@@ -106,11 +106,17 @@ def command(input, output, fit, projection, catalog, quiet):
         if fit.strip() != "auto":
             raise BadInputError("--projection", None, "a projection to fit needs --fit auto (its terms are chosen "
                                 "by their significance)")
-        result = calibrate_projection(frames, camera, None if projection == "auto" else [projection])
-    elif fit.strip() == "auto":
-        result = calibrate_significant(frames, camera)
-    else:
-        result = calibrate(frames, camera, names)
+    try:
+        if projection == "auto" or (projection is not None and projection != camera.projection):
+            result = calibrate_projection(frames, camera, None if projection == "auto" else [projection])
+        elif fit.strip() == "auto":
+            result = calibrate_significant(frames, camera)
+        else:
+            result = calibrate(frames, camera, names)
+    except BadInputError as exc:
+        if exc.source != "frames":
+            raise
+        raise BadInputError(input, exc.field, exc.problem) from None     # the frames are the input file's
     doc = result.to_dict()
     with atomic_open(output, "w") as fh:
         json.dump(doc, fh, indent=1)

@@ -920,6 +920,11 @@ def test_calibrate_names_the_frame_without_matches(tmp_path):
     proc = run_cli("calibrate", tmp_path / "solved.jsonl", "-o", tmp_path / "lens.json")
     assert_refused(proc, "solved.jsonl:2: identification.matches: is missing")
     assert not (tmp_path / "lens.json").exists()
+    for doc in docs:
+        doc["identification"]["matches"] = []
+    (tmp_path / "none.jsonl").write_text("".join(json.dumps(d) + "\n" for d in docs))
+    proc = run_cli("calibrate", tmp_path / "none.jsonl", "-o", tmp_path / "lens.json")
+    assert_refused(proc, "none.jsonl: 0 identified stars in ")
 
 
 def test_a_truncated_last_line_is_named_as_such_and_the_good_frames_go_on(db20, tmp_path):
