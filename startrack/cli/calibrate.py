@@ -96,6 +96,10 @@ def command(input, output, fit, projection, catalog, quiet):
             if k is None:
                 continue
             s = doc["stars"][m["star"]]
+            for axis, size in (("x", cam.width), ("y", cam.height)):
+                if not -size <= s[axis] <= 2 * size:   # an absurd position would make the fit inf, not fail
+                    raise BadInputError(rec.source, f"stars[{m['star']}].{axis}", f"{s[axis]:g} is far outside the "
+                                        f"image (0..{size}); an identified star must be on it")
             xy.append((s["x"], s["y"]))
             ref.append(vec[k])
         frames.append((dcm, np.array(xy), np.array(ref)))

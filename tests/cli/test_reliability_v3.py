@@ -925,6 +925,11 @@ def test_calibrate_names_the_frame_without_matches(tmp_path):
     (tmp_path / "none.jsonl").write_text("".join(json.dumps(d) + "\n" for d in docs))
     proc = run_cli("calibrate", tmp_path / "none.jsonl", "-o", tmp_path / "lens.json")
     assert_refused(proc, "none.jsonl: 0 identified stars in ")
+    docs = _identified_frames(2)
+    docs[1]["stars"][0]["x"] = 1e300
+    (tmp_path / "far.jsonl").write_text("".join(json.dumps(d) + "\n" for d in docs))
+    proc = run_cli("calibrate", tmp_path / "far.jsonl", "-o", tmp_path / "lens.json")   # main: exit 0, f +- inf
+    assert_refused(proc, "far.jsonl:2: stars[0].x: 1e+300 is far outside the image")
 
 
 def test_a_truncated_last_line_is_named_as_such_and_the_good_frames_go_on(db20, tmp_path):
