@@ -126,6 +126,7 @@ def main(argv=None):
     ap.add_argument("--label", default="this", help="names the solved-LABEL.jsonl files")
     ap.add_argument("--score-only", action="store_true", help="score the solved-LABEL.jsonl files of an earlier run")
     ap.add_argument("--ground-lights", type=int, default=0, help="lights on the ground per frame (render --ground-lights)")
+    ap.add_argument("--render-only", action="store_true", help="render the frames (kept in --out for a later run)")
     args = ap.parse_args(argv)
     print("| projection | field | frames | right | wrong | failed (reasons) | centre error median / max | "
           "projection fitted | f error median / max | distortion fitted (frames, largest) | median solve |")
@@ -136,6 +137,9 @@ def main(argv=None):
             sub = os.path.join(args.out, f"{projection}-{fov:g}")
             docs = render_set(projection, fov, args.count, args.size, sub, args.seed + 100 * i + j, ROOT,
                               args.ground_lights)
+            if args.render_only:
+                print(f"| {projection} | {fov:g} deg | {len(docs)} rendered |", flush=True)
+                continue
             r = solve_set(docs, sub, os.path.abspath(args.solve_pythonpath), args.label, projection, args.score_only)
             out_rows.append((projection, fov, r))
             why = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items(), key=lambda kv: -kv[1])[:2])
