@@ -12,6 +12,7 @@ error and the distortion terms fitted (the truth has none).
 
     python benchmarks/allsky_solve.py --count 200 --out bench-output/allsky
     python benchmarks/allsky_solve.py --count 20 --size 800 --projections equidistant --fovs 180
+    python benchmarks/allsky_solve.py --count 200 --ground-lights 20 --out bench-output/allsky-lights
 """
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ def _cli(args, pythonpath, **kw):
                           cwd=pythonpath, **kw)
 
 
-def render_set(projection: str, fov: float, count: int, size: int, out: str, seed: int, pythonpath: str) -> list:
+def render_set(projection: str, fov: float, count: int, size: int, out: str, seed: int, pythonpath: str,
+               lights: int = 0) -> list:
     """Render ``count`` frames into ``out``: their frame documents (truth); reused when already there."""
     os.makedirs(out, exist_ok=True)
     docs_path = os.path.join(out, "truth.jsonl")
@@ -48,6 +50,8 @@ def render_set(projection: str, fov: float, count: int, size: int, out: str, see
     args = ["render", "--projection", projection, "--fov-deg", f"{fov:g}", "--size", f"{size}x{size}",
             "--mag-max", "5.5", "--horizon", "random", "--extinction-mag", "0.2", "--no-aberration", "--count", str(count),
             "--seed", str(seed), "-o", os.path.join(out, "f-.png"), "-q"]
+    if lights:
+        args[-3:-3] = ["--ground-lights", str(lights)]
     proc = _cli(args, pythonpath)
     if proc.returncode != 0:
         raise SystemExit(f"render failed: {' '.join(args)}\n{proc.stderr}")
@@ -121,6 +125,8 @@ def main(argv=None):
     ap.add_argument("--solve-pythonpath", default=ROOT, help="the checkout whose solve is measured (default: this)")
     ap.add_argument("--label", default="this", help="names the solved-LABEL.jsonl files")
     ap.add_argument("--score-only", action="store_true", help="score the solved-LABEL.jsonl files of an earlier run")
+    ap.add_argument("--ground-lights", type=int, default=0, help="lights on the ground per frame (render --ground-lights)")
+    ap.add_argument("--render-only", action="store_true", help="render the frames (kept in --out for a later run)")
     args = ap.parse_args(argv)
     print("| projection | field | frames | right | wrong | failed (reasons) | centre error median / max | "
           "projection fitted | f error median / max | distortion fitted (frames, largest) | median solve |")
@@ -129,7 +135,11 @@ def main(argv=None):
     for i, projection in enumerate(args.projections.split(",")):
         for j, fov in enumerate(float(f) for f in args.fovs.split(",")):
             sub = os.path.join(args.out, f"{projection}-{fov:g}")
-            docs = render_set(projection, fov, args.count, args.size, sub, args.seed + 100 * i + j, ROOT)
+            docs = render_set(projection, fov, args.count, args.size, sub, args.seed + 100 * i + j, ROOT,
+                              args.ground_lights)
+            if args.render_only:
+                print(f"| {projection} | {fov:g} deg | {len(docs)} rendered |", flush=True)
+                continue
             r = solve_set(docs, sub, os.path.abspath(args.solve_pythonpath), args.label, projection, args.score_only)
             out_rows.append((projection, fov, r))
             why = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items(), key=lambda kv: -kv[1])[:2])

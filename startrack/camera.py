@@ -398,21 +398,8 @@ class Camera:
         limit = _THETA_MAX[self.projection]
         if not self.has_distortion:
             return limit
-        grid = np.linspace(0.0, limit, 20001)
-        slope = self._theta_slope(grid)
-        td = self.theta_distorted(grid)
-        ok = (slope > 0) & (td <= limit) & (td >= 0)
-        first_bad = np.flatnonzero(~ok)
-        if len(first_bad) == 0:
-            return limit
-        if first_bad[0] == 0:
-            return 0.0
-        lo, hi = float(grid[first_bad[0] - 1]), float(grid[first_bad[0]])
-        for _ in range(60):     # bisection to the boundary
-            mid = 0.5 * (lo + hi)
-            good = self._theta_slope(mid) > 0 and 0 <= float(self.theta_distorted(mid)) <= limit
-            lo, hi = (mid, hi) if good else (lo, mid)
-        return lo
+        # Cached by the lens terms: a fit (calibrate) builds a camera per evaluation, most with the same terms.
+        return _fisheye_max_theta(limit, float(self.k1), float(self.k2), float(self.k3), float(self.k4))
 
     @property
     def max_radius_px(self) -> float:
@@ -611,3 +598,31 @@ class Camera:
         """Angular size of one pixel at the principal point, in arcseconds (every projection has
         ``g'(0) = 1``, so it is ``1 / f`` radians)."""
         return math.degrees(1.0 / self.focal_length_px) * 3600.0
+
+
+@functools.lru_cache(maxsize=4096)
+def _fisheye_max_theta(limit, k1, k2, k3, k4):
+    """:attr:`Camera.max_theta` of a distorted fisheye whose projection reaches ``limit`` (radians): the first
+    angle on a 20001-point grid where ``theta_d`` stops increasing or leaves ``[0, limit]``, then bisection
+    (in plain floats: the same operations as the arrays')."""
+    def slope(t):
+        t2 = t * t
+        return 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+
+    def distorted(t):
+        t2 = t * t
+        return t * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+    grid = np.linspace(0.0, limit, 20001)
+    ok = (slope(grid) > 0) & (distorted(grid) <= limit) & (distorted(grid) >= 0)
+    first_bad = np.flatnonzero(~ok)
+    if len(first_bad) == 0:
+        return limit
+    if first_bad[0] == 0:
+        return 0.0
+    lo, hi = float(grid[first_bad[0] - 1]), float(grid[first_bad[0]])
+    for _ in range(60):     # bisection to the boundary
+        mid = 0.5 * (lo + hi)
+        good = slope(mid) > 0 and 0 <= distorted(mid) <= limit
+        lo, hi = (mid, hi) if good else (lo, mid)
+    return lo

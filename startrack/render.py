@@ -169,12 +169,15 @@ class Scene:
     mirror: str | None = None
     horizon: str | None = None
     extinction_mag: float = 0.0
+    ground_lights: int = 0
 
     def __post_init__(self):
         from startrack.nuisance import FOREGROUNDS, HORIZONS, MIRRORS
 
         if self.horizon is not None and self.horizon not in HORIZONS:
             raise ParameterError("horizon", f"must be one of {', '.join(HORIZONS)}, got {self.horizon!r}")
+        if not 0 <= int(self.ground_lights) == self.ground_lights:
+            raise ParameterError("ground_lights", f"must be a count >= 0, got {self.ground_lights}")
         if not (self.extinction_mag >= 0 and math.isfinite(self.extinction_mag)):
             raise ParameterError("extinction_mag", f"must be >= 0 (magnitudes per air mass), got {self.extinction_mag}")
 
@@ -417,6 +420,8 @@ def render_image(catalog, camera: Camera, dcm, sensor: Sensor, scene: Scene, rng
     pixel_seed = int(rng.integers(0, 2**63 - 1)) if seed is None else int(seed)
     extra_truth = _apply_nuisances(signal, sensor, scene, rng, x_mid, y_mid, ground)
     if horizon_truth is not None:
+        if scene.ground_lights:
+            horizon_truth["lights"] = _ground_lights(signal, ground, true_cam, sensor, int(scene.ground_lights), rng)
         extra_truth["horizon"] = horizon_truth
     if sensor.hot_pixels:
         np.add.at(signal, hot_levels[:2], hot_levels[2])
@@ -508,6 +513,27 @@ def _apply_nuisances(signal, sensor: Sensor, scene: Scene, rng, star_x, star_y, 
     return truth
 
 
+def _ground_lights(signal, ground, camera, sensor: Sensor, count, rng):
+    """Add ``count`` point lights (street lamps, lit windows) on the ground below the skyline, inside the lens's
+    image circle, as bright as magnitude 0-4 stars, to ``signal``: their truth ``[{x, y, mag}]``."""
+    from startrack._kernels.render import add_stars
+
+    rows, cols = np.nonzero(ground >= 0.999)
+    if len(rows):
+        vec = camera.pixels_to_vectors(cols.astype(np.float64), rows.astype(np.float64))
+        seen = np.all(np.isfinite(vec), axis=-1)
+        rows, cols = rows[seen], cols[seen]
+    if len(rows) == 0:
+        return []
+    pick = rng.choice(len(rows), size=min(count, len(rows)), replace=False)
+    x = cols[pick] + rng.uniform(-0.5, 0.5, len(pick))
+    y = rows[pick] + rng.uniform(-0.5, 0.5, len(pick))
+    mag = rng.uniform(0.0, 4.0, len(pick))
+    add_stars(signal, np.ascontiguousarray(x[:, None]), np.ascontiguousarray(y[:, None]),
+              np.ascontiguousarray(electrons_from_magnitude(mag, sensor)), float(sensor.psf_sigma_px))
+    return [{"x": float(a), "y": float(b), "mag": float(m)} for a, b, m in zip(x, y, mag)]
+
+
 def _mirror_truth(truth, axis, width, height):
     """Flip the truth's pixel positions as the written image was flipped (x -> W-1-x or y -> H-1-y)."""
     key, size = ("x", width) if axis == "x" else ("y", height)
@@ -518,6 +544,8 @@ def _mirror_truth(truth, axis, width, height):
                 a = math.radians(item["angle_deg"])
                 item["angle_deg"] = math.degrees(math.atan2(math.sin(a), -math.cos(a)) if axis == "x"
                                                  else math.atan2(-math.sin(a), math.cos(a))) % 360.0
+    for item in truth.get("horizon", {}).get("lights", []):
+        item[key] = (size - 1) - item[key]
     truth["mirror"] = axis
 
 

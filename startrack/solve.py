@@ -778,44 +778,78 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     # same time limit.
     cx = camera.cx if camera is not None else (w - 1) / 2.0
     searched = []
-    for depth in depths:
-        if depth == "deep":
-            # A frame whose brightest detections gave no pattern (few stars above a pixel's threshold: a narrow
-            # field, a short exposure, a dark-subtracted 8-bit frame) is detected again through a matched filter
-            # of the frame's own PSF: a star's whole light against the noise, ~0.7 mag deeper for a 1 px PSF.
-            # Only a frame of fewer detections than the blind search's deepest pattern level gains from it: with
-            # more, the brightest of the deeper list are the ones already searched.
-            if clock.expired() or len(cres.stars) >= BlindOptions.max_pattern_stars:
-                break
-            psf = frame_psf(cres.stars) if cres.stars else None
-            deep = CentroidOptions(max_stars=opts.max_stars, matched_filter=True,
-                                   filter_sigma_px=psf[0] / 2.3548 if psf else 1.0)
-            more = clock.first_use("centroid-deep", find_stars, image, deep, saturation=saturation)
-            if len(more.stars) <= len(cres.stars) and len(cres.stars) >= 4:
-                break
-            log.info("matched-filter detection: %d stars (%d before)", len(more.stars), len(cres.stars))
-            cres = more
-        if len(cres.stars) < 4:
-            continue
-        for parity in order:
-            if searched and clock.expired():
-                break
-            search_list = cres.stars if parity == "normal" else mirror_stars(cres.stars, cx)
-            searched.append(parity)
-            result, n = search(search_list)
-            tried += n
+    deep_memo = {}
+
+    def pinhole(parities):
+        """The pinhole searches of ``parities`` at each depth: ``(result, attempts, centroid result, star list,
+        parity)``."""
+        cur = plain_cres
+        result, tried, search_list, parity = None, 0, None, None
+        for depth in depths:
+            if depth == "deep":
+                # A frame whose brightest detections gave no pattern (few stars above a pixel's threshold: a narrow
+                # field, a short exposure, a dark-subtracted 8-bit frame) is detected again through a matched
+                # filter of the frame's own PSF: a star's whole light against the noise, ~0.7 mag deeper for a 1 px
+                # PSF.  Only a frame of fewer detections than the blind search's deepest pattern level gains from
+                # it: with more, the brightest of the deeper list are the ones already searched.
+                if clock.expired() or len(cur.stars) >= BlindOptions.max_pattern_stars:
+                    break
+                if "more" not in deep_memo:
+                    psf = frame_psf(cur.stars) if cur.stars else None
+                    deep = CentroidOptions(max_stars=opts.max_stars, matched_filter=True,
+                                           filter_sigma_px=psf[0] / 2.3548 if psf else 1.0)
+                    deep_memo["more"] = clock.first_use("centroid-deep", find_stars, image, deep,
+                                                        saturation=saturation)
+                more = deep_memo["more"]
+                if len(more.stars) <= len(cur.stars) and len(cur.stars) >= 4:
+                    break
+                log.info("matched-filter detection: %d stars (%d before)", len(more.stars), len(cur.stars))
+                cur = more
+            if len(cur.stars) < 4:
+                continue
+            for parity in parities:
+                if searched and clock.expired():
+                    break
+                search_list = cur.stars if parity == "normal" else mirror_stars(cur.stars, cx)
+                searched.append(parity)
+                result, n = search(search_list)
+                tried += n
+                if result is not None:
+                    break
+                log.info("%s parity: no star pattern identified", parity)
             if result is not None:
                 break
-            log.info("%s parity: no star pattern identified", parity)
+        return result, tried, cur, search_list, parity
+
+    # The order of the searches: each parity's pinhole searches, then its all-sky search (a normal all-sky frame
+    # is not kept waiting by the mirrored pinhole search), or the all-sky search first when the image is
+    # evidently an all-sky camera's: a dark ground around a sky circle (startrack.allsky.corners_dark).  Every
+    # search keeps its share of the false-match budget whatever the order.
+    from startrack.allsky import corners_dark
+
+    allsky_first = allsky and bool(depths) and corners_dark(image)
+    allsky_info = None
+    plain_cres = cres
+    search_list, parity = None, None
+    for parity_group in ([(p,) for p in order] if allsky else [tuple(order)]):
+        stages = ("allsky", "pinhole") if allsky_first else ("pinhole", "allsky")
+        for stage in stages:
+            if stage == "pinhole":
+                result, n, cres, search_list, parity = pinhole(parity_group)
+                tried += n
+            elif allsky and (not searched or not clock.expired()):
+                # the all-sky search has half of what is left when it goes first, so the pinhole search keeps a turn
+                share = 0.5 if allsky_first and stage == stages[0] else 1.0
+                got, n, done = _allsky_search(image, saturation, w, h, parity_group, opts, index, clock, databases,
+                                              share=share, memo=deep_memo)
+                tried += n
+                searched += done
+                if got is not None:
+                    result, cres, search_list, parity, allsky_info = got
+            if result is not None:
+                break
         if result is not None:
             break
-    allsky_info = None
-    if result is None and allsky and (not searched or not clock.expired()):
-        got, n, done = _allsky_search(image, saturation, w, h, order, opts, index, clock, databases)
-        tried += n
-        searched += done
-        if got is not None:
-            result, cres, search_list, parity, allsky_info = got
     stars = StarTable.from_list(cres.stars) if cres.stars else StarTable.empty()
     centroid = cres.section()
     if len(cres.stars) < 4:
@@ -994,18 +1028,33 @@ def targets(dcm, camera, pixels=(), radec=(), mirrored: bool = False) -> list:
 ALLSKY_MAX_STARS = 1500
 
 
-def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases):
-    """The all-sky search of :func:`solve_image` (:mod:`startrack.allsky`): detect deeper, propose a camera
-    from the image centre outward, then identify the whole frame with it (the k-vector databases of the
-    widest band, the ordinary verification).  Returns ``((result, centroid result, star list, parity,
+def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases, share: float = 1.0,
+                   memo: dict | None = None):
+    """The all-sky search of :func:`solve_image` (:mod:`startrack.allsky`): detect deeper, drop the detections
+    on the ground (:func:`startrack.allsky.find_sky`: ground lights, lit windows), propose a camera from the
+    image centre outward, then identify the whole frame with it (the k-vector databases of the widest band,
+    the ordinary verification).  ``share``: the fraction of the remaining search time it may take; ``memo``
+    keeps the detections and the sky between calls.  Returns ``((result, centroid result, star list, parity,
     details) or None, attempts, parities searched)``."""
-    from startrack.allsky import AllSkyOptions, propose_camera
+    import dataclasses as _dc
+
+    from startrack.allsky import AllSkyOptions, find_sky, propose_camera
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.identify import IdentifyParams
     from startrack.timeutil import search_clock
 
-    sky = clock.first_use("centroid-allsky", find_stars, image, CentroidOptions(max_stars=ALLSKY_MAX_STARS),
-                          saturation=saturation)
+    memo = {} if memo is None else memo
+    if "allsky-stars" not in memo:
+        found = clock.first_use("centroid-allsky", find_stars, image, CentroidOptions(max_stars=ALLSKY_MAX_STARS),
+                                saturation=saturation)
+        region = find_sky(image)
+        if region is not None and found.stars:
+            keep = region.in_sky([s["x"] for s in found.stars], [s["y"] for s in found.stars], margin=1)
+            log.info("all-sky search: the ground covers %.1f %% of the image; %d of %d detections on it dropped",
+                     100 * region.masked_fraction, int(np.count_nonzero(~keep)), len(found.stars))
+            found = _dc.replace(found, stars=[s for s, k in zip(found.stars, keep) if k])
+        memo["allsky-stars"], memo["allsky-sky"] = found, region
+    sky, region = memo["allsky-stars"], memo["allsky-sky"]
     if len(sky.stars) < 10:
         return None, 0, []
     log.info("all-sky search: %d stars detected", len(sky.stars))
@@ -1019,7 +1068,7 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
             break
         done.append(parity)
         search_list = sky.stars if parity == "normal" else mirror_stars(sky.stars, (w - 1) / 2.0)
-        remaining = max(1.0, clock.remaining())
+        remaining = max(1.0, share * clock.remaining())
         sky_opts = AllSkyOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                                  timeout_s=min(2.0, remaining))
         cam, info = propose_camera(search_list, w, h, index, databases.catalog, sky_opts,
@@ -1034,7 +1083,8 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
                                       params, clock, id_config)
         tried += n
         if result is not None:
-            info = {"projection": cam.projection, **info}
+            info = {"projection": cam.projection, **info,
+                    "sky": region.record() if region is not None else {"masked_fraction": 0.0, "image_circle": None}}
             return (result, sky, search_list, parity, info), tried, done
         log.info("all-sky search, %s parity: the %s camera proposed (f %.1f px) gave no verified identification",
                  parity, cam.projection, cam.focal_length_px)

@@ -110,3 +110,22 @@ def cone_naive(vectors, axis, cos_radius):
     v = np.asarray(vectors, dtype=np.float64)
     dot = v[:, 0] * axis[0] + v[:, 1] * axis[1] + v[:, 2] * axis[2]
     return np.flatnonzero(dot > cos_radius)
+
+
+def allsky_match_naive(xs, ys, radius, px, py):
+    """startrack.allsky._match by the full distance matrix: each detection's nearest predicted star within its
+    radius, none when the second is within 1.5 radii, a predicted star taken twice given to neither."""
+    import numpy as np
+
+    det, cat = [], []
+    for i in range(len(xs)):
+        if not np.isfinite(radius[i]) or len(px) == 0:
+            continue
+        d = np.hypot(px - xs[i], py - ys[i])
+        order = np.argsort(d)
+        second = d[order[1]] if len(d) > 1 else np.inf
+        if d[order[0]] <= radius[i] and second > 1.5 * radius[i]:
+            det.append(i)
+            cat.append(int(order[0]))
+    keep = [k for k in range(len(cat)) if cat.count(cat[k]) == 1]
+    return np.array([det[k] for k in keep], dtype=np.int64), np.array([cat[k] for k in keep], dtype=np.int64)

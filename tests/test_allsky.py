@@ -86,11 +86,12 @@ def test_render_fisheye_draws_only_the_sky(tmp_path, cli):
 
 
 def test_blind_allsky_solve_end_to_end(tmp_path, cli, solve_cache):
-    """A 180 deg equidistant frame with a random horizon: `solve` with no hint finds it, its projection, focal
-    length and centre, and writes an ARC WCS that astropy reads back to the same sky."""
+    """A 180 deg equidistant frame with a random horizon and lights on the ground: `solve` with no hint finds
+    it, its projection, focal length and centre, the ground, and writes an ARC WCS that astropy reads back to
+    the same sky."""
     proc = cli("render", "--projection", "equidistant", "--fov-deg", "180", "--size", "640x640", "--ra", "250",
                "--dec", "-20", "--roll", "40", "--mag-max", "5.5", "--horizon", "random", "--extinction-mag", "0.2",
-               "--no-aberration", "--seed", "8", "-o", tmp_path / "sky.png", check=True)
+               "--ground-lights", "30", "--no-aberration", "--seed", "8", "-o", tmp_path / "sky.png", check=True)
     truth = json.loads(proc.stdout)
     solved = cli("solve", tmp_path / "sky.png", "--no-aberration", "--wcs", tmp_path / "sky.wcs.fits", env=solve_cache,
                  timeout=600)
@@ -100,6 +101,10 @@ def test_blind_allsky_solve_end_to_end(tmp_path, cli, solve_cache):
     cam = Camera.from_dict(doc["camera"])
     assert cam.projection == "equidistant" and doc["solve"]["allsky"]["projection"] == "equidistant"
     assert cam.focal_length_px == pytest.approx(truth["camera"]["focal_length_px"], rel=1e-3)
+    # The ground found in the pixels (below the skyline, outside the image circle) and its 30 lights dropped.
+    sky = doc["solve"]["allsky"]["sky"]
+    assert sky["masked_fraction"] == pytest.approx(truth["truth"]["horizon"]["ground_fraction"], abs=0.03)
+    assert sky["image_circle"] is not None
     from startrack.rotations import attitude_error, quaternion_to_dcm
 
     _, cross, roll = attitude_error(quaternion_to_dcm(doc["attitude"]["quaternion"]),
@@ -123,3 +128,155 @@ def test_pinhole_only_leaves_a_fisheye_frame_unsolved(tmp_path, cli, solve_cache
                  timeout=600)
     assert solved.returncode == 1
     assert json.loads(solved.stdout)["solve"]["status"] == "failed"
+
+
+def test_match_is_the_naive_nearest_neighbour_rule():
+    """The grid-binned match of the ring growth against the full distance matrix (tests/naive.py), on random
+    detections near and away from predicted stars, radii varied, some not finite."""
+    from naive import allsky_match_naive
+
+    from startrack.allsky import _match
+
+    rng = np.random.default_rng(5)
+    for trial in range(60):
+        n, m = int(rng.integers(0, 150)), int(rng.integers(0, 200))
+        px, py = rng.uniform(0, 400, m), rng.uniform(0, 400, m)
+        k = min(n, m)
+        xs = np.concatenate([px[:k] + rng.normal(0, 2, k), rng.uniform(0, 400, n - k)])
+        ys = np.concatenate([py[:k] + rng.normal(0, 2, k), rng.uniform(0, 400, n - k)])
+        radius = rng.uniform(0.5, 20, n)
+        radius[rng.random(n) < 0.05] = np.inf if trial % 2 else np.nan
+        got, want = _match(xs, ys, radius, px, py), allsky_match_naive(xs, ys, radius, px, py)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def _rendered_with_ground(projection, fov, seed, monkeypatch, horizon="random", lights=0, size=480):
+    """A zenith-pointing frame rendered in-process, with the skyline profile render drew (to compute the truth)."""
+    from startrack import nuisance
+    from startrack.catalog import load_catalog
+    from startrack.render import Scene, Sensor, render_image
+    from startrack.rotations import radec_roll_to_dcm
+
+    drawn = []
+    real = nuisance.horizon_profile
+
+    def spy(kind, rng, *a, **k):
+        drawn.append(real(kind, rng, *a, **k))
+        return drawn[-1]
+
+    monkeypatch.setattr(nuisance, "horizon_profile", spy)
+    cam = Camera.from_fov(fov, size, size, projection=projection)
+    cat = load_catalog().filter_magnitude(None, 5.5)
+    rng = np.random.default_rng(seed)
+    image, truth = render_image(cat, cam, radec_roll_to_dcm(rng.uniform(0, 360), rng.uniform(-60, 60), 20.0),
+                                Sensor(), Scene(5.5, horizon=horizon, extinction_mag=0.2, ground_lights=lights), rng)
+    ground = nuisance.ground_mask(cam, drawn[-1]) >= 0.5 if drawn else np.zeros(image.shape, dtype=bool)
+    return image, truth, ground, cam
+
+
+@pytest.mark.parametrize("projection,fov,seed", [("equidistant", 180, 1), ("equisolid", 150, 2),
+                                                 ("stereographic", 180, 3), ("orthographic", 120, 4),
+                                                 ("equidistant", 150, 6)])
+def test_find_sky_recovers_the_rendered_ground(projection, fov, seed, monkeypatch):
+    """The ground found in the pixels against the ground rendered (below a random skyline, outside the image
+    circle): intersection over union of the ground >= 0.9; the sky it keeps is sky (>= 98 %)."""
+    from startrack.allsky import find_sky
+
+    image, truth, ground, _ = _rendered_with_ground(projection, fov, seed, monkeypatch, size=960)
+    region = find_sky(image)
+    assert region is not None
+    found = region.pixel_mask()
+    iou = np.count_nonzero(found & ground) / np.count_nonzero(found | ground)
+    print(f"{projection} {fov} deg: ground {ground.mean():.3f}, IoU {iou:.3f}")
+    assert iou >= 0.9, iou
+    assert np.count_nonzero(~found & ~ground) / np.count_nonzero(~found) >= 0.98
+    assert region.record()["masked_fraction"] == pytest.approx(float(found.mean()), abs=1e-4)
+
+
+def test_find_sky_image_circle_and_a_frame_without_ground(monkeypatch):
+    """A flat horizon at 180 deg: the sky's edge is the lens's image circle, centred on the principal point,
+    radius f pi / 2.  An ordinary frame (a 20 deg pinhole, no ground) has no ground and no circle."""
+    from startrack.allsky import corners_dark, find_sky
+
+    image, _, _, cam = _rendered_with_ground("equidistant", 180, 9, monkeypatch, horizon="flat")
+    region = find_sky(image)
+    cx, cy, r = region.circle
+    assert math.hypot(cx - cam.cx, cy - cam.cy) < 0.5 * region.tile_px
+    assert r == pytest.approx(cam.focal_length_px * math.pi / 2, abs=region.tile_px)
+    assert corners_dark(image)
+    image, _, _, _ = _rendered_with_ground("pinhole", 20, 9, monkeypatch, horizon=None)
+    assert find_sky(image) is None and not corners_dark(image)
+
+
+def test_lights_on_the_ground_are_dropped(monkeypatch):
+    """`render`'s ground lights are bright point sources: find_stars detects them; the sky mask (one block's
+    margin, as the all-sky search uses it) drops at least 90 % of them and keeps at least 97 % of the rendered
+    stars' detections."""
+    from startrack.allsky import find_sky
+    from startrack.centroid import CentroidOptions, find_stars
+
+    image, truth, _, _ = _rendered_with_ground("equisolid", 160, 12, monkeypatch, lights=40, size=960)
+    lights = truth["horizon"]["lights"]
+    assert len(lights) == 40
+    det = find_stars(image, CentroidOptions(max_stars=1500)).stars
+    dx, dy = np.array([s["x"] for s in det]), np.array([s["y"] for s in det])
+
+    def nearest(x, y):
+        return np.argmin(np.hypot(dx - x, dy - y)), np.min(np.hypot(dx - x, dy - y))
+
+    hit_lights = [nearest(li["x"], li["y"]) for li in lights]
+    hit_lights = [i for i, d in hit_lights if d < 1.5]
+    assert len(hit_lights) >= 30                # the lights are detected: they would enter the search
+    region = find_sky(image)
+    keep = region.in_sky(dx, dy, margin=1)
+    assert np.count_nonzero(~keep[hit_lights]) >= 0.9 * len(hit_lights)
+    stars = [i for i, d in (nearest(s["x"], s["y"]) for s in truth["stars"] if s["mag_rendered"] < 5) if d < 1.0]
+    print(f"lights dropped {np.count_nonzero(~keep[hit_lights])} of {len(hit_lights)}; stars kept "
+          f"{np.count_nonzero(keep[stars])} of {len(stars)}")
+    assert len(stars) > 100 and np.count_nonzero(keep[stars]) >= 0.97 * len(stars)
+
+
+def test_extincted_magnitudes():
+    """k (X - 1): nothing at the zenith, k at an air mass of 2 (60 deg), the most at the horizon; monotonic."""
+    from startrack.allsky import EXTINCTION_K, extincted_mag
+
+    theta = np.radians([0.0, 60.0, 80.0, 90.0])
+    got = extincted_mag(np.full(4, 5.0), theta, 0.2)
+    assert got[0] == pytest.approx(5.0, abs=1e-3)
+    assert got[1] == pytest.approx(5.2, abs=0.002)
+    assert np.all(np.diff(got) > 0) and got[3] == pytest.approx(5.0 + 0.2 * (38.0 - 1), abs=0.2)
+    assert EXTINCTION_K == 0.2
+
+
+def test_ring_growth_predicts_only_stars_the_atmosphere_lets_through():
+    """Ring growth on a 180 deg star list whose stars are those brighter than 5.5 after 0.2 mag per air mass:
+    every match is the detection's own star, no star dimmed past the growth's limit is predicted, and more
+    stars are matched than when the growth ignores the extinction."""
+    from startrack.allsky import AllSkyOptions, _grow, extincted_mag
+    from startrack.catalog import load_catalog
+    from startrack.rotations import radec_roll_to_dcm
+
+    cam = Camera.from_fov(180.0, 800, 800, projection="equidistant")
+    cat = load_catalog().filter_magnitude(None, 6.5)
+    vec = cat.vectors()
+    dcm = radec_roll_to_dcm(120.0, 30.0, 10.0)
+    v = vec @ dcm.T
+    theta = np.arccos(np.clip(v[:, 2], -1, 1))
+    x, y = cam.vectors_to_pixels(v)
+    seen = np.isfinite(x) & cam.in_image(x, y) & (extincted_mag(cat.mag, theta, 0.2) <= 5.5) & (theta < np.pi / 2)
+    rows = np.flatnonzero(seen)
+    rng = np.random.default_rng(3)
+    stars = [{"x": float(x[r] + rng.normal(0, 0.1)), "y": float(y[r] + rng.normal(0, 0.1)), "sigma_px": 0.1}
+             for r in rows]
+    opts = AllSkyOptions(mag_max=6.0, extinction_k=0.2)
+    # a slightly wrong start (focal length 1 % off), as the centre's pinhole solve gives
+    _, _, det, got = _grow(stars, 800, 800, cam.focal_length_px * 1.01, dcm, vec, opts, 0.1, np.radians(15),
+                           "equidistant", cat.mag)
+    assert len(det) > 0.7 * len(rows)
+    assert np.array_equal(got, rows[det])                        # each detection matched to its own star
+    v_got = vec[got] @ dcm.T
+    assert np.all(extincted_mag(cat.mag[got], np.arccos(np.clip(v_got[:, 2], -1, 1)), 0.2) <= 6.0)
+    # Without the extinction, the stars it hides crowd the low rings: fewer unambiguous matches (550 here).
+    _, _, det_plain, got_plain = _grow(stars, 800, 800, cam.focal_length_px * 1.01, dcm, vec, opts, 0.1,
+                                       np.radians(15), "equidistant", None)
+    assert np.array_equal(got_plain, rows[det_plain]) and len(det) > 1.1 * len(det_plain)

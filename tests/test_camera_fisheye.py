@@ -284,3 +284,30 @@ def test_calibrate_fits_opencv_distortion():
     assert res.camera.k1 == pytest.approx(0.02, abs=4 * res.sigma["k1"] + 1e-4)
     assert res.camera.k2 == pytest.approx(-0.01, abs=4 * res.sigma["k2"] + 1e-4)
     assert res.rms_after_px < 0.2
+
+
+def test_max_theta_is_where_the_fisheye_model_stops_being_one_to_one():
+    """Property (random lens terms, every projection): below max_theta the distorted angle increases and stays
+    within the projection's limit; just above it (when it is below the limit) it does not.  The value is cached
+    by the lens terms (a fit builds many cameras): the same for equal terms, whatever the focal length."""
+    import math
+
+    import numpy as np
+
+    from startrack.camera import _THETA_MAX, Camera
+
+    rng = np.random.default_rng(11)
+    for trial in range(400):
+        proj = ("equidistant", "equisolid", "stereographic", "orthographic")[trial % 4]
+        ks = rng.normal(0, [0.3, 0.1, 0.03, 0.01]) * (rng.random(4) < 0.7)
+        cam = Camera(800, 800, 300.0, 399.5, 399.5, ks[0], ks[1], projection=proj, k3=ks[2], k4=ks[3])
+        t = cam.max_theta
+        limit = _THETA_MAX[proj]
+        below = np.linspace(0, t, 2001)[1:-1]
+        td = cam.theta_distorted(below)
+        assert np.all(np.diff(td) > 0) and np.all((td >= 0) & (td <= limit))
+        if t < limit - 1e-9:
+            above = t + 1e-7
+            assert not (cam._theta_slope(above) > 0 and 0 <= float(cam.theta_distorted(above)) <= limit)
+        again = Camera(640, 480, 211.0, 300.0, 200.0, ks[0], ks[1], projection=proj, k3=ks[2], k4=ks[3])
+        assert again.max_theta == t and math.isfinite(t)

@@ -122,6 +122,9 @@ def _floats(text, name, n):
                    "fisheye camera always has at least the flat one (nothing is drawn beyond 90 deg off-axis).")
 @click.option("--extinction-mag", type=FiniteFloat(0, 10), default=0.0, show_default=True,
               help="Atmospheric extinction, magnitudes per air mass (V band: about 0.2), the boresight at the zenith.")
+@click.option("--ground-lights", type=Int(0, 10_000), default=0, show_default=True,
+              help="Point lights (lamps, lit windows) on the ground below the skyline, as bright as magnitude 0-4 "
+                   "stars (with --horizon or a fisheye).")
 @click.option("--mirror", type=click.Choice(["x", "y"]), default=None,
               help="Write the image (or star list) mirrored: columns (x) or rows (y) flipped; truth in the written "
                    "pixels, the attitude the un-mirrored camera's.")
@@ -173,7 +176,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             gain_e_per_dn,
             bias_dn, read_noise_e, dark_current_e_per_s, background_e_per_s, prnu, hot_pixels, cosmic_rays,
             dark_subtracted, vignetting, gradient, nebulosity_e_per_s, foreground, foreground_fraction,
-            foreground_e_per_s, horizon, extinction_mag, mirror, no_noise, mag_noise,
+            foreground_e_per_s, horizon, extinction_mag, ground_lights, mirror, no_noise, mag_noise,
             false_stars, focal_error_pct, rate_deg_s, frames, frame_interval_s, start_time, velocity_km_s,
             orbit_period_s, no_aberration, blackout, stars_only, sigma_px,
             sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, resume, quiet):
@@ -317,7 +320,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
     scene = Scene(mag_max, mag_noise, false_stars, focal_error_pct, tuple(_floats(rate_deg_s, "--rate-deg-s", 3)),
                   foreground=foreground, foreground_fraction=foreground_fraction,
                   foreground_e_per_s=foreground_e_per_s, nebulosity_e_per_s=nebulosity_e_per_s, gradient=gradient,
-                  mirror=mirror, horizon=horizon, extinction_mag=extinction_mag)
+                  mirror=mirror, horizon=horizon, extinction_mag=extinction_mag, ground_lights=ground_lights)
     t0 = parse_time(start_time) if start_time else None
     cat = load_catalog(catalog, mag_max=mag_max)
     if mag_max is not None:
@@ -339,7 +342,7 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
                "foreground": foreground, "foreground_fraction": foreground_fraction if foreground else None,
                "foreground_e_per_s": foreground_e_per_s, "nebulosity_e_per_s": nebulosity_e_per_s,
                "gradient": gradient, "mirror": mirror, "horizon": horizon,
-               "extinction_mag": extinction_mag or None},
+               "extinction_mag": extinction_mag or None, "ground_lights": ground_lights or None},
         frames=frames, frame_interval_s=frame_interval_s, count=count, stars_only=stars_only,
         sigma_px=noise_px if stars_only else None, max_stars=max_stars, drop_fraction=drop_fraction,
         time=start_time, aberration=not no_aberration, velocity_km_s=velocity_km_s,
