@@ -39,8 +39,12 @@ log = logging.getLogger(__name__)
 #: Half-sides of the central squares searched as pinhole frames, in fractions of the image's shorter side.
 CROP_FRACTIONS = (0.12, 0.08, 0.17)
 RING_DEG = 15.0                 # the growth step off-axis
-#: The extinction assumed where stars are predicted (magnitudes per air mass): V band at a clear site.
-EXTINCTION_K = 0.2
+#: The extinction assumed where stars are predicted (magnitudes per air mass) by default: none.  0.2 (V band at a
+#: clear site) is what the must-show frames carry, but predicting through it cost more than it gained there:
+#: a star dropped from the prediction is dropped as a competitor in the match's uniqueness test too, and a
+#: detected star fainter than the limit then matched its neighbour (orthographic 180 deg, 200 frames: 195 right
+#: and the projection right on 148 with 0.2; 197 and 187 with 0; benchmarks/results/results-allsky-2026-12-05.md).
+EXTINCTION_K = 0.0
 
 
 class AllSkyOptions:
@@ -48,8 +52,7 @@ class AllSkyOptions:
 
     ``mag_max``: faintest catalog stars predicted while growing, after the extinction
     ``extinction_k * (X - 1)`` at air mass ``X`` (:func:`startrack.nuisance.airmass`, the zenith taken at the
-    boresight: an all-sky camera looks up; ``EXTINCTION_K``, 0.2 mag per air mass, V band at a clear site, by
-    default); ``match_px``: the smallest match radius (pixels; the radius is also at least four of a star's
+    boresight: an all-sky camera looks up; ``EXTINCTION_K``, none, by default: see its comment); ``match_px``: the smallest match radius (pixels; the radius is also at least four of a star's
     ``sigma_px``); ``timeout_s``: the pinhole search's time per square."""
 
     def __init__(self, mag_max: float = 6.0, match_px: float = 2.5, timeout_s: float = 2.0,

@@ -245,7 +245,7 @@ def test_extincted_magnitudes():
     assert got[0] == pytest.approx(5.0, abs=1e-3)
     assert got[1] == pytest.approx(5.2, abs=0.002)
     assert np.all(np.diff(got) > 0) and got[3] == pytest.approx(5.0 + 0.2 * (38.0 - 1), abs=0.2)
-    assert EXTINCTION_K == 0.2
+    assert EXTINCTION_K == 0.0          # off by default (see its comment)
 
 
 def test_ring_growth_predicts_only_stars_the_atmosphere_lets_through():
