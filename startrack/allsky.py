@@ -32,7 +32,7 @@ import numpy as np
 
 from startrack.timeutil import search_clock
 
-__all__ = ["AllSkyOptions", "propose_camera", "CROP_FRACTIONS", "SkyRegion", "find_sky", "corners_dark"]
+__all__ = ["AllSkyOptions", "propose_camera", "CROP_FRACTIONS", "SkyRegion", "find_sky"]
 
 log = logging.getLogger(__name__)
 
@@ -527,21 +527,3 @@ def _dilate(mask):
     grown[:, 1:] |= out[:, :-1]
     grown[:, :-1] |= out[:, 1:]
     return grown
-
-
-def corners_dark(image, patch_px: int = 32) -> bool:
-    """A cheap test for an all-sky frame's image circle: each of the four corner patches darker than the
-    central patch by ``SKY_CONTRAST_SIGMA`` times a patch median's error (a few milliseconds)."""
-    img = np.asarray(image)
-    h, w = img.shape
-    p = min(patch_px, h // 4, w // 4)
-    if p < 4:
-        return False
-    c = img[h // 2 - p // 2: h // 2 + p // 2, w // 2 - p // 2: w // 2 + p // 2].astype(np.float32)
-    sky = float(np.median(c))
-    sigma = 1.4826 * float(np.median(np.abs(c - sky)))
-    err = 1.2533 * max(sigma, 0.5) / p
-    for corner in (img[:p, :p], img[:p, -p:], img[-p:, :p], img[-p:, -p:]):
-        if sky - float(np.median(corner)) < SKY_CONTRAST_SIGMA * err:
-            return False
-    return True

@@ -822,26 +822,20 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         return result, tried, cur, search_list, parity
 
     # The order of the searches: each parity's pinhole searches, then its all-sky search (a normal all-sky frame
-    # is not kept waiting by the mirrored pinhole search), or the all-sky search first when the image is
-    # evidently an all-sky camera's: a dark ground around a sky circle (startrack.allsky.corners_dark).  Every
-    # search keeps its share of the false-match budget whatever the order.
-    from startrack.allsky import corners_dark
-
-    allsky_first = allsky and bool(depths) and corners_dark(image)
+    # is not kept waiting by the mirrored pinhole search).  Nothing cheap in the pixels tells an all-sky frame
+    # from a pinhole one: a vignetted pinhole frame's corners are 7-17 sigma darker than its centre (the ESA
+    # photos), a rendered all-sky frame's ground about 1 sigma, so the pinhole search always goes first.
     allsky_info = None
     plain_cres = cres
     search_list, parity = None, None
     for parity_group in ([(p,) for p in order] if allsky else [tuple(order)]):
-        stages = ("allsky", "pinhole") if allsky_first else ("pinhole", "allsky")
-        for stage in stages:
+        for stage in ("pinhole", "allsky"):
             if stage == "pinhole":
                 result, n, cres, search_list, parity = pinhole(parity_group)
                 tried += n
             elif allsky and (not searched or not clock.expired()):
-                # the all-sky search has half of what is left when it goes first, so the pinhole search keeps a turn
-                share = 0.5 if allsky_first and stage == stages[0] else 1.0
                 got, n, done = _allsky_search(image, saturation, w, h, parity_group, opts, index, clock, databases,
-                                              share=share, memo=deep_memo)
+                                              memo=deep_memo)
                 tried += n
                 searched += done
                 if got is not None:
@@ -1028,13 +1022,11 @@ def targets(dcm, camera, pixels=(), radec=(), mirrored: bool = False) -> list:
 ALLSKY_MAX_STARS = 1500
 
 
-def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases, share: float = 1.0,
-                   memo: dict | None = None):
+def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases, memo: dict | None = None):
     """The all-sky search of :func:`solve_image` (:mod:`startrack.allsky`): detect deeper, drop the detections
     on the ground (:func:`startrack.allsky.find_sky`: ground lights, lit windows), propose a camera from the
     image centre outward, then identify the whole frame with it (the k-vector databases of the widest band,
-    the ordinary verification).  ``share``: the fraction of the remaining search time it may take; ``memo``
-    keeps the detections and the sky between calls.  Returns ``((result, centroid result, star list, parity,
+    the ordinary verification).  ``memo`` keeps the detections and the sky between calls.  Returns ``((result, centroid result, star list, parity,
     details) or None, attempts, parities searched)``."""
     import dataclasses as _dc
 
@@ -1068,7 +1060,7 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
             break
         done.append(parity)
         search_list = sky.stars if parity == "normal" else mirror_stars(sky.stars, (w - 1) / 2.0)
-        remaining = max(1.0, share * clock.remaining())
+        remaining = max(1.0, clock.remaining())
         sky_opts = AllSkyOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                                  timeout_s=min(2.0, remaining))
         cam, info = propose_camera(search_list, w, h, index, databases.catalog, sky_opts,
