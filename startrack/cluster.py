@@ -206,11 +206,27 @@ def usable_cpus() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _own_running_tasks() -> int:
+    """This process's threads that are running now (``/proc/self/task/*/stat`` state R), at least 1."""
+    n = 0
+    try:
+        for task in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{task}/stat") as fh:
+                    n += fh.read().rsplit(")", 1)[1].split()[0] == "R"
+            except OSError:
+                continue
+    except OSError:
+        return 1
+    return max(1, n)
+
+
 def idle_cpus() -> int:
     """CPUs left for this process's workers: the usable CPUs minus what other processes keep busy, at least 1.
 
     On Linux, "busy" is the number of other runnable tasks now (``/proc/loadavg``'s running count,
-    this process excluded; the least of three readings a few milliseconds apart, so that a passing
+    this process's own running threads excluded (a math library's idle worker threads spin for a while after
+    each call); the least of three readings a few milliseconds apart, so that a passing
     task does not count); elsewhere the 1-minute load average less this process.
     """
     cpus = usable_cpus()
@@ -221,7 +237,7 @@ def idle_cpus() -> int:
             if k:
                 time.sleep(0.002)
             with open("/proc/loadavg") as fh:
-                readings.append(int(fh.read().split()[3].split("/")[0]) - 1)
+                readings.append(int(fh.read().split()[3].split("/")[0]) - _own_running_tasks())
         others = max(0, min(readings))
     except (OSError, ValueError, IndexError):
         try:

@@ -128,3 +128,45 @@ def test_local_dask_cluster_keeps_order_and_retries():
     failed = list(ordered_map(_fails_on_three, range(5), jobs=1, scheduler="local", retries=1))
     assert isinstance(failed[3][1], TaskFailure) and "three is bad" in failed[3][1].error
     assert [r for i, r in failed if i != 3] == [0, 1, 2, 4]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_idle_cpus_does_not_count_this_processs_own_threads(monkeypatch):
+    """`solve -j 2` never started its pool: a thread of this very process left running (a math library's
+    worker spinning after a call) counted as another process's load, so idle_cpus() said 1 on an idle
+    2-core machine.  Here a thread of ours runs while the machine's running count is read: with the
+    machine otherwise idle (the running count all ours), every CPU is idle."""
+    import threading
+
+    import numpy as np
+
+    from startrack import cluster
+
+    monkeypatch.setattr(cluster, "usable_cpus", lambda: 2)
+    busy = threading.Event()
+    stop = threading.Event()
+
+    def spin():
+        a = np.random.default_rng(0).random(2_000_000)
+        busy.set()
+        while not stop.is_set():
+            np.sort(a)              # releases the GIL: the thread is running, as the main one is
+    t = threading.Thread(target=spin, daemon=True)
+    t.start()
+    busy.wait()
+    try:
+        own = cluster._own_running_tasks()
+        real_open = open
+
+        def fake_open(path, *a, **k):      # the machine's running count: our running threads only
+            if path == "/proc/loadavg":
+                import io
+                return io.StringIO(f"0.00 0.00 0.00 {cluster._own_running_tasks()}/100 1\n")
+            return real_open(path, *a, **k)
+        monkeypatch.setattr("builtins.open", fake_open)
+        idle = cluster.idle_cpus()
+    finally:
+        stop.set()
+        t.join()
+    assert own >= 2
+    assert idle == 2
