@@ -129,3 +129,29 @@ def allsky_match_naive(xs, ys, radius, px, py):
             cat.append(int(order[0]))
     keep = [k for k in range(len(cat)) if cat.count(cat[k]) == 1]
     return np.array([det[k] for k in keep], dtype=np.int64), np.array([cat[k] for k in keep], dtype=np.int64)
+
+
+def subtract_background_naive(image, level_mesh, threshold_mesh, cell):
+    """``image - level`` and ``residual > threshold``, the two maps bilinear between tile centres (as
+    ``cv2.resize``), row by row in numpy: the reference of the background pass
+    (``startrack._kernels.centroid.subtract_background_rows``), the same operations in the same order."""
+    h, w = image.shape
+    ny, nx = level_mesh.shape
+    fx = np.minimum(np.maximum((np.arange(w) + 0.5) / cell - 0.5, 0.0), nx - 1.0)
+    a = np.minimum(fx.astype(np.int64), nx - 2) if nx > 1 else np.zeros(w, dtype=np.int64)
+    b = np.minimum(a + 1, nx - 1)
+    tx = fx - a
+    residual = np.empty(image.shape, dtype=np.float32)
+    mask = np.empty(image.shape, dtype=np.uint8)
+    for y in range(h):
+        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
+        j0 = min(int(fy), ny - 2) if ny > 1 else 0
+        j1 = min(j0 + 1, ny - 1)
+        ty = fy - j0
+        lrow = level_mesh[j0] * (1.0 - ty) + level_mesh[j1] * ty
+        trow = threshold_mesh[j0] * (1.0 - ty) + threshold_mesh[j1] * ty
+        la, ta = lrow[a], trow[a]
+        r = image[y].astype(np.float64) - (la + (lrow[b] - la) * tx)
+        residual[y] = r
+        mask[y] = r > ta + (trow[b] - ta) * tx
+    return residual, mask

@@ -317,68 +317,11 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
     return p[0], p[1], p[2], p[3], ok
 
 
-@njit(cache=True)
-def subtract_background(image, level_mesh, threshold_mesh, cell, residual, mask):
-    """``residual = image - level`` and ``mask = residual > threshold`` in one pass.
-
-    ``level`` and ``threshold`` are bilinear interpolations of their meshes
-    between tile centres (as ``cv2.resize``): the vertical interpolation is done
-    once per row and the horizontal weights once per column, so each pixel
-    costs two multiply-adds per map.  A row is done in runs of columns between
-    two tile centres (the same pair of mesh values), so the loop over a run's
-    pixels has no indexed look-ups and is vectorised.
-    """
-    h, w = image.shape
-    ny, nx = level_mesh.shape
-    tx = np.empty(w)
-    # Runs of columns sharing the mesh columns (a, b): run k is starts[k] <= x < starts[k + 1].
-    ra = np.empty(w, dtype=np.int64)
-    rb = np.empty(w, dtype=np.int64)
-    starts = np.empty(w + 1, dtype=np.int64)
-    n_runs = 0
-    for x in range(w):
-        fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
-        a = min(int(fx), nx - 2) if nx > 1 else 0
-        tx[x] = fx - a
-        if n_runs == 0 or a != ra[n_runs - 1]:
-            ra[n_runs] = a
-            rb[n_runs] = min(a + 1, nx - 1)
-            starts[n_runs] = x
-            n_runs += 1
-    starts[n_runs] = w
-    lrow = np.empty(nx)
-    trow = np.empty(nx)
-    for y in range(h):
-        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
-        j0 = min(int(fy), ny - 2) if ny > 1 else 0
-        j1 = min(j0 + 1, ny - 1)
-        ty = fy - j0
-        for i in range(nx):
-            lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
-            trow[i] = threshold_mesh[j0, i] * (1.0 - ty) + threshold_mesh[j1, i] * ty
-        for k in range(n_runs):
-            la = lrow[ra[k]]
-            dl = lrow[rb[k]] - la
-            ta = trow[ra[k]]
-            dt = trow[rb[k]] - ta
-            # Slices indexed from 0: numba then knows no index is negative (no wrap-around test a pixel).
-            x0 = starts[k]
-            x1 = starts[k + 1]
-            t_run = tx[x0:x1]
-            im_run = image[y, x0:x1]
-            res_run = residual[y, x0:x1]
-            mask_run = mask[y, x0:x1]
-            for q in range(x1 - x0):
-                t = t_run[q]
-                r = im_run[q] - (la + dl * t)
-                res_run[q] = r
-                mask_run[q] = 1 if r > ta + dt * t else 0
-
-
 @njit(cache=True, nogil=True)
 def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
                              row1, noise_mesh, kappa, truncated_std, noise_out):
-    """:func:`subtract_background` of the rows ``row0 <= y < row1`` into ``residual`` and ``labels`` (``foreground``
+    """``residual = image - level`` and the mask ``residual > threshold`` (both maps bilinear between tile centres,
+    as ``cv2.resize``) of the rows ``row0 <= y < row1`` into ``residual`` and ``labels`` (``foreground``
     above the threshold, else 0: what :func:`label_blobs_into` labels; no separate mask; ``row_counts[y]`` their
     number in row ``y``), with the pixel noise
     of their mesh tiles in the same pass (independent rows: threads take strips of them).
