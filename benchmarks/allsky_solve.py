@@ -24,7 +24,7 @@ import statistics
 import subprocess
 import sys
 
-from common import rendered_image_path, solve_saved
+from common import cached_truth, rendered_image_path, save_truth, solve_saved
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PROJECTIONS = ("equidistant", "equisolid", "stereographic", "orthographic")
@@ -42,11 +42,9 @@ def render_set(projection: str, fov: float, count: int, size: int, out: str, see
                lights: int = 0) -> list:
     """Render ``count`` frames into ``out``: their frame documents (truth); reused when already there."""
     os.makedirs(out, exist_ok=True)
-    docs_path = os.path.join(out, "truth.jsonl")
-    if os.path.exists(docs_path):
-        docs = [json.loads(line) for line in open(docs_path)]
-        if len(docs) == count:
-            return docs
+    docs = cached_truth(out, count)
+    if docs is not None:
+        return docs
     args = ["render", "--projection", projection, "--fov-deg", f"{fov:g}", "--size", f"{size}x{size}",
             "--mag-max", "5.5", "--horizon", "random", "--extinction-mag", "0.2", "--no-aberration", "--count", str(count),
             "--seed", str(seed), "-o", os.path.join(out, "f-.png"), "-q"]
@@ -55,10 +53,7 @@ def render_set(projection: str, fov: float, count: int, size: int, out: str, see
     proc = _cli(args, pythonpath)
     if proc.returncode != 0:
         raise SystemExit(f"render failed: {' '.join(args)}\n{proc.stderr}")
-    docs = [json.loads(line) for line in proc.stdout.splitlines() if line.strip()]
-    with open(docs_path, "w") as f:
-        f.writelines(json.dumps(d) + "\n" for d in docs)
-    return docs
+    return save_truth(out, [json.loads(line) for line in proc.stdout.splitlines() if line.strip()])
 
 
 def score(truth: dict, solved: dict) -> dict:

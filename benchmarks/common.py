@@ -201,3 +201,21 @@ def solve_saved(run, args: list, saved: str, score_only: bool = False) -> tuple[
             d = json.loads(line)
             solved[os.path.basename(d["image"]["path"])] = d
     return solved, wall
+
+
+def cached_truth(out: str, count: int) -> list | None:
+    """The frame documents a rendered set keeps in ``out/truth.jsonl``, when it holds ``count`` of them; else None
+    (render the set again)."""
+    path = os.path.join(out, "truth.jsonl")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        docs = [json.loads(line) for line in f if line.strip()]
+    return docs if len(docs) == count else None
+
+
+def save_truth(out: str, docs: list) -> list:
+    """Keep a rendered set's frame documents in ``out/truth.jsonl`` (read back by :func:`cached_truth`)."""
+    with open(os.path.join(out, "truth.jsonl"), "w") as f:
+        f.writelines(json.dumps(d) + "\n" for d in docs)
+    return docs

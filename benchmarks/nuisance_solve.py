@@ -24,7 +24,7 @@ import os
 import subprocess
 import sys
 
-from common import rendered_image_path, solve_saved
+from common import cached_truth, rendered_image_path, save_truth, solve_saved
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -54,11 +54,9 @@ def _cli(args, pythonpath, **kw):
 def render_set(name: str, count: int, out: str, seed: int, stars: bool, pythonpath: str = ROOT) -> list:
     """Render ``count`` frames of nuisance ``name`` into ``out``: their frame documents (truth)."""
     os.makedirs(out, exist_ok=True)
-    docs_path = os.path.join(out, "truth.jsonl")
-    if os.path.exists(docs_path):
-        docs = [json.loads(line) for line in open(docs_path)]
-        if len(docs) == count:
-            return docs
+    docs = cached_truth(out, count)
+    if docs is not None:
+        return docs
     docs = []
     variants = NUISANCES[name]
     slots = [(s, v) for s in range(len(SENSORS)) for v in range(len(variants))]
@@ -77,9 +75,7 @@ def render_set(name: str, count: int, out: str, seed: int, stars: bool, pythonpa
         if proc.returncode != 0:
             raise SystemExit(f"render failed: {' '.join(args)}\n{proc.stderr}")
         docs += [json.loads(line) for line in proc.stdout.splitlines() if line.strip()]
-    with open(docs_path, "w") as f:
-        f.writelines(json.dumps(d) + "\n" for d in docs)
-    return docs
+    return save_truth(out, docs)
 
 
 def score(truth: dict, solved: dict) -> str:
