@@ -193,3 +193,66 @@ def test_median_is_numpys(seed):
     for n in range(1, 70):
         values = list(rng.lognormal(-1.0, 1.5, size=n))
         assert _median(values) == float(np.median(values))
+
+
+def _pattern_edges(vectors):
+    from startrack._kernels.patterns import _edges
+
+    e = np.empty(6)
+    _edges(*(np.ascontiguousarray(v) for v in vectors), e)
+    return e
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sorted_edge_prefilter_never_refuses_a_fitting_correspondence(seed):
+    """_sorted_fit is a necessary condition of _best_permutation's misfit <= 1: on catalog patterns made from the
+    image's own (stars relabelled, scaled, every edge moved by up to 1.5 tolerances), it never refuses one that
+    some correspondence fits, and it does refuse most of those that none fits."""
+    from startrack._kernels.patterns import _PAIRS, _PERMS, _best_permutation, _sort6, _sorted_fit
+
+    rng = np.random.default_rng(seed)
+    refused = fits = 0
+    for _ in range(3000):
+        spread = rng.uniform(0.005, 0.4)
+        v = rng.normal(size=(4, 3)) * [spread, spread, 0.0] + [0.0, 0.0, 1.0]
+        v /= np.linalg.norm(v, axis=1)[:, None]
+        ie = _pattern_edges(v)
+        sig_ang, rel_geom = rng.uniform(1e-5, 1e-3), rng.uniform(0.0, 0.06)
+        perm = rng.permutation(4)
+        ce = _pattern_edges(v[perm]) * rng.uniform(0.5, 2.0)
+        ce *= 1.0 + rng.uniform(-1.5, 1.5, size=6) * (sig_ang / ie.mean() + rel_geom)
+        ie_sorted = np.empty(6)
+        _sort6(ie, ie_sorted)
+        assert np.array_equal(ie_sorted, np.sort(ie))
+        q, err, _ = _best_permutation(ie, ce, _PERMS, _PAIRS, sig_ang, rel_geom)
+        ok = _sorted_fit(ie_sorted, ie, ce, sig_ang, rel_geom, np.empty(6))
+        if err <= 1.0:
+            fits += 1
+            assert ok, (ie, ce, sig_ang, rel_geom, err)
+        elif not ok:
+            refused += 1
+    assert fits > 200 and refused > 500
+
+
+def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypatch):
+    """query_patterns with its sorted-edge pre-filter returns the candidates it returns without it (the kernel's
+    Python body with the filter passing everything is the oracle), in the same order, to the bit."""
+    import startrack._kernels.patterns as kp
+    from startrack.patterns import LEVEL_RATIO, _combos
+
+    _, idx = index
+    cat = catalog.filter_magnitude(None, 6.0)
+    cam = Camera.from_fov(15.0, 1024, 768)
+    rng = np.random.default_rng(41)
+    stars, _ = star_list(cat, cam, quaternion_to_dcm(random_quaternions(1, rng)[0]), Sensor(), Scene(mag_limit=6.0),
+                         rng, sigma_px=0.3, max_stars=8)
+    xy = np.array([[s["x"], s["y"]] for s in stars])
+    combos = _combos(len(xy))[:12]
+    args = (xy, 511.5, 383.5, combos, idx.level_rho, LEVEL_RATIO, idx.level_start, idx.level_prefix, idx.keys,
+            idx.patterns, idx.star_vec, np.ones(len(idx.star_id), dtype=np.uint8), 1.0, 0.1, 500.0, 20000.0, 10000)
+    ci, cf = kp.query_patterns(*args)
+    assert len(ci) > 5
+    monkeypatch.setattr(kp, "_sorted_fit", lambda *_: True)
+    wi, wf = kp.query_patterns.py_func(*args)
+    np.testing.assert_array_equal(ci, wi)
+    np.testing.assert_array_equal(cf, wf)

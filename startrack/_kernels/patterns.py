@@ -271,6 +271,46 @@ def _best_permutation(ie, ce, perms, pairs, sig_ang, rel_geom):
     return best, best_err, scale
 
 
+@njit(cache=True, inline="always")
+def _sort6(src, dst):
+    """``dst`` = the six values of ``src`` ascending (insertion sort: no allocation)."""
+    for t in range(6):
+        v = src[t]
+        u = t
+        while u > 0 and dst[u - 1] > v:
+            dst[u] = dst[u - 1]
+            u -= 1
+        dst[u] = v
+
+
+@njit(cache=True, inline="always")
+def _sorted_fit(ie_sorted, ie, ce, sig_ang, rel_geom, cs):
+    """Whether the six catalog edges ``ce`` can fit the image edges ``ie`` (``ie_sorted`` ascending) under some
+    correspondence: a necessary condition of :func:`_best_permutation` returning a misfit of at most 1.
+
+    With the scale of :func:`_best_permutation` (the ratio of the edge sums), an edge may take a catalog edge
+    when ``|c / scale - i| <= sig_ang + rel_geom * i``: an interval around ``i`` whose two ends grow with
+    ``i``.  Points can be matched one to one into such intervals if and only if the ascending points fit the
+    ascending intervals (an exchange argument), so when the sorted edges do not fit no correspondence does,
+    least of all one of the 24 that map stars to stars.  Each pair's misfit is computed as
+    :func:`_best_permutation` computes it, and only one above ``1 + 1e-9`` rejects (rounding cannot turn a
+    fit into a rejection).  Six sorted comparisons instead of up to 24 x 6: most catalog patterns of a
+    probed key fail here.
+    """
+    si = 0.0
+    sc = 0.0
+    for t in range(6):
+        si += ie[t]
+        sc += ce[t]
+    scale = sc / si
+    _sort6(ce, cs)
+    for t in range(6):
+        r = abs(cs[t] / scale - ie_sorted[t]) / (sig_ang + rel_geom * ie_sorted[t])
+        if r > 1.0 + 1e-9:
+            return False
+    return True
+
+
 @njit(cache=True)
 def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, vec, allowed,
                    sigma_px, tol_geom, f_lo, f_hi, max_out):
@@ -301,6 +341,9 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
     lo_b = np.empty(5, dtype=np.int64)
     hi_b = np.empty(5, dtype=np.int64)
     cur = np.empty(5, dtype=np.int64)
+    es = np.empty(6)                # ``ie`` at the probe's f0, ascending: the key's ratios
+    ie_sorted = np.empty(6)         # ``ie`` ascending, kept with it (the pre-filter of _sorted_fit)
+    cs = np.empty(6)
     for ci in range(combos.shape[0]):
         # pixel extent
         lpx = 0.0
@@ -326,7 +369,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                 for k in range(4):
                     _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
                 _edges(iv[0], iv[1], iv[2], iv[3], ie)
-                es = np.sort(ie)
+                _sort6(ie, es)
+                _sort6(ie, ie_sorted)
                 # tolerance per ratio: centroid noise on the two edges plus the geometry allowance
                 g = tol_geom * (rho * rho) + 0.06 * (rho * rho) * math.log(f_big / f_small) / n_sub
                 for t in range(5):
@@ -370,6 +414,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                                 or allowed[pats[pj, 3]] == 0):
                             continue
                         _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
+                        if not _sorted_fit(ie_sorted, ie, ce, 3.0 * 1.4142 * sigma_px / f0, g + 0.002, cs):
+                            continue
                         q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
                                                           g + 0.002)
                         if err > 1.0:
@@ -383,6 +429,9 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                             _edges(iv[0], iv[1], iv[2], iv[3], ie)
                             q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f,
                                                               tol_geom * rho * rho + 0.001)
+                        # (a candidate refused here leaves ``ie`` at its refined f for the next catalog
+                        # patterns of this probe, as it always did: ``ie_sorted`` follows it)
+                        _sort6(ie, ie_sorted)
                         if f < f_lo or f > f_hi or err > 1.0:
                             continue
                         if n_out < max_out:
@@ -397,6 +446,7 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         for k in range(4):
                             _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
                         _edges(iv[0], iv[1], iv[2], iv[3], ie)
+                        _sort6(ie, ie_sorted)
                     # next bin combination (of the first three ratios)
                     t = 2
                     while t >= 0:
