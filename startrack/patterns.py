@@ -505,7 +505,8 @@ def warm_kernels(index: PatternIndex) -> None:
     Once per process and kind of index arrays (a memory-mapped index is read-only, a built one is not).
     """
     from startrack._kernels.attitude import refine
-    from startrack._kernels.patterns import query_patterns, quick_check
+    from startrack._kernels.patterns import query_patterns
+    from startrack._kernels.verify import refine_in_cone, screen_in_cone
 
     types = _index_types(index)
     if types in _WARMED:
@@ -521,7 +522,10 @@ def warm_kernels(index: PatternIndex) -> None:
     # search, so that one compiled signature serves both (each one costs a load).
     rows = np.array([0, 1])
     refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0, 0.01, 1)
-    quick_check(b, index.star_vec, rows, rows, 0.5, 0.01)
+    cone_rows = np.empty(2, dtype=np.int64)
+    _, k, axis = screen_in_cone(b, 2, index.star_vec, 2, rows, rows, 0.5, 0.01, 0.4, cone_rows)
+    refine_in_cone(b, np.ascontiguousarray(index.star_vec[:2]), rows, rows.copy(), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0,
+                   0.0, 0.0, 0.0, 0.0, 0, 0.01, 1, axis, 0.9)
     _WARMED.add(types)
 
 
@@ -688,7 +692,7 @@ _F_CONVERGED = 1e-5
 def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params, sigma, n_verified, f_lo, f_hi,
                       opts):
     """Verify one candidate strictly; fit the focal length (and k1 for wide fields) and verify again."""
-    from startrack._kernels.patterns import quick_check
+    from startrack._kernels.verify import screen_in_cone
     from startrack.camera import Camera
     from startrack.identify.params import tolerance_rad
 
@@ -708,11 +712,18 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         r_px = max(r_px, 0.01 * math.hypot(width, height) * (fov[0] / 60.0) ** 2)
     half_diag = math.atan(math.hypot(width, height) / 2.0 / f)
     cos_fov = math.cos(half_diag + math.radians(0.5))
-    # Screen: at least two more of the brightest stars on catalog stars, else not worth verifying.
+    # Screen: at least two more of the brightest stars on catalog stars, else not worth verifying.  The same pass
+    # keeps the catalog rows near the pattern's boresight: the verification reads those (_CatalogCone).
     n_screen = min(len(b), 20)
-    if quick_check(np.ascontiguousarray(b[:n_screen]), star_vec, np.asarray(img, dtype=np.int64),
-                   np.asarray(cat_rows, dtype=np.int64), cos_fov, r_px / f) < min(2, n_screen - 4):
+    b = np.ascontiguousarray(b)
+    cone_rows = np.empty(n_rows, dtype=np.int64)
+    cone_radius = math.acos(cos_fov) + _CONE_SLACK_RAD
+    hits, k, axis = screen_in_cone(b, n_screen, index.star_vec, n_rows, np.asarray(img, dtype=np.int64),
+                                   np.asarray(cat_rows, dtype=np.int64), cos_fov, r_px / f, math.cos(cone_radius),
+                                   cone_rows)
+    if hits < min(2, n_screen - 4):
         return None
+    cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
     cam = Camera(width, height, float(f), cx, cy)
     # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
     pattern_px = max(math.hypot(*(xy[a] - xy[b_])) for a in img for b_ in img)
@@ -724,7 +735,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         vparams = replace(params, match_radius_px=r_px)
     eps = tolerance_rad(cam, sigma, params)
     matches, dcm, p_false, reason = _verify_blind(img, cat_rows, int(n_verified * n_scales), b, cam, star_vec, star_id,
-                                                  eps, sigma, vparams)
+                                                  eps, sigma, vparams, cone)
     if matches is None:
         return None
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
@@ -747,7 +758,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         eps = tolerance_rad(cam, sigma, params)
         m2, dcm2, p2, _ = _verify_blind([mm["star"] for mm in matches], [mm["index"] for mm in matches],
                                         int(n_verified * n_scales), b, cam, star_vec, star_id, eps, sigma,
-                                        params if not wide else vparams)
+                                        params if not wide else vparams, cone)
         if m2 is None:
             break
         matches, dcm, p_false = m2, dcm2, p2
@@ -809,7 +820,7 @@ def _pattern_chance(n_cat: int, eps: float, vecs) -> float:
 
 
 def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray, camera, star_vec, star_id,
-                  eps: float, sigma_px: float, params):
+                  eps: float, sigma_px: float, params, cone=None):
     """Attitude, remaining stars and confidence of a candidate: image stars ``image`` are the index's rows
     ``catalog``, after ``trials`` candidates (look-elsewhere).  Returns ``(matches, dcm, p_false, reason)``,
     ``matches`` a list of ``{"star", "id", "index"}`` (``index``: the row).
@@ -821,6 +832,10 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     combined by :func:`startrack.identify.verify.false_match_probability` without magnitudes).  Not the
     identification algorithms' :func:`startrack.identify.verify.verify`: this index holds no magnitudes and
     its candidates come with a focal length still to fit.
+
+    ``cone`` (:class:`_CatalogCone`, optional): the rows of ``star_vec`` near the candidate's boresight; the
+    attitude and the confidence read only those when every attitude of the refinement keeps its field inside the
+    cone (checked, else the whole of ``star_vec``): the same numbers either way.
     """
     from startrack._kernels.attitude import quat_to_dcm, refine
     from startrack._kernels.verify import blind_confidence
@@ -835,9 +850,16 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     radius = radius_px / camera.focal_length_px
     cos_fov = _cone_cos(camera, 0.5)
     b_vectors = np.ascontiguousarray(b_vectors)
-    match, q, n_pred = refine(b_vectors, star_vec, img, cat, cos_fov,
-                              float(camera.focal_length_px), float(camera.cx), float(camera.cy),
-                              float(camera.width), float(camera.height), *camera.lens_terms, radius, 2)
+    n_cat = len(star_vec)
+    geometry = (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
+                float(camera.height), *camera.lens_terms, radius, 2)
+    got = cone.refine(b_vectors, img, cat, cos_fov, geometry) if cone is not None else None
+    if got is not None:
+        match, q, n_pred, cat = got
+        star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
+    else:
+        match, q, n_pred = refine(b_vectors, star_vec, img, cat, cos_fov, *geometry)
+        rows_of = None
     dcm = quat_to_dcm(q)
     n_matched = int(np.count_nonzero(match >= 0))
     # A proposal star agrees when the refined attitude puts its catalog star within the match radius of it
@@ -846,7 +868,7 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     # that a pattern of the proposal's first four stars (three when that is all) matches by coincidence,
     # and the chance that each other star falls on a predicted catalog star by accident.
     agree, core_agree, p_local, e_pyr = blind_confidence(b_vectors, img, cat, star_vec, dcm, cos_fov, radius,
-                                                         len(star_vec), float(eps))
+                                                         n_cat, float(eps))
     if agree < min(len(img), params.min_matches):
         return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
     if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
@@ -858,9 +880,46 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
         return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
                                     f"{params.max_false_probability:g}")
     rows = np.flatnonzero(match >= 0)
-    out = [{"star": int(s), "id": int(star_id[c]), "index": int(c)} for s, c in zip(rows.tolist(),
-                                                                                  match[rows].tolist())]
+    cat_rows = match[rows]
+    ids = star_id[cat_rows].tolist()
+    if rows_of is not None:
+        cat_rows = rows_of[cat_rows]
+    out = [{"star": s, "id": int(i), "index": c} for s, i, c in zip(rows.tolist(), ids, cat_rows.tolist())]
     return out, dcm, p_false, None
+
+
+#: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room
+#: for the refined attitudes and fitted focal lengths to move the field.  Speed only: an attitude whose field
+#: leaves the cone is refined on the whole catalog (the answer is the same either way).
+_CONE_SLACK_RAD = math.radians(1.0)
+
+
+class _CatalogCone:
+    """The catalog rows within ``radius`` (rad) of a candidate's boresight ``axis`` (ascending ``rows`` of the
+    verification's ``star_vec``, their vectors ``vec`` and ids ``ids``): what its refinement and confidence
+    read instead of every row (:func:`startrack._kernels.verify.refine_in_cone`)."""
+
+    def __init__(self, rows, star_vec, star_id, axis, radius):
+        self.rows = rows
+        self.vec = np.ascontiguousarray(star_vec[rows])
+        self.ids = star_id[rows]
+        self.axis = axis
+        self.radius = radius
+
+    def refine(self, b, img, cat, cos_fov, geometry):
+        """:func:`startrack._kernels.attitude.refine` on the cone's rows: ``(match, q, n_predicted, cat)`` with
+        ``match`` and ``cat`` (the proposal's rows) indexing :attr:`vec`, or ``None`` when the cone cannot
+        answer for the whole catalog (a proposal star outside it, or an attitude whose field leaves it)."""
+        from startrack._kernels.verify import refine_in_cone
+
+        reach = self.radius - math.acos(max(-1.0, min(1.0, cos_fov))) - 1e-9
+        if reach <= 0.0:
+            return None
+        pos = np.searchsorted(self.rows, cat)
+        if np.any(pos >= len(self.rows)) or not np.array_equal(self.rows[np.minimum(pos, len(self.rows) - 1)], cat):
+            return None
+        ok, match, q, n_pred = refine_in_cone(b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach))
+        return (match, q, n_pred, pos) if ok else None
 
 
 def _cone_cos(camera, margin_deg: float) -> float:

@@ -551,13 +551,14 @@ def _kernels_cached() -> bool:
 def _warm(index):
     """Compile or load the solver's kernels (a notice first when numba has no cached copy yet)."""
     from startrack._kernels.attitude import refine
-    from startrack._kernels.patterns import query_patterns, quick_check
+    from startrack._kernels.patterns import query_patterns
     from startrack._kernels.psf_fit import measure_candidates
+    from startrack._kernels.verify import refine_in_cone, screen_in_cone
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.patterns import warm_kernels
 
     # numba's dispatchers know what this process has compiled or loaded already.
-    if all(k.signatures for k in (refine, measure_candidates, query_patterns, quick_check)):
+    if all(k.signatures for k in (refine, measure_candidates, query_patterns, screen_in_cone, refine_in_cone)):
         return
     if not _kernels_cached():
         _notice("compiling the solver's kernels once, ~30 s (cached afterwards)")

@@ -256,3 +256,67 @@ def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypat
     wi, wf = kp.query_patterns.py_func(*args)
     np.testing.assert_array_equal(ci, wi)
     np.testing.assert_array_equal(cf, wf)
+
+
+def _screen_reference(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius):
+    """quick_check's count in numpy: QUEST on the pattern, then the first ``n_screen`` non-pattern stars with a
+    catalog star of the field (of the first ``n_rows``) within ``radius``."""
+    from startrack._kernels.attitude import quat_to_dcm, quest
+
+    dcm = quat_to_dcm(quest(b[img], star_vec[cat], np.ones(len(img)))[0])
+    sv = star_vec[:n_rows]
+    field = sv[sv @ dcm[2] >= cos_fov]
+    ref = b[:n_screen] @ dcm
+    hit = np.any(ref @ field.T >= math.cos(radius), axis=1) if len(field) else np.zeros(n_screen, bool)
+    hit[[i for i in img if i < n_screen]] = False
+    return int(hit.sum()), dcm[2]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_verification_in_a_cone_is_the_whole_catalogs(seed):
+    """The blind verification's screen and refinement on the catalog rows of a cone around the pattern's
+    boresight give the whole catalog's answer (screen count, matches, attitude, stars predicted) to the bit; an
+    attitude that leaves the cone is reported, not answered."""
+    from startrack._kernels.attitude import refine
+    from startrack._kernels.verify import refine_in_cone, screen_in_cone
+
+    rng = np.random.default_rng(seed)
+    dcm = quaternion_to_dcm(random_quaternions(1, rng)[0])
+    star_vec = rng.normal(size=(20000, 3))
+    star_vec = np.ascontiguousarray(star_vec / np.linalg.norm(star_vec, axis=1)[:, None])
+    f, w, h = 3000.0, 1024.0, 768.0
+    cos_fov = math.cos(math.atan(math.hypot(w, h) / 2 / f) + math.radians(0.5))
+    front = np.flatnonzero(star_vec @ dcm[2] > math.cos(math.radians(6.0)))
+    seen = rng.permutation(front[front < 15000])[:30]
+    b = star_vec[seen] @ dcm.T + rng.normal(scale=1e-5, size=(len(seen), 3))
+    b = np.vstack([b, rng.normal(size=(3, 3)) * [0.05, 0.05, 0.0] + [0.0, 0.0, 1.0]])      # false stars
+    b = np.ascontiguousarray(b / np.linalg.norm(b, axis=1)[:, None])
+    img = np.array([0, 1, 2, 3], dtype=np.int64)
+    cat = np.array(seen[:4], dtype=np.int64)
+    if seed % 2:
+        cat[3] = seen[5]                       # a wrong candidate: its screen finds little
+    n_rows = 15000 + 1000 * seed
+    radius = 2.0 / f
+    cone_radius = math.acos(cos_fov) + math.radians(1.0)
+    rows = np.empty(n_rows, dtype=np.int64)
+    hits, k, axis = screen_in_cone(b, 20, star_vec, n_rows, img, cat, cos_fov, radius, math.cos(cone_radius), rows)
+    want_hits, want_axis = _screen_reference(b, 20, star_vec, n_rows, img, cat, cos_fov, radius)
+    assert hits == want_hits
+    np.testing.assert_allclose(axis, want_axis, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(rows[:k], np.flatnonzero(star_vec[:n_rows] @ axis > math.cos(cone_radius)))
+    rows = rows[:k]
+    assert np.all(np.isin(cat, rows)) and k < n_rows / 50
+    sub = np.ascontiguousarray(star_vec[rows])
+    pos = np.searchsorted(rows, cat)
+    geometry = (f, w / 2 - 0.5, h / 2 - 0.5, w, h, 0.0, 0.0, 0.0, 0.0, 0, radius, 2)
+    match, q, n_pred = refine(b, np.ascontiguousarray(star_vec[:n_rows]), img, cat, cos_fov, *geometry)
+    reach = math.cos(cone_radius - math.acos(cos_fov) - 1e-9)
+    ok, m2, q2, n2 = refine_in_cone(b, sub, img, pos, cos_fov, *geometry, axis, reach)
+    assert ok
+    np.testing.assert_array_equal(np.where(m2 >= 0, rows[np.maximum(m2, 0)], -1), match)
+    assert np.array_equal(q2, q) and n2 == n_pred
+    assert (np.count_nonzero(match >= 0) >= 25) == (seed % 2 == 0), np.count_nonzero(match >= 0)
+    # A cone whose axis lies 2 degrees off: the refined attitude's field leaves it.
+    tilted = axis + np.cross(axis, [0.0, 0.0, 1.0]) / np.linalg.norm(np.cross(axis, [0.0, 0.0, 1.0])) * 0.035
+    ok, *_ = refine_in_cone(b, sub, img, pos, cos_fov, *geometry, tilted / np.linalg.norm(tilted), reach)
+    assert not ok

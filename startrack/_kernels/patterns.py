@@ -9,7 +9,6 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.attitude import quat_to_dcm, quest
 
 NBINS = 32
 PREFIX_SHIFT = 9            # a 25-bit key >> 9 is a 16-bit prefix
@@ -458,41 +457,3 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                     if t < 0:
                         break
     return out_i[:n_out], out_f[:n_out]
-
-
-@njit(cache=True)
-def quick_check(b, star_vec, img, cat, cos_fov, radius):
-    """How many image stars other than the pattern's have a catalog star within ``radius`` (rad).
-
-    The attitude is QUEST on the four pattern stars; a cheap screen before the
-    full verification (which then decides, with its false-match probability).
-    """
-    q, _ = quest(b[img], star_vec[cat], np.ones(img.shape[0]))
-    dcm = quat_to_dcm(q)
-    # image stars in the reference frame
-    n = b.shape[0]
-    ref = np.empty((n, 3))
-    for i in range(n):
-        for k in range(3):
-            ref[i, k] = dcm[0, k] * b[i, 0] + dcm[1, k] * b[i, 1] + dcm[2, k] * b[i, 2]
-    is_pat = np.zeros(n, dtype=np.bool_)
-    for k in range(img.shape[0]):
-        is_pat[img[k]] = True
-    hit = np.zeros(n, dtype=np.bool_)
-    cosr = math.cos(radius)
-    bz0 = dcm[2, 0]
-    bz1 = dcm[2, 1]
-    bz2 = dcm[2, 2]
-    for s in range(star_vec.shape[0]):
-        if bz0 * star_vec[s, 0] + bz1 * star_vec[s, 1] + bz2 * star_vec[s, 2] < cos_fov:
-            continue
-        for i in range(n):
-            if is_pat[i] or hit[i]:
-                continue
-            if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cosr:
-                hit[i] = True
-    count = 0
-    for i in range(n):
-        if hit[i]:
-            count += 1
-    return count

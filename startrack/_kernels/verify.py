@@ -6,7 +6,7 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest_pairs, refine_from
+from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest, quest_pairs, refine_from
 from startrack._kernels.common import _angle, _dot_rows, _median_in_place, pixels_to_unit
 from startrack._kernels.focal import field_scale_near, focal_scale, matched_scale, scale_cells
 from startrack._kernels.sky_index import cone_stars
@@ -814,3 +814,108 @@ def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
                     total += min(1.0, counts[i] * frac)
             p_local = total / n_others
     return agree, core_agree, p_local, e_core
+
+
+@njit(cache=True)
+def screen_in_cone(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius, cos_sub, rows):
+    """The blind search's screen of a candidate and the catalog rows its verification may read, in one pass.
+
+    The attitude is QUEST on the pattern (image rows ``img`` of ``b``, catalog rows ``cat`` of ``star_vec``).
+    Returns ``(hits, k, axis)``: how many of the first ``n_screen`` image stars other than the pattern's have a
+    catalog star (of the first ``n_rows``, in the field: ``boresight . s >= cos_fov``) within ``radius`` (rad)
+    -- :func:`startrack._kernels.patterns.quick_check`'s count --; the ``k`` rows ``s < n_rows`` with
+    ``axis . s > cos_sub`` written ascending into ``rows[:k]``; ``axis`` the boresight (ICRS).
+    """
+    q, _ = quest(b[img], star_vec[cat], np.ones(img.shape[0]))
+    dcm = quat_to_dcm(q)
+    n = n_screen
+    ref = np.empty((n, 3))
+    for i in range(n):
+        for a in range(3):
+            ref[i, a] = dcm[0, a] * b[i, 0] + dcm[1, a] * b[i, 1] + dcm[2, a] * b[i, 2]
+    is_pat = np.zeros(n, dtype=np.bool_)
+    for t in range(img.shape[0]):
+        if img[t] < n:
+            is_pat[img[t]] = True
+    hit = np.zeros(n, dtype=np.bool_)
+    cosr = math.cos(radius)
+    bz0 = dcm[2, 0]
+    bz1 = dcm[2, 1]
+    bz2 = dcm[2, 2]
+    k = 0
+    for s in range(n_rows):
+        z = bz0 * star_vec[s, 0] + bz1 * star_vec[s, 1] + bz2 * star_vec[s, 2]
+        if z > cos_sub:
+            rows[k] = s
+            k += 1
+        if z < cos_fov:
+            continue
+        for i in range(n):
+            if is_pat[i] or hit[i]:
+                continue
+            if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cosr:
+                hit[i] = True
+    count = 0
+    for i in range(n):
+        if hit[i]:
+            count += 1
+    axis = np.empty(3)
+    axis[0] = bz0
+    axis[1] = bz1
+    axis[2] = bz2
+    return count, k, axis
+
+
+@njit(cache=True)
+def refine_in_cone(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius, rounds,
+                   axis, cos_reach):
+    """:func:`startrack._kernels.attitude.refine` on the catalog rows of a cone (``star_vec``: the rows within
+    some radius ``R`` of ``axis``, in the catalog's order), with the same answer as on the whole catalog.
+
+    Every projection reads the stars within ``acos(cos_fov)`` of its attitude's boresight; before each one, that
+    boresight is checked to lie within ``acos(cos_reach)`` (``R`` less the field's radius) of ``axis``, so that the
+    cone holds every star the whole catalog would give, in the same order.  Returns ``(ok, match, q, n_predicted)``
+    (``match`` indexes ``star_vec``); ``ok`` False (the rest undefined) when an attitude strays beyond the reach:
+    the caller refines on the whole catalog instead.
+    """
+    n = b.shape[0]
+    m = star_vec.shape[0]
+    lists = np.empty(3 * m, dtype=np.int64)
+    pv = np.empty((3 * m, 3))
+    q, _ = quest_pairs(b, img, star_vec, cat, np.ones(img.shape[0]))
+    match = np.full(n, -1, dtype=np.int64)
+    prev = np.empty(n, dtype=np.int64)
+    mi = np.empty(n, dtype=np.int64)
+    mc = np.empty(n, dtype=np.int64)
+    # refine_from's rounds, one at a time (refine_from with no round: one projection and matching with q)
+    for rnd in range(rounds):
+        if not _boresight_within(q, axis, cos_reach):
+            return False, match, q, 0
+        prev[:] = match
+        match, q, counts = refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
+                                       radius, 0, lists, pv)
+        nm = 0
+        same = rnd > 0
+        for i in range(n):
+            if match[i] >= 0:
+                mi[nm] = i
+                mc[nm] = match[i]
+                nm += 1
+            if match[i] != prev[i]:
+                same = False
+        if nm < 2 or same:
+            return True, match, q, counts[1]
+        q, _ = quest_pairs(b, mi[:nm], star_vec, mc[:nm], np.ones(nm))
+    if not _boresight_within(q, axis, cos_reach):
+        return False, match, q, 0
+    match, q, counts = refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius,
+                                   0, lists, pv)
+    return True, match, q, counts[1]
+
+
+@njit(cache=True, inline="always")
+def _boresight_within(q, axis, cos_reach):
+    """Whether the boresight of ``q`` (the third row of :func:`quat_to_dcm`) is within ``acos(cos_reach)`` of
+    ``axis``."""
+    dcm = quat_to_dcm(q)
+    return dcm[2, 0] * axis[0] + dcm[2, 1] * axis[1] + dcm[2, 2] * axis[2] >= cos_reach
