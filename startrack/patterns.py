@@ -726,7 +726,8 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
     cam = Camera(width, height, float(f), cx, cy)
     # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
-    pattern_px = max(math.hypot(*(xy[a] - xy[b_])) for a in img for b_ in img)
+    pts = [xy[a].tolist() for a in img]
+    pattern_px = max(math.hypot(p[0] - q[0], p[1] - q[1]) for p in pts for q in pts)
     n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
     vparams = params
     if wide:
