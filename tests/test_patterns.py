@@ -259,7 +259,7 @@ def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypat
 
 
 def _screen_reference(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius):
-    """quick_check's count in numpy: QUEST on the pattern, then the first ``n_screen`` non-pattern stars with a
+    """screen_in_cone's count in numpy: QUEST on the pattern, then the first ``n_screen`` non-pattern stars with a
     catalog star of the field (of the first ``n_rows``) within ``radius``."""
     from startrack._kernels.attitude import quat_to_dcm, quest
 

@@ -823,7 +823,7 @@ def screen_in_cone(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius, cos
     The attitude is QUEST on the pattern (image rows ``img`` of ``b``, catalog rows ``cat`` of ``star_vec``).
     Returns ``(hits, k, axis)``: how many of the first ``n_screen`` image stars other than the pattern's have a
     catalog star (of the first ``n_rows``, in the field: ``boresight . s >= cos_fov``) within ``radius`` (rad)
-    -- :func:`startrack._kernels.patterns.quick_check`'s count --; the ``k`` rows ``s < n_rows`` with
+    (a pattern star beyond the first ``n_screen`` is not screened); the ``k`` rows ``s < n_rows`` with
     ``axis . s > cos_sub`` written ascending into ``rows[:k]``; ``axis`` the boresight (ICRS).
     """
     q, _ = quest(b[img], star_vec[cat], np.ones(img.shape[0]))
