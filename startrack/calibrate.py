@@ -19,6 +19,7 @@ against a penalty of ``ln n`` per parameter, so a projection wins by fitting, no
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -155,7 +156,6 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
     fit : iterable of str
         Among ``focal_length_px``, ``cx``, ``cy``, ``k1``, ``k2`` (and ``k3``, ``k4`` for a fisheye).
     """
-    from dataclasses import replace
 
     if camera.is_pinhole and set(fit) & set(FISHEYE_TERMS):
         raise ParameterError("fit", "k3 and k4 are a fisheye's terms; the camera is a pinhole")
@@ -169,8 +169,15 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
         raise BadInputError("frames", None, f"{n_obs} identified stars in {len(frames)} frame(s): too few to fit "
                             f"{len(fit)} camera parameters")
 
-    def unpack(p):
-        cam = replace(camera, **{name: float(p[i]) for i, name in enumerate(fit)})
+    from startrack.camera import Camera, parameter_bounds
+
+    fields = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+    fields["extra"] = dict(camera.extra)
+
+    def unpack(p, checked=False):
+        # The probes of the Jacobian may lie a difference step past a bound (unchecked); the result is checked.
+        values = {**fields, **{name: float(p[i]) for i, name in enumerate(fit)}}
+        cam = Camera(**values) if checked else Camera._probe(values)
         deltas = p[len(fit):].reshape(-1, 3)
         return cam, deltas
 
@@ -187,6 +194,11 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
     p = np.concatenate([[getattr(camera, name) for name in fit], np.zeros(3 * len(frames))])
     scales = np.array([{"focal_length_px": camera.focal_length_px * 1e-6, "cx": 1e-3, "cy": 1e-3, "k1": 1e-6,
                         "k2": 1e-6, "k3": 1e-6, "k4": 1e-6}[n] for n in fit] + [1e-7] * (3 * len(frames)))
+    # Steps stay within the camera's bounds (camera.parameter_bounds): an unconstrained term (k2 of a narrow field)
+    # rests at its bound while the others converge, and the camera returned is one a camera file may hold.
+    bounds = parameter_bounds(camera.width, camera.height)
+    lower = np.array([bounds[n][0] for n in fit] + [-np.inf] * (3 * len(frames)))
+    upper = np.array([bounds[n][1] for n in fit] + [np.inf] * (3 * len(frames)))
     r = residuals(p)
     rms_before = float(np.sqrt(np.mean(r**2) * 2))
     lam = 1e-3
@@ -201,8 +213,8 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
         g = jac.T @ r
         improved = False
         for _ in range(10):
-            step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
-            trial = p + step
+            trial = np.clip(p + np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g), lower, upper)
+            step = trial - p
             rt = residuals(trial)
             ct = float(rt @ rt)
             if ct < cost:
@@ -219,7 +231,7 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
         cov = np.linalg.inv(jtj) * s2
     except np.linalg.LinAlgError:
         cov = np.full((len(p), len(p)), np.nan)
-    cam, _ = unpack(p)
+    cam, _ = unpack(p, checked=True)
     sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(fit)}
     rms_after = float(np.sqrt(np.mean(r**2) * 2))
     fx, fy = cam.fov_deg

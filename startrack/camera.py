@@ -112,26 +112,62 @@ def parse_size(text: str, source: str = "size") -> tuple[int, int]:
 MAX_SIDE_PX = 1_000_000
 MAX_FOCAL_LENGTH_PX = 1e9
 MIN_FOCAL_LENGTH_PER_SIDE = 1e-4
+#: The lens terms k1..k4 lie within +-10, the range the command line's --k1..--k4 take: a real lens's are
+#: well under 1 (Brown-Conrady terms on the normalised radius, OpenCV's fisheye terms on the angle in radians),
+#: and at 10 a pinhole's k1 moves a 20 deg field's corner by 62 % of its radius, a fisheye's k4 a point 90 deg
+#: off-axis by 370 times its angle.
+MAX_DISTORTION = 10.0
+#: Pixel pitch, micrometres: from under any sensor's smallest pixels (about 0.5 um, the wavelength of light)
+#: to a millimetre.
+PIXEL_PITCH_UM = (0.1, 1000.0)
+DISTORTION_TERMS = ("k1", "k2", "k3", "k4")
 
 
-def _check_geometry(values: dict, source: str) -> None:
-    """Refuse finite but absurd camera values (bounds above), naming the field."""
+def _bounds_problem(values: dict):
+    """The first of ``values`` (width, height, focal_length_px, cx, cy, k1..k4, pixel_pitch_um; finite numbers)
+    outside the bounds above, as ``(field, problem)`` with ``field`` as a camera document spells it (``cx``,
+    ``distortion.k1``); None when every one holds."""
     w, h = values["width"], values["height"]
     for name in ("width", "height"):
         if values[name] > MAX_SIDE_PX:
-            raise BadInputError(source, f"camera.{name}", f"{values[name]:g} px is larger than any sensor "
-                                f"(at most {MAX_SIDE_PX:g} px a side)")
+            return name, f"{values[name]:g} px is larger than any sensor (at most {MAX_SIDE_PX:g} px a side)"
     for name, size in (("cx", w), ("cy", h)):
         v = values[name]
         if not -size <= v <= 2 * size:
             side = "width" if name == "cx" else "height"
-            raise BadInputError(source, f"camera.{name}", f"{v:g} is outside the image (0..{side} = 0..{size}, "
-                                f"within one {side} of it: {-size}..{2 * size})")
+            return name, f"{v:g} is outside the image (0..{side} = 0..{size}, within one {side} of it: " \
+                         f"{-size}..{2 * size})"
+    pitch = values.get("pixel_pitch_um")
+    lo, hi = PIXEL_PITCH_UM  # first: a focal length in mm over an absurd pitch is absurd in px
+    if pitch is not None and not lo <= pitch <= hi:
+        return "pixel_pitch_um", f"{pitch:g} um is outside {lo:g}..{hi:g} um (no sensor's pixels are smaller " \
+                                 "than the light's wavelength, nor larger than a millimetre)"
     f = values["focal_length_px"]
     lo = MIN_FOCAL_LENGTH_PER_SIDE * max(w, h)
     if not lo <= f <= MAX_FOCAL_LENGTH_PX:
-        raise BadInputError(source, "camera.focal_length_px", f"{f:g} px is outside {lo:g}..{MAX_FOCAL_LENGTH_PX:g} "
-                            f"px (1e-4 of the image's longer side, {max(w, h)} px, up to 0.0002 arcsec per pixel)")
+        return "focal_length_px", f"{f:g} px is outside {lo:g}..{MAX_FOCAL_LENGTH_PX:g} px (1e-4 of the image's " \
+                                  f"longer side, {max(w, h)} px, up to 0.0002 arcsec per pixel)"
+    for name in DISTORTION_TERMS:
+        k = values.get(name, 0.0)
+        if not -MAX_DISTORTION <= k <= MAX_DISTORTION:
+            return f"distortion.{name}", f"{k:g} is outside -{MAX_DISTORTION:g}..{MAX_DISTORTION:g} (a real " \
+                                         "lens's terms are well under 1)"
+    return None
+
+
+def parameter_bounds(width: int, height: int) -> dict:
+    """``{name: (lo, hi)}``: the bounds of a ``width`` x ``height`` camera's focal length, principal point and
+    lens terms (those :class:`Camera` holds to), e.g. for a fit to keep its steps within."""
+    return {"focal_length_px": (MIN_FOCAL_LENGTH_PER_SIDE * max(width, height), MAX_FOCAL_LENGTH_PX),
+            "cx": (-width, 2 * width), "cy": (-height, 2 * height),
+            **{name: (-MAX_DISTORTION, MAX_DISTORTION) for name in DISTORTION_TERMS}}
+
+
+def _check_geometry(values: dict, source: str) -> None:
+    """Refuse finite but absurd camera values (bounds above), naming the field (``camera.FIELD``)."""
+    problem = _bounds_problem(values)
+    if problem is not None:
+        raise BadInputError(source, f"camera.{problem[0]}", problem[1])
 
 
 def _finite(value, source, name, positive=False):
@@ -198,6 +234,34 @@ class Camera:
         if self.projection == "pinhole" and (self.k3 or self.k4):
             raise ParameterError("k3", "a pinhole camera has k1 and k2 only (k3 and k4 are the fisheye model's)",
                                  "Camera")
+        # The bounds a camera document is held to (from_dict), for library callers too: finite, physically
+        # possible values, else a ParameterError naming the parameter (never a NaN deep in a kernel).
+        values = {}
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            v = _parameter(v, name, "Camera", positive=True)
+            if v != int(v):
+                raise ParameterError(name, f"must be a whole number, got {v:g}", "Camera")
+            values[name] = int(v)
+            if type(getattr(self, name)) is not int:
+                object.__setattr__(self, name, int(v))
+        for name in ("focal_length_px", "cx", "cy", *DISTORTION_TERMS):
+            values[name] = _parameter(getattr(self, name), name, "Camera", positive=(name == "focal_length_px"))
+        if self.pixel_pitch_um is not None:
+            values["pixel_pitch_um"] = _parameter(self.pixel_pitch_um, "pixel_pitch_um", "Camera", positive=True)
+        problem = _bounds_problem(values)
+        if problem is not None:
+            raise ParameterError(problem[0].split(".")[-1], problem[1], "Camera")
+
+    @classmethod
+    def _probe(cls, values: dict) -> "Camera":
+        """A camera of ``values`` (every field) *without* the bounds' checks: for a fitter's finite-difference
+        probes, which may step just past a bound.  Never returned to a caller: what a fit returns is built with
+        ``Camera(...)``."""
+        cam = object.__new__(cls)
+        for f in dataclasses.fields(cls):
+            object.__setattr__(cam, f.name, values[f.name])
+        return cam
 
     # ------------------------------------------------------------------ builders
     @classmethod
@@ -273,6 +337,7 @@ class Camera:
         pitch = doc.get("pixel_pitch_um")
         if pitch is not None:
             pitch = _finite(pitch, source, "camera.pixel_pitch_um", positive=True)
+        _check_geometry({**values, **dict(zip(DISTORTION_TERMS, ks, strict=True)), "pixel_pitch_um": pitch}, source)
         known = {"format", "width", "height", "focal_length_px", "cx", "cy", "distortion",
                  "pixel_pitch_um", "focal_length_mm", "fov_deg", "projection"}
         extra = {k: v for k, v in doc.items() if k not in known}

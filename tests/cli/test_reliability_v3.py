@@ -977,3 +977,80 @@ def test_plot_skips_positions_far_outside_the_image(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "internal error" not in proc.stderr
     assert png_pixels(tmp_path / "p.png").shape[1] == 256
+
+
+# -- the gaps left: --accuracy --resume, lens-term and pixel-pitch bounds, the label and triangle loaders ----------
+
+def test_lens_terms_and_pixel_pitch_are_bounded_in_files_and_in_the_constructor(tmp_path):
+    """main: a camera file's k1..k4 and pixel_pitch_um were checked only for being finite (k1 = 1e300 and a pitch of
+    1e-300 um were read, then rendered or solved with), and `Camera(...)` checked nothing: NaN, a focal length of
+    1e300 or a width of 0.5 made a camera.  Now both hold to the bounds of docs/formats.md: a file's field is named
+    (exit 2 through the CLI), a library caller gets a ParameterError naming the parameter."""
+    from startrack.camera import Camera
+    from startrack.errors import BadInputError, ParameterError
+
+    good = Camera.from_fov(20, 512, 512).to_dict(standalone=True)
+    fisheye = Camera.from_fov(180, 800, 800, projection="equidistant").to_dict(standalone=True)
+    absurd = [(good, "distortion", {"k1": 1e300}, "camera.distortion.k1"),
+              (good, "distortion", {"k1": 0.1, "k2": -10.5}, "camera.distortion.k2"),
+              (fisheye, "distortion", {"k1": 0, "k2": 0, "k3": 0, "k4": 1e9}, "camera.distortion.k4"),
+              (good, "pixel_pitch_um", 1e-300, "camera.pixel_pitch_um"),
+              (good, "pixel_pitch_um", 0.05, "camera.pixel_pitch_um"),
+              (good, "pixel_pitch_um", 5000.0, "camera.pixel_pitch_um")]
+    for base, name, value, field in absurd:
+        with pytest.raises(BadInputError) as info:
+            Camera.from_dict({**base, name: value}, "cam.json")
+        assert info.value.source == "cam.json" and info.value.field == field, (name, value, str(info.value))
+    # the bounds' edges and real lenses are read
+    for base, name, value in [(good, "distortion", {"k1": 10.0, "k2": -10.0}), (good, "pixel_pitch_um", 0.1),
+                              (good, "pixel_pitch_um", 1000.0), (fisheye, "distortion",
+                                                                  {"k1": 0.03, "k2": -0.01, "k3": 0.002, "k4": -4e-4})]:
+        cam = Camera.from_dict({**base, name: value}, "cam.json")
+        assert Camera.from_dict(cam.to_dict(), "again") == cam
+    # the constructor: the same bounds, a ParameterError naming the parameter
+    nan = float("nan")
+    bad_args = [({"k1": 11.0}, "k1"), ({"k2": -1e300}, "k2"), ({"k1": nan}, "k1"), ({"pixel_pitch_um": 1e-9},
+                "pixel_pitch_um"), ({"focal_length_px": 1e300}, "focal_length_px"), ({"focal_length_px": -5.0},
+                "focal_length_px"), ({"cx": nan}, "cx"), ({"cy": 1e7}, "cy"), ({"width": 0.5}, "width"),
+                ({"height": 2_000_000}, "height"), ({"width": 1e300}, "width")]
+    args = {"width": 1024, "height": 768, "focal_length_px": 1000.0, "cx": 511.5, "cy": 383.5}
+    for changes, parameter in bad_args:
+        with pytest.raises(ParameterError) as info:
+            Camera(**{**args, **changes})
+        assert info.value.parameter == parameter, (changes, str(info.value))
+    with pytest.raises(ParameterError, match="k4"):
+        Camera(**args, projection="equidistant", k4=-20.0)
+    with pytest.raises(ParameterError, match="k1"):
+        Camera.from_fov(20, 512, 512).replace(k1=50.0)
+    assert Camera(**{**args, "width": np.int64(1024), "height": 768.0}).to_dict()["height"] == 768
+    # through the command line: exit 2 naming the file and the field, nothing written
+    (tmp_path / "cam.json").write_text(json.dumps({**good, "distortion": {"k1": 1e300}}))
+    proc = run_cli("render", "--camera", tmp_path / "cam.json", "--stars-only", "--seed", "1")
+    assert_refused(proc, "cam.json: camera.distortion.k1: 1e+300 is outside -10..10")
+    (tmp_path / "cam.json").write_text(json.dumps({**good, "pixel_pitch_um": 1e-300}))
+    proc = run_cli("render", "--camera", tmp_path / "cam.json", "--stars-only", "--seed", "1")
+    assert_refused(proc, "cam.json: camera.pixel_pitch_um")
+    proc = run_cli("render", "--focal-length-mm", "50", "--pixel-pitch-um", "1e-6", "--size", "512x512",
+                   "--stars-only", "--seed", "1")
+    assert_refused(proc, "--pixel-pitch-um", "outside 0.1..1000 um")
+
+
+def test_calibrate_fit_stays_within_the_camera_bounds():
+    """main: a 2 deg field fitted for k1, k2 (which it does not constrain) returned k2 = 1704 +- 2131, a camera that
+    no camera file may hold.  Now the fit's steps stay within the bounds (the constructor refuses the rest): k2 rests
+    at its bound and the focal length converges as before."""
+    from startrack.calibrate import calibrate
+    from startrack.camera import Camera
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    cam = Camera.from_fov(2, 800, 600)
+    rng = np.random.default_rng(3)
+    frames = []
+    for q in random_quaternions(4, rng):
+        dcm = quaternion_to_dcm(q)
+        xy = rng.uniform([10, 10], [790, 590], (12, 2))
+        ref = cam.pixels_to_vectors(xy[:, 0], xy[:, 1]) @ dcm  # catalog directions that land on xy
+        frames.append((dcm, xy + rng.normal(0, 0.05, xy.shape), ref))
+    res = calibrate(frames, cam.with_focal_length(cam.focal_length_px * 1.01), fit=("focal_length_px", "k1", "k2"))
+    assert abs(res.camera.focal_length_px / cam.focal_length_px - 1) < 1e-3
+    assert abs(res.camera.k1) <= 10 and abs(res.camera.k2) <= 10
