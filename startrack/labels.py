@@ -211,15 +211,55 @@ def load_labels(path: str) -> LabelDatabase:
                  "stars_per_field"):
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
+    # Every array checked against the others before the labelling kernel indexes with it (as load_kvector does):
+    # a damaged or forged file is named here, never a crash or a wrong star in a kernel.
     a = f.attrs
-    db = LabelDatabase(np.ascontiguousarray(f["label"], dtype=np.int64), np.ascontiguousarray(f["members"], np.int32),
-                         np.asarray(f["star_id"], np.int64), np.ascontiguousarray(f["star_vector"], np.float64),
-                         np.asarray(f["star_mag"], np.float64), np.asarray(a["trend"], np.float64),
-                         float(a["trend_scale"]), int(a["trend_radius"]), float(a["fov_deg"]), int(a["scale_digits"]),
-                         int(a["group_size"]), int(a["stars_per_field"]), str(a["catalog_sha256"]), f.params, path)
+    # build_labels' limits: groups of 2 or more whose g(g-1)/2 - 1 distance ratios are at most 9 (g <= 5), each of
+    # scale_digits >= 1 digits, at most 18 digits in all (an int64 label).
+    group_size = _whole(path, a, "group_size", 2, 5)
+    scale_digits = _whole(path, a, "scale_digits", 1, 18)
+    if (group_size * (group_size - 1) // 2 - 1) * scale_digits > 18:
+        raise BadInputError(path, "scale_digits", f"{scale_digits} digits for groups of {group_size}: the label "
+                                                  "would not fit in 64 bits")
+    stars_per_field = _whole(path, a, "stars_per_field", group_size, 10**6)
+    star_id = f.array("star_id", np.int64)
+    n = len(star_id)
+    if n < group_size:
+        raise BadInputError(path, "star_id", f"holds {n} star(s): a group needs {group_size}")
+    label = f.array("label", np.int64, ascending=True)
+    m = len(label)
+    if m < 1:
+        raise BadInputError(path, "label", "holds no label")
+    members = f.array("members", np.int32, (m, group_size), index_of=n)
+    try:
+        trend = np.asarray(a["trend"], dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise BadInputError(path, "trend", "attribute is not numeric") from None
+    if not 1 <= len(trend) <= 64 or not np.isfinite(trend).all():
+        raise BadInputError(path, "trend", f"attribute must be 1 to 64 finite polynomial coefficients, got "
+                                           f"{trend.tolist()[:6]}")
+    fov_deg = f.numbers("fov_deg", positive=True)
+    if not fov_deg < 180:
+        raise BadInputError(path, "fov_deg", f"attribute must be below 180 deg, got {fov_deg:g}")
+    db = LabelDatabase(label, members, star_id, f.array("star_vector", np.float64, (n, 3), within=(-1.0, 1.0)),
+                       f.array("star_mag", np.float64, (n,), finite=True), trend,
+                       f.numbers("trend_scale", positive=True), _whole(path, a, "trend_radius", 0, m), fov_deg,
+                       scale_digits, group_size, stars_per_field, str(a["catalog_sha256"]), f.params, path)
     log.info("label database %s: %d labels of %d stars, %g deg fields, read in %.0f ms", path, len(db.label),
              len(db.star_id), db.fov_deg, (time.perf_counter() - t0) * 1000)
     return db
+
+
+def _whole(path: str, attrs: dict, name: str, lo: int, hi: int) -> int:
+    """Root attribute ``name`` as a whole number in ``[lo, hi]``, else a BadInputError naming the file and it."""
+    value = attrs[name]
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise BadInputError(path, name, f"attribute must be a whole number, got {value!r}") from None
+    if not (math.isfinite(number) and number == int(number) and lo <= number <= hi):
+        raise BadInputError(path, name, f"attribute must be a whole number in {lo}..{hi}, got {value!r}")
+    return int(number)
 
 
 def check_labels(db: LabelDatabase, camera=None, catalog=None, tolerance: float = 0.1) -> None:

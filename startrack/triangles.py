@@ -162,15 +162,32 @@ def load_triangles(path: str) -> TriangleDatabase:
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
 
-    def get(name, dtype):
-        return np.ascontiguousarray(f[name], dtype=dtype)
-
+    # Every array checked against the others before the modified-pyramid kernel indexes with it (as load_kvector
+    # does): a damaged or forged file is named here, never a crash or a wrong star in a kernel.
+    star_id = f.array("star_id", np.int64)
+    n = len(star_id)
+    if n < 3:
+        raise BadInputError(path, "star_id", f"holds {n} star(s): a triangle needs 3")
+    # The smallest internal angle of a triangle is at most 60 deg (a rounding's margin above it).
+    tri_key = f.array("tri_key", np.float64, within=(0.0, math.pi / 3 + 1e-6), ascending=True)
+    m = len(tri_key)
+    if m < 1:
+        raise BadInputError(path, "tri_key", "holds no triangle")
+    line = f.numbers("kvector_line", 2)
+    if not line[0] > 0:
+        raise BadInputError(path, "kvector_line", f"slope must be positive, got {line[0]}")
+    max_separation_deg = f.numbers("max_separation_deg", positive=True)
+    if not max_separation_deg <= 90:
+        raise BadInputError(path, "max_separation_deg", f"attribute must be at most 90 deg, got {max_separation_deg:g}")
     db = TriangleDatabase(
-        get("star_id", np.int64), get("star_vector", np.float64), get("star_mag", np.float64),
-        get("tri_stars", np.int32), get("tri_angles", np.float32), get("tri_key", np.float64),
-        get("tri_hand", np.int8), get("kvector", np.int64), tuple(float(v) for v in f.attrs["kvector_line"]),
-        get("kquad", np.int64), tuple(float(v) for v in f.attrs["quadratic"]), float(f.attrs["max_separation_deg"]),
-        str(f.attrs["catalog_sha256"]), f.params, path)
+        star_id, f.array("star_vector", np.float64, (n, 3), within=(-1.0, 1.0)),
+        f.array("star_mag", np.float64, (n,), finite=True),
+        f.array("tri_stars", np.int32, (m, 3), index_of=n),
+        f.array("tri_angles", np.float32, (m, 3), within=(0.0, math.pi)), tri_key,
+        f.array("tri_hand", np.int8, (m,), within=(-1, 1)),
+        f.array("kvector", np.int64, (m + 1,), within=(0, m), ascending=True), line,
+        f.array("kquad", np.int64, (m + 1,), within=(0, m), ascending=True), f.numbers("quadratic", 3),
+        max_separation_deg, str(f.attrs["catalog_sha256"]), f.params, path)
     log.info("triangle database %s: %d stars, %d triangles, read in %.0f ms", path, db.n_stars, db.n_triangles,
              (time.perf_counter() - t0) * 1000)
     return db

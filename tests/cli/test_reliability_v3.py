@@ -1054,3 +1054,95 @@ def test_calibrate_fit_stays_within_the_camera_bounds():
     res = calibrate(frames, cam.with_focal_length(cam.focal_length_px * 1.01), fit=("focal_length_px", "k1", "k2"))
     assert abs(res.camera.focal_length_px / cam.focal_length_px - 1) < 1e-3
     assert abs(res.camera.k1) <= 10 and abs(res.camera.k2) <= 10
+
+
+def _forged(build, save, path, **changes):
+    from dataclasses import replace
+
+    save(replace(build, **changes), str(path))  # written with its own checksums: only the loader's checks can see it
+    return str(path)
+
+
+def test_label_database_arrays_are_checked_before_any_kernel(catalog, tmp_path):
+    """main: load_labels read its arrays as they were: a label file (checksums intact: built wrong, or forged) whose
+    members named a star beyond the table, whose labels were out of order, whose trend was NaN or whose group size
+    disagreed with its members went on to the labelling kernel, which reads past the star table unchecked (members
+    100,000 rows beyond it: `identify -a labelling` said "no consistent star pattern found", exit 1).  Now each is a
+    BadInputError naming the file and the dataset or attribute, as load_kvector does; a CLI run is refused (exit 2)."""
+    from startrack.errors import BadInputError
+    from startrack.labels import build_labels, load_labels, save_labels
+
+    db = build_labels(catalog.filter_magnitude(None, 4.0), 30.0, step_deg=4.0)
+    good = str(tmp_path / "good.h5")
+    save_labels(db, good)
+    again = load_labels(good)
+    assert np.array_equal(again.members, db.members) and again.group_size == db.group_size
+    n = len(db.star_id)
+    members = db.members.copy()
+    members[len(members) // 2, 1] = n + 5
+    unsorted = db.label.copy()
+    unsorted[[0, -1]] = unsorted[[-1, 0]]
+    forged = [({"members": members}, "members", "indices outside"),
+              ({"members": db.members[:, :3]}, "members", "shape"),
+              ({"members": db.members.astype(np.float64) + 0.5}, "members", "float64"),
+              ({"label": unsorted}, "label", "sorted"),
+              ({"star_vector": db.star_vector[:-1]}, "star_vector", "shape"),
+              ({"star_mag": np.full(n, np.nan)}, "star_mag", "non-finite"),
+              ({"trend": np.array([np.nan, 1.0])}, "trend", "finite"),
+              ({"trend_scale": 0.0}, "trend_scale", "positive"),
+              ({"trend_radius": -3}, "trend_radius", "whole number"),
+              ({"group_size": 7}, "group_size", "whole number"),
+              ({"scale_digits": 40}, "scale_digits", "whole number"),
+              ({"fov_deg": float("inf")}, "fov_deg", "finite")]
+    for k, (changes, field, words) in enumerate(forged):
+        path = _forged(db, save_labels, tmp_path / f"f{k}.h5", **changes)
+        with pytest.raises(BadInputError) as info:
+            load_labels(path)
+        assert info.value.source == path and info.value.field == field and words in info.value.problem, \
+            (changes.keys(), str(info.value))
+    stars = [{"x": 100.0 + 37 * k % 400, "y": 50.0 + 61 * k % 400, "flux": 100.0 - k} for k in range(10)]
+    doc = {"format": "startrack.frame/1", "camera": {"width": 512, "height": 512, "focal_length_px": 900.0,
+                                                     "cx": 255.5, "cy": 255.5}, "stars": stars}
+    (tmp_path / "f.json").write_text(json.dumps(doc))
+    proc = run_cli("identify", tmp_path / "f.json", "-a", "labelling", "-d", tmp_path / "f0.h5")
+    assert_refused(proc, f"{tmp_path / 'f0.h5'}: members: holds indices outside")
+
+
+def test_triangle_database_arrays_are_checked_before_any_kernel(catalog, tmp_path):
+    """main: load_triangles read its arrays as they were: a triangle file (checksums intact) whose triangles named a
+    star beyond the table, whose smallest angles were out of order or whose k-vector pointed past the triangles went
+    on to the modified pyramid's kernel.  Now each is a BadInputError naming the file and the dataset."""
+    from startrack.errors import BadInputError
+    from startrack.triangles import build_triangles, load_triangles, save_triangles
+
+    db = build_triangles(catalog.filter_magnitude(None, 4.0), 10.0)
+    good = str(tmp_path / "good.h5")
+    save_triangles(db, good)
+    again = load_triangles(good)
+    assert np.array_equal(again.tri_stars, db.tri_stars) and np.array_equal(again.kquad, db.kquad)
+    n, m = len(db.star_id), len(db.tri_key)
+    stars = db.tri_stars.copy()
+    stars[m // 2, 2] = n
+    key = db.tri_key.copy()
+    key[[0, -1]] = key[[-1, 0]]
+    kvec = db.kvector.copy()
+    kvec[-1] = m + 100
+    forged = [({"tri_stars": stars}, "tri_stars", "indices outside"),
+              ({"tri_stars": db.tri_stars[:, :2]}, "tri_stars", "shape"),
+              ({"tri_key": key}, "tri_key", "sorted"),
+              ({"tri_key": db.tri_key + 2.0}, "tri_key", "outside"),
+              ({"tri_angles": db.tri_angles[:-1]}, "tri_angles", "shape"),
+              ({"tri_hand": np.full(m, 3, dtype=np.int8)}, "tri_hand", "outside"),
+              ({"kvector": kvec}, "kvector", "outside"),
+              ({"kquad": db.kquad[:-5]}, "kquad", "shape"),
+              ({"star_vector": np.full((n, 3), np.nan)}, "star_vector", "non-finite"),
+              ({"star_id": db.star_id[:2]}, "star_id", "3"),
+              ({"line": (0.0, 1.0)}, "kvector_line", "positive"),
+              ({"quad": (np.nan, 1.0, 0.0)}, "quadratic", "finite"),
+              ({"max_separation_deg": 200.0}, "max_separation_deg", "90")]
+    for k, (changes, field, words) in enumerate(forged):
+        path = _forged(db, save_triangles, tmp_path / f"t{k}.h5", **changes)
+        with pytest.raises(BadInputError) as info:
+            load_triangles(path)
+        assert info.value.source == path and info.value.field == field and words in info.value.problem, \
+            (changes.keys(), str(info.value))
