@@ -166,6 +166,13 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         raise BadInputError("--count", None, f"must be at least 1, got {count}")
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
+    if resume and accuracy:
+        # An accuracy run renders and solves frame after frame and writes its summary at the end: nothing is kept
+        # on the way that a later run could go on from.
+        raise BadInputError("--resume", None, "an --accuracy run keeps no checkpoint to go on from (its result is "
+                                              "written at the end): run it again without --resume")
+    if resume and output == "-":
+        raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json)")
     for path in (csv_path, None if output == "-" else output, plot):
         if path:
             check_writable(path)
@@ -226,9 +233,6 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     import numpy as np
 
-    if resume and (output == "-" or accuracy):
-        raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json), without "
-                                              "--accuracy")
     if seed is None and not (resume and os.path.exists(f"{output}.partial.json")):
         seed = int(np.random.SeedSequence().entropy % (2**31))
     if accuracy:

@@ -981,6 +981,18 @@ def test_plot_skips_positions_far_outside_the_image(tmp_path):
 
 # -- the gaps left: --accuracy --resume, lens-term and pixel-pitch bounds, the label and triangle loaders ----------
 
+def test_evaluate_accuracy_refuses_resume_with_its_reason(db20, tmp_path):
+    """main: `evaluate --accuracy -o F --resume` said "--resume: needs -o FILE ..., without --accuracy" though -o FILE
+    was given: the reason (an accuracy run keeps no checkpoint) was not said.  Now it is, before any work."""
+    out = tmp_path / "acc.json"
+    proc = run_cli("evaluate", "-d", db20, "--fov-deg", "20", "--size", "512x512", "--accuracy", "-n", "2",
+                   "-o", out, "--resume")
+    assert_refused(proc, "--resume: an --accuracy run keeps no checkpoint")
+    assert not out.exists()
+    proc = run_cli("evaluate", "-d", db20, "--fov-deg", "20", "--size", "512x512", "-n", "2", "--resume")
+    assert_refused(proc, "--resume: needs -o FILE")
+
+
 def test_lens_terms_and_pixel_pitch_are_bounded_in_files_and_in_the_constructor(tmp_path):
     """main: a camera file's k1..k4 and pixel_pitch_um were checked only for being finite (k1 = 1e300 and a pitch of
     1e-300 um were read, then rendered or solved with), and `Camera(...)` checked nothing: NaN, a focal length of
