@@ -194,11 +194,11 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
     p = np.concatenate([[getattr(camera, name) for name in fit], np.zeros(3 * len(frames))])
     scales = np.array([{"focal_length_px": camera.focal_length_px * 1e-6, "cx": 1e-3, "cy": 1e-3, "k1": 1e-6,
                         "k2": 1e-6, "k3": 1e-6, "k4": 1e-6}[n] for n in fit] + [1e-7] * (3 * len(frames)))
-    # Steps stay within the camera's bounds (camera.parameter_bounds): an unconstrained term (k2 of a narrow field)
-    # rests at its bound while the others converge, and the camera returned is one a camera file may hold.
+    # Steps keep the focal length and principal point within the camera's bounds (camera.parameter_bounds); the
+    # lens terms' bound is on their effect at the corners, which the stars there constrain: checked on the result.
     bounds = parameter_bounds(camera.width, camera.height)
-    lower = np.array([bounds[n][0] for n in fit] + [-np.inf] * (3 * len(frames)))
-    upper = np.array([bounds[n][1] for n in fit] + [np.inf] * (3 * len(frames)))
+    lower = np.array([bounds.get(n, (-np.inf, np.inf))[0] for n in fit] + [-np.inf] * (3 * len(frames)))
+    upper = np.array([bounds.get(n, (-np.inf, np.inf))[1] for n in fit] + [np.inf] * (3 * len(frames)))
     r = residuals(p)
     rms_before = float(np.sqrt(np.mean(r**2) * 2))
     lam = 1e-3
@@ -231,7 +231,11 @@ def calibrate(frames, camera, fit=PARAMS, iterations: int = 30):
         cov = np.linalg.inv(jtj) * s2
     except np.linalg.LinAlgError:
         cov = np.full((len(p), len(p)), np.nan)
-    cam, _ = unpack(p, checked=True)
+    try:
+        cam, _ = unpack(p, checked=True)
+    except ParameterError as exc:
+        raise BadInputError("frames", None, f"the fitted camera is no lens ({exc}): the stars do not determine "
+                            f"{', '.join(fit)}; fit fewer terms") from None
     sigma = {name: float(math.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(fit)}
     rms_after = float(np.sqrt(np.mean(r**2) * 2))
     fx, fy = cam.fov_deg

@@ -112,11 +112,14 @@ def parse_size(text: str, source: str = "size") -> tuple[int, int]:
 MAX_SIDE_PX = 1_000_000
 MAX_FOCAL_LENGTH_PX = 1e9
 MIN_FOCAL_LENGTH_PER_SIDE = 1e-4
-#: The lens terms k1..k4 lie within +-10, the range the command line's --k1..--k4 take: a real lens's are
-#: well under 1 (Brown-Conrady terms on the normalised radius, OpenCV's fisheye terms on the angle in radians),
-#: and at 10 a pinhole's k1 moves a 20 deg field's corner by 62 % of its radius, a fisheye's k4 a point 90 deg
-#: off-axis by 370 times its angle.
-MAX_DISTORTION = 10.0
+#: The lens terms k1..k4 are held by what they do, not by their size: the radial factor they apply at the image's
+#: farthest corner, ``k1 x^2 + k2 x^4 (+ k3 x^6 + k4 x^8)`` with ``x`` the corner's normalised radius (a pinhole's
+#: Brown-Conrady terms) or its off-axis angle in radians (OpenCV's fisheye terms; at most 90 deg, since a fisheye's
+#: corners may lie beyond its image circle), lies within +-1: no lens moves a
+#: corner by more than its own distance from the centre.  A term's size alone says little: a 2 deg field's k2 of
+#: 1,000 moves its corner by 0.01 % (narrow-field calibrations often carry such ill-determined terms), while a
+#: 120 deg pinhole's k1 of 1 moves it by 300 %.
+MAX_DISTORTION_FRACTION = 1.0
 #: Pixel pitch, micrometres: from under any sensor's smallest pixels (about 0.5 um, the wavelength of light)
 #: to a millimetre.
 PIXEL_PITCH_UM = (0.1, 1000.0)
@@ -124,7 +127,8 @@ DISTORTION_TERMS = ("k1", "k2", "k3", "k4")
 
 
 def _bounds_problem(values: dict):
-    """The first of ``values`` (width, height, focal_length_px, cx, cy, k1..k4, pixel_pitch_um; finite numbers)
+    """The first of ``values`` (width, height, focal_length_px, cx, cy, k1..k4, pixel_pitch_um: finite numbers;
+    projection)
     outside the bounds above, as ``(field, problem)`` with ``field`` as a camera document spells it (``cx``,
     ``distortion.k1``); None when every one holds."""
     w, h = values["width"], values["height"]
@@ -147,20 +151,38 @@ def _bounds_problem(values: dict):
     if not lo <= f <= MAX_FOCAL_LENGTH_PX:
         return "focal_length_px", f"{f:g} px is outside {lo:g}..{MAX_FOCAL_LENGTH_PX:g} px (1e-4 of the image's " \
                                   f"longer side, {max(w, h)} px, up to 0.0002 arcsec per pixel)"
-    for name in DISTORTION_TERMS:
-        k = values.get(name, 0.0)
-        if not -MAX_DISTORTION <= k <= MAX_DISTORTION:
-            return f"distortion.{name}", f"{k:g} is outside -{MAX_DISTORTION:g}..{MAX_DISTORTION:g} (a real " \
-                                         "lens's terms are well under 1)"
+    ks = [float(values.get(name, 0.0)) for name in DISTORTION_TERMS]
+    if any(ks):
+        x = _corner_radius(values, f)
+        effect = sum(k * x ** (2 * i + 2) for i, k in enumerate(ks))
+        if not abs(effect) <= MAX_DISTORTION_FRACTION:
+            terms = ", ".join(f"{n} {k:g}" for n, k in zip(DISTORTION_TERMS, ks, strict=True) if k)
+            return "distortion", f"{terms} move the image's farthest corner by {100 * effect:.3g} % of its " \
+                                 f"radius (at most {100 * MAX_DISTORTION_FRACTION:g} %: no lens does more)"
     return None
 
 
+def _corner_radius(values: dict, f: float) -> float:
+    """The variable of the lens terms' polynomial at the image's farthest corner from the principal point: the
+    normalised radius of a pinhole, the off-axis angle (radians) of a fisheye projection (its largest where
+    the corner lies beyond the projection's range)."""
+    w, h, cx, cy = values["width"], values["height"], values["cx"], values["cy"]
+    rho = math.hypot(max(cx + 0.5, w - 0.5 - cx), max(cy + 0.5, h - 0.5 - cy)) / f
+    projection = values.get("projection", "pinhole")
+    if projection == "pinhole":
+        return rho
+    # A fisheye's corners may lie beyond its image circle, where the terms, fitted inside it, say nothing: they
+    # are held to their effect within 90 deg of the axis at most.
+    theta = float(projection_angle(projection, rho))
+    return min(theta, math.pi / 2) if math.isfinite(theta) else math.pi / 2
+
+
 def parameter_bounds(width: int, height: int) -> dict:
-    """``{name: (lo, hi)}``: the bounds of a ``width`` x ``height`` camera's focal length, principal point and
-    lens terms (those :class:`Camera` holds to), e.g. for a fit to keep its steps within."""
+    """``{name: (lo, hi)}``: the bounds of a ``width`` x ``height`` camera's focal length and principal point (those
+    :class:`Camera` holds to), e.g. for a fit to keep its steps within.  The lens terms' bound is on their effect
+    (:data:`MAX_DISTORTION_FRACTION`), not a box."""
     return {"focal_length_px": (MIN_FOCAL_LENGTH_PER_SIDE * max(width, height), MAX_FOCAL_LENGTH_PX),
-            "cx": (-width, 2 * width), "cy": (-height, 2 * height),
-            **{name: (-MAX_DISTORTION, MAX_DISTORTION) for name in DISTORTION_TERMS}}
+            "cx": (-width, 2 * width), "cy": (-height, 2 * height)}
 
 
 def _check_geometry(values: dict, source: str) -> None:
@@ -249,6 +271,7 @@ class Camera:
             values[name] = _parameter(getattr(self, name), name, "Camera", positive=(name == "focal_length_px"))
         if self.pixel_pitch_um is not None:
             values["pixel_pitch_um"] = _parameter(self.pixel_pitch_um, "pixel_pitch_um", "Camera", positive=True)
+        values["projection"] = self.projection
         problem = _bounds_problem(values)
         if problem is not None:
             raise ParameterError(problem[0].split(".")[-1], problem[1], "Camera")
@@ -337,7 +360,8 @@ class Camera:
         pitch = doc.get("pixel_pitch_um")
         if pitch is not None:
             pitch = _finite(pitch, source, "camera.pixel_pitch_um", positive=True)
-        _check_geometry({**values, **dict(zip(DISTORTION_TERMS, ks, strict=True)), "pixel_pitch_um": pitch}, source)
+        _check_geometry({**values, **dict(zip(DISTORTION_TERMS, ks, strict=True)), "pixel_pitch_um": pitch,
+                         "projection": projection}, source)
         known = {"format", "width", "height", "focal_length_px", "cx", "cy", "distortion",
                  "pixel_pitch_um", "focal_length_mm", "fov_deg", "projection"}
         extra = {k: v for k, v in doc.items() if k not in known}
