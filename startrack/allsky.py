@@ -18,10 +18,15 @@ so the search goes in four steps:
    on the matches so far; the projection that matches the most stars keeps its matches.
 3. **The projection.**  Every projection is fitted to the matched stars with its significant distortion
    terms; the least BIC wins (:func:`startrack.calibrate.calibrate_projection`).
-4. **The verdict.**  The whole frame is identified again, from nothing, with that camera by the
-   k-vector pyramid and its verification (:func:`startrack.identify.identify_stars`): the false-match
-   probability of an ordinary identification, over the whole field, decides.  Steps 1-3 only propose a
-   camera; they never accept a frame.
+4. **The verdict.**  The frame is identified again, from nothing, with that camera by the k-vector
+   pyramid and its verification (:func:`startrack.identify.identify_stars`): the false-match probability
+   of an ordinary identification decides.  The verification also refuses a frame where most bright
+   catalog stars predicted on the sensor are not detected; on the ground and beyond a fisheye's image
+   circle (a 180 deg frame's corners look 110-180 deg off-axis, below the horizon) none ever is, so where
+   the image shows ground (:func:`find_sky`) the detections of the sky's window about the principal point
+   (:func:`sky_window`) are identified first, as a frame of that size, then the whole frame.  When the
+   camera is refused, the next centre square's is tried (:func:`propose_cameras`).  Steps 1-3 only
+   propose a camera; they never accept a frame.
 """
 from __future__ import annotations
 
@@ -32,7 +37,7 @@ import numpy as np
 
 from startrack.timeutil import search_clock
 
-__all__ = ["AllSkyOptions", "propose_camera", "CROP_FRACTIONS", "SkyRegion", "find_sky"]
+__all__ = ["AllSkyOptions", "propose_camera", "propose_cameras", "CROP_FRACTIONS", "SkyRegion", "find_sky", "sky_window"]
 
 log = logging.getLogger(__name__)
 
@@ -78,15 +83,16 @@ def _crop(stars, cx, cy, half):
     return out, rows
 
 
-def _centre_solve(stars, width, height, index, options, deadline):
-    """Step 1: ``(focal length px, k1, dcm, matches [(star index, catalog id)], fraction)`` or None."""
+def _centre_solves(stars, width, height, index, options, deadline):
+    """Step 1, each square of :data:`CROP_FRACTIONS` in turn while time is left: yields ``(focal length px, k1,
+    dcm, matches [(star index, catalog id)], fraction)`` for every square the pinhole search identifies."""
     from startrack.attitude import svd_solve
     from startrack.patterns import BlindOptions, solve_blind
 
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     for frac in CROP_FRACTIONS:
         if search_clock() > deadline:
-            return None
+            return
         half = frac * min(width, height)
         crop, rows = _crop(stars, cx, cy, half)
         if len(crop) < 8:
@@ -108,8 +114,7 @@ def _centre_solve(stars, width, height, index, options, deadline):
         matches = [(rows[m.star], int(m.id)) for m in res.matches]
         log.info("all-sky: the centre (%d px square, %d stars) as a pinhole: f %.1f px, k1 %.3f, %d stars", size,
                  len(crop), cam.focal_length_px, cam.k1, len(matches))
-        return cam.focal_length_px, cam.k1, svd_solve(b, ref), matches, frac
-    return None
+        yield cam.focal_length_px, cam.k1, svd_solve(b, ref), matches, frac
 
 
 def _match(xs, ys, radius, px, py):
@@ -266,22 +271,44 @@ def propose_camera(stars, width: int, height: int, index, catalog, options: AllS
         The camera fitted (projection, focal length, significant distortion, principal point) and what
         was measured (``centre_fraction``, ``matched``, ``projections``: each candidate's fit), or the
         reason none could be proposed.  Never an identification: see :func:`startrack.solve.solve_image`.
+        The first of :func:`propose_cameras`.
     """
+    last = "the image centre gave no star pattern as a pinhole frame"
+    for cam, info in propose_cameras(stars, width, height, index, catalog, options, deadline, projections):
+        if cam is not None:
+            return cam, info
+        last = info
+    return None, last
+
+
+def propose_cameras(stars, width: int, height: int, index, catalog, options: AllSkyOptions | None = None,
+                    deadline: float | None = None, projections=None):
+    """:func:`propose_camera` from each centre square of :data:`CROP_FRACTIONS` that the pinhole search
+    identifies, in turn, while time is left: yields ``(Camera, dict)``, or ``(None, reason)`` for a square
+    whose growth or fit proposed nothing.  The caller verifies each (step 4) and takes the next only when it
+    is refused: a square's pinhole solve can be right yet measure its focal length a few percent off (few
+    stars, the fisheye's curvature taken by the focal length), which no ring growth recovers, and another
+    square's need not."""
+    opts = options or AllSkyOptions()
+    if deadline is None:
+        deadline = search_clock() + 3 * opts.timeout_s
+    cat = vec = None
+    for centre in _centre_solves(stars, width, height, index, opts, deadline):
+        if cat is None:
+            cat = catalog.filter_magnitude(None, opts.mag_max)
+            vec = cat.vectors()
+        yield _proposed(stars, width, height, centre, cat, vec, opts, projections)
+
+
+def _proposed(stars, width, height, centre, cat, vec, opts, projections):
+    """Steps 2 and 3 from one centre solve (:func:`_centre_solves`): ``(Camera, dict)`` or ``(None, reason)``."""
     from startrack.calibrate import calibrate_projection
     from startrack.camera import PROJECTIONS
     from startrack.errors import StartrackError
 
-    opts = options or AllSkyOptions()
-    if deadline is None:
-        deadline = search_clock() + 3 * opts.timeout_s
-    centre = _centre_solve(stars, width, height, index, opts, deadline)
-    if centre is None:
-        return None, "the image centre gave no star pattern as a pinhole frame"
     f0, _, dcm, _, frac = centre
     sig = np.array([s.get("sigma_px", opts.sigma_px or 0.5) or 0.5 for s in stars], dtype=np.float64)
     sigma_px = float(np.median(sig)) if opts.sigma_px is None else float(opts.sigma_px)
-    cat = catalog.filter_magnitude(None, opts.mag_max)
-    vec = cat.vectors()
     theta0 = math.atan(frac * min(width, height) * math.sqrt(2.0) / f0)     # the centre square's corners
     # Grown through each projection in turn (their radial terms absorb what is left): the one that matches
     # the most stars holds the frame's matches, on which every projection is then fitted.
@@ -516,6 +543,43 @@ def find_sky(image, tile_px: int = SKY_TILE_PX):
         ground, tile = _grow_from_border(refined), fine
     circle = _image_circle(ground, tile, w, h, tolerance_px=4.0 * tile)
     return SkyRegion(ground, tile, w, h, sky, level, circle)
+
+
+def sky_window(region: SkyRegion, cx: float, cy: float, margin: int = 1):
+    """The largest rectangle of whole sky blocks about the principal point ``(cx, cy)`` found by growing its four
+    sides in turn, a block at a time, while the new row or column is all sky and ``margin`` blocks or more from
+    the ground (:meth:`SkyRegion.in_sky`): ``(x0, y0, x1, y1)``, the pixels ``x0 <= x < x1``, ``y0 <= y < y1``; or
+    None when the principal point's own block is not sky.
+
+    The verification of an identification (:mod:`startrack.identify.verify`) counts every bright catalog star
+    predicted on the sensor that is not detected against it; on the ground, and outside a fisheye's image
+    circle, no star is ever detected.  Within this window every predicted star should be."""
+    ground = region.ground
+    for _ in range(margin):
+        ground = _dilate(ground)
+    sky = ~ground
+    ny, nx = sky.shape
+    row, col = region._tile(cx, cy)
+    r0 = r1 = int(row)
+    c0 = c1 = int(col)
+    if not sky[r0, c0]:
+        return None
+    grew = True
+    while grew:
+        grew = False
+        if r0 > 0 and sky[r0 - 1, c0:c1 + 1].all():
+            r0, grew = r0 - 1, True
+        if r1 < ny - 1 and sky[r1 + 1, c0:c1 + 1].all():
+            r1, grew = r1 + 1, True
+        if c0 > 0 and sky[r0:r1 + 1, c0 - 1].all():
+            c0, grew = c0 - 1, True
+        if c1 < nx - 1 and sky[r0:r1 + 1, c1 + 1].all():
+            c1, grew = c1 + 1, True
+    t = region.tile_px
+    # The last block of a row or column also holds the pixels its whole blocks leave over (SkyRegion._tile).
+    x1 = region.width if c1 == nx - 1 else (c1 + 1) * t
+    y1 = region.height if r1 == ny - 1 else (r1 + 1) * t
+    return c0 * t, r0 * t, x1, y1
 
 
 def _dilate(mask):

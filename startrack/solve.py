@@ -1031,9 +1031,8 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
     details) or None, attempts, parities searched)``."""
     import dataclasses as _dc
 
-    from startrack.allsky import AllSkyOptions, find_sky, propose_camera
+    from startrack.allsky import AllSkyOptions, find_sky, propose_cameras
     from startrack.centroid import CentroidOptions, find_stars
-    from startrack.identify import IdentifyParams
     from startrack.timeutil import search_clock
 
     memo = {} if memo is None else memo
@@ -1064,24 +1063,83 @@ def _allsky_search(image, saturation, w, h, order, opts, index, clock, databases
         remaining = max(1.0, clock.remaining())
         sky_opts = AllSkyOptions(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability,
                                  timeout_s=min(2.0, remaining))
-        cam, info = propose_camera(search_list, w, h, index, databases.catalog, sky_opts,
-                                   deadline=search_clock() + remaining, projections=projections)
-        tried += 1
-        if cam is None:
-            log.info("all-sky search, %s parity: %s", parity, info)
-            continue
-        params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
-                                max_false_probability=opts.max_false_probability)
-        result, n = _identify_in_band(search_list, cam, _band_of(min(cam.fov_deg)), databases, opts.algorithm,
-                                      params, clock, id_config)
-        tried += n
-        if result is not None:
-            info = {"projection": cam.projection, **info,
-                    "sky": region.record() if region is not None else {"masked_fraction": 0.0, "image_circle": None}}
-            return (result, sky, search_list, parity, info), tried, done
-        log.info("all-sky search, %s parity: the %s camera proposed (f %.1f px) gave no verified identification",
-                 parity, cam.projection, cam.focal_length_px)
+        proposed = False
+        # Each centre square's camera in turn (startrack.allsky.propose_cameras), the next only when the one before
+        # was refused: all within the one search's time.
+        for cam, info in propose_cameras(search_list, w, h, index, databases.catalog, sky_opts,
+                                         deadline=search_clock() + remaining, projections=projections):
+            tried += 1
+            if cam is None:
+                log.info("all-sky search, %s parity: %s", parity, info)
+                continue
+            proposed = True
+            result, n, window = _allsky_verify(search_list, cam, region, w, h, opts, clock, databases, id_config,
+                                               mirrored=parity == "mirrored")
+            tried += n
+            if result is not None:
+                info = {"projection": cam.projection, **info, "verified_in": window,
+                        "sky": region.record() if region is not None else {"masked_fraction": 0.0,
+                                                                           "image_circle": None}}
+                return (result, sky, search_list, parity, info), tried, done
+            log.info("all-sky search, %s parity: the %s camera proposed (f %.1f px) gave no verified identification",
+                     parity, cam.projection, cam.focal_length_px)
+            if clock.expired():
+                break
+        if not proposed:
+            log.info("all-sky search, %s parity: the image centre gave no star pattern as a pinhole frame", parity)
     return None, tried, done
+
+
+def _allsky_verify(search_list, cam, region, w, h, opts, clock, databases, id_config, mirrored: bool = False):
+    """Step 4 of :mod:`startrack.allsky`: the frame identified from nothing with the proposed camera ``cam`` by the
+    k-vector databases of its band and their verification.  The verification counts every bright catalog star
+    predicted on the sensor and not detected against the identification; on the ground and outside a fisheye's
+    image circle none is ever detected (a 180 deg frame's corners reach 110-180 deg off-axis, below the horizon),
+    so where the image shows ground (:class:`startrack.allsky.SkyRegion`) the detections within the sky's
+    window about the principal point (:func:`startrack.allsky.sky_window`) are identified first, as a frame of
+    that size, and the whole frame only when the window gives nothing.  Returns ``((camera, database,
+    identification, None) or None, attempts, the window [x0, y0, x1, y1] or None for the whole frame)``; the
+    identification's star indices are ``search_list``'s and the camera the whole frame's.  ``mirrored``: the
+    detections are the image's flipped about its centre column (:func:`startrack.parity.mirror_stars`), the window
+    too.
+
+    Each proposal can be verified twice (window, whole frame) and each centre square of
+    :data:`startrack.allsky.CROP_FRACTIONS` proposes one: every verification takes an equal share of the all-sky
+    search's false-match budget."""
+    from startrack.allsky import CROP_FRACTIONS, sky_window
+    from startrack.identify import IdentifyParams
+    from startrack.records import Match
+
+    params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
+                            max_false_probability=opts.max_false_probability / (2 * len(CROP_FRACTIONS)))
+    tried = 0
+    window = None
+    if region is not None:
+        window = sky_window(region, (w - 1) - cam.cx if mirrored else cam.cx, cam.cy)
+        if window is not None and mirrored:
+            window = (w - window[2], window[1], w - window[0], window[3])
+    if window is not None and window != (0, 0, w, h):
+        x0, y0, x1, y1 = window
+        rows = [i for i, s in enumerate(search_list)
+                if x0 - 0.5 <= s["x"] < x1 - 0.5 and y0 - 0.5 <= s["y"] < y1 - 0.5]
+        if len(rows) >= 10:
+            inside = [dict(search_list[i], x=search_list[i]["x"] - x0, y=search_list[i]["y"] - y0) for i in rows]
+            part = cam.replace(width=x1 - x0, height=y1 - y0, cx=cam.cx - x0, cy=cam.cy - y0)
+            log.info("all-sky search: identifying the %d detections of the sky's %dx%d px window at (%d, %d)",
+                     len(rows), x1 - x0, y1 - y0, x0, y0)
+            result, n = _identify_in_band(inside, part, _band_of(min(part.fov_deg)), databases, opts.algorithm,
+                                          params, clock, id_config)
+            tried += n
+            if result is not None:
+                _, db, res, index_rows = result
+                res.matches = [Match(rows[m[0]], m[1]) for m in res.matches]
+                return (cam, db, res, index_rows), tried, [int(v) for v in window]
+            log.info("all-sky search: the sky's window gave no verified identification; the whole frame")
+            if clock.expired():
+                return None, tried, None
+    result, n = _identify_in_band(search_list, cam, _band_of(min(cam.fov_deg)), databases, opts.algorithm, params,
+                                  clock, id_config)
+    return result, tried + n, None
 
 
 def _failed(reason, code, t0, stars=None, centroid=None, **kw):
