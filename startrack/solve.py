@@ -1113,13 +1113,10 @@ def _allsky_verify(search_list, cam, region, w, h, opts, clock, databases, id_co
     params = IdentifyParams(sigma_px=opts.sigma_px, max_stars=opts.search_stars,
                             max_false_probability=opts.max_false_probability / (2 * len(CROP_FRACTIONS)))
     tried = 0
-    window = None
-    if region is not None:
-        window = sky_window(region, (w - 1) - cam.cx if mirrored else cam.cx, cam.cy)
-        if window is not None and mirrored:
-            window = (w - window[2], window[1], w - window[0], window[3])
+    # The window in the image's pixels, and in the detections' (flipped back about the centre column when mirrored).
+    window = sky_window(region, (w - 1) - cam.cx if mirrored else cam.cx, cam.cy) if region is not None else None
     if window is not None and window != (0, 0, w, h):
-        x0, y0, x1, y1 = window
+        x0, y0, x1, y1 = (w - window[2], window[1], w - window[0], window[3]) if mirrored else window
         rows = [i for i, s in enumerate(search_list)
                 if x0 - 0.5 <= s["x"] < x1 - 0.5 and y0 - 0.5 <= s["y"] < y1 - 0.5]
         if len(rows) >= 10:

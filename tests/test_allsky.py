@@ -279,3 +279,93 @@ def test_ring_growth_predicts_only_stars_the_atmosphere_lets_through():
     _, _, det_plain, got_plain = _grow(stars, 800, 800, cam.focal_length_px * 1.01, dcm, vec, opts, 0.1,
                                        np.radians(15), "equidistant", None)
     assert np.array_equal(got_plain, rows[det_plain]) and len(det) > 1.1 * len(det_plain)
+
+
+def _random_region(rng, n=24, tile=8):
+    """A SkyRegion of ``n x n`` blocks (the image a few pixels wider than whole blocks): ground outside a
+    circle about a random point near the centre, plus a few random rectangles of ground touching the border."""
+    from startrack.allsky import SkyRegion
+
+    w = h = n * tile + int(rng.integers(0, tile))
+    yy, xx = np.mgrid[0:n, 0:n]
+    c = n / 2 + rng.uniform(-3, 3, 2)
+    ground = np.hypot(xx - c[0], yy - c[1]) > rng.uniform(0.35, 0.8) * n
+    for _ in range(int(rng.integers(0, 4))):
+        side, a, b = int(rng.integers(4)), *sorted(rng.integers(0, n, 2))
+        depth = int(rng.integers(1, n // 2))
+        if side == 0:
+            ground[:depth, a:b + 1] = True
+        elif side == 1:
+            ground[n - depth:, a:b + 1] = True
+        elif side == 2:
+            ground[a:b + 1, :depth] = True
+        else:
+            ground[a:b + 1, n - depth:] = True
+    return SkyRegion(ground, tile, w, h, 100.0, 10.0, None)
+
+
+def test_sky_window_is_sky_and_cannot_grow():
+    """The sky's window (the all-sky verification's frame, startrack.solve._allsky_verify) on random grounds, against
+    SkyRegion.in_sky over pixels: every pixel of it is sky one block from the ground, it holds the principal point,
+    and no side can move out by one pixel without taking in a pixel near the ground or leaving the image; None
+    only when the principal point's own pixel is near the ground."""
+    from startrack.allsky import sky_window
+
+    rng = np.random.default_rng(43)
+    seen = 0
+    for _ in range(150):
+        region = _random_region(rng)
+        w, h = region.width, region.height
+        cx, cy = rng.uniform(0.3, 0.7) * (w - 1), rng.uniform(0.3, 0.7) * (h - 1)
+        win = sky_window(region, cx, cy)
+        here = bool(region.in_sky(round(cx), round(cy), margin=1))
+        if win is None:
+            assert not here
+            continue
+        seen += 1
+        x0, y0, x1, y1 = win
+        assert 0 <= x0 and x1 <= w and 0 <= y0 and y1 <= h
+        assert x0 - 0.5 <= cx < x1 - 0.5 and y0 - 0.5 <= cy < y1 - 0.5
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        assert region.in_sky(xx, yy, margin=1).all()
+        for strip, at_edge in ((np.mgrid[y0:y1, x0 - 1:x0], x0 == 0), (np.mgrid[y0:y1, x1:x1 + 1], x1 == w),
+                               (np.mgrid[y0 - 1:y0, x0:x1], y0 == 0), (np.mgrid[y1:y1 + 1, x0:x1], y1 == h)):
+            assert at_edge or not region.in_sky(strip[1], strip[0], margin=1).all()
+    assert seen >= 50
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_allsky_verification_in_the_sky_window(mirrored, monkeypatch, solve_cache):
+    """Step 4 (startrack.solve._allsky_verify) on a rendered 180 deg stereographic frame with a random horizon, with
+    its true camera: identified in the sky's window, every match names the catalog star the truth puts at that
+    detection (within 3 px, the median within 0.3 px) and lies in the window recorded (the image's pixels).  Mirrored: the image flipped left
+    to right and searched as the mirrored parity is (the detections flipped back about the centre column)."""
+    from startrack.allsky import find_sky
+    from startrack.centroid import CentroidOptions, find_stars
+    from startrack.parity import mirror_stars
+    from startrack.solve import BandDatabases, SolveOptions, _allsky_verify, _pyramid_config, _SearchClock
+
+    monkeypatch.setenv("STARTRACK_CACHE", solve_cache["STARTRACK_CACHE"])
+    image, truth, _, cam = _rendered_with_ground("stereographic", 180, 5, monkeypatch, size=640)
+    w, h = cam.width, cam.height
+    seen = image[:, ::-1] if mirrored else image
+    region = find_sky(seen)
+    stars = find_stars(seen, CentroidOptions(max_stars=1500)).stars
+    keep = region.in_sky([s["x"] for s in stars], [s["y"] for s in stars], margin=1)
+    stars = [s for s, k in zip(stars, keep) if k]
+    search = mirror_stars(stars, (w - 1) / 2.0) if mirrored else stars
+    result, _, window = _allsky_verify(search, cam, region, w, h, SolveOptions(), _SearchClock(30.0),
+                                       BandDatabases(), _pyramid_config("pyramid", 200), mirrored=mirrored)
+    assert result is not None and window is not None and window != [0, 0, w, h]
+    got_cam, _, res, _ = result
+    assert got_cam is cam and len(res.matches) >= 50
+    where = {s["id"]: (s["x"], s["y"]) for s in truth["stars"]}
+    x0, y0, x1, y1 = window
+    off = []
+    for star, cid in res.matches:
+        x, y = search[star]["x"], search[star]["y"]
+        off.append(math.hypot(x - where[cid][0], y - where[cid][1]))
+        ix = (w - 1) - x if mirrored else x          # the detection in the image's own pixels
+        assert x0 - 0.5 <= ix < x1 - 0.5 and y0 - 0.5 <= y < y1 - 0.5
+    # (a blend of two faint stars moves a centroid by a pixel or two; a wrong star is tens of pixels away)
+    assert max(off) < 3.0 and np.median(off) < 0.3, (max(off), np.median(off))
