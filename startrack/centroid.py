@@ -160,19 +160,37 @@ def estimate_background(image: np.ndarray, options: CentroidOptions, saturation:
         return np.full((1, 1), glevel), np.full((1, 1), gsigma), float(glevel), float(gsigma)
     cell = options.mesh_px
     mstep = max(1, cell // 10)    # ~100 samples per tile: the median to ~0.13 sigma
-    img32 = np.ascontiguousarray(image, dtype=np.float32)
     ny, nx = -(-h // cell), -(-w // cell)
+    # Strips of whole tile rows, each made float32 on its own (a float32 frame's are views): no float copy of a
+    # large frame of whole DN (issue 41); the tiles are independent, so the values are the whole frame's.
+    step = h if image.dtype == np.float32 and h * w < _BAND_MIN_PIXELS else cell * max(1, _BAND_BYTES // (4 * w * cell))
+    strips = [np.ascontiguousarray(image[r0:r0 + step], dtype=np.float32) for r0 in range(0, h, step)] \
+        if step >= h else (np.ascontiguousarray(image[r0:r0 + step], dtype=np.float32) for r0 in range(0, h, step))
     if ny * nx * -(-min(cell, h) // mstep) * -(-min(cell, w) // mstep) <= 4_000_000:
         # The tiles' samples sorted by numpy (vectorised; ~0.07 ms for 192 tiles of 121 samples against
         # ~0.4 ms of insertion sorts in background_mesh), then the same clipped statistics.  Saturated pixels are
         # left out as they are sampled (no copy of the frame).
-        samples, counts, sampled = mesh_samples(img32, cell, mstep, math.inf if saturation is None else
-                                                float(np.float32(saturation)))
+        sat32 = math.inf if saturation is None else float(np.float32(saturation))
+        parts = [mesh_samples(strip, cell, mstep, sat32) for strip in strips]
+        if len(parts) == 1:
+            samples, counts, sampled = parts[0]
+        else:
+            samples = np.full((ny * nx, max(p[0].shape[1] for p in parts)), np.inf, dtype=np.float32)
+            t = 0
+            for part, _, _ in parts:
+                samples[t:t + part.shape[0], :part.shape[1]] = part
+                t += part.shape[0]
+            counts = np.concatenate([p[1] for p in parts])
+            sampled = np.concatenate([p[2] for p in parts])
         level, sigma = mesh_core_stats(np.sort(samples, axis=1), counts, sampled, ny, nx)
     else:       # a fine mesh on a large frame: no copy of every sample
-        if saturation is not None:
-            img32 = np.where(img32 >= saturation, np.float32(np.nan), img32)
-        level, sigma = background_mesh(img32, cell, mstep)
+        parts = []
+        for strip in strips:
+            if saturation is not None:
+                strip = np.where(strip >= saturation, np.float32(np.nan), strip)
+            parts.append(background_mesh(strip, cell, mstep))
+        level = np.concatenate([p[0] for p in parts])
+        sigma = np.concatenate([p[1] for p in parts])
     # Tiles without data (NaN: mostly NaN pixels) take their neighbours' median, else the frame's level.
     level = _median3(level)
     sigma = _median3(sigma)
@@ -274,13 +292,13 @@ def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, labels,
             row_counts)
     n_threads = min(threads(), h * w // _PIXELS_PER_THREAD)
     if n_threads <= 1 or (ny, nx) == (1, 1):
-        subtract_background_rows(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out)
+        subtract_background_rows(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0)
     else:
-        kernel = subtract_background_rows.resolve((*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out))
+        kernel = subtract_background_rows.resolve((*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0))
         # Chunks of whole tile rows, about _PIXELS_PER_CHUNK pixels each.
         step = max(1, _PIXELS_PER_CHUNK // (int(cell) * w))
         rows = [min(h, int(cell) * j) for j in range(0, ny, step)] + [h]
-        _run_chunks(lambda i: kernel(*args, rows[i], rows[i + 1], sig, _CLIP_KAPPA, _CLIP_STD, out),
+        _run_chunks(lambda i: kernel(*args, rows[i], rows[i + 1], sig, _CLIP_KAPPA, _CLIP_STD, out, 0),
                     len(rows) - 1, n_threads)
     return _noise_floor(out, sigma_mesh) if noise else None
 
@@ -523,7 +541,136 @@ def _run_chunks(run, n_chunks: int, n_threads: int) -> None:
         raise state[2]
 
 
-def _workspace(shape, max_blobs):
+#: Frames of at least this many pixels are measured in bands of rows (:class:`_Bands`): no whole-frame residual
+#: nor float copy of the frame, ~2 bytes a pixel (the labels) beyond the frame (issue 41).  Below it the whole
+#: residual (4 bytes a pixel) is kept and reused across frames, which is faster.
+_BAND_MIN_PIXELS = 16_000_000
+#: Bytes of a band of float32 rows (at least one mesh tile row and a fit's reach on either side).
+_BAND_BYTES = 16_000_000
+
+
+class _Bands:
+    """The residual of a frame too large to hold whole: bands of full-width rows, computed where they are needed
+    (:func:`startrack._kernels.centroid.residual_rows`, the same values to the bit as the whole residual's).
+
+    A band's first row is a multiple of the mesh tile (``cell``), so the noise mesh's rows from
+    ``r0 // cell`` on are the band's own.  Positions handed to a kernel on a band are ``y - r0`` (exact:
+    an integer taken from a coordinate at least as large); the kernels' sums over pixels are then the same.
+    """
+
+    def __init__(self, image, level_mesh, cell):
+        self.image = image
+        self.level = np.ascontiguousarray(level_mesh, dtype=np.float64)
+        self.cell = int(cell)
+        self.shape = image.shape
+
+    def rows(self, r0, r1, c0=0, c1=None):
+        """The residual of rows ``r0:r1`` (and columns ``c0:c1``), float32."""
+        from startrack._kernels.centroid import residual_rows
+
+        c1 = self.shape[1] if c1 is None else c1
+        return residual_rows(self.image, self.level, float(self.cell), int(r0), int(r1), int(c0), int(c1),
+                             np.empty((r1 - r0, c1 - c0), dtype=np.float32))
+
+    def bands(self, ys, reach):
+        """``(r0, band, idx)``: the items ``idx`` (indices into ``ys``, rows of the frame) whose rows ``y +- reach``
+        lie in the band of rows from ``r0``; every item in one band, bands of about :data:`_BAND_BYTES`."""
+        h, w = self.shape
+        cell = self.cell
+        ys = np.asarray(ys, dtype=np.float64)
+        yc = np.clip(np.nan_to_num(ys, nan=0.0), 0, h - 1)
+        order = np.argsort(yc, kind="stable")
+        span = max(cell, _BAND_BYTES // (4 * w) - 2 * reach - cell)
+        i, n = 0, len(order)
+        while i < n:
+            first = yc[order[i]]
+            j = int(np.searchsorted(yc[order], first + span, side="right"))
+            j = max(j, i + 1)
+            r0 = max(0, int(math.floor(first)) - reach)
+            r0 -= r0 % cell
+            r1 = min(h, int(math.ceil(yc[order[j - 1]])) + reach + 2)
+            yield r0, self.rows(r0, r1), order[i:j]
+            i = j
+
+    def measure(self, cand, psf_sigma, mesh, cell, out, fit):
+        """:func:`_measure_gauss`'s fits ``fit(residual, cand, mesh, out)`` band by band, then each aperture
+        that reached beyond its band again on rows that hold it."""
+        from startrack._kernels.centroid import aperture_flux
+
+        h = self.shape[0]
+        sig = np.full(len(cand), float(psf_sigma)) if psf_sigma else np.clip(cand[:, 2], 0.5, 5.0)
+        half = int(max(2, math.ceil(3 * float(sig.max()))))
+        # The unweighted fit moves at most ``half`` from the candidate (else it is refused), its sigma at most
+        # 4 half; the weighted fit's window is at most 3.5 times that: every fitted pixel within 15 half + 1.
+        reach = 15 * half + 2
+        for r0, band, idx in self.bands(cand[:, 1], reach):
+            local = cand[idx].copy()
+            local[:, 1] -= r0
+            part = np.zeros((len(idx), out.shape[1]))
+            fit(band, local, np.ascontiguousarray(mesh[r0 // cell:]), part)
+            r1 = r0 + band.shape[0]
+            for k in range(len(idx)):
+                y, s_ = part[k, 1], part[k, 2]
+                r = max(2.0, 3.0 * s_)
+                if (r0 > 0 and math.floor(y - r) < r0 - r0) or (r1 < h and math.ceil(y + r) + 1 > r1 - r0):
+                    # The aperture (3 fitted sigmas) reached out of the band: sum it on rows that hold it.
+                    a = max(0, int(math.floor(y + r0 - r)) - 1)
+                    a -= a % cell
+                    b = min(h, int(math.ceil(y + r0 + r)) + 2)
+                    part[k, 9], part[k, 10] = aperture_flux(self.rows(a, b), part[k, 0], y + r0 - a, r)
+            part[:, 1] += r0
+            out[idx] = part
+
+
+def _banded(image, options) -> bool:
+    """Whether :func:`find_stars` measures ``image`` in bands (:class:`_Bands`): a frame of at least
+    :data:`_BAND_MIN_PIXELS`, a mesh background (at least 2 x 2 tiles) and the ``gauss`` method."""
+    return (image.ndim == 2 and image.size >= _BAND_MIN_PIXELS and options.background == "mesh"
+            and options.method == "gauss" and min(image.shape) >= 2 * options.mesh_px)
+
+
+def _mask_in_bands(image, level_mesh, thresh_mesh, cell, labels, foreground, row_counts, sigma_mesh, options):
+    """:func:`_subtract_background` (and the matched filter's mask) band by band: the mask into ``labels``, the
+    pixel-noise mesh (or None) returned, no residual kept.  The bands are whole tile rows, so the noise mesh is
+    the whole pass's to the bit; the matched filter's band holds its kernel's half-width more rows on either
+    side (the smoothed rows of the band's own are then the whole frame's)."""
+    import cv2
+
+    from startrack._kernels.centroid import residual_rows, subtract_background_rows
+
+    h, w = labels.shape
+    ny, nx = level_mesh.shape
+    noise = options.method == "gauss" and cell * ny >= h and cell * nx >= w
+    sig = np.ascontiguousarray(sigma_mesh, dtype=np.float64)
+    out = np.empty_like(sig) if noise else np.empty((0, 0))
+    level = np.ascontiguousarray(level_mesh, dtype=np.float64)
+    thresh = np.ascontiguousarray(thresh_mesh, dtype=np.float64)
+    pad = 0
+    if options.matched_filter:
+        k = max(3, int(2 * math.ceil(3 * options.filter_sigma_px) + 1))
+        g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
+        norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
+        pad = k // 2
+        zeros, det_thresh = np.zeros(thresh.shape), np.ascontiguousarray(thresh * norm)
+    step = cell * max(1, _BAND_BYTES // (4 * w * cell))
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        a, b = max(0, r0 - pad), min(h, r1 + pad)
+        band = np.ascontiguousarray(image[a:b], dtype=np.float32)
+        res = np.empty((b - a, w), dtype=np.float32)
+        subtract_background_rows(band, level, thresh, float(cell), res, labels, int(foreground), row_counts, r0, r1,
+                                 sig, _CLIP_KAPPA, _CLIP_STD, out, a)
+        if options.matched_filter:
+            # The rows beyond the band's own, residual only (their mask is another band's).
+            residual_rows(image, level, float(cell), a, r0, 0, w, res[:r0 - a])
+            residual_rows(image, level, float(cell), r1, b, 0, w, res[r1 - a:])
+            det = cv2.GaussianBlur(res, (k, k), options.filter_sigma_px)
+            subtract_background_rows(det, zeros, det_thresh, float(cell), det, labels, int(foreground), row_counts,
+                                     r0, r1, sig, _CLIP_KAPPA, _CLIP_STD, np.empty((0, 0)), a)
+    return _noise_floor(out, sigma_mesh) if noise else None
+
+
+def _workspace(shape, max_blobs, whole=True):
     """Per-thread buffers for one frame shape, reused across frames.
 
     A 1024 x 1024 frame needs ~8 MB of scratch (residual, labels, blob
@@ -532,12 +679,14 @@ def _workspace(shape, max_blobs):
     returning large blocks to the system.  ``labels`` is all zero between calls.
     """
     ws = getattr(_WORKSPACE, "buffers", None)
+    if ws is not None and whole != (ws["residual"] is not None):
+        _WORKSPACE.buffers = ws = None      # let the other kind's buffers go before these are made
     if ws is None or ws["shape"] != shape or ws["table"].shape[0] < max_blobs + 1:
         h, w = shape
         # Labels in uint16 (max_blobs < 65535): 2 bytes a pixel, not 4, and they are the detection mask too
         # (``_FOREGROUND`` until labelled): 6 bytes a pixel with the residual (issue 41: an 8000 x 6000 frame's
         # scratch was 470 MB at 9 bytes a pixel).  The fill stack holds pixel indices: int32 below 2^31 pixels.
-        ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32),
+        ws = {"shape": shape, "residual": np.empty(shape, dtype=np.float32) if whole else None,
               "labels": np.zeros(shape, dtype=np.uint16 if max_blobs < 65535 else np.int32),
               "table": np.empty((max_blobs + 1, 16)), "row_counts": np.zeros(h, dtype=np.int64),
               "stack": np.empty(min(h * w, 4_000_000), dtype=np.int32 if h * w < 2**31 else np.int64)}
@@ -584,7 +733,12 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
 
     options = options or CentroidOptions()
     t0 = time.perf_counter()
-    img = np.ascontiguousarray(image, dtype=np.float32)
+    image = np.asarray(image)
+    banded = _banded(image, options)
+    if banded and image.dtype in (np.uint8, np.uint16, np.float32):
+        img = np.ascontiguousarray(image)       # a frame of whole DN stays as it is: no float copy
+    else:
+        img = np.ascontiguousarray(image, dtype=np.float32)
     if img.ndim != 2 or img.size == 0:
         raise BadInputError(source, None, f"expected a 2-D image, got shape {img.shape}")
     params = dict(options.__dict__)     # every field is a scalar: a shallow copy is asdict's
@@ -632,10 +786,27 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         # whole noise of a frame whose pixels sit in one or two grey levels, where sigma is 0).
         thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
     max_blobs = 20000
-    ws = _workspace(img.shape, max_blobs)
+    ws = _workspace(img.shape, max_blobs, not banded)
     residual, labels, table = ws["residual"], ws["labels"], ws["table"]
     foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
     counts = ws["row_counts"]
+    if banded:
+        from startrack._kernels.centroid import label_blobs_lazy
+
+        noise_mesh = _mask_in_bands(img, level_mesh, thresh_mesh, cell, labels, foreground, counts, sigma_mesh,
+                                    options)
+        residual = _Bands(img, level_mesh, cell)
+        n_found = label_blobs_lazy(img, residual.level, float(cell), float(sat), max_blobs, labels, foreground,
+                                   counts, table, ws["stack"])
+        try:
+            noise_mesh = sigma_mesh if noise_mesh is None else noise_mesh
+            return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel,
+                            gsigma, result, thresh_mesh, integer)
+        finally:
+            if n_found > max_blobs:
+                labels.fill(0)
+            else:
+                clear_labels(labels, table, n_found)
     noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, labels, foreground, counts,
                                       sigma_mesh, options.method == "gauss")
     if options.matched_filter:
@@ -646,7 +817,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
         norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
         # The smoothed residual's level is 0 everywhere; its threshold follows the frame's own noise mesh.
-        _subtract_background(det, np.zeros(thresh_mesh.shape), thresh_mesh * norm, cell, np.empty_like(det), labels, foreground,
+        # The mask of the smoothed residual (its own level, 0, subtracted in place: the same values).
+        _subtract_background(det, np.zeros(thresh_mesh.shape), thresh_mesh * norm, cell, det, labels, foreground,
                              counts, sigma_mesh, False)
     n_found = label_blobs_into(residual, img, float(sat), max_blobs, labels, foreground, counts, table, ws["stack"])
     try:
@@ -745,12 +917,21 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             continue
         e = float(elong[k])
         if options.deblend and area >= 6 and e > 1.35:
-            n_peaks = split_blob(residual, labels, int(labs[k]), int(row[12]), int(row[13]),
-                                 int(row[14] - row[12] + 1), int(row[15] - row[13] + 1), 2.5, 0.7, peak_buf)
+            left, top, bw, bh = int(row[12]), int(row[13]), int(row[14] - row[12] + 1), int(row[15] - row[13] + 1)
+            if isinstance(residual, _Bands):
+                # The blob's bounding box alone (split_blob reads nothing outside it): the same peaks.
+                tile = residual.rows(top, top + bh, left, left + bw)
+                n_peaks = split_blob(tile, np.ascontiguousarray(labels[top:top + bh, left:left + bw]), int(labs[k]),
+                                     0, 0, bw, bh, 2.5, 0.7, peak_buf)
+                peak_buf[:n_peaks] += (left, top)
+                src, oy, ox = tile, top, left
+            else:
+                n_peaks = split_blob(residual, labels, int(labs[k]), left, top, bw, bh, 2.5, 0.7, peak_buf)
+                src, oy, ox = residual, 0, 0
             if n_peaks >= 2:
                 peaks = peak_buf[:n_peaks].tolist()
                 for (qx, qy) in peaks:
-                    candidates.append((float(qx), float(qy), float(residual[qy, qx]), area / len(peaks), ns,
+                    candidates.append((float(qx), float(qy), float(src[qy - oy, qx - ox]), area / len(peaks), ns,
                                        plain_rows[k][5], True, f / len(peaks)))
                 continue
         if e > options.max_elongation and area >= 8:
@@ -927,17 +1108,24 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
     cand = np.array([(c[0], c[1], c[5], 1.0 if c[6] else 0.0) for c in candidates], dtype=np.float64)
     out = np.zeros((len(candidates), 12))
     inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
-    args = (float(options.psf_sigma_px or 0.0), np.ascontiguousarray(noise_mesh, dtype=np.float64), int(cell),
-            float(quant_var), inv_g)
-    n_threads = min(threads(), len(candidates) // _FITS_PER_THREAD)
-    if n_threads > 1:
-        # Each fit is independent: chunks of _FITS_PER_CHUNK candidates, to whichever thread is free.
-        kernel = measure_candidates.resolve((residual, cand, *args, out))
-        cuts = list(range(0, len(candidates), _FITS_PER_CHUNK)) + [len(candidates)]
-        _run_chunks(lambda i: kernel(residual, cand[cuts[i]:cuts[i + 1]], *args, out[cuts[i]:cuts[i + 1]]),
-                    len(cuts) - 1, n_threads)
+    mesh = np.ascontiguousarray(noise_mesh, dtype=np.float64)
+
+    def fit(res, cand, mesh, out):
+        args = (float(options.psf_sigma_px or 0.0), mesh, int(cell), float(quant_var), inv_g)
+        n_threads = min(threads(), len(cand) // _FITS_PER_THREAD)
+        if n_threads > 1:
+            # Each fit is independent: chunks of _FITS_PER_CHUNK candidates, to whichever thread is free.
+            kernel = measure_candidates.resolve((res, cand, *args, out))
+            cuts = list(range(0, len(cand), _FITS_PER_CHUNK)) + [len(cand)]
+            _run_chunks(lambda i: kernel(res, cand[cuts[i]:cuts[i + 1]], *args, out[cuts[i]:cuts[i + 1]]),
+                        len(cuts) - 1, n_threads)
+        else:
+            measure_candidates(res, cand, *args, out)
+
+    if not isinstance(residual, _Bands):
+        fit(residual, cand, mesh, out)
     else:
-        measure_candidates(residual, cand, *args, out)
+        residual.measure(cand, options.psf_sigma_px, mesh, cell, out, fit)
     gain = options.gain_e_per_dn
     stars = []
     for (_, _, peak, npix, nsat, _, deblended, _), row in zip(candidates, out.tolist(), strict=True):
@@ -1053,7 +1241,13 @@ def _star_likeness(stars: list, residual):
     r_out = max(r_in + 3.0, 4.0 * fwhm)
     xs = np.array([s_["x"] for s_ in stars])
     ys = np.array([s_["y"] for s_ in stars])
-    around = annulus_medians(residual, xs, ys, r_in, r_out, np.empty(len(stars))).tolist()
+    around = np.empty(len(stars))
+    if isinstance(residual, _Bands):
+        for r0, band, idx in residual.bands(ys, int(math.ceil(r_out)) + 1):
+            around[idx] = annulus_medians(band, xs[idx], ys[idx] - r0, r_in, r_out, np.empty(len(idx)))
+    else:
+        annulus_medians(residual, xs, ys, r_in, r_out, around)
+    around = around.tolist()
     sat_area = math.pi * (3.0 * fwhm) ** 2
     keep, out = [], []
     for s_, ring in zip(stars, around):

@@ -453,7 +453,7 @@ def test_background_pass_noise_equals_the_separate_clipped_std():
     res, labels, counts, noise = np.empty_like(res0), np.zeros(img.shape, np.uint16), np.zeros(300, np.int64), \
         np.full_like(sigma, np.nan)
     for a, b in ((0, 128), (128, 192), (192, 300)):
-        subtract_background_rows(img, level, thresh, 64.0, res, labels, 65535, counts, a, b, sigma, 3.0, 0.986, noise)
+        subtract_background_rows(img, level, thresh, 64.0, res, labels, 65535, counts, a, b, sigma, 3.0, 0.986, noise, 0)
     np.testing.assert_array_equal(res, res0)
     np.testing.assert_array_equal(labels == 65535, mask0 == 1)
     np.testing.assert_array_equal(counts, mask0.sum(axis=1))

@@ -319,7 +319,7 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
 
 @njit(cache=True, nogil=True)
 def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
-                             row1, noise_mesh, kappa, truncated_std, noise_out):
+                             row1, noise_mesh, kappa, truncated_std, noise_out, band0):
     """``residual = image - level`` and the mask ``residual > threshold`` (both maps bilinear between tile centres,
     as ``cv2.resize``) of the rows ``row0 <= y < row1`` into ``residual`` and ``labels`` (``foreground``
     above the threshold, else 0: what :func:`label_blobs_into` labels; no separate mask; ``row_counts[y]`` their
@@ -333,8 +333,12 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
     order (per column over a tile row's rows, then over a tile's columns), so the same values to the bit,
     when the strip's bounds are tile-row bounds.  The mesh must cover the image (``cell`` times its
     shape at least the image's).
+
+    ``image`` and ``residual`` may be bands of the frame: their row ``y - band0`` is the frame's row ``y`` (0 for
+    whole frames); ``labels`` and ``row_counts`` are the whole frame's.
     """
-    h, w = image.shape
+    h = labels.shape[0]
+    w = image.shape[1]
     ny, nx = level_mesh.shape
     noise = noise_out.shape[0] == ny and noise_out.shape[1] == nx
     fg = foreground
@@ -384,8 +388,8 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
             x0 = starts[k]
             x1 = starts[k + 1]
             t_run = tx[x0:x1]
-            im_run = image[y, x0:x1]
-            res_run = residual[y, x0:x1]
+            im_run = image[y - band0, x0:x1]
+            res_run = residual[y - band0, x0:x1]
             lab_run = labels[y, x0:x1]
             for q in range(x1 - x0):
                 t = t_run[q]
@@ -397,7 +401,7 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
         row_counts[y] = count
         if noise:
             # The row again, from the cache: one loop over the whole row vectorises.
-            row = residual[y]
+            row = residual[y - band0]
             for x in range(w):
                 v = row[x]
                 keep = abs(v) <= lim[x]
@@ -557,6 +561,158 @@ def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground,
             for yy in range(max(0, py - 1), min(h, py + 2)):
                 for xx in range(max(0, px - 1), min(w, px + 2)):
                     s9 += max(residual[yy, xx], 0.0)
+            row[11] = peak / s9 if s9 > 0 else 1.0
+            row[12] = left
+            row[13] = upper
+            row[14] = right
+            row[15] = lower
+    return n
+
+
+@njit(cache=True, inline="always")
+def residual_at(image, level_mesh, cell, y, x):
+    """The residual of pixel ``(y, x)``, float32: ``image`` less the bilinear background level, the same
+    operations as :func:`subtract_background_rows` (the same value to the bit)."""
+    ny, nx = level_mesh.shape
+    fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
+    j0 = min(int(fy), ny - 2) if ny > 1 else 0
+    j1 = min(j0 + 1, ny - 1)
+    ty = fy - j0
+    fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
+    a = min(int(fx), nx - 2) if nx > 1 else 0
+    b = min(a + 1, nx - 1)
+    t = fx - a
+    la = level_mesh[j0, a] * (1.0 - ty) + level_mesh[j1, a] * ty
+    dl = (level_mesh[j0, b] * (1.0 - ty) + level_mesh[j1, b] * ty) - la
+    return np.float32(image[y, x] - (la + dl * t))
+
+
+@njit(cache=True, nogil=True)
+def residual_rows(image, level_mesh, cell, row0, row1, col0, col1, out):
+    """The residual of the frame's rows ``row0 <= y < row1`` and columns ``col0 <= x < col1`` into ``out``
+    (``out[y - row0, x - col0]``), the same values to the bit as :func:`subtract_background_rows`' (a band
+    of the residual, recomputed where a measurement needs it)."""
+    ny, nx = level_mesh.shape
+    n = col1 - col0
+    tx = np.empty(n)
+    ra = np.empty(n, dtype=np.int64)
+    rb = np.empty(n, dtype=np.int64)
+    for q in range(n):
+        fx = min(max((col0 + q + 0.5) / cell - 0.5, 0.0), nx - 1.0)
+        a = min(int(fx), nx - 2) if nx > 1 else 0
+        ra[q] = a
+        rb[q] = min(a + 1, nx - 1)
+        tx[q] = fx - a
+    lrow = np.empty(nx)
+    for y in range(row0, row1):
+        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
+        j0 = min(int(fy), ny - 2) if ny > 1 else 0
+        j1 = min(j0 + 1, ny - 1)
+        ty = fy - j0
+        for i in range(nx):
+            lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
+        im = image[y]
+        res = out[y - row0]
+        for q in range(n):
+            la = lrow[ra[q]]
+            res[q] = im[col0 + q] - (la + (lrow[rb[q]] - la) * tx[q])
+    return out
+
+
+@njit(cache=True)
+def label_blobs_lazy(image, level_mesh, cell, saturation, max_blobs, labels, foreground, row_counts, table, stack):
+    """:func:`label_blobs_into` without a residual image: each residual value read is computed from ``image``
+    and the background mesh as :func:`subtract_background_rows` computes it (:func:`residual_at`, the same
+    value to the bit), so a frame too large for a whole residual is labelled with its labels alone."""
+    h, w = labels.shape
+    fg = foreground
+    table[0, :] = 0.0
+    n = 0
+    for y0 in range(h):
+        if row_counts[y0] == 0:
+            continue
+        lrow = labels[y0]
+        for x0 in range(w):
+            if lrow[x0] != fg:
+                continue
+            n += 1
+            if n > max_blobs:
+                return n
+            labels[y0, x0] = n
+            top = 0
+            stack[top] = y0 * w + x0
+            top += 1
+            s = 0.0
+            sx = 0.0
+            sy = 0.0
+            sxx = 0.0
+            syy = 0.0
+            sxy = 0.0
+            peak = -1e300
+            px = x0
+            py = y0
+            npix = 0
+            nsat = 0
+            left = x0
+            right = x0
+            upper = y0
+            lower = y0
+            while top > 0:
+                top -= 1
+                idx = stack[top]
+                y = idx // w
+                x = idx - y * w
+                v = residual_at(image, level_mesh, cell, y, x)
+                npix += 1
+                if image[y, x] >= saturation:
+                    nsat += 1
+                if v > peak:
+                    peak = v
+                    px = x
+                    py = y
+                if v > 0:
+                    s += v
+                    sx += v * x
+                    sy += v * y
+                    sxx += v * x * x
+                    syy += v * y * y
+                    sxy += v * x * y
+                left = min(left, x)
+                right = max(right, x)
+                upper = min(upper, y)
+                lower = max(lower, y)
+                for dy in range(-1, 2):
+                    yy = y + dy
+                    if yy < 0 or yy >= h:
+                        continue
+                    for dx in range(-1, 2):
+                        xx = x + dx
+                        if xx < 0 or xx >= w or labels[yy, xx] != fg:
+                            continue
+                        labels[yy, xx] = n
+                        if top < stack.shape[0]:
+                            stack[top] = yy * w + xx
+                            top += 1
+            row = table[n]
+            row[:] = 0.0
+            row[0] = s
+            if s > 0:
+                cx = sx / s
+                cy = sy / s
+                row[1] = cx
+                row[2] = cy
+                row[7] = sxx / s - cx * cx
+                row[8] = syy / s - cy * cy
+                row[9] = sxy / s - cx * cy
+            row[3] = peak
+            row[4] = px
+            row[5] = py
+            row[6] = npix
+            row[10] = nsat
+            s9 = 0.0
+            for yy in range(max(0, py - 1), min(h, py + 2)):
+                for xx in range(max(0, px - 1), min(w, px + 2)):
+                    s9 += max(residual_at(image, level_mesh, cell, yy, xx), 0.0)
             row[11] = peak / s9 if s9 > 0 else 1.0
             row[12] = left
             row[13] = upper
