@@ -546,7 +546,7 @@ def _run_chunks(run, n_chunks: int, n_threads: int) -> None:
 #: residual (4 bytes a pixel) is kept and reused across frames, which is faster.
 _BAND_MIN_PIXELS = 16_000_000
 #: Bytes of a band of float32 rows (at least one mesh tile row and a fit's reach on either side).
-_BAND_BYTES = 16_000_000
+_BAND_BYTES = 8_000_000
 
 
 class _Bands:
@@ -589,7 +589,9 @@ class _Bands:
             r0 = max(0, int(math.floor(first)) - reach)
             r0 -= r0 % cell
             r1 = min(h, int(math.ceil(yc[order[j - 1]])) + reach + 2)
-            yield r0, self.rows(r0, r1), order[i:j]
+            band = self.rows(r0, r1)
+            yield r0, band, order[i:j]
+            del band            # before the next band is made (the caller drops its own reference too)
             i = j
 
     def measure(self, cand, psf_sigma, mesh, cell, out, fit):
@@ -620,6 +622,7 @@ class _Bands:
                     part[k, 9], part[k, 10] = aperture_flux(self.rows(a, b), part[k, 0], y + r0 - a, r)
             part[:, 1] += r0
             out[idx] = part
+            del band
 
 
 def _banded(image, options) -> bool:
@@ -667,6 +670,8 @@ def _mask_in_bands(image, level_mesh, thresh_mesh, cell, labels, foreground, row
             det = cv2.GaussianBlur(res, (k, k), options.filter_sigma_px)
             subtract_background_rows(det, zeros, det_thresh, float(cell), det, labels, int(foreground), row_counts,
                                      r0, r1, sig, _CLIP_KAPPA, _CLIP_STD, np.empty((0, 0)), a)
+            del det
+        del band, res
     return _noise_floor(out, sigma_mesh) if noise else None
 
 
@@ -1245,6 +1250,7 @@ def _star_likeness(stars: list, residual):
     if isinstance(residual, _Bands):
         for r0, band, idx in residual.bands(ys, int(math.ceil(r_out)) + 1):
             around[idx] = annulus_medians(band, xs[idx], ys[idx] - r0, r_in, r_out, np.empty(len(idx)))
+            del band
     else:
         annulus_medians(residual, xs, ys, r_in, r_out, around)
     around = around.tolist()
