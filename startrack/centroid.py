@@ -632,6 +632,21 @@ def _banded(image, options) -> bool:
             and options.method == "gauss" and min(image.shape) >= 2 * options.mesh_px)
 
 
+def warm_bands(image) -> None:
+    """Run the band path (:class:`_Bands`) on ``image`` (a small frame suffices) as uint8, uint16 and float32,
+    with and without the matched filter, so that its kernels are compiled in this process (before an
+    ahead-of-time build of them: a large frame then needs no compiler)."""
+    global _BAND_MIN_PIXELS
+    saved, _BAND_MIN_PIXELS = _BAND_MIN_PIXELS, 0
+    try:
+        for dtype in (np.uint8, np.uint16, np.float32):
+            frame = np.clip(image, 0, np.iinfo(dtype).max if dtype != np.float32 else None).astype(dtype)
+            for deep in (False, True):
+                find_stars(frame, CentroidOptions(matched_filter=deep))
+    finally:
+        _BAND_MIN_PIXELS = saved
+
+
 def _mask_in_bands(image, level_mesh, thresh_mesh, cell, labels, foreground, row_counts, sigma_mesh, options):
     """:func:`_subtract_background` (and the matched filter's mask) band by band: the mask into ``labels``, the
     pixel-noise mesh (or None) returned, no residual kept.  The bands are whole tile rows, so the noise mesh is

@@ -592,6 +592,9 @@ def warm_for_build(index=None) -> None:
 
         for method in METHODS:
             find_stars(image, replace(CentroidOptions(), method=method))
+        from startrack.centroid import warm_bands
+
+        warm_bands(image)       # a large frame's band path (issue 41)
     # Kernels a real image may call that this frame does not: estimate_background's fallbacks (global
     # samples with NaN or infinities, a mesh too fine to copy) and centroid_windows' border statistics.
     from startrack._kernels.background import background_mesh, core_stats_of_sorted
