@@ -276,7 +276,7 @@ def _with_chatter(problem: str, cap) -> str:
     return f"{problem} ({line})" if line else problem
 
 
-def read_image(path: str, max_pixels: int | None = None):
+def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False):
     """Read an image as a 2-D float32 array of DN.
 
     Parameters
@@ -286,10 +286,13 @@ def read_image(path: str, max_pixels: int | None = None):
     max_pixels : int, optional
         Refuse (``BadInputError``) an image with more pixels than this, checked
         from the header before decoding; default :func:`max_image_pixels`.
+    whole_dn : bool
+        Return a single-channel 8- or 16-bit file as decoded (uint8 or uint16: the same values in a
+        quarter or half of float32's memory; issue 41) instead of as float32.
 
     Returns
     -------
-    image : ndarray (height, width) of float32
+    image : ndarray (height, width) of float32 (uint8 or uint16 with ``whole_dn``, as above)
     info : dict
         ``bit_depth`` (8 or 16 as stored, 32 for floating-point files; 12-bit
         data arrive in 16-bit files), ``channels`` of the file, ``saturation``
@@ -323,10 +326,10 @@ def read_image(path: str, max_pixels: int | None = None):
         if ext in (".fits", ".fit", ".fts") or _magic(path) == b"SIMPLE  =":
             img, bit_depth, channels, saturation = _read_fits(path, limit)
         else:
-            img, bit_depth, channels, saturation = _read_cv2(path, limit)
+            img, bit_depth, channels, saturation = _read_cv2(path, limit, whole_dn)
     if img.ndim != 2 or img.shape[0] == 0 or img.shape[1] == 0:
         raise BadInputError(path, None, f"has no pixels (shape {img.shape})")
-    if not np.all(np.isfinite(img)):
+    if img.dtype.kind == "f" and not np.all(np.isfinite(img)):
         img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     return img, {"bit_depth": bit_depth, "channels": channels, "saturation": saturation}
 
@@ -367,7 +370,7 @@ def _read_fits(path, limit):
     return img, bit_depth, 1, float(np.iinfo(dtype).max) if dtype.itemsize <= 2 else float(img.max())
 
 
-def _read_cv2(path, limit):
+def _read_cv2(path, limit, whole_dn=False):
     import cv2
 
     with captured_stderr() as cap:
@@ -393,8 +396,11 @@ def _read_cv2(path, limit):
         else:
             # ITU-R BT.601 luminance; OpenCV stores BGR.
             img = np.ascontiguousarray(raw.astype(np.float32) @ np.array([0.114, 0.587, 0.299], dtype=np.float32))
+    elif whole_dn and dtype in (np.uint8, np.uint16):
+        img = np.ascontiguousarray(raw)
     else:
         img = raw.astype(np.float32)
+    del raw             # before the caller's next step: a large frame's decoded copy is not kept
     # Bit depth and saturation from the decoded type, before any conversion to float.
     if dtype == np.uint8:
         return img, 8, channels, 255.0

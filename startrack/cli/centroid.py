@@ -112,7 +112,8 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
     n_stars = [0]
 
     def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
-        image, meta = read_frame_image(doc, source, "no image to centroid")
+        # An 8- or 16-bit frame stays as decoded (find_stars takes it so; issue 41), unless it is calibrated.
+        image, meta = read_frame_image(doc, source, "no image to centroid", whole_dn=calibration is None)
         path = doc["image"]["path"]
         out = doc
         out["format"] = FRAME_FORMAT
@@ -152,7 +153,8 @@ def command(inputs, method, threshold_sigma, threshold_dn, background, mesh_px, 
         if plot:
             from startrack.plot import annotate_stars
 
-            annotate_stars(plot_names(index), image, out["stars"], out["centroid"].get("rejected"),
+            annotate_stars(plot_names(index), image.astype("float32", copy=False), out["stars"],
+                           out["centroid"].get("rejected"),
                            title=f"{os.path.basename(path)}: {len(out['stars'])} stars ({method})")
         return out
 

@@ -139,8 +139,9 @@ def _json_type(value) -> str:
     return {str: "a string", list: "a list", dict: "an object"}.get(type(value), type(value).__name__)
 
 
-def read_frame_image(doc: dict, source: str, why: str = "this command needs the image"):
-    """The image a frame document names (``image.path``), read by :func:`startrack.imageio.read_image`.
+def read_frame_image(doc: dict, source: str, why: str = "this command needs the image", whole_dn: bool = False):
+    """The image a frame document names (``image.path``), read by :func:`startrack.imageio.read_image`
+    (``whole_dn``: an 8- or 16-bit file's pixels as decoded, not float32).
 
     Every problem names the document and the field: ``FILE:LINE: image.path: sky.png: no such file``.
     """
@@ -153,7 +154,7 @@ def read_frame_image(doc: dict, source: str, why: str = "this command needs the 
     if not isinstance(path, str):
         raise BadInputError(source, "image.path", f"must be a file name, got {_json_type(path)}")
     try:
-        return read_image(path)
+        return read_image(path, whole_dn=whole_dn)
     except BadInputError as exc:
         if exc.source != path:
             raise
