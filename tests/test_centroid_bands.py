@@ -134,3 +134,25 @@ def test_peak_memory_of_a_large_frame_is_two_bytes_a_pixel(mode):
     n_stars, before, peak = (int(v) for v in out.stdout.split())
     assert n_stars >= 250
     assert peak - before <= 2.5 * 20_000_000 + 40_000_000, (peak - before) / 1e6
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_centroid_cli_keeps_whole_dn_frames_as_decoded(frame, bits, tmp_path):
+    """read_image(whole_dn=True) gives the file's own values in its own type, and `startrack centroid` (which reads
+    so) finds the stars find_stars finds on the float32 read."""
+    import json
+
+    from conftest import run_cli
+
+    from startrack.imageio import read_image, write_image
+
+    path = str(tmp_path / f"sky{bits}.png")
+    write_image(path, frame if bits == 16 else (frame >> 8).astype(np.uint8))
+    as_float, meta = read_image(path)
+    as_read, meta2 = read_image(path, whole_dn=True)
+    assert as_float.dtype == np.float32 and as_read.dtype == (np.uint16 if bits == 16 else np.uint8)
+    assert np.array_equal(as_read, as_float) and meta == meta2
+    want = find_stars(as_float, CentroidOptions(max_stars=30), saturation=meta["saturation"]).stars
+    doc = json.loads(run_cli("centroid", path, "--max-stars", "30", "-q", check=True).stdout)
+    assert [(s["x"], s["y"], s["flux"]) for s in doc["stars"]] == [(s["x"], s["y"], s["flux"]) for s in want]
+    assert doc["image"]["bit_depth"] == bits
