@@ -545,17 +545,19 @@ def _run_chunks(run, n_chunks: int, n_threads: int) -> None:
 #: nor float copy of the frame, ~2 bytes a pixel (the labels) beyond the frame (issue 41).  Below it the whole
 #: residual (4 bytes a pixel) is kept and reused across frames, which is faster.
 _BAND_MIN_PIXELS = 16_000_000
-#: Bytes of a band of float32 rows (at least one mesh tile row and a fit's reach on either side).
+#: Bytes of a band of float32 rows in the mask's and the background mesh's passes (at least one tile row).
 _BAND_BYTES = 8_000_000
 
 
 class _Bands:
-    """The residual of a frame too large to hold whole: bands of full-width rows, computed where they are needed
-    (:func:`startrack._kernels.centroid.residual_rows`, the same values to the bit as the whole residual's).
+    """The residual of a frame too large to hold whole, computed where a measurement needs it
+    (:func:`startrack._kernels.centroid.residual_rows`, the same values to the bit as the whole residual's):
+    windows around each candidate and star, bands of rows for the mask (:func:`_mask_in_bands`).
 
-    A band's first row is a multiple of the mesh tile (``cell``), so the noise mesh's rows from
-    ``r0 // cell`` on are the band's own.  Positions handed to a kernel on a band are ``y - r0`` (exact:
-    an integer taken from a coordinate at least as large); the kernels' sums over pixels are then the same.
+    A window starts on a multiple of the mesh tile (``cell``) on either axis, so the noise mesh's tiles from
+    ``(y0 // cell, x0 // cell)`` on are the window's own.  Positions handed to a kernel on a window are
+    ``x - x0, y - y0`` (exact: an integer taken from a coordinate at least as large), so its pixels' offsets
+    from them are the same numbers; a fit's iterates, kept at a finer precision, differ in the last bits.
     """
 
     def __init__(self, image, level_mesh, cell):
@@ -572,57 +574,52 @@ class _Bands:
         return residual_rows(self.image, self.level, float(self.cell), int(r0), int(r1), int(c0), int(c1),
                              np.empty((r1 - r0, c1 - c0), dtype=np.float32))
 
-    def bands(self, ys, reach):
-        """``(r0, band, idx)``: the items ``idx`` (indices into ``ys``, rows of the frame) whose rows ``y +- reach``
-        lie in the band of rows from ``r0``; every item in one band, bands of about :data:`_BAND_BYTES`."""
+    def window(self, x, y, reach):
+        """``(y0, x0, tile)``: the residual of the rows and columns within ``reach`` of ``(x, y)`` (a position
+        outside the frame is taken at its nearest pixel), from a multiple of the mesh tile on either axis."""
         h, w = self.shape
         cell = self.cell
-        ys = np.asarray(ys, dtype=np.float64)
-        yc = np.clip(np.nan_to_num(ys, nan=0.0), 0, h - 1)
-        order = np.argsort(yc, kind="stable")
-        span = max(cell, _BAND_BYTES // (4 * w) - 2 * reach - cell)
-        i, n = 0, len(order)
-        while i < n:
-            first = yc[order[i]]
-            j = int(np.searchsorted(yc[order], first + span, side="right"))
-            j = max(j, i + 1)
-            r0 = max(0, int(math.floor(first)) - reach)
-            r0 -= r0 % cell
-            r1 = min(h, int(math.ceil(yc[order[j - 1]])) + reach + 2)
-            band = self.rows(r0, r1)
-            yield r0, band, order[i:j]
-            del band            # before the next band is made (the caller drops its own reference too)
-            i = j
+        xc = min(max(x, 0.0), w - 1.0) if x == x else 0.0
+        yc = min(max(y, 0.0), h - 1.0) if y == y else 0.0
+        y0 = max(0, int(math.floor(yc)) - reach)
+        x0 = max(0, int(math.floor(xc)) - reach)
+        y0 -= y0 % cell
+        x0 -= x0 % cell
+        y1 = min(h, int(math.ceil(yc)) + reach + 2)
+        x1 = min(w, int(math.ceil(xc)) + reach + 2)
+        return y0, x0, self.rows(y0, y1, x0, x1)
 
     def measure(self, cand, psf_sigma, mesh, cell, out, fit):
-        """:func:`_measure_gauss`'s fits ``fit(residual, cand, mesh, out)`` band by band, then each aperture
-        that reached beyond its band again on rows that hold it."""
+        """:func:`_measure_gauss`'s fits ``fit(residual, cand, mesh, out)``, each candidate on a window of the
+        residual that holds every pixel its fits read (and its aperture, else the aperture again on a window
+        that holds it)."""
         from startrack._kernels.centroid import aperture_flux
 
-        h = self.shape[0]
-        sig = np.full(len(cand), float(psf_sigma)) if psf_sigma else np.clip(cand[:, 2], 0.5, 5.0)
-        half = int(max(2, math.ceil(3 * float(sig.max()))))
-        # The unweighted fit moves at most ``half`` from the candidate (else it is refused), its sigma at most
-        # 4 half; the weighted fit's window is at most 3.5 times that: every fitted pixel within 15 half + 1.
-        reach = 15 * half + 2
-        for r0, band, idx in self.bands(cand[:, 1], reach):
-            local = cand[idx].copy()
-            local[:, 1] -= r0
-            part = np.zeros((len(idx), out.shape[1]))
-            fit(band, local, np.ascontiguousarray(mesh[r0 // cell:]), part)
-            r1 = r0 + band.shape[0]
-            for k in range(len(idx)):
-                y, s_ = part[k, 1], part[k, 2]
-                r = max(2.0, 3.0 * s_)
-                if (r0 > 0 and math.floor(y - r) < r0 - r0) or (r1 < h and math.ceil(y + r) + 1 > r1 - r0):
-                    # The aperture (3 fitted sigmas) reached out of the band: sum it on rows that hold it.
-                    a = max(0, int(math.floor(y + r0 - r)) - 1)
-                    a -= a % cell
-                    b = min(h, int(math.ceil(y + r0 + r)) + 2)
-                    part[k, 9], part[k, 10] = aperture_flux(self.rows(a, b), part[k, 0], y + r0 - a, r)
-            part[:, 1] += r0
-            out[idx] = part
-            del band
+        h, w = self.shape
+        part = np.zeros((1, out.shape[1]))
+        for k in range(len(cand)):
+            sig = float(psf_sigma) if psf_sigma else max(0.5, min(float(cand[k, 2]), 5.0))
+            half = int(max(2, math.ceil(3 * sig)))
+            # The unweighted fit moves at most ``half`` from the candidate (else it is refused), its sigma at most
+            # 4 half; the weighted fit's window is at most 3.5 times that: every fitted pixel within 15 half + 1.
+            y0, x0, tile = self.window(cand[k, 0], cand[k, 1], 15 * half + 2)
+            th, tw = tile.shape
+            local = cand[k:k + 1].copy()
+            local[0, 0] -= x0
+            local[0, 1] -= y0
+            part[:] = 0.0
+            fit(tile, local, np.ascontiguousarray(mesh[y0 // cell:(y0 + th - 1) // cell + 1,
+                                                       x0 // cell:(x0 + tw - 1) // cell + 1]), part)
+            x, y = part[0, 0], part[0, 1]
+            r = max(2.0, 3.0 * part[0, 2])
+            if ((y0 > 0 and math.floor(y - r) < 0) or (y0 + th < h and math.ceil(y + r) + 1 > th)
+                    or (x0 > 0 and math.floor(x - r) < 0) or (x0 + tw < w and math.ceil(x + r) + 1 > tw)):
+                # The aperture (3 fitted sigmas) reached out of the window: sum it on a window that holds it.
+                a, b, tile = self.window(x + x0, y + y0, int(math.ceil(r)) + 2)
+                part[0, 9], part[0, 10] = aperture_flux(tile, x + x0 - b, y + y0 - a, r)
+            part[0, 0] += x0
+            part[0, 1] += y0
+            out[k] = part[0]
 
 
 def _banded(image, options) -> bool:
@@ -671,22 +668,28 @@ def _mask_in_bands(image, level_mesh, thresh_mesh, cell, labels, foreground, row
         pad = k // 2
         zeros, det_thresh = np.zeros(thresh.shape), np.ascontiguousarray(thresh * norm)
     step = cell * max(1, _BAND_BYTES // (4 * w * cell))
+    # The band's buffers, made once (fresh pages for every band cost more than the pass).
+    res_buf = np.empty((min(h, step + 2 * pad), w), dtype=np.float32)
+    img_buf = None if image.dtype == np.float32 else np.empty_like(res_buf)
+    det_buf = np.empty_like(res_buf) if options.matched_filter else None
     for r0 in range(0, h, step):
         r1 = min(h, r0 + step)
         a, b = max(0, r0 - pad), min(h, r1 + pad)
-        band = np.ascontiguousarray(image[a:b], dtype=np.float32)
-        res = np.empty((b - a, w), dtype=np.float32)
+        if img_buf is None:
+            band = image[a:b]
+        else:
+            band = img_buf[:b - a]
+            band[...] = image[a:b]          # whole DN: the same values as float32
+        res = res_buf[:b - a]
         subtract_background_rows(band, level, thresh, float(cell), res, labels, int(foreground), row_counts, r0, r1,
                                  sig, _CLIP_KAPPA, _CLIP_STD, out, a)
         if options.matched_filter:
             # The rows beyond the band's own, residual only (their mask is another band's).
             residual_rows(image, level, float(cell), a, r0, 0, w, res[:r0 - a])
             residual_rows(image, level, float(cell), r1, b, 0, w, res[r1 - a:])
-            det = cv2.GaussianBlur(res, (k, k), options.filter_sigma_px)
+            det = cv2.GaussianBlur(res, (k, k), options.filter_sigma_px, dst=det_buf[:b - a])
             subtract_background_rows(det, zeros, det_thresh, float(cell), det, labels, int(foreground), row_counts,
                                      r0, r1, sig, _CLIP_KAPPA, _CLIP_STD, np.empty((0, 0)), a)
-            del det
-        del band, res
     return _noise_floor(out, sigma_mesh) if noise else None
 
 
@@ -1263,9 +1266,10 @@ def _star_likeness(stars: list, residual):
     ys = np.array([s_["y"] for s_ in stars])
     around = np.empty(len(stars))
     if isinstance(residual, _Bands):
-        for r0, band, idx in residual.bands(ys, int(math.ceil(r_out)) + 1):
-            around[idx] = annulus_medians(band, xs[idx], ys[idx] - r0, r_in, r_out, np.empty(len(idx)))
-            del band
+        one = np.empty(1)
+        for k in range(len(stars)):
+            y0, x0, tile = residual.window(xs[k], ys[k], int(math.ceil(r_out)) + 1)
+            around[k] = annulus_medians(tile, xs[k:k + 1] - x0, ys[k:k + 1] - y0, r_in, r_out, one)[0]
     else:
         annulus_medians(residual, xs, ys, r_in, r_out, around)
     around = around.tolist()
