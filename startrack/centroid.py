@@ -624,9 +624,9 @@ class _Bands:
 
 def _banded(image, options) -> bool:
     """Whether :func:`find_stars` measures ``image`` in bands (:class:`_Bands`): a frame of at least
-    :data:`_BAND_MIN_PIXELS`, a mesh background (at least 2 x 2 tiles) and the ``gauss`` method."""
+    :data:`_BAND_MIN_PIXELS` and a mesh background (at least 2 x 2 tiles)."""
     return (image.ndim == 2 and image.size >= _BAND_MIN_PIXELS and options.background == "mesh"
-            and options.method == "gauss" and min(image.shape) >= 2 * options.mesh_px)
+            and min(image.shape) >= 2 * options.mesh_px)
 
 
 def warm_bands(image) -> None:
@@ -977,40 +977,49 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     if method == "gauss":
         stars = _measure_brightest(residual, candidates, options, sigma_mesh, cell, quant, memo)
         candidates = []
+    h_img, w_img = img.shape
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
+        if isinstance(residual, _Bands):
+            # A window of the residual holding every pixel read below (the windowed centroid moves at most
+            # ``half``, its window ``half`` more, the aperture within ``half``); positions in it less its corner.
+            oy, ox, res = residual.window(cx, cy, (15 if method == "gauss" else 3) * half + 4)
+        else:
+            oy, ox, res = 0, 0, residual
         x, y, ok = cx, cy, True
         fit = None
         xi, yi = int(round(cx)), int(round(cy))
         if deblended or method == "iwc":
-            x, y, ok = windowed_centroid(residual, cx, cy, sigma_psf, half, 30)
+            x, y, ok = windowed_centroid(res, cx - ox, cy - oy, sigma_psf, half, 30)
+            x, y = x + ox, y + oy
         elif method == "quine":
-            if 1 <= xi < residual.shape[1] - 1 and 1 <= yi < residual.shape[0] - 1:
+            if 1 <= xi < w_img - 1 and 1 <= yi < h_img - 1:
                 # peak pixel of the blob, then 3-pixel sums across the other axis
-                win = residual[yi - 1:yi + 2, xi - 1:xi + 2]
+                win = res[yi - oy - 1:yi - oy + 2, xi - ox - 1:xi - ox + 2]
                 colsum = win.sum(axis=0)
                 rowsum = win.sum(axis=1)
                 x = xi + quine_offset(colsum[0], colsum[1], colsum[2], sigma_psf)
                 y = yi + quine_offset(rowsum[0], rowsum[1], rowsum[2], sigma_psf)
         elif method == "gauss":
-            x, y, s_fit, amp, ok = gaussian_fit(residual, cx, cy, sigma_psf, half, 50)
+            x, y, s_fit, amp, ok = gaussian_fit(res, cx - ox, cy - oy, sigma_psf, half, 50)
             if ok:
                 sigma_psf = s_fit
                 # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).
-                n_var = sigma_at(x, y) ** 2
+                n_var = sigma_at(x + ox, y + oy) ** 2
                 inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
                 wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
-                    residual, x, y, s_fit, amp, max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
+                    res, x, y, s_fit, amp, max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
                 if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
                     x, y, sigma_psf = wx, wy, ws
                     fit = {"cov_px2": [[float(cxx), float(cxy)], [float(cxy), float(cyy)]],
                            "fit_chi2": float(chi2), "fit_dof": int(n_pix - 5)}
+            x, y = x + ox, y + oy
         if not ok:
             x, y = cx, cy
         # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
         r = max(2.0, 3.0 * sigma_psf)
-        flux, n_ap = aperture_flux(residual, x, y, r)
+        flux, n_ap = aperture_flux(res, x - ox, y - oy, r)
         noise = sigma_at(x, y)
         if flux <= 0:
             continue

@@ -41,7 +41,8 @@ def _both(image, options, monkeypatch, band_rows):
 
 @pytest.mark.parametrize("opts", [{}, {"matched_filter": True, "threshold_sigma": 3.0}, {"max_stars": 40},
                                   {"matched_filter": True, "max_stars": 25, "gain_e_per_dn": 1.0},
-                                  {"mesh_px": 48}])
+                                  {"mesh_px": 48}, {"method": "com"}, {"method": "iwc", "matched_filter": True},
+                                  {"method": "quine", "max_stars": 40}])
 def test_bands_give_the_whole_frames_stars(frame, opts, monkeypatch):
     options = CentroidOptions(**opts)
     whole, banded = _both(frame, options, monkeypatch, 100)
