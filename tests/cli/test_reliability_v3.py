@@ -622,7 +622,7 @@ def test_an_internal_error_names_the_file_it_happened_on(tmp_path):
     doc = run_cli("render", "--fov-deg", "10", "--size", "64x64", "--seed", "1", "-o", img, check=True).stdout
     (tmp_path / "sky.json").write_text(doc)
     proc = _run_patched("import startrack.imageio as io\n"
-                        "def bad(path, limit): raise ZeroDivisionError('division by zero')\n"
+                        "def bad(path, *args, **kw): raise ZeroDivisionError('division by zero')\n"
                         "io._read_cv2 = bad", "plot", tmp_path / "sky.json", "-o", tmp_path / "p.png")
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 1 and len(lines) == 1, proc.stderr
