@@ -320,3 +320,42 @@ def test_verification_in_a_cone_is_the_whole_catalogs(seed):
     tilted = axis + np.cross(axis, [0.0, 0.0, 1.0]) / np.linalg.norm(np.cross(axis, [0.0, 0.0, 1.0])) * 0.035
     ok, *_ = refine_in_cone(b, sub, img, pos, cos_fov, *geometry, tilted / np.linalg.norm(tilted), reach)
     assert not ok
+
+
+def test_a_candidate_refused_at_refinement_leaves_the_probe_for_the_next():
+    """One probe (an image pattern, one level) finds two catalog patterns under its key: first a decoy, the image
+    pattern's own shape at a focal length below ``f_lo`` (it passes the comparison at the probe's guess, and its
+    refined focal length is refused), then the right one (the image stars, with centroid noise, at 7844 px).  The
+    right one is found as it is found alone: the refused decoy must not leave the image edges at its focal length."""
+    from startrack._kernels.patterns import _edges, _key, prefix_table, query_patterns
+
+    xy = np.array([[872.3209341278791, 106.69952956431172], [720.676627729201, 630.6071718870826],
+                   [1005.3922026207168, 648.0311518991821], [434.28504109466917, 752.4009281354162]])
+    right = np.array([[0.045932674753842294, -0.0354435345537074, 0.9983155539448927],
+                      [0.026273790092604166, 0.031886163060575734, 0.9991461157205406],
+                      [0.06293475896353075, 0.033530776161429396, 0.9974542110614473],
+                      [-0.009896247184174676, 0.04682377821859706, 0.9988541425478523]])
+    f_decoy, f_lo = 5656.895823948685, 6661.243241490282
+    decoy = np.column_stack([(xy - [511.5, 383.5]) / f_decoy, np.ones(4)])
+    decoy /= np.linalg.norm(decoy, axis=1)[:, None]
+    edges = [np.empty(6), np.empty(6)]
+    for v, e in zip((decoy, right), edges):
+        _edges(v[0], v[1], v[2], v[3], e)
+    keys = np.array([_key(np.sort(e)) for e in edges], dtype=np.int64)
+    assert keys[0] <= keys[1]                                   # the decoy is compared first
+    rho = float(np.max(edges[0]))
+    vec = np.vstack([decoy, right])
+    pats = np.arange(8, dtype=np.int64).reshape(2, 4)
+
+    def look_up(allowed):
+        return query_patterns(xy, 511.5, 383.5, np.array([[0, 1, 2, 3]]), np.array([rho]), math.sqrt(2.0),
+                              np.array([0]), prefix_table(keys)[None, :], keys, pats, vec,
+                              np.array(allowed, dtype=np.uint8), 1.0, 0.05, f_lo, 20000.0, 100)
+
+    alone_i, alone_f = look_up([0] * 4 + [1] * 4)
+    assert len(alone_i) == 1 and sorted(alone_i[0, 2:6]) == [4, 5, 6, 7]
+    assert abs(alone_f[0, 0] / 7843.906429114131 - 1.0) < 0.01
+    assert len(look_up([1] * 4 + [0] * 4)[0]) == 0              # the decoy alone: refused
+    both_i, both_f = look_up([1] * 8)
+    np.testing.assert_array_equal(both_i, alone_i)
+    np.testing.assert_array_equal(both_f, alone_f)

@@ -343,6 +343,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
     es = np.empty(6)                # ``ie`` at the probe's f0, ascending: the key's ratios
     ie_sorted = np.empty(6)         # ``ie`` ascending, kept with it (the pre-filter of _sorted_fit)
     cs = np.empty(6)
+    ivr = np.empty((4, 3))          # the refinement's own arrays: a refused candidate leaves the probe's
+    ier = np.empty(6)               # ``ie`` (at f0) as it was for the next catalog patterns
     for ci in range(combos.shape[0]):
         # pixel extent
         lpx = 0.0
@@ -424,13 +426,10 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         for _ in range(3):
                             f = f / scale
                             for k in range(4):
-                                _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f, iv[k])
-                            _edges(iv[0], iv[1], iv[2], iv[3], ie)
-                            q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f,
+                                _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f, ivr[k])
+                            _edges(ivr[0], ivr[1], ivr[2], ivr[3], ier)
+                            q, err, scale = _best_permutation(ier, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f,
                                                               tol_geom * rho * rho + 0.001)
-                        # (a candidate refused here leaves ``ie`` at its refined f for the next catalog
-                        # patterns of this probe, as it always did: ``ie_sorted`` follows it)
-                        _sort6(ie, ie_sorted)
                         if f < f_lo or f > f_hi or err > 1.0:
                             continue
                         if n_out < max_out:
@@ -441,11 +440,6 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                             out_f[n_out, 0] = f
                             out_f[n_out, 1] = err
                             n_out += 1
-                        # recompute the image edges at f0 for the remaining catalog patterns
-                        for k in range(4):
-                            _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
-                        _edges(iv[0], iv[1], iv[2], iv[3], ie)
-                        _sort6(ie, ie_sorted)
                     # next bin combination (of the first three ratios)
                     t = 2
                     while t >= 0:
