@@ -157,7 +157,7 @@ def _bounds_problem(values: dict):
         effect = sum(k * x ** (2 * i + 2) for i, k in enumerate(ks))
         if not abs(effect) <= MAX_DISTORTION_FRACTION:
             terms = ", ".join(f"{n} {k:g}" for n, k in zip(DISTORTION_TERMS, ks, strict=True) if k)
-            return "distortion", f"{terms} move the image's farthest corner by {100 * effect:.3g} % of its " \
+            return "distortion", f"the lens terms ({terms}) move the image's farthest corner by {100 * effect:.3g} % of its " \
                                  f"radius (at most {100 * MAX_DISTORTION_FRACTION:g} %: no lens does more)"
     return None
 
