@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 
 __all__ = [
     "AttitudeBound",
@@ -418,7 +418,7 @@ def startrack_frame(image, truth, camera, sensor, ref_rows, ref_vectors, max_sta
 
 
 def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None, identify=None, max_stars=None,
-                      progress=None, merge_px=None):
+                      progress=None, merge_px=None, done=(), on_frame=None):
     """Attitude error against each frame's Cramér-Rao bound over ``n`` rendered frames.
 
     Parameters
@@ -440,6 +440,18 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
         ``progress(done, total)``.
     merge_px : float, optional
         Unresolved separation for the reference directions (:func:`blended_references`).
+    done : iterable of dict, optional
+        The records ``on_frame`` was given for frames ``0 .. m-1`` by an earlier call with the same
+        arguments, in order: those frames are taken from them, not rendered again, and the result is
+        the one an uninterrupted call gives (a frame's result depends only on ``[seed, k]``).
+    on_frame : callable, optional
+        ``on_frame(record)`` as each frame ends, ``record`` a JSON-ready dict: ``frame`` (``k``),
+        ``outcome`` (``ok``, ``far``, ``wrong``, ``failed`` or ``no_bound``) and, for the frames
+        scored (``ok``, ``far``), ``error`` (3, rad), ``bound`` (3, rad^2, the bound's diagonal) and
+        ``cov`` (9, rad^2, the covariance reported, row by row).
+
+    Memory: 15 floats (120 bytes of data) per frame scored, what :func:`summarise` needs, whatever
+    ``done`` holds (it is read one record at a time).
 
     Returns
     -------
@@ -462,29 +474,52 @@ def evaluate_accuracy(camera, catalog, n, seed, sensor=None, render_catalog=None
     dcms = quaternion_to_dcm(random_quaternions(n, np.random.default_rng(seed)))
     errs, crbs, covs = [], [], []
     counts = {"failed": 0, "far": 0, "wrong": 0, "no_bound": 0}
-    for k in range(n):
+
+    def add(rec):
+        if rec["outcome"] in counts:
+            counts[rec["outcome"]] += 1
+        if rec["outcome"] in ("ok", "far"):
+            errs.append(np.asarray(rec["error"], dtype=np.float64).reshape(3))
+            crbs.append(np.asarray(rec["bound"], dtype=np.float64).reshape(3))
+            covs.append(np.asarray(rec["cov"], dtype=np.float64).reshape(3, 3))
+
+    start = 0
+    for rec in done:
+        if not isinstance(rec, dict) or rec.get("frame") != start or start >= n \
+                or rec.get("outcome") not in ("ok", "far", "wrong", "failed", "no_bound"):
+            raise ParameterError("done", f"record {start} is not frame {start}'s of {n} (got {rec!r:.80})",
+                                 "evaluate_accuracy")
+        try:
+            add(rec)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ParameterError("done", f"frame {start}'s record is damaged ({type(exc).__name__}: {exc})",
+                                 "evaluate_accuracy") from None
+        start += 1
+    if progress and start:
+        progress(start, n)
+    for k in range(start, n):
         img, truth = render_image(render_catalog, camera, dcms[k], sensor, Scene(), np.random.default_rng([seed, k]),
                                   vectors=rvec)
         bound, _ = frame_bound(camera, reference_stars(camera, dcms[k], refs, sensor, ivec, truth["focal_length_px"]),
                                sensor, None, max_stars)
-        if bound is None:
-            counts["no_bound"] += 1
-        else:
+        rec = {"frame": k, "outcome": "no_bound"}
+        if bound is not None:
             att = startrack_frame(img, truth, camera, sensor, rows, ivec, max_stars, identify=identify)
             if att is None or att.status != "ok":
-                counts["failed"] += 1
+                rec["outcome"] = "failed"
             else:
                 e = error_vector(att.dcm, dcms[k])
-                far = False
+                rec["outcome"] = "ok"
                 if np.linalg.norm(e) > math.radians(0.1):
                     # Off by more than 0.1 deg: wrong when also beyond 5 sigma of its own covariance,
                     # else "far" (two close stars leave the roll loose: off, but as it says).
-                    far = float(e @ np.linalg.solve(att.cov_rad2, e)) <= 25.0
-                    counts["far" if far else "wrong"] += 1
-                if np.linalg.norm(e) <= math.radians(0.1) or far:
-                    errs.append(e)
-                    crbs.append(np.diag(bound.cov_rad2))
-                    covs.append(att.cov_rad2)
+                    rec["outcome"] = "far" if float(e @ np.linalg.solve(att.cov_rad2, e)) <= 25.0 else "wrong"
+                if rec["outcome"] != "wrong":
+                    rec.update(error=[float(v) for v in e], bound=[float(v) for v in np.diag(bound.cov_rad2)],
+                               cov=[float(v) for v in np.asarray(att.cov_rad2).ravel()])
+        add(rec)
+        if on_frame:
+            on_frame(rec)
         if progress:
             progress(k + 1, n)
     out = summarise(errs, crbs, covs if covs else None)

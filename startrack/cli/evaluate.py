@@ -108,8 +108,9 @@ def _legacy_json_path(ctx, args):
               help="Write the rows as JSON (what `plot --kind evaluate` reads) instead of the text table.")
 @output_option("The table, or with --json the rows as JSON; with a FILE the table is still printed on stdout.")
 @click.option("--resume", is_flag=True,
-              help="Go on from the checkpoint (-o FILE's FILE.partial.json) that a run cut short left, with the same "
-                   "options; the frames are the same, so the rows are those of an uninterrupted run (times aside).")
+              help="Go on from the checkpoint (-o FILE's FILE.partial.json, with --accuracy FILE.partial.jsonl) that "
+                   "a run cut short left, with the same options; the frames are the same, so the rows are those of "
+                   "an uninterrupted run (times aside).")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Chart (.png, .pdf or .svg): success with its 95 % interval, and time, against the condition.")
 @click.option("--accuracy", is_flag=True,
@@ -166,13 +167,9 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
         raise BadInputError("--count", None, f"must be at least 1, got {count}")
     if jobs < 1:
         raise BadInputError("--jobs", None, f"must be at least 1, got {jobs}")
-    if resume and accuracy:
-        # An accuracy run renders and solves frame after frame and writes its summary at the end: nothing is kept
-        # on the way that a later run could go on from.
-        raise BadInputError("--resume", None, "an --accuracy run keeps no checkpoint to go on from (its result is "
-                                              "written at the end): run it again without --resume")
     if resume and output == "-":
-        raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json)")
+        raise BadInputError("--resume", None, "needs -o FILE (its checkpoint is FILE.partial.json"
+                                              + ("l)" if accuracy else ")"))
     for path in (csv_path, None if output == "-" else output, plot):
         if path:
             check_writable(path)
@@ -233,11 +230,12 @@ def command(databases, algorithms, catalog, camera_file, fov_deg, focal_length_m
 
     import numpy as np
 
-    if seed is None and not (resume and os.path.exists(f"{output}.partial.json")):
+    checkpoint = f"{output}.partial.json" + ("l" if accuracy else "")
+    if seed is None and not (resume and os.path.exists(checkpoint)):
         seed = int(np.random.SeedSequence().entropy % (2**31))
     if accuracy:
-        _accuracy(cam, catalog, cat, lim, count, seed, next(iter(loaded.values())), algos[0], max_stars, None if output == "-" else output,
-                  quiet)
+        _accuracy(cam, catalog, cat, lim, count, seed, databases[0], next(iter(loaded.values())), algos[0], max_stars,
+                  None if output == "-" else output, quiet, resume)
         return
     # One step per identified frame (each algorithm's), so the bar moves within a condition and shows the
     # rate and the time left (tqdm's ETA), not a jump from 0 to 100 % at the end of each condition.
@@ -322,12 +320,19 @@ def _peek_format(path):
     return tag
 
 
-def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars, json_path, quiet):
-    """``evaluate --accuracy``: startrack.accuracy.evaluate_accuracy on rendered frames, printed as a table."""
+def _accuracy(cam, catalog_path, cat, lim, count, seed, db_path, db, algorithm, max_stars, json_path, quiet,
+              resume=False):
+    """``evaluate --accuracy``: startrack.accuracy.evaluate_accuracy on rendered frames, printed as a table.
+
+    With ``-o FILE`` each frame's record goes to ``FILE.partial.jsonl`` as it ends (:class:`_AccuracyCheckpoint`),
+    and ``--resume`` goes on from it.
+    """
     import json
+    import os
 
     from startrack.accuracy import evaluate_accuracy
     from startrack.catalog import load_catalog
+    from startrack.errors import BadInputError, ParameterError
     from startrack.formats.atomic import atomic_open
     from startrack.identify import IdentifyParams, identify_stars
     from startrack.progress import ProgressBar
@@ -340,8 +345,18 @@ def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars
 
     render_cat = load_catalog(catalog_path).filter_magnitude(None, lim + 1.0)
     bar = ProgressBar("evaluate", quiet)
-    s = evaluate_accuracy(cam, cat, count, seed, render_catalog=render_cat, identify=identify, max_stars=max_stars,
-                          progress=bar)
+    saved = _AccuracyCheckpoint(json_path, resume, {
+        "seed": seed, "count": count, "camera": cam.to_dict(), "catalog": catalog_path, "mag_limit": lim,
+        "database": os.path.abspath(db_path), "algorithm": algorithm, "max_stars": max_stars})
+    seed = saved.options["seed"]
+    with saved:
+        try:
+            s = evaluate_accuracy(cam, cat, count, seed, render_catalog=render_cat, identify=identify,
+                                  max_stars=max_stars, progress=bar, done=saved.records(), on_frame=saved.add)
+        except ParameterError as exc:
+            if exc.field != "done":
+                raise
+            raise BadInputError(saved.path, "frame", exc.problem) from None
     if not s.get("frames"):
         click.echo(f"no frame solved ({s['failed']} failed, {s['wrong']} wrong, {s['no_bound']} without 2 stars)")
         return
@@ -359,6 +374,122 @@ def _accuracy(cam, catalog_path, cat, lim, count, seed, db, algorithm, max_stars
         with atomic_open(json_path, "w") as fh:
             json.dump({"accuracy": s, "seed": seed, "count": count, "camera": cam.to_dict()}, fh, indent=1,
                       default=list)
+    saved.remove()
+
+
+class _AccuracyCheckpoint:
+    """``FILE.partial.jsonl`` beside ``evaluate --accuracy -o FILE``: a header line, then one line per frame done.
+
+    The header holds the run's ``options`` (seed, count, camera, catalog, magnitude limit, database, algorithm,
+    max_stars); each frame's record (``evaluate_accuracy``'s ``on_frame``) is appended and flushed as the frame
+    ends, so a kill loses at most the frame under way (a last line cut short is dropped on resume).  Removed when
+    the run ends.  ``--resume`` checks the header field by field against this run and goes on after the last
+    frame written; without ``--resume`` a run starts afresh and overwrites it.
+    """
+
+    FORMAT = "startrack.evaluate-accuracy-checkpoint/1"
+
+    def __init__(self, output, resume, options):
+        import json
+        import os
+
+        from startrack.errors import BadInputError
+
+        self.path = None if output is None else f"{output}.partial.jsonl"
+        self.options = dict(options)
+        self._fh = None
+        self._resumed = False
+        if not resume or self.path is None:
+            return
+        if not os.path.exists(self.path):
+            raise BadInputError(self.path, None, "no such file: nothing to resume (run without --resume)")
+        try:  # read directly: this file is written by this run, it is no input to protect
+            with open(self.path, "rb") as fh:
+                head = fh.readline()
+            doc = json.loads(head)
+        except (OSError, ValueError) as exc:
+            raise BadInputError(self.path, None, f"cannot be read as a checkpoint ({exc})") from None
+        if not isinstance(doc, dict) or doc.get("format") != self.FORMAT:
+            raise BadInputError(self.path, "format", "is not an evaluate --accuracy checkpoint")
+        mine = json.loads(json.dumps(self.options))
+        for field, value in mine.items():
+            if field == "seed" and value is None:   # --resume without --seed: the checkpoint's
+                if not isinstance(doc.get("seed"), int):
+                    raise BadInputError(self.path, "seed", f"is {doc.get('seed')!r}, not an integer")
+                self.options["seed"] = doc["seed"]
+                continue
+            if doc.get(field) != value:
+                raise BadInputError(self.path, field, f"is {json.dumps(doc.get(field))}, not this run's "
+                                                      f"{json.dumps(value)}: give the same options, or run without "
+                                                      "--resume")
+        self._resumed = True
+
+    def records(self):
+        """The frames' records already in the file, one at a time (none without --resume)."""
+        import json
+
+        from startrack.errors import BadInputError
+
+        if not self._resumed:
+            return
+        with open(self.path, "rb") as fh:
+            fh.readline()
+            for i, line in enumerate(fh, start=2):
+                if not line.endswith(b"\n"):
+                    return          # cut by a kill while written: that frame is done again
+                try:
+                    yield json.loads(line)
+                except ValueError as exc:
+                    raise BadInputError(self.path, f"line {i}", f"is not a frame record ({exc})") from None
+
+    def __enter__(self):
+        import json
+        import os
+
+        from startrack._version import __version__
+
+        if self.path is None:
+            return self
+        if self._resumed:
+            with open(self.path, "rb+") as fh:   # drop a last line cut short, then append after the whole ones
+                end = fh.seek(0, os.SEEK_END)
+                while end > 0:
+                    start = max(0, end - 4096)
+                    fh.seek(start)
+                    cut = fh.read(end - start).rfind(b"\n")
+                    if cut >= 0:
+                        fh.truncate(start + cut + 1)
+                        break
+                    end = start
+            self._fh = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (closed in __exit__)
+        else:
+            tmp = f"{self.path}.tmp{os.getpid()}"
+            with open(tmp, "w", encoding="utf-8") as fh:
+                fh.write(json.dumps({"format": self.FORMAT, "startrack_version": __version__, **self.options}) + "\n")
+            os.replace(tmp, self.path)
+            self._fh = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (closed in __exit__)
+        return self
+
+    def add(self, record):
+        import json
+
+        if self._fh is not None:
+            self._fh.write(json.dumps(record) + "\n")
+            self._fh.flush()
+
+    def __exit__(self, *exc):
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        return False
+
+    def remove(self):
+        import contextlib
+        import os
+
+        if self.path is not None:
+            with contextlib.suppress(OSError):
+                os.remove(self.path)
 
 
 class _Checkpoint:

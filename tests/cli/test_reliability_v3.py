@@ -981,16 +981,48 @@ def test_plot_skips_positions_far_outside_the_image(tmp_path):
 
 # -- the gaps left: --accuracy --resume, lens-term and pixel-pitch bounds, the label and triangle loaders ----------
 
-def test_evaluate_accuracy_refuses_resume_with_its_reason(db20, tmp_path):
-    """main: `evaluate --accuracy -o F --resume` said "--resume: needs -o FILE ..., without --accuracy" though -o FILE
-    was given: the reason (an accuracy run keeps no checkpoint) was not said.  Now it is, before any work."""
+def test_evaluate_accuracy_resumes_after_kill_9(db20, tmp_path):
+    """main: `evaluate --accuracy -o F --resume` was refused ("an --accuracy run keeps no checkpoint"): a long accuracy
+    run cut short was lost.  Now each frame's record is appended to F.partial.jsonl as it ends; a run killed (-9)
+    mid-way and resumed gives the JSON of an uninterrupted run, byte for byte, doing only the frames not written."""
+    common = ["evaluate", "-d", db20, "--fov-deg", "20", "--size", "256x256", "--accuracy", "-n", "300", "--seed", "3",
+              "-q"]
+    table = run_cli(*common, "-o", tmp_path / "whole.json", check=True).stdout
+    whole = (tmp_path / "whole.json").read_bytes()
+    out = tmp_path / "cut.json"
+    partial = tmp_path / "cut.json.partial.jsonl"
+    proc = _start(*common, "-o", out)
+    assert _kill_when(proc, lambda: _lines(partial) >= 31), "the run ended before it could be killed"
+    kept = _lines(partial) - 1                          # the header line aside
+    assert 30 <= kept < 300 and not out.exists()
+    head = json.loads(partial.read_text().splitlines()[0])
+    assert head["seed"] == 3 and head["count"] == 300
+    with open(partial, "ab") as fh:                     # a record cut short by the kill: dropped, that frame done again
+        fh.write(b'{"frame": ')
+    again = run_cli(*common, "-o", out, "--resume")
+    assert again.returncode == 0, again.stderr
+    assert out.read_bytes() == whole and not partial.exists()
+    assert again.stdout == table                         # the table too
+
+
+def test_evaluate_accuracy_resume_refuses_another_runs_checkpoint(db20, tmp_path):
+    """A checkpoint of another seed (or count, camera...) is refused, exit 2 naming the file and the field, before
+    any frame; so is --resume without a checkpoint or without -o FILE."""
+    common = ["evaluate", "-d", db20, "--fov-deg", "20", "--size", "256x256", "--accuracy", "-n", "300", "-q"]
     out = tmp_path / "acc.json"
-    proc = run_cli("evaluate", "-d", db20, "--fov-deg", "20", "--size", "512x512", "--accuracy", "-n", "2",
-                   "-o", out, "--resume")
-    assert_refused(proc, "--resume: an --accuracy run keeps no checkpoint")
-    assert not out.exists()
-    proc = run_cli("evaluate", "-d", db20, "--fov-deg", "20", "--size", "512x512", "-n", "2", "--resume")
-    assert_refused(proc, "--resume: needs -o FILE")
+    partial = tmp_path / "acc.json.partial.jsonl"
+    proc = _start(*common, "--seed", "4", "-o", out)
+    assert _kill_when(proc, lambda: _lines(partial) >= 3), "the run ended before it could be killed"
+    saved = partial.read_bytes()
+    proc = run_cli(*common, "--seed", "3", "-o", out, "--resume")
+    assert_refused(proc, f"{partial}: seed: is 4, not this run's 3")
+    assert partial.read_bytes() == saved and not out.exists()
+    proc = run_cli(*common[:-3], "-n", "299", "--seed", "4", "-o", out, "--resume")
+    assert_refused(proc, f"{partial}: count: is 300, not this run's 299")
+    proc = run_cli(*common, "--seed", "4", "-o", tmp_path / "other.json", "--resume")
+    assert_refused(proc, "other.json.partial.jsonl: no such file")
+    proc = run_cli(*common, "--seed", "4", "--resume")
+    assert_refused(proc, "--resume: needs -o FILE (its checkpoint is FILE.partial.jsonl)")
 
 
 def test_lens_terms_and_pixel_pitch_are_bounded_in_files_and_in_the_constructor(tmp_path):
