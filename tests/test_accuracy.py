@@ -136,3 +136,23 @@ def test_blended_references_sit_at_the_photocentre():
     one = refs.ra[refs.id.tolist().index(1)]
     w = 10 ** (-0.4 * 2.0)                                        # the companion is 2 mag fainter
     assert one == pytest.approx(10.0 + d * w / (1 + w), abs=1e-7)
+
+
+def test_evaluate_accuracy_goes_on_from_the_records_of_an_earlier_call(catalog):
+    """evaluate_accuracy(done=...): the records on_frame gave for the first frames are taken, not rendered again;
+    only the rest reach on_frame, and the result is the uninterrupted call's.  A record out of order is refused."""
+    from startrack.accuracy import evaluate_accuracy
+    from startrack.errors import ParameterError
+
+    cam = Camera.from_fov(20, 256, 256)
+    cat = catalog.filter_magnitude(None, 4.0)
+    first = []
+    whole = evaluate_accuracy(cam, cat, 14, 5, on_frame=first.append)
+    assert [r["frame"] for r in first] == list(range(14)) and whole["frames"] >= 3
+    assert {r["outcome"] for r in first} <= {"ok", "far", "wrong", "failed", "no_bound"}
+    rest = []
+    assert evaluate_accuracy(cam, cat, 14, 5, done=iter(first[:9]), on_frame=rest.append) == whole
+    assert rest == first[9:]
+    with pytest.raises(ParameterError) as info:
+        evaluate_accuracy(cam, cat, 14, 5, done=first[1:3])
+    assert info.value.field == "done" and "record 0 is not frame 0's" in info.value.problem
