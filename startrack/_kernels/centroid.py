@@ -472,7 +472,29 @@ def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground,
     ``stack`` is scratch.  Reusing the buffers across frames avoids faulting
     ~10 MB of fresh pages per 1024 x 1024 frame.
     """
-    h, w = residual.shape
+    return _label_blobs(residual, image, _NO_MESH, 1.0, False, saturation, max_blobs, labels, foreground,
+                        row_counts, table, stack)
+
+
+@njit(cache=True, inline="always")
+def _residual_value(residual, image, level_mesh, cell, lazy, y, x):
+    """Pixel ``(y, x)`` of the residual: read from ``residual``, or (``lazy``) computed by :func:`residual_at`."""
+    if lazy:
+        return residual_at(image, level_mesh, cell, y, x)
+    return residual[y, x]
+
+
+#: Stand-ins for the argument the other way of reading the residual does not use (:func:`_label_blobs`).
+_NO_MESH = np.zeros((1, 1))
+_NO_RESIDUAL = np.zeros((1, 1), dtype=np.float32)
+
+
+@njit(cache=True)
+def _label_blobs(residual, image, level_mesh, cell, lazy, saturation, max_blobs, labels, foreground, row_counts,
+                 table, stack):
+    """The labelling of :func:`label_blobs_into` (``lazy`` False: the residual read from ``residual``) and of
+    :func:`label_blobs_lazy` (``lazy`` True: computed from ``image`` and ``level_mesh``)."""
+    h, w = labels.shape
     fg = foreground
     table[0, :] = 0.0
     n = 0
@@ -510,7 +532,7 @@ def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground,
                 idx = stack[top]
                 y = idx // w
                 x = idx - y * w
-                v = residual[y, x]
+                v = _residual_value(residual, image, level_mesh, cell, lazy, y, x)
                 npix += 1
                 if image[y, x] >= saturation:
                     nsat += 1
@@ -560,7 +582,7 @@ def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground,
             s9 = 0.0
             for yy in range(max(0, py - 1), min(h, py + 2)):
                 for xx in range(max(0, px - 1), min(w, px + 2)):
-                    s9 += max(residual[yy, xx], 0.0)
+                    s9 += max(_residual_value(residual, image, level_mesh, cell, lazy, yy, xx), 0.0)
             row[11] = peak / s9 if s9 > 0 else 1.0
             row[12] = left
             row[13] = upper
@@ -624,101 +646,8 @@ def label_blobs_lazy(image, level_mesh, cell, saturation, max_blobs, labels, for
     """:func:`label_blobs_into` without a residual image: each residual value read is computed from ``image``
     and the background mesh as :func:`subtract_background_rows` computes it (:func:`residual_at`, the same
     value to the bit), so a frame too large for a whole residual is labelled with its labels alone."""
-    h, w = labels.shape
-    fg = foreground
-    table[0, :] = 0.0
-    n = 0
-    for y0 in range(h):
-        if row_counts[y0] == 0:
-            continue
-        lrow = labels[y0]
-        for x0 in range(w):
-            if lrow[x0] != fg:
-                continue
-            n += 1
-            if n > max_blobs:
-                return n
-            labels[y0, x0] = n
-            top = 0
-            stack[top] = y0 * w + x0
-            top += 1
-            s = 0.0
-            sx = 0.0
-            sy = 0.0
-            sxx = 0.0
-            syy = 0.0
-            sxy = 0.0
-            peak = -1e300
-            px = x0
-            py = y0
-            npix = 0
-            nsat = 0
-            left = x0
-            right = x0
-            upper = y0
-            lower = y0
-            while top > 0:
-                top -= 1
-                idx = stack[top]
-                y = idx // w
-                x = idx - y * w
-                v = residual_at(image, level_mesh, cell, y, x)
-                npix += 1
-                if image[y, x] >= saturation:
-                    nsat += 1
-                if v > peak:
-                    peak = v
-                    px = x
-                    py = y
-                if v > 0:
-                    s += v
-                    sx += v * x
-                    sy += v * y
-                    sxx += v * x * x
-                    syy += v * y * y
-                    sxy += v * x * y
-                left = min(left, x)
-                right = max(right, x)
-                upper = min(upper, y)
-                lower = max(lower, y)
-                for dy in range(-1, 2):
-                    yy = y + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    for dx in range(-1, 2):
-                        xx = x + dx
-                        if xx < 0 or xx >= w or labels[yy, xx] != fg:
-                            continue
-                        labels[yy, xx] = n
-                        if top < stack.shape[0]:
-                            stack[top] = yy * w + xx
-                            top += 1
-            row = table[n]
-            row[:] = 0.0
-            row[0] = s
-            if s > 0:
-                cx = sx / s
-                cy = sy / s
-                row[1] = cx
-                row[2] = cy
-                row[7] = sxx / s - cx * cx
-                row[8] = syy / s - cy * cy
-                row[9] = sxy / s - cx * cy
-            row[3] = peak
-            row[4] = px
-            row[5] = py
-            row[6] = npix
-            row[10] = nsat
-            s9 = 0.0
-            for yy in range(max(0, py - 1), min(h, py + 2)):
-                for xx in range(max(0, px - 1), min(w, px + 2)):
-                    s9 += max(residual_at(image, level_mesh, cell, yy, xx), 0.0)
-            row[11] = peak / s9 if s9 > 0 else 1.0
-            row[12] = left
-            row[13] = upper
-            row[14] = right
-            row[15] = lower
-    return n
+    return _label_blobs(_NO_RESIDUAL, image, level_mesh, cell, True, saturation, max_blobs, labels, foreground,
+                        row_counts, table, stack)
 
 
 @njit(cache=True)
