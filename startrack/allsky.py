@@ -381,8 +381,13 @@ class SkyRegion:
 
     @property
     def masked_fraction(self) -> float:
-        """The fraction of the image's pixels on the ground."""
-        return float(np.mean(self.pixel_mask()))
+        """The fraction of the image's pixels on the ground: each ground block weighted by the pixels it holds
+        (:meth:`_tile`'s rows and columns), without building the whole-frame mask."""
+        row, _ = self._tile(np.zeros(self.height), np.arange(self.height))
+        _, col = self._tile(np.arange(self.width), np.zeros(self.width))
+        ny, nx = self.ground.shape
+        pixels = np.outer(np.bincount(row, minlength=ny), np.bincount(col, minlength=nx))
+        return float(pixels[self.ground].sum()) / (self.width * self.height)
 
     def record(self) -> dict:
         """The ``solve.allsky.sky`` record (docs/formats.md)."""

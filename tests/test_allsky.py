@@ -369,3 +369,16 @@ def test_allsky_verification_in_the_sky_window(mirrored, monkeypatch, solve_cach
         assert x0 - 0.5 <= ix < x1 - 0.5 and y0 - 0.5 <= y < y1 - 0.5
     # (a blend of two faint stars moves a centroid by a pixel or two; a wrong star is tens of pixels away)
     assert max(off) < 3.0 and np.median(off) < 0.3, (max(off), np.median(off))
+
+
+def test_masked_fraction_is_the_pixel_masks_mean():
+    """The ground's fraction from block pixel counts equals the mean of the whole-frame mask (partial last blocks
+    included), on random grounds, block sizes and frames."""
+    from startrack.allsky import SkyRegion
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        w, h, tile = int(rng.integers(20, 300)), int(rng.integers(20, 300)), int(rng.integers(2, 17))
+        ground = rng.random((max(1, h // tile), max(1, w // tile))) < 0.4
+        region = SkyRegion(ground, tile, w, h, 1.0, 0.0, None)
+        assert region.masked_fraction == pytest.approx(float(np.mean(region.pixel_mask())), abs=1e-12)
