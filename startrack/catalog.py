@@ -10,7 +10,6 @@ every Hipparcos 2 star to Hp 8.0 at epoch J1991.25.
 """
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import logging
@@ -593,6 +592,7 @@ def merged_arrays(merged: dict):
 
 
 def _write_csv(catalog: Catalog, path: str, params: dict) -> None:
+    import csv
     import sys
 
     from startrack.formats.atomic import atomic_open

@@ -1,7 +1,6 @@
 """The ``startrack`` group.  Commands are loaded lazily, by name."""
 from __future__ import annotations
 
-import difflib
 import importlib
 import sys
 
@@ -45,6 +44,8 @@ class LazyGroup(click.Group):
     def resolve_command(self, ctx, args):
         name = args[0] if args else ""
         if args and name not in COMMANDS and not name.startswith("-"):
+            import difflib
+
             close = difflib.get_close_matches(name, list(COMMANDS), n=3, cutoff=0.6)
             hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
             raise click.UsageError(f"No such command {name!r}.{hint}", ctx)

@@ -18,8 +18,6 @@ import contextlib
 import errno
 import os
 import re
-import secrets
-import shutil
 import signal
 import stat
 
@@ -254,6 +252,8 @@ def _fsync_dir(directory: str) -> None:
 def _copy_into_special(tmp: str, dest: str, label: str) -> None:
     try:
         with open(tmp, "rb") as src, open(dest, "wb") as dst:
+            import shutil
+
             shutil.copyfileobj(src, dst, 1 << 20)
     except OSError as exc:
         raise write_error(label, exc) from None
@@ -283,7 +283,7 @@ def atomic_path(path: str, suffix: str | None = None):
     if suffix is None:
         suffix = os.path.splitext(path)[1]
     base = os.path.basename(target) or "output"
-    tmp = os.path.join(directory, f".{base}.st{os.getpid()}-{secrets.token_hex(4)}.part{suffix}")
+    tmp = os.path.join(directory, f".{base}.st{os.getpid()}-{os.urandom(4).hex()}.part{suffix}")
     _LIVE_TEMPS.add(tmp)
     try:
         yield tmp
