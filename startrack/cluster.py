@@ -269,29 +269,35 @@ def fork_safe() -> bool:
 def worker_startup_s(spawn_startup_s: float) -> float:
     """Wall time until one worker of this machine's pool takes its first task.
 
-    Forked workers: measured here (a pool of one started, one empty task, closed).
-    Spawned workers redo this process's start-up (interpreter, imports, index,
-    kernels): ``spawn_startup_s``, the caller's measure of its own.
+    Forked workers: measured here, as one fork of this process (a child that
+    exits at once, waited for): what a worker's start copies is this process's
+    page tables, the same for every worker.  Spawned workers redo this
+    process's start-up (interpreter, imports, index, kernels):
+    ``spawn_startup_s``, the caller's measure of its own.
     """
     if not fork_safe():
         return float(spawn_startup_s)
+    _flush_std()
     t0 = time.perf_counter()
-    with _fork_pool(1) as pool:
-        pool.apply(os.getpid)
+    pid = os.fork()
+    if pid == 0:        # the child: no cleanup, no buffered output of the parent's
+        os._exit(0)
+    os.waitpid(pid, 0)
     return time.perf_counter() - t0
 
 
-def pool_workers(jobs: int, n_tasks: int, task_s: float, startup_s: float) -> int:
+def pool_workers(jobs: int, n_tasks: int, task_s: float, startup_s: float, idle: int | None = None) -> int:
     """How many worker processes a batch should use (1: none, run it in this process).
 
     ``n_tasks`` tasks of ``task_s`` seconds each (measured on one of them) take
     ``n_tasks task_s`` here, or about ``startup_s + n_tasks task_s / k`` with ``k``
     workers (they start side by side); ``k`` is at most ``jobs``, the tasks and
-    the CPUs this process may use that other processes leave idle
-    (:func:`idle_cpus`; more processes than idle CPUs only share them).
-    Workers are used only when that estimate is shorter.
+    the CPUs this process may use that other processes leave idle (``idle``, a
+    reading of :func:`idle_cpus` the caller made; read here when not given: more
+    processes than idle CPUs only share them).  Workers are used only when that
+    estimate is shorter.
     """
-    k = min(int(jobs), int(n_tasks), idle_cpus())
+    k = min(int(jobs), int(n_tasks), idle_cpus() if idle is None else int(idle))
     serial = n_tasks * task_s
     if k <= 1 or not startup_s + serial / k < serial:
         return 1

@@ -36,6 +36,7 @@ __all__ = [
     "check_format_tag",
     "dumps_frame",
     "frame_key",
+    "frame_line",
     "read_finished",
     "read_frames",
     "read_json_file",
@@ -478,6 +479,14 @@ def dumps_frame(doc: dict) -> str:
     return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
 
 
+def frame_line(doc: dict, base_dir: str | None = None) -> str:
+    """The line a :class:`FrameWriter` whose :attr:`~FrameWriter.base_dir` is ``base_dir`` writes for ``doc``
+    (newline included)."""
+    if base_dir is not None:
+        doc = relative_image_path(doc, base_dir)
+    return dumps_frame(doc) + "\n"
+
+
 def frame_key(doc, base_dir: str | None = None) -> str | None:
     """The identity of a frame, for ``--resume``: its image path and render seed, time and frame number.
 
@@ -701,9 +710,11 @@ class FrameWriter:
         return self
 
     def write(self, doc: dict) -> None:
-        if self.base_dir is not None:
-            doc = relative_image_path(doc, self.base_dir)
-        line = dumps_frame(doc) + "\n"
+        self.write_line(frame_line(doc, self.base_dir))
+
+    def write_line(self, line: str) -> None:
+        """Write one document already serialized by :func:`frame_line` with this writer's :attr:`base_dir`
+        (a worker process's, so that the serialization is not this process's work)."""
         if self._handle is None:
             self._open()
         try:

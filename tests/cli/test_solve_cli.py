@@ -160,3 +160,41 @@ def test_rendered_fields_solve_blind_with_named_outputs(cache, tmp_path, fov, si
     first = next(r for r in rows if float(r["x_px"]) == pytest.approx(d["stars"][0]["x"], abs=1e-3))
     assert float(first["ra_deg"]) == pytest.approx(float(ra[0]), abs=0.02)
     assert float(first["dec_deg"]) == pytest.approx(float(dec[0]), abs=0.02)
+
+
+def test_solve_pool_writes_what_one_process_writes(cache, tmp_path, monkeypatch):
+    """`-j 2` with its pool (forced here: the suite's machine is rarely idle): workers serialise their documents
+    and this process writes their lines in input order; the file equals `-j 1`'s but for the times, relative
+    image paths included (the output in another directory than the images)."""
+    from click.testing import CliRunner
+
+    from startrack import cluster
+    from startrack.cli.main import cli
+    from startrack.formats.frame import FrameWriter
+
+    monkeypatch.setenv("STARTRACK_CACHE", cache["STARTRACK_CACHE"])
+    monkeypatch.setattr(cluster, "idle_cpus", lambda: 2)
+    monkeypatch.setattr(cluster, "worker_startup_s", lambda _spawn_s: 0.0)    # four images: workers pay off
+    written = []        # the documents this process serialised itself
+    write = FrameWriter.write
+    monkeypatch.setattr(FrameWriter, "write", lambda self, doc: (written.append(doc), write(self, doc)))
+    monkeypatch.chdir(tmp_path)
+    images = [os.path.relpath(p, tmp_path) for p in REAL[:6]]
+    (tmp_path / "out").mkdir()
+    docs = {}
+    for jobs in ("1", "2"):
+        written.clear()
+        result = CliRunner().invoke(cli, ["solve", *images, "-j", jobs, "-q", "--no-aberration", "-o",
+                                          f"out/j{jobs}.jsonl"])
+        assert result.exit_code == 0, result.output
+        docs[jobs] = [json.loads(line) for line in (tmp_path / "out" / f"j{jobs}.jsonl").read_text().splitlines()]
+        # -j 2: the first two images are solved here (first uses, then one timed); the workers wrote the rest
+        assert len(written) == (len(images) if jobs == "1" else 2)
+
+    def untimed(value):
+        if isinstance(value, dict):
+            return {k: untimed(v) for k, v in value.items() if k != "time_ms"}
+        return [untimed(v) for v in value] if isinstance(value, list) else value
+
+    assert [untimed(d) for d in docs["2"]] == [untimed(d) for d in docs["1"]]
+    assert [d["image"]["path"] for d in docs["2"]] == [os.path.join("..", p) for p in images]
