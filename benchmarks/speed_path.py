@@ -12,8 +12,9 @@ Four sections, each beside tetra3rs where the issue asks for it, every figure a 
   ``solve_from_centroids``, on issue 14's 15 deg star lists (:mod:`identify_compare`), passes alternated.
 * ``startup``: a warm ``startrack solve IMAGE`` process beside a tetra3rs script (import tetra3rs and
   cv2, load the database, read the image, extract and solve), runs alternated, wall time.
-* ``jobs``: ``startrack solve -j 1`` and ``-j 2`` on 64 images (the 8 ESA images, 8 names each),
-  images per second, alternated.
+* ``jobs``: ``startrack solve -j 1`` and ``-j 2`` on 64 images (the 8 ESA images, 8 names each; and the
+  photos of ../shared/data/real-extra when present), images per second, alternated, with the most -j 2 can
+  reach given what a one-image process takes.
 
     .venv/bin/python benchmarks/speed_path.py                    # every section
     .venv/bin/python benchmarks/speed_path.py solve identify     # some
@@ -242,55 +243,88 @@ def section_startup(runs: int = 9) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- jobs
-def section_jobs(n_images: int = 64, runs: int = 3) -> str:
-    """`startrack solve -j 1` and `-j 2` on 64 images, images per second."""
-    load0 = _load()
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = []
-        for k in range(n_images):
-            src = REAL[k % len(REAL)]
-            dst = os.path.join(tmp, f"{k:03d}-{os.path.basename(src)}")
-            os.symlink(src, dst)
-            paths.append(dst)
-        env = _process_env()
-        base = [sys.executable, "-m", "startrack", "solve", *paths, "-q", "-o", os.devnull]
-        subprocess.run(base[:5] + ["-q"], capture_output=True, env=env, cwd=_startrack_where())        # warm
-        from startrack.cluster import idle_cpus
+REAL_EXTRA = sorted(glob.glob(os.path.join(ROOT, "..", "shared", "data", "real-extra", "*.jpg")))
 
-        rate = {1: [], 2: []}
-        busy = {1: [], 2: []}
-        loads = []
-        idle = []
-        for rep in range(runs):
-            for jobs in ((1, 2) if rep % 2 == 0 else (2, 1)):
-                loads.append(os.getloadavg()[0])
-                if jobs == 2:
-                    # What the command's gate will see a moment later (this process counts itself out, as the
-                    # command does): -j 2 uses two worker processes only with two idle CPUs.
-                    idle.append(idle_cpus())
-                c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-                t0 = time.perf_counter()
-                proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env,
-                                      cwd=_startrack_where())
-                dt = time.perf_counter() - t0
-                c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-                if proc.returncode not in (0, 1):
-                    raise RuntimeError(proc.stderr)
-                rate[jobs].append(n_images / dt)
-                # CPUs the run had on average (its processes' CPU seconds over its wall time): about 2 for a -j 2
-                # run whose workers each had a core, about 1 when the machine gave it one.
-                busy[jobs].append((c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime) / dt)
+
+def _jobs_run(sources, n_images, runs, tmp, label):
+    """`startrack solve -j 1` and `-j 2` on ``n_images`` names of ``sources``: medians and the start-up bound."""
+    from startrack.cluster import idle_cpus
+
+    paths = []
+    for k in range(n_images):
+        src = sources[k % len(sources)]
+        dst = os.path.join(tmp, f"{label}-{k:03d}-{os.path.basename(src)}")
+        os.symlink(src, dst)
+        paths.append(dst)
+    env = _process_env()
+    base = [sys.executable, "-m", "startrack", "solve", *paths, "-q", "-o", os.devnull]
+    one = base[:5] + ["-q", "-o", os.devnull]
+    subprocess.run(one, capture_output=True, env=env, cwd=_startrack_where())        # warm
+    rate = {1: [], 2: []}
+    busy = {1: [], 2: []}
+    alone = []
+    loads = []
+    idle = []
+    for rep in range(runs):
+        # A one-image process: start-up, first uses and one image, what no number of workers shares.
+        t0 = time.perf_counter()
+        subprocess.run(one, capture_output=True, env=env, cwd=_startrack_where())
+        alone.append(time.perf_counter() - t0)
+        for jobs in ((1, 2) if rep % 2 == 0 else (2, 1)):
+            loads.append(os.getloadavg()[0])
+            if jobs == 2:
+                # What the command's gate will see a moment later (this process counts itself out, as the
+                # command does): -j 2 uses two worker processes only with two idle CPUs.
+                idle.append(idle_cpus())
+            c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t0 = time.perf_counter()
+            proc = subprocess.run(base + ["-j", str(jobs)], capture_output=True, text=True, env=env,
+                                  cwd=_startrack_where())
+            dt = time.perf_counter() - t0
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            if proc.returncode not in (0, 1):
+                raise RuntimeError(proc.stderr)
+            rate[jobs].append(n_images / dt)
+            # CPUs the run had on average (its processes' CPU seconds over its wall time): about 2 for a -j 2
+            # run whose workers each had a core, about 1 when the machine gave it one.
+            busy[jobs].append((c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime) / dt)
     a, b = statistics.median(rate[1]), statistics.median(rate[2])
-    rows = [["-j 1", f"{a:.1f}", "1.00", ", ".join(f"{v:.2f}" for v in busy[1])],
-            ["-j 2", f"{b:.1f}", f"{b / a:.2f}", ", ".join(f"{v:.2f}" for v in busy[2])]]
-    text = (f"`startrack solve IMAGES -q -o /dev/null -j N`, {n_images} images (the 8 ESA images, 8 names each), "
-            f"{runs} runs each, alternated; images per second from the whole process's wall time.  -j 2 uses "
-            "two worker processes only when the machine has two idle CPUs (`startrack.cluster.idle_cpus`); "
-            f"1-minute load before each run: {', '.join(f'{v:.2f}' for v in loads)}; idle CPUs seen just before "
-            f"each -j 2 run: {', '.join(map(str, idle))}"
-            + ("" if min(idle) >= 2 else " (not idle: a -j 2 run that saw fewer than 2 solved its images in one "
-               "process, and its figure is not the pool's)") + ".\n\n"
-            + _table(["jobs", "median images/s", "ratio to -j 1", "CPUs used per run (CPU s / wall s)"], rows)
+    serial = n_images / a
+    # Amdahl: a one-image process's wall time less one image's share of -j 1's (T1 / n) is what no number of
+    # workers shares (F: interpreter, imports, index, first uses); the rest of -j 1's, T1 - F, at best halves.
+    fixed = statistics.median(alone) - serial / n_images
+    bound = serial / (fixed + (serial - fixed) / 2) if serial > fixed else float("nan")
+    return {"rate": (a, b), "busy": busy, "loads": loads, "idle": idle, "fixed": fixed, "serial": serial,
+            "bound": bound}
+
+
+def section_jobs(n_images: int = 64, runs: int = 3) -> str:
+    """`startrack solve -j 1` and `-j 2` on 64 images, images per second: the 8 ESA images (and the photos from
+    other cameras in ../shared/data/real-extra when they are there)."""
+    load0 = _load()
+    sets = [("the 8 ESA images, 8 names each", REAL)]
+    if REAL_EXTRA:
+        sets.append((f"the {len(REAL_EXTRA)} photos of ../shared/data/real-extra (4.5-33 deg, other cameras), "
+                     f"{n_images // len(REAL_EXTRA)}-{-(-n_images // len(REAL_EXTRA))} names each", REAL_EXTRA))
+    rows, notes = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (label, sources) in enumerate(sets):
+            r = _jobs_run(sources, n_images, runs, tmp, f"s{k}")
+            a, b = r["rate"]
+            rows.append([label, f"{a:.1f}", f"{b:.1f}", f"{b / a:.2f}", f"{r['fixed']:.3f}", f"{r['serial']:.2f}",
+                         f"{r['bound']:.2f}", "; ".join(", ".join(f"{v:.2f}" for v in r["busy"][j]) for j in (1, 2))])
+            notes.append(f"{label}: 1-minute load before each run {', '.join(f'{v:.2f}' for v in r['loads'])}; "
+                         f"idle CPUs seen just before each -j 2 run {', '.join(map(str, r['idle']))}"
+                         + ("" if min(r["idle"]) >= 2 else " (not idle: a -j 2 run that saw fewer than 2 solved its "
+                            "images in one process, and its figure is not the pool's)"))
+    text = (f"`startrack solve IMAGES -q -o /dev/null -j N`, {n_images} images, {runs} runs each, alternated; images "
+            "per second from the whole process's wall time.  -j 2 uses two worker processes only when the machine "
+            "has two idle CPUs (`startrack.cluster.idle_cpus`).  T1 is the -j 1 run's wall time; F a one-image "
+            "process's less T1 / n (interpreter, imports, index, first uses: what no number of workers shares); "
+            "the most -j 2 can reach is T1 / (F + (T1 - F) / 2).\n\n"
+            + _table(["images", "-j 1 images/s", "-j 2 images/s", "ratio", "F s", "T1 s", "most -j 2 can reach",
+                      "CPUs used per run, -j 1; -j 2 (CPU s / wall s)"], rows)
+            + "\n\n" + "\n".join(f"- {n}" for n in notes)
             + "\n\nA -j 2 run that used about one CPU had no second core to use (another process held it), "
             "whatever the idle count said when it started: its ratio is not the pool's.")
     return text + _footer(load0)
