@@ -359,3 +359,15 @@ def test_a_candidate_refused_at_refinement_leaves_the_probe_for_the_next():
     both_i, both_f = look_up([1] * 8)
     np.testing.assert_array_equal(both_i, alone_i)
     np.testing.assert_array_equal(both_f, alone_f)
+
+
+def test_combos_are_the_brightest_first_order():
+    """`_combos(n)`: every 4-combination of n stars once, by the faintest star, then the next (tetra3's order,
+    a prefix per n), as the nested loops that defined it built them."""
+    from startrack.patterns import _combos
+
+    for n in range(31):
+        want = [(a, b, c, d) for d in range(3, n) for c in range(2, d) for b in range(1, c) for a in range(b)]
+        got = _combos.__wrapped__(n)
+        assert got.dtype == np.int64 and got.flags.c_contiguous and got.shape == (len(want), 4)
+        assert got.tolist() == [list(w) for w in want], n
