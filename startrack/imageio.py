@@ -223,6 +223,20 @@ def _stderr_lock():
     return _STDERR_LOCK
 
 
+def _scratch_file():
+    """An anonymous read-write binary file: in memory where the system has ``memfd_create`` (Linux), else a
+    temporary file (an image read no longer imports :mod:`tempfile`, with :mod:`shutil` and :mod:`random`,
+    nor creates a file in the temporary directory)."""
+    if hasattr(os, "memfd_create"):
+        try:
+            return open(os.memfd_create("startrack-stderr", os.MFD_CLOEXEC), "w+b")
+        except OSError:
+            pass
+    import tempfile
+
+    return tempfile.TemporaryFile()
+
+
 class captured_stderr:
     """Catch what C libraries (OpenCV, libpng, libtiff, CFITSIO) print to file descriptor 2.
 
@@ -232,7 +246,6 @@ class captured_stderr:
 
     def __enter__(self):
         import sys
-        import tempfile
 
         self.text = ""
         self._lock = _stderr_lock()
@@ -240,7 +253,7 @@ class captured_stderr:
         self._saved = None
         try:
             sys.stderr.flush()
-            self._tmp = tempfile.TemporaryFile()
+            self._tmp = _scratch_file()
             self._saved = os.dup(2)
             os.dup2(self._tmp.fileno(), 2)
         except (OSError, ValueError, AttributeError):

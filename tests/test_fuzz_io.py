@@ -6,6 +6,7 @@ import struct
 import zlib
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 from conftest import run_cli
 from hypothesis import HealthCheck, given, settings
@@ -199,3 +200,24 @@ def test_attitude_on_a_stream_of_no_json_is_one_error():
     """Found by the stream fuzzer: lines none of which is JSON are not JSON Lines: one error line, exit 2."""
     proc = run_cli("attitude", input="00\n00\n")
     assert proc.returncode == 2 and proc.stdout == "" and len(proc.stderr.splitlines()) == 1, proc.stderr
+
+
+@pytest.mark.parametrize("memfd", [True, False])
+def test_captured_stderr_catches_what_c_libraries_print(memfd, monkeypatch, capfd):
+    """What is written to file descriptor 2 inside `captured_stderr` (as OpenCV's and libtiff's C code does) is
+    caught, its first line without OpenCV's log prefix, and fd 2 is the terminal's again afterwards; in memory
+    (memfd_create) or, without it, through a temporary file."""
+    import os
+
+    from startrack.imageio import captured_stderr
+
+    if not memfd:
+        monkeypatch.delattr(os, "memfd_create", raising=False)
+    elif not hasattr(os, "memfd_create"):
+        pytest.skip("no memfd_create on this system")
+    with captured_stderr() as cap:
+        os.write(2, b"[ WARN:0@0.012] global grfmt_tiff.cpp:123 TIFFReadDirectory: Unknown field\nsecond line\n")
+    assert cap.text.startswith("[ WARN:0@0.012]") and cap.text.endswith("second line\n")
+    assert cap.first_line == "TIFFReadDirectory: Unknown field"
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "after\n"
