@@ -250,6 +250,19 @@ class Camera:
     k4: float = 0.0
 
     def __post_init__(self):
+        w, h, f, cx, cy, k1, k2, k3, k4 = (self.width, self.height, self.focal_length_px, self.cx, self.cy, self.k1,
+                                           self.k2, self.k3, self.k4)
+        if (type(w) is int and type(h) is int and type(f) is float and type(cx) is float and type(cy) is float
+                and type(k1) is float and type(k2) is float and k3 == 0.0 and k4 == 0.0 and type(k3) is float
+                and type(k4) is float and self.pixel_pitch_um is None and self.projection == "pinhole"
+                and w > 0 and h > 0 and 0.0 < f < math.inf and math.isfinite(cx) and math.isfinite(cy)
+                and math.isfinite(k1) and math.isfinite(k2)):
+            # The common case (a solver's own pinhole cameras, a camera file's): every value already the type and
+            # finite number the checks below make of it, so the same bounds decide.  Anything else takes the
+            # full path (its messages).
+            if _bounds_problem({"width": w, "height": h, "focal_length_px": f, "cx": cx, "cy": cy, "k1": k1,
+                                "k2": k2, "k3": k3, "k4": k4, "projection": "pinhole"}) is None:
+                return
         if self.projection not in PROJECTIONS:
             raise ParameterError("projection", f"unknown projection {self.projection!r}; one of "
                                  f"{', '.join(PROJECTIONS)}", "Camera")
@@ -396,12 +409,15 @@ class Camera:
 
     def with_focal_length(self, focal_length_px: float) -> "Camera":
         """The same camera with another focal length (e.g. a perturbed one)."""
-        return dataclasses.replace(self, focal_length_px=float(focal_length_px), extra=dict(self.extra))
+        return self.replace(focal_length_px=float(focal_length_px))
 
     def replace(self, **changes) -> "Camera":
-        """The same camera with some fields changed (``dataclasses.replace``, ``extra`` copied)."""
+        """The same camera with some fields changed (as ``dataclasses.replace``, ``extra`` copied)."""
         changes.setdefault("extra", dict(self.extra))
-        return dataclasses.replace(self, **changes)
+        # dataclasses.replace's work without its per-call look-up of the fields (a fit builds a camera per round).
+        values = {name: getattr(self, name) for name in _FIELD_NAMES}
+        values.update(changes)
+        return type(self)(**values)
 
     # --------------------------------------------------------------- geometry
     @property
@@ -555,8 +571,14 @@ class Camera:
         if self.is_pinhole:
             u, v = self.undistort((x - self.cx) / self.focal_length_px,
                                   (y - self.cy) / self.focal_length_px)
-            vec = np.stack([u, v, np.ones_like(u)], axis=-1)
-            return vec / np.linalg.norm(vec, axis=-1, keepdims=True)
+            # (u, v, 1) / its norm, the norm summed as numpy's reduction over the last axis sums it (left to right,
+            # the same bits: tests/test_camera.py), without stacking the vectors twice.
+            norm = np.sqrt(u * u + v * v + 1.0)
+            vec = np.empty(np.broadcast_shapes(u.shape, v.shape) + (3,))
+            vec[..., 0] = u / norm
+            vec[..., 1] = v / norm
+            vec[..., 2] = 1.0 / norm
+            return vec
         dx = x - self.cx
         dy = y - self.cy
         rho = np.hypot(dx, dy)
@@ -687,6 +709,10 @@ class Camera:
         """Angular size of one pixel at the principal point, in arcseconds (every projection has
         ``g'(0) = 1``, so it is ``1 / f`` radians)."""
         return math.degrees(1.0 / self.focal_length_px) * 3600.0
+
+
+#: :class:`Camera`'s fields, in order (what :meth:`Camera.replace` copies).
+_FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Camera))
 
 
 @functools.lru_cache(maxsize=4096)
