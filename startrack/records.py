@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -627,8 +628,10 @@ class SolveResult(_Record):
 FRAME_FORMAT = "startrack.frame/1"
 
 
-def _schema_fields(cls):
-    return [f for f in dataclasses.fields(cls) if "kind" in f.metadata]
+@functools.lru_cache(maxsize=None)
+def _schema_fields(cls) -> tuple:
+    """The fields of record class ``cls`` that the schema describes (once per class: records are written per frame)."""
+    return tuple(f for f in dataclasses.fields(cls) if "kind" in f.metadata)
 
 
 def _key(f) -> str:

@@ -86,6 +86,10 @@ def quaternion_to_dcm(q):
     ndarray, shape (..., 3, 3)
         ``A(q) = (q4^2 - |q_v|^2) I + 2 q_v q_v^T - 2 q4 [q_v x]``.
     """
+    if type(q) is np.ndarray and q.shape == (4,) and q.dtype == np.float64:
+        dcm = _quaternion_to_dcm_one(q.tolist())
+        if dcm is not None:
+            return dcm
     q = normalize_quaternion(q)
     qv = q[..., :3]
     q4 = q[..., 3]
@@ -96,6 +100,30 @@ def quaternion_to_dcm(q):
         + 2.0 * qv[..., :, None] * qv[..., None, :]
         - 2.0 * q4[..., None, None] * _cross_matrix(qv)
     )
+
+
+def _quaternion_to_dcm_one(q):
+    """:func:`quaternion_to_dcm` of one finite quaternion (a list of four floats) in Python floats, to the bit: the
+    same operations in the same order (numpy's sums of squares run left to right; its ``q4 ** 2`` is ``q4 * q4``),
+    without the array path's stacking (called per frame).  None when an entry or the
+    norm is not finite or the norm is 0 (the array path decides)."""
+    if not all(map(math.isfinite, q)):
+        return None
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if not 0.0 < n < math.inf:
+        return None
+    q1, q2, q3, q4 = (v / n for v in q)
+    if q4 < 0.0:
+        q1, q2, q3, q4 = -q1, -q2, -q3, -q4
+    scal = q4 * q4 - (q1 * q1 + q2 * q2 + q3 * q3)
+    t1, t2, t3, t4 = 2.0 * q1, 2.0 * q2, 2.0 * q3, 2.0 * q4
+    # scal I + 2 q_v q_v^T - 2 q4 [q_v x], entry by entry as the arrays add them (the off-diagonal scal * 0).
+    z = scal * 0.0
+    return np.array([
+        [(scal + t1 * q1) - t4 * 0.0, (z + t1 * q2) - t4 * -q3, (z + t1 * q3) - t4 * q2],
+        [(z + t2 * q1) - t4 * q3, (scal + t2 * q2) - t4 * 0.0, (z + t2 * q3) - t4 * -q1],
+        [(z + t3 * q1) - t4 * -q2, (z + t3 * q2) - t4 * q1, (scal + t3 * q3) - t4 * 0.0],
+    ])
 
 
 def dcm_to_quaternion(dcm):

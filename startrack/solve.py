@@ -548,8 +548,15 @@ def _kernels_cached() -> bool:
     return bool(glob.glob(os.path.join(here, pattern)))
 
 
+_KERNELS_READY = False      # every kernel _warm checks has run or been loaded in this process (never undone)
+
+
 def _warm(index):
     """Compile or load the solver's kernels (a notice first when numba has no cached copy yet)."""
+    global _KERNELS_READY
+
+    if _KERNELS_READY:
+        return
     from startrack._kernels.attitude import refine
     from startrack._kernels.patterns import query_patterns
     from startrack._kernels.psf_fit import measure_candidates
@@ -559,6 +566,7 @@ def _warm(index):
 
     # numba's dispatchers know what this process has compiled or loaded already.
     if all(k.signatures for k in (refine, measure_candidates, query_patterns, screen_in_cone, refine_in_cone)):
+        _KERNELS_READY = True
         return
     if not _kernels_cached():
         _notice("compiling the solver's kernels once, ~30 s (cached afterwards)")
@@ -1209,7 +1217,7 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         sig_px = np.full(len(star), DEFAULT_SIGMA_PX)
     sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
     res = estimate_attitude(body, ref, sig, method, [(int(m[0]), int(m[1])) for m in idx])
-    att = from_section(Attitude, res.section(), "attitude")
+    att = from_section(Attitude, res.section(), "attitude", validate=False)      # our own section: no re-checks
     if att.status != "ok" and att.reason_code is None:
         att.reason_code = getattr(res, "reason_code", None) or ReasonCode.TOO_FEW_STARS
     if epoch is not None:

@@ -101,3 +101,50 @@ def test_cached_field_of_view_follows_every_changed_camera(fov):
         assert other.cone_cos(0.5) == fresh.cone_cos(0.5)
     assert cam == Camera.from_fov(fov, 1024, 768) and hash(cam) == hash(Camera.from_fov(fov, 1024, 768))
     assert pickle.loads(pickle.dumps(cam)).fov_deg == first
+
+
+@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (-0.05, 0.01)])
+@pytest.mark.parametrize("shape", [(), (1,), (7,), (300,), (6, 5)])
+def test_pixels_to_vectors_the_normalised_stack_to_the_bit(k1, k2, shape):
+    """A pinhole's unit vectors are (u, v, 1) divided by numpy's norm of them, bit for bit."""
+    rng = np.random.default_rng(len(shape) * 10 + int(k1 != 0))
+    cam = Camera(1024, 768, 900.0, 511.5, 383.5, k1=k1, k2=k2)
+    x = rng.uniform(-100, 1124, shape)
+    y = rng.uniform(-100, 868, shape)
+    u, v = cam.undistort((x - cam.cx) / cam.focal_length_px, (y - cam.cy) / cam.focal_length_px)
+    stacked = np.stack([u, v, np.ones_like(u)], axis=-1)
+    expected = stacked / np.linalg.norm(stacked, axis=-1, keepdims=True)
+    got = cam.pixels_to_vectors(x, y)
+    assert got.shape == expected.shape and got.dtype == np.float64
+    assert got.tobytes() == expected.tobytes()
+
+
+def test_replace_is_dataclasses_replace_and_checks():
+    import dataclasses
+
+    cam = Camera(1024, 768, 900.0, 511.5, 383.5, k1=0.01, pixel_pitch_um=3.45, extra={"a": 1})
+    new = cam.replace(focal_length_px=950.0, cy=380.0)
+    assert new == dataclasses.replace(cam, focal_length_px=950.0, cy=380.0)
+    assert new.extra == cam.extra and new.extra is not cam.extra
+    assert cam.with_focal_length(800) == dataclasses.replace(cam, focal_length_px=800.0)
+    with pytest.raises(TypeError):
+        cam.replace(focal=1.0)
+
+
+@pytest.mark.parametrize("changes, field", [({"focal_length_px": math.nan}, "focal_length_px"),
+                                            ({"focal_length_px": -5.0}, "focal_length_px"),
+                                            ({"focal_length_px": 1e12}, "focal_length_px"),
+                                            ({"cx": math.inf}, "cx"), ({"cx": 5000.0}, "cx"),
+                                            ({"cy": -2000.0}, "cy"), ({"k1": math.nan}, "k1"),
+                                            ({"k1": 50.0}, "distortion"), ({"width": 0}, "width"),
+                                            ({"width": 2_000_000}, "width"), ({"height": 10.5}, "height"),
+                                            ({"k3": 0.1}, "k3")])
+def test_every_camera_is_checked(changes, field):
+    """The common case's quick test lets no absurd value through: each is refused naming its parameter."""
+    from startrack.errors import ParameterError
+
+    values = {"width": 1024, "height": 768, "focal_length_px": 900.0, "cx": 511.5, "cy": 383.5}
+    Camera(**values)
+    with pytest.raises(ParameterError) as err:
+        Camera(**{**values, **changes})
+    assert err.value.parameter == field

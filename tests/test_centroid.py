@@ -535,3 +535,27 @@ def test_centroid_median_is_numpys_to_the_bit():
     with np.errstate(invalid="ignore"):
         assert math.isnan(_median([1.0, np.nan, 2.0])) and math.isnan(float(np.median([1.0, np.nan, 2.0])))
         assert math.isnan(_median([np.inf, -np.inf])) and math.isnan(float(np.median([np.inf, -np.inf])))
+
+
+def test_blobs_set_aside_in_label_order_and_noise_blobs_dropped():
+    """Hot pixels, a trail and a too-small blob among stars: the hot pixels and the trail are reported in the blobs'
+    label (raster) order, the two-pixel blob that is no hot pixel is dropped without a record, the stars stay."""
+    rng = np.random.default_rng(7)
+    image = 100.0 + rng.normal(0.0, 2.0, (128, 160))
+    yy, xx = np.mgrid[0:128, 0:160]
+    stars = [(40.3, 20.6), (120.7, 64.2), (20.2, 100.4)]
+    for sx, sy in stars:
+        image += 400.0 * np.exp(-((xx - sx) ** 2 + (yy - sy) ** 2) / (2 * 1.5**2))
+    hot = [(90, 10), (15, 50), (140, 50), (70, 110)]        # raster order: (90, 10), (15, 50), (140, 50), (70, 110)
+    for hx, hy in hot:
+        image[hy, hx] += 300.0
+    image[80, 30:60] += 150.0 * np.exp(-np.linspace(-1, 1, 30) ** 2)     # a trail one pixel wide at row 80
+    image[80:82, 30:60] += 60.0
+    image[30, 120:122] += [40.0, 40.0]                       # two faint pixels: too small, no hot pixel
+    res = find_stars(image.astype(np.float32), CentroidOptions(), saturation=65535)
+    found = sorted((round(s["x"]), round(s["y"])) for s in res.stars)
+    assert found == sorted((round(x), round(y)) for x, y in stars)
+    assert [r["reason"].split(" ")[0] for r in res.rejected] == ["hot", "hot", "hot", "elongated", "hot"], res.rejected
+    at = [(r["x"], r["y"]) for r in res.rejected]
+    assert at[:3] + at[4:] == [(float(x), float(y)) for x, y in hot]     # a hot pixel's own position
+    assert abs(at[3][0] - 44.5) < 1.0 and abs(at[3][1] - 80.3) < 0.5      # the trail's centre

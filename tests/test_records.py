@@ -111,3 +111,29 @@ def test_track_state_round_trip():
 def test_docs_formats_field_tables_are_generated_from_the_schema():
     text = (ROOT / "docs" / "formats.md").read_text(encoding="utf-8")
     assert update_docs(text) == text, "run: python -m startrack.formats.sections docs/formats.md"
+
+
+def test_own_attitude_section_read_without_checks_is_the_checked_record():
+    """``from_section(..., validate=False)`` (the solver's own attitude) gives the record the checked read gives."""
+    from startrack.attitude import estimate_attitude
+
+    rng = np.random.default_rng(3)
+    dcm = radec_roll_to_dcm(40.0, -20.0, 15.0)
+    ref = rng.normal(size=(12, 3)) * 0.05 + np.array([0.0, 0.0, 1.0]) @ dcm
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    body = ref @ dcm.T + rng.normal(size=(12, 3)) * 1e-5
+    body[3] += 0.01                                          # one outlier: a rejected star
+    res = estimate_attitude(body, ref, np.full(12, 1e-5), labels=[(i, 1000 + i) for i in range(12)])
+    section = res.section()
+    checked = from_section(Attitude, section, "attitude")
+    own = from_section(Attitude, section, "attitude", validate=False)
+    import dataclasses
+
+    for f in dataclasses.fields(Attitude):
+        a, b = getattr(own, f.name), getattr(checked, f.name)
+        assert type(a) is type(b), f.name
+        if isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f.name
+        else:
+            assert a == b, f.name
+    assert own.rejected and own.covariance_arcsec2 is not None and "dcm" in own.details

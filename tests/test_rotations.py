@@ -300,3 +300,18 @@ def test_dcm_to_radec_roll_single_matrix_path_odd_matrices():
     for a in cases:
         assert _same_bits(rot._dcm_to_radec_roll_rad(a), _radec_roll_reference(a))
         assert _same_bits(rot._dcm_to_radec_roll_rad(a.tolist()), _radec_roll_reference(a))
+
+
+def test_one_quaternion_to_dcm_is_the_array_path_to_the_bit():
+    """A single quaternion takes a scalar path: the same matrix, bit for bit, as a batch of them (the array path),
+    for random quaternions, negative scalar parts, zero components and tiny or large norms."""
+    rng = np.random.default_rng(11)
+    qs = np.concatenate([rng.normal(size=(3000, 4)), rng.normal(size=(200, 4)) * 1e-150,
+                         rng.normal(size=(200, 4)) * 1e140,
+                         np.array([[0, 0, 0, 1], [0, 0, 0, -1], [1, 0, 0, 0], [0, -1, 0, 0], [-0.0, 0.0, -0.0, 1.0],
+                                   [0.5, 0.5, 0.5, -0.5], [3, 4, 0, 0]], dtype=np.float64)])
+    batch = rot.quaternion_to_dcm(qs)
+    for q, expected in zip(qs, batch):
+        assert rot.quaternion_to_dcm(q).tobytes() == expected.tobytes(), q
+    # Not finite: the array path's NaNs.
+    assert np.isnan(rot.quaternion_to_dcm(np.array([np.nan, 0.0, 0.0, 1.0]))).all()

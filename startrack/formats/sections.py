@@ -10,7 +10,6 @@ enum values as strings), and renders the field tables of ``docs/formats.md``
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 
@@ -123,7 +122,28 @@ def _read_value(kind, value, source, path):
     raise ValueError(f"unknown schema kind {kind!r}")
 
 
-def from_section(cls, doc, source: str = "<frame>", section: str | None = None):
+def _own_value(kind, value):
+    """:func:`_read_value` of a value this library wrote itself (a section just made from a result): the same
+    conversions, without the checks a document read from a file needs."""
+    if kind == "number":
+        return float(value)
+    if kind == "int":
+        return int(value)
+    if kind == "status":
+        return Status(value)
+    if kind == "reason_code":
+        try:
+            return ReasonCode(value)
+        except ValueError:
+            return value
+    if kind == "vector" or kind == "matrix":
+        return np.array(value, dtype=np.float64)
+    if kind == "matches":
+        return [Match(int(m["star"]), int(m["id"])) for m in value]
+    return value
+
+
+def from_section(cls, doc, source: str = "<frame>", section: str | None = None, validate: bool = True):
     """Read and validate a frame-document section into a record of class ``cls``.
 
     Parameters
@@ -138,6 +158,9 @@ def from_section(cls, doc, source: str = "<frame>", section: str | None = None):
         Where it came from (``file:line``), for messages.
     section : str, optional
         The section's name, prefixed to field paths in messages.
+    validate : bool
+        False for a section this library has just written from its own result (e.g.
+        :meth:`startrack.attitude.AttitudeResult.section`): the same record, without checking each value.
 
     Raises
     ------
@@ -159,8 +182,9 @@ def from_section(cls, doc, source: str = "<frame>", section: str | None = None):
                     cls is Attitude and doc.get("status") == "failed" and key != "status"):
                 raise BadInputError(source, prefix + key, "is missing")
             continue
-        kw[f.name] = _read_value(f.metadata["kind"], doc[key], source, prefix + key)
-    if "details" in {f.name for f in dataclasses.fields(cls)}:
+        kw[f.name] = _read_value(f.metadata["kind"], doc[key], source, prefix + key) if validate else \
+            _own_value(f.metadata["kind"], doc[key])
+    if any(f.name == "details" for f in _schema_fields(cls)):
         kw["details"] = {k: v for k, v in doc.items() if k not in known}
     record = cls(**kw)
     if cls is Attitude and record.quaternion is not None:
