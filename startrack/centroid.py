@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -856,6 +857,11 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
             clear_labels(labels, table, n_found)
 
 
+#: A candidate's flux (its last entry, always > 0): candidates are sorted on it brightest first with
+#: ``reverse=True``, which keeps equal ones in their order (as sorting on ``-flux`` does).
+_CANDIDATE_FLUX = operator.itemgetter(7)
+
+
 def _blob_budget(max_stars: int) -> int:
     """Blobs examined (classified, deblended) for ``max_stars`` stars: room for blends, duplicates and rejections."""
     return 4 * max_stars + 40
@@ -974,7 +980,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     if options.max_stars is not None and len(candidates) > 3 * options.max_stars + 20:
         # Only the brightest blobs can be among the max_stars brightest stars: centroid those
         # (with room for duplicates and shape rejections) and skip the faint majority.
-        candidates.sort(key=lambda c: -c[7])
+        candidates.sort(key=_CANDIDATE_FLUX, reverse=True)
         candidates = candidates[:3 * options.max_stars + 20]
     if options.star_likeness:
         candidates, wide = _extended_blobs(candidates)
@@ -1087,7 +1093,7 @@ def _extended_blobs(candidates: list):
     ten times a star's and :func:`_star_likeness` would set it apart after.
     Saturated blobs are left to :func:`_star_likeness`.
     """
-    widths = [math.sqrt(c[7] / (2.0 * math.pi * c[2])) for c in sorted(candidates, key=lambda c: -c[7])
+    widths = [math.sqrt(c[7] / (2.0 * math.pi * c[2])) for c in sorted(candidates, key=_CANDIDATE_FLUX, reverse=True)
               if not c[6] and c[4] == 0 and c[2] > 0][:30]
     if len(widths) < 5:
         return candidates, []
@@ -1116,7 +1122,7 @@ def _measure_brightest(residual, candidates, options, noise_mesh, cell, quant_va
     """
     if options.max_stars is None:
         return _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var)
-    candidates = sorted(candidates, key=lambda c: -c[7])
+    candidates = sorted(candidates, key=_CANDIDATE_FLUX, reverse=True)
     first = options.max_stars + 10
     stars = _measure_gauss(residual, candidates[:first], options, noise_mesh, cell, quant_var)
     batch = first // 2
@@ -1176,14 +1182,17 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
         snr = flux / math.sqrt(var) if var > 0 else float("inf")
         star = {
             "x": x, "y": y, "flux": flux, "peak": float(peak), "npix": int(npix),
-            "snr": float(snr), "sigma_px": _uncertainty(flux, sigma_psf, noise, gain),
-            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": bool(nsat > 0),
-            "_nsat": int(nsat), **({"deblended": True} if deblended else {}),
+            "snr": float(snr), "sigma_px": math.sqrt(0.5 * (cxx + cyy)) if fitted else _uncertainty(flux, sigma_psf,
+                                                                                                  noise, gain),
+            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": nsat > 0, "_nsat": int(nsat),
         }
+        if deblended:
+            star["deblended"] = True
         if fitted:
             # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
-            star["sigma_px"] = math.sqrt(0.5 * (cxx + cyy))
-            star.update({"cov_px2": [[cxx, cxy], [cxy, cyy]], "fit_chi2": chi2, "fit_dof": int(n_pix - 5)})
+            star["cov_px2"] = [[cxx, cxy], [cxy, cyy]]
+            star["fit_chi2"] = chi2
+            star["fit_dof"] = int(n_pix - 5)
         stars.append(star)
     return stars
 
