@@ -478,10 +478,10 @@ def _fit_camera(cam, dcm, xy, ref, fit_k1):
     v = ref @ dcm.T
     u = v[:, 0] / v[:, 2]
     w = v[:, 1] / v[:, 2]
-    r2 = u * u + w * w
     obs = np.concatenate([xy[:, 0] - cam.cx, xy[:, 1] - cam.cy])
     a = np.concatenate([u, w])
     if fit_k1:
+        r2 = u * u + w * w
         m = np.stack([a, a * np.concatenate([r2, r2])], axis=1)
         sol, *_ = np.linalg.lstsq(m, obs, rcond=None)
         f, fk1 = float(sol[0]), float(sol[1])
@@ -576,9 +576,10 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # Rank by peak (flux breaks ties): compact sources first.  In a photograph with nebulae, a
     # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
     # stars of one PSF the order is the flux order.
-    ranked = sorted(range(n_all), key=lambda i: (-stars[i].get("peak", stars[i].get("flux", 0.0)),
-                                                -stars[i].get("flux", 0.0)))
-    if opts.rank != "peak":
+    if opts.rank == "peak":
+        keys = [(-s.get("peak", s.get("flux", 0.0)), -s.get("flux", 0.0)) for s in stars]
+        ranked = sorted(range(n_all), key=keys.__getitem__)
+    else:
         ranked = list(range(n_all))
     stars = [stars[i] for i in ranked]
     m = min(n_all, opts.verify_stars)
@@ -708,8 +709,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     n_rows = max(_catalog_prefix(index, solid, max(2 * len(stars), 30)), max(cat_rows) + 1)
     star_vec = index.star_vec[:n_rows]
     star_id = index.star_id[:n_rows]
-    u = np.column_stack([(xy[:, 0] - cx) / f, (xy[:, 1] - cy) / f, np.ones(len(xy))])
-    b = u / np.linalg.norm(u, axis=1)[:, None]
+    b = _unit_vectors((xy[:, 0] - cx) / f, (xy[:, 1] - cy) / f)
     r_px = max(1.0, params.match_sigma * sigma)
     if wide:
         # Unknown distortion: first a wider match radius (the false-match probability accounts for it).
@@ -719,7 +719,6 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     # Screen: at least two more of the brightest stars on catalog stars, else not worth verifying.  The same pass
     # keeps the catalog rows near the pattern's boresight: the verification reads those (_CatalogCone).
     n_screen = min(len(b), 20)
-    b = np.ascontiguousarray(b)
     cone_rows = np.empty(n_rows, dtype=np.int64)
     cone_radius = math.acos(cos_fov) + _CONE_SLACK_RAD
     hits, k, axis = screen_in_cone(b, n_screen, index.star_vec, n_rows, np.asarray(img, dtype=np.int64),
@@ -770,6 +769,18 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         if wide:
             vparams = params
     return cam, matches, dcm, p_false
+
+
+def _unit_vectors(u, v):
+    """``(u, v, 1)`` divided by its norm, rows of a C-contiguous ``(n, 3)`` array: the bits of
+    ``np.column_stack([u, v, ones])`` over ``np.linalg.norm`` of it (numpy sums the three squares left to right),
+    without building it twice."""
+    norm = np.sqrt(u * u + v * v + 1.0)
+    out = np.empty((len(u), 3))
+    out[:, 0] = u / norm
+    out[:, 1] = v / norm
+    out[:, 2] = 1.0 / norm
+    return out
 
 
 def _centroid_sigma_px(stars: list, params) -> float:
