@@ -559,3 +559,31 @@ def test_blobs_set_aside_in_label_order_and_noise_blobs_dropped():
     at = [(r["x"], r["y"]) for r in res.rejected]
     assert at[:3] + at[4:] == [(float(x), float(y)) for x, y in hot]     # a hot pixel's own position
     assert abs(at[3][0] - 44.5) < 1.0 and abs(at[3][1] - 80.3) < 0.5      # the trail's centre
+
+
+@pytest.mark.parametrize("kind", ["normal", "clipped", "grey levels", "stars"])
+def test_mesh_core_stats_is_each_tiles_core_stats(kind):
+    """The mesh's statistics (the steps' probits tabulated per sample count) are each tile's own
+    core_stats_of_sorted, bit for bit, whatever the tiles' sample counts (NaN pixels thin some tiles)."""
+    from startrack._kernels.background import MIN_TILE_SAMPLES, core_stats_of_sorted, mesh_core_stats, mesh_samples
+
+    rng = np.random.default_rng(len(kind))
+    img = rng.normal(20.0, 4.0, (192, 256))
+    if kind == "clipped":
+        img = np.maximum(img - 18.0, 0.0)
+    elif kind == "grey levels":
+        img = np.round(img / 4.0)
+    elif kind == "stars":
+        img[rng.integers(0, 192, 400), rng.integers(0, 256, 400)] += rng.uniform(50, 5000, 400)
+    img = img.astype(np.float32)
+    img[rng.random(img.shape) < 0.3 * (np.arange(256) / 256)] = np.nan      # sample counts that vary by tile
+    samples, counts, sampled = mesh_samples(img, 32, 3, math.inf)
+    ordered = np.sort(samples, axis=1)
+    level, sigma = mesh_core_stats(ordered, counts, sampled, 6, 8)
+    assert len(set(counts.tolist())) > 5
+    for t in range(48):
+        if counts[t] < min(MIN_TILE_SAMPLES, sampled[t]):
+            assert np.isnan(level.ravel()[t])
+            continue
+        expected = core_stats_of_sorted(ordered[t, :counts[t]].astype(np.float64))
+        assert (level.ravel()[t], sigma.ravel()[t]) == expected

@@ -69,10 +69,25 @@ def _line(sw, sx, sz, sxx, sxz, m):
 
 
 @njit(cache=True)
-def _core_fit(s, f_lo, f_mid, f_hi):
+def _step_table(n, z_of, w_of):
+    """The probit ``z`` and weight ``w`` of every step ``j`` (``F = (j + 1) / n``) of a sample of ``n`` values, into
+    ``z_of[:n - 1]`` and ``w_of[:n - 1]``: what :func:`_core_fit` computes at a step, by the same operations.  They
+    depend on ``n`` alone: a mesh's tiles of as many samples share one table."""
+    for j in range(n - 1):
+        f = (j + 1) / n
+        z = _probit(f)
+        phi = math.exp(-0.5 * z * z)
+        z_of[j] = z
+        w_of[j] = phi * phi / (f * (1.0 - f))
+
+
+@njit(cache=True)
+def _core_fit(s, f_lo, f_mid, f_hi, z_of, w_of):
     """Weighted lines ``z = a + b x`` through the distribution function's steps inside ``[f_lo, f_hi]`` and
-    inside ``[f_lo, f_mid]`` (one pass): ``(a, b, points, a_low, b_low, points_low)``."""
+    inside ``[f_lo, f_mid]`` (one pass): ``(a, b, points, a_low, b_low, points_low)``.  ``z_of``, ``w_of``: the
+    steps' table of :func:`_step_table` for ``len(s)`` values, else empty (computed step by step)."""
     n = s.shape[0]
+    tabulated = z_of.shape[0] >= n - 1
     t = np.zeros(5)
     u = np.zeros(5)
     m = 0
@@ -86,9 +101,13 @@ def _core_fit(s, f_lo, f_mid, f_hi):
             f = (j + 1) / n
             if f_lo <= f <= f_hi:
                 x = 0.5 * (s[j] + s[j + 1])
-                z = _probit(f)
-                phi = math.exp(-0.5 * z * z)
-                w = phi * phi / (f * (1.0 - f))
+                if tabulated:
+                    z = z_of[j]
+                    w = w_of[j]
+                else:
+                    z = _probit(f)
+                    phi = math.exp(-0.5 * z * z)
+                    w = phi * phi / (f * (1.0 - f))
                 t[0] += w
                 t[1] += w * x
                 t[2] += w * z
@@ -140,17 +159,23 @@ def core_stats_of_sorted(s):
     sample of one value, or of two, has ``sigma`` 0 (below the quantisation) and
     its median as the level; the caller adds the quantisation's 1/12 DN^2.
     """
+    return _core_stats(s, np.empty(0), np.empty(0))
+
+
+@njit(cache=True)
+def _core_stats(s, z_of, w_of):
+    """:func:`core_stats_of_sorted` with the steps' table of :func:`_step_table` (else empty arrays)."""
     n = s.shape[0]
     if n == 0:
         return 0.0, 0.0
     med = s[n // 2] if n & 1 else 0.5 * (s[n // 2 - 1] + s[n // 2])
     if s[0] == s[n - 1]:
         return s[0], 0.0
-    a, b, m, a2, b2, m2 = _core_fit(s, CORE_F_LO, CORE_F_MID, CORE_F_HI)
+    a, b, m, a2, b2, m2 = _core_fit(s, CORE_F_LO, CORE_F_MID, CORE_F_HI, z_of, w_of)
     if m2 >= 3 and b2 > 0.0 and b > 0.0 and 1.0 / b > 1.25 / b2:
         a, b = a2, b2
     if m < 2:
-        a, b, m, _, _, _ = _core_fit(s, 0.0005, 0.0, 0.9)
+        a, b, m, _, _, _ = _core_fit(s, 0.0005, 0.0, 0.9, z_of, w_of)
     if m < 2 or not b > 0.0:
         return med, 0.0
     return -a / b, 1.0 / b
@@ -162,6 +187,11 @@ def mesh_core_stats(ordered, counts, sampled, ny, nx):
     level = np.empty((ny, nx))
     sigma = np.empty((ny, nx))
     buf = np.empty(ordered.shape[1])
+    # The steps' probits and weights depend on a tile's sample count alone: tabulated once per count (a mesh's
+    # tiles mostly hold as many samples), not per tile.
+    z_of = np.empty(ordered.shape[1])
+    w_of = np.empty(ordered.shape[1])
+    table_n = -1
     for t in range(ny * nx):
         k = counts[t]
         if k < min(MIN_TILE_SAMPLES, sampled[t]):
@@ -170,7 +200,10 @@ def mesh_core_stats(ordered, counts, sampled, ny, nx):
             continue
         for i in range(k):
             buf[i] = ordered[t, i]
-        med, sig = core_stats_of_sorted(buf[:k])
+        if k != table_n:
+            _step_table(k, z_of, w_of)
+            table_n = k
+        med, sig = _core_stats(buf[:k], z_of[:max(k - 1, 0)], w_of[:max(k - 1, 0)])
         level[t // nx, t % nx] = med
         sigma[t // nx, t % nx] = sig
     return level, sigma
