@@ -93,6 +93,9 @@ for _t in (np.float64, np.float32, np.int64, np.int32, np.int16, np.int8, np.uin
            np.uint8, np.bool_):
     _SCALARS[_t] = np.dtype(_t).str
 _NDARRAY = np.ndarray
+# An array's key bits from its ``flags.num``, looked up rather than computed per argument.
+_FLAG_BITS = _C | _F | _ALIGNED | _WRITEABLE
+_KEY_BITS = tuple((_C if n & _C else (_F if n & _F else 0)) | (n & (_ALIGNED | _WRITEABLE)) for n in range(_FLAG_BITS + 1))
 
 
 def _call_key(args):
@@ -103,14 +106,17 @@ def _call_key(args):
     """
     out = []
     for a in args:
-        if type(a) is _NDARRAY:
-            if a.dtype.kind not in "biuf":
+        t = type(a)
+        if t is float:         # most arguments
+            out.append("<f8")
+        elif t is _NDARRAY:
+            dtype = a.dtype
+            if dtype.kind not in "biuf":
                 return None
-            n = a.flags.num
-            out.append((a.dtype, a.ndim, (_C if n & _C else (_F if n & _F else 0)) | (n & (_ALIGNED | _WRITEABLE))))
+            out.append((dtype, a.ndim, _KEY_BITS[a.flags.num & _FLAG_BITS]))
         else:
-            k = _SCALARS.get(type(a))
-            if k is None or (k == "<i8" and type(a) is int and not -(2**63) <= a < 2**63):
+            k = _SCALARS.get(t)
+            if k is None or (t is int and not -(2**63) <= a < 2**63):
                 return None
             out.append(k)
     return tuple(out)
