@@ -932,7 +932,8 @@ class _CatalogCone:
         if reach <= 0.0:
             return None
         pos = np.searchsorted(self.rows, cat)
-        if np.any(pos >= len(self.rows)) or not np.array_equal(self.rows[np.minimum(pos, len(self.rows) - 1)], cat):
+        n = len(self.rows)
+        if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
             return None
         ok, match, q, n_pred = refine_in_cone(b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach))
         return (match, q, n_pred, pos) if ok else None

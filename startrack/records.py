@@ -266,7 +266,15 @@ class StarTable(_Record):
                 else:
                     columns[name] = col
         known = {"x", "y", "flux", "sigma_px", *columns}
-        other = [{k: v for k, v in s.items() if k not in known} for s in stars]
+        # The stars of one list mostly share their keys (in order): the other keys found once per set of keys.
+        other_keys: dict = {}
+        other = []
+        for s in stars:
+            keys = tuple(s)
+            rest = other_keys.get(keys)
+            if rest is None:
+                rest = other_keys[keys] = [k for k in keys if k not in known]
+            other.append({k: s[k] for k in rest})
         return cls(x, y, flux, sigma, columns, other if any(other) else None)
 
     def to_list(self) -> list:

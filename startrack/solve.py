@@ -18,7 +18,7 @@ catalog builds new ones.
 """
 from __future__ import annotations
 
-import dataclasses
+import copy
 import functools
 import logging
 import math
@@ -709,7 +709,9 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does
     # (the all-sky search one share per parity).
     shares = len(order) * (len(depths) + (1 if allsky else 0))
-    opts = dataclasses.replace(opts, max_false_probability=opts.max_false_probability / shares)
+    # A copy with the share (dataclasses.replace would check every option again: they were checked when made).
+    opts, share = copy.copy(opts), opts.max_false_probability / shares
+    opts.max_false_probability = share
 
     def search(search_list):
         tried = 0
