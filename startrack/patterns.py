@@ -656,15 +656,15 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 info["outside_hint"] += 1      # a field found elsewhere than the hint says: not this frame's answer
                 res = None
             if res is not None:
-                cam, matches, dcm, p_false = res
-                matches = [dict(mm, star=ranked[mm["star"]]) for mm in matches]
+                cam, (m_star, m_id, m_row), dcm, p_false = res
+                matches = [{"star": ranked[s_], "id": int(i_)} for s_, i_ in zip(m_star.tolist(), m_id.tolist())]
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],
                          "verified": info["verified"]}
                 log.info("pattern search: field %.3f deg wide, %d stars matched after %d patterns and %d candidates "
                          "verified, %.0f ms", cam.fov_deg[0], len(matches), info["patterns"], info["verified"], elapsed)
-                info["rows"] = [mm["index"] for mm in matches]
+                info["rows"] = m_row.tolist()
                 return cam, _blind_result(matches, elapsed, None, p_false, dcm, extra), info
     elapsed = (time.perf_counter() - t0) * 1000
     reason = f"{reason} ({info['patterns']} patterns, {info['verified']} candidates verified)"
@@ -745,13 +745,12 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
     previous = None
     for _ in range(3):
-        idx = np.array([mm["star"] for mm in matches])
-        rows = np.array([mm["index"] for mm in matches])
+        idx, _, rows = matches
         f_before = cam.focal_length_px
-        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], wide and len(matches) >= 8)
+        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], wide and len(idx) >= 8)
         if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
             return None
-        pairs = [(mm["star"], mm["index"]) for mm in matches]
+        pairs = (idx.tolist(), rows.tolist())
         if not wide and pairs == previous and abs(cam.focal_length_px / f_before - 1.0) < _F_CONVERGED:
             # Converged: the last verification kept the same matches and the fit moves f by less than
             # _F_CONVERGED; another round would move it by a few percent of that (the alternation
@@ -760,8 +759,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         previous = pairs
         b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
         eps = tolerance_rad(cam, sigma, params)
-        m2, dcm2, p2, _ = _verify_blind([mm["star"] for mm in matches], [mm["index"] for mm in matches],
-                                        int(n_verified * n_scales), b, cam, star_vec, star_id, eps, sigma,
+        m2, dcm2, p2, _ = _verify_blind(idx, rows, int(n_verified * n_scales), b, cam, star_vec, star_id, eps, sigma,
                                         params if not wide else vparams, cone)
         if m2 is None:
             break
@@ -839,7 +837,7 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
                   eps: float, sigma_px: float, params, cone=None):
     """Attitude, remaining stars and confidence of a candidate: image stars ``image`` are the index's rows
     ``catalog``, after ``trials`` candidates (look-elsewhere).  Returns ``(matches, dcm, p_false, reason)``,
-    ``matches`` a list of ``{"star", "id", "index"}`` (``index``: the row).
+    ``matches`` three int arrays: the matched stars, their catalog ids and their rows of the index.
 
     The blind solver's verification with one match radius for every star (from the frame's centroid
     sigma, :func:`_centroid_sigma_px`): the attitude refined on every star within it, the candidate's stars
@@ -897,11 +895,10 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
                                     f"{params.max_false_probability:g}")
     rows = np.flatnonzero(match >= 0)
     cat_rows = match[rows]
-    ids = star_id[cat_rows].tolist()
+    ids = star_id[cat_rows]
     if rows_of is not None:
         cat_rows = rows_of[cat_rows]
-    out = [{"star": s, "id": int(i), "index": c} for s, i, c in zip(rows.tolist(), ids, cat_rows.tolist())]
-    return out, dcm, p_false, None
+    return (rows, ids, cat_rows), dcm, p_false, None
 
 
 #: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room
