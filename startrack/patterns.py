@@ -38,6 +38,7 @@ identification algorithm's.
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
 import math
@@ -466,6 +467,20 @@ def _combos(n: int):
     return rows
 
 
+def _pattern_blocks(n: int):
+    """The blocks ``(s0, s1)`` of the ``n`` patterns looked up together (``combos[s0:s1]``): the first one, the next
+    two, then six at a time, as the list of starts ``[0, 1, 3, 6, 12, ...]`` pairs them, made as needed."""
+    prev = None
+    for start in itertools.chain((0, 1, 3), range(6, n, 6)):
+        if prev is not None:
+            if prev >= n:
+                return
+            yield prev, start
+        prev = start
+    if prev < n:
+        yield prev, n
+
+
 def _catalog_prefix(index: PatternIndex, solid_angle: float, want: int) -> int:
     """Rows (brightest first) such that the field holds about ``want`` catalog stars on average."""
     n = int(want * 4 * math.pi / max(solid_angle, 1e-9))
@@ -617,11 +632,8 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # are identified by their first pattern, and the candidates are verified in the same order either way.
     # _combos(n) begins with _combos(n') for n' < n (tetra3's order: a pattern's faintest star last), so the
     # deeper searches are the same loop carried on past the first depth's patterns.
-    starts = [0, 1, 3] + list(range(6, len(combos), 6))
     reason = "no star pattern identified"
-    for s0, s1 in zip(starts, starts[1:] + [len(combos)]):
-        if s0 >= len(combos):
-            break
+    for s0, s1 in _pattern_blocks(len(combos)):
         if search_clock() > deadline:
             reason = f"no solution within {opts.timeout_s:g} s of search"
             break
@@ -785,8 +797,8 @@ def _centroid_sigma_px(stars: list, params) -> float:
     """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
     if params.sigma_px is not None:
         return float(params.sigma_px)
-    reported = [s.get("sigma_px") for s in stars if isinstance(s.get("sigma_px"), (int, float))]
-    reported = [v for v in reported if v is not None and math.isfinite(v) and v > 0]
+    reported = [v for v in (s.get("sigma_px") for s in stars)
+                if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
     if reported:
         return float(max(0.05, min(2.0, _median(reported) * 1.5)))
     return 0.5
