@@ -523,9 +523,9 @@ def warm_kernels(index: PatternIndex) -> None:
 
     Once per process and kind of index arrays (a memory-mapped index is read-only, a built one is not).
     """
-    from startrack._kernels.attitude import refine
+    from startrack._kernels.attitude import quat_to_dcm, refine
     from startrack._kernels.patterns import query_patterns
-    from startrack._kernels.verify import refine_in_cone, screen_in_cone
+    from startrack._kernels.verify import blind_confidence, screen_in_cone, verify_in_cone
 
     types = _index_types(index)
     if types in _WARMED:
@@ -540,11 +540,13 @@ def warm_kernels(index: PatternIndex) -> None:
     # The catalog side is the index's own (read-only, memory-mapped) array, as in the
     # search, so that one compiled signature serves both (each one costs a load).
     rows = np.array([0, 1])
-    refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0, 0.01, 1)
+    _, q, _ = refine(b, index.star_vec, rows, rows, 0.5, 100.0, 5.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0, 0.01, 1)
+    # The verification on the whole catalog, when a refined field leaves its candidate's cone (_verify_blind).
+    blind_confidence(b, rows, rows, index.star_vec[:2], quat_to_dcm(q), 0.5, 0.01, 2, 0.01)
     cone_rows = np.empty(2, dtype=np.int64)
     _, k, axis = screen_in_cone(b, 2, index.star_vec, 2, rows, rows, 0.5, 0.01, 0.4, cone_rows)
-    refine_in_cone(b, np.ascontiguousarray(index.star_vec[:2]), rows, rows.copy(), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0,
-                   0.0, 0.0, 0.0, 0.0, 0, 0.01, 1, axis, 0.9)
+    verify_in_cone(b, np.ascontiguousarray(index.star_vec[:2]), rows, rows.copy(), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0,
+                   0.0, 0.0, 0.0, 0.0, 0, 0.01, 1, axis, 0.9, 2, 0.01)
     _WARMED.add(types)
 
 
@@ -879,22 +881,23 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     n_cat = len(star_vec)
     geometry = (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
                 float(camera.height), *camera.lens_terms, radius, 2)
-    got = cone.refine(b_vectors, img, cat, cos_fov, geometry) if cone is not None else None
-    if got is not None:
-        match, q, n_pred, cat = got
-        star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
-    else:
-        match, q, n_pred = refine(b_vectors, star_vec, img, cat, cos_fov, *geometry)
-        rows_of = None
-    dcm = quat_to_dcm(q)
-    n_matched = int(np.count_nonzero(match >= 0))
     # A proposal star agrees when the refined attitude puts its catalog star within the match radius of it
     # (whether or not the star-by-star matching, which refuses ambiguous neighbours, kept it).  With the
     # confidence's numbers, in one kernel call (startrack._kernels.verify.blind_confidence): the chance
     # that a pattern of the proposal's first four stars (three when that is all) matches by coincidence,
-    # and the chance that each other star falls on a predicted catalog star by accident.
-    agree, core_agree, p_local, e_pyr = blind_confidence(b_vectors, img, cat, star_vec, dcm, cos_fov, radius,
-                                                         n_cat, float(eps))
+    # and the chance that each other star falls on a predicted catalog star by accident.  On the cone's rows,
+    # the refinement and the confidence in one call (startrack._kernels.verify.verify_in_cone).
+    got = cone.verify(b_vectors, img, cat, cos_fov, geometry, n_cat, float(eps)) if cone is not None else None
+    if got is not None:
+        match, q, n_pred, cat, dcm, agree, core_agree, p_local, e_pyr = got
+        star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
+    else:
+        match, q, n_pred = refine(b_vectors, star_vec, img, cat, cos_fov, *geometry)
+        rows_of = None
+        dcm = quat_to_dcm(q)
+        agree, core_agree, p_local, e_pyr = blind_confidence(b_vectors, img, cat, star_vec, dcm, cos_fov, radius,
+                                                             n_cat, float(eps))
+    n_matched = int(np.count_nonzero(match >= 0))
     if agree < min(len(img), params.min_matches):
         return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
     if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
@@ -922,7 +925,7 @@ _CONE_SLACK_RAD = math.radians(1.0)
 class _CatalogCone:
     """The catalog rows within ``radius`` (rad) of a candidate's boresight ``axis`` (ascending ``rows`` of the
     verification's ``star_vec``, their vectors ``vec`` and ids ``ids``): what its refinement and confidence
-    read instead of every row (:func:`startrack._kernels.verify.refine_in_cone`)."""
+    read instead of every row (:func:`startrack._kernels.verify.verify_in_cone`)."""
 
     def __init__(self, rows, star_vec, star_id, axis, radius):
         self.rows = rows
@@ -931,11 +934,13 @@ class _CatalogCone:
         self.axis = axis
         self.radius = radius
 
-    def refine(self, b, img, cat, cos_fov, geometry):
-        """:func:`startrack._kernels.attitude.refine` on the cone's rows: ``(match, q, n_predicted, cat)`` with
-        ``match`` and ``cat`` (the proposal's rows) indexing :attr:`vec`, or ``None`` when the cone cannot
-        answer for the whole catalog (a proposal star outside it, or an attitude whose field leaves it)."""
-        from startrack._kernels.verify import refine_in_cone
+    def verify(self, b, img, cat, cos_fov, geometry, n_cat, eps):
+        """:func:`startrack._kernels.attitude.refine` and :func:`startrack._kernels.verify.blind_confidence` on the
+        cone's rows (:func:`startrack._kernels.verify.verify_in_cone`): ``(match, q, n_predicted, cat, dcm, agree,
+        core_agree, p_local, e_core)`` with ``match`` and ``cat`` (the proposal's rows) indexing :attr:`vec`, or
+        ``None`` when the cone cannot answer for the whole catalog (a proposal star outside it, or an attitude whose
+        field leaves it)."""
+        from startrack._kernels.verify import verify_in_cone
 
         reach = self.radius - math.acos(max(-1.0, min(1.0, cos_fov))) - 1e-9
         if reach <= 0.0:
@@ -944,8 +949,9 @@ class _CatalogCone:
         n = len(self.rows)
         if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
             return None
-        ok, match, q, n_pred = refine_in_cone(b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach))
-        return (match, q, n_pred, pos) if ok else None
+        ok, match, q, n_pred, dcm, agree, core_agree, p_local, e_core = verify_in_cone(
+            b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach), n_cat, eps)
+        return (match, q, n_pred, pos, dcm, agree, core_agree, p_local, e_core) if ok else None
 
 
 def _cone_cos(camera, margin_deg: float) -> float:

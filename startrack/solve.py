@@ -560,12 +560,12 @@ def _warm(index):
     from startrack._kernels.attitude import refine
     from startrack._kernels.patterns import query_patterns
     from startrack._kernels.psf_fit import measure_candidates
-    from startrack._kernels.verify import refine_in_cone, screen_in_cone
+    from startrack._kernels.verify import screen_in_cone, verify_in_cone
     from startrack.centroid import CentroidOptions, find_stars
     from startrack.patterns import warm_kernels
 
     # numba's dispatchers know what this process has compiled or loaded already.
-    if all(k.signatures for k in (refine, measure_candidates, query_patterns, screen_in_cone, refine_in_cone)):
+    if all(k.signatures for k in (refine, measure_candidates, query_patterns, screen_in_cone, verify_in_cone)):
         _KERNELS_READY = True
         return
     if not _kernels_cached():

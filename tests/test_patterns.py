@@ -316,9 +316,19 @@ def test_verification_in_a_cone_is_the_whole_catalogs(seed):
     np.testing.assert_array_equal(np.where(m2 >= 0, rows[np.maximum(m2, 0)], -1), match)
     assert np.array_equal(q2, q) and n2 == n_pred
     assert (np.count_nonzero(match >= 0) >= 25) == (seed % 2 == 0), np.count_nonzero(match >= 0)
+    # The search's one call: the refinement, its matrix and the confidence on the cone's rows, the same numbers.
+    from startrack._kernels.attitude import quat_to_dcm
+    from startrack._kernels.verify import blind_confidence, verify_in_cone
+
+    ok3, m3, q3, n3, dcm3, *confidence = verify_in_cone(b, sub, img, pos, cos_fov, *geometry, axis, reach, n_rows, 3e-5)
+    assert ok3 and np.array_equal(m3, m2) and np.array_equal(q3, q2) and n3 == n2
+    assert dcm3.tobytes() == quat_to_dcm(q2).tobytes()
+    assert tuple(confidence) == blind_confidence(b, img, pos, sub, dcm3, cos_fov, radius, n_rows, 3e-5)
     # A cone whose axis lies 2 degrees off: the refined attitude's field leaves it.
     tilted = axis + np.cross(axis, [0.0, 0.0, 1.0]) / np.linalg.norm(np.cross(axis, [0.0, 0.0, 1.0])) * 0.035
     ok, *_ = refine_in_cone(b, sub, img, pos, cos_fov, *geometry, tilted / np.linalg.norm(tilted), reach)
+    assert not ok
+    ok, *_ = verify_in_cone(b, sub, img, pos, cos_fov, *geometry, tilted / np.linalg.norm(tilted), reach, n_rows, 3e-5)
     assert not ok
 
 

@@ -913,6 +913,23 @@ def refine_in_cone(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height,
     return True, match, q, counts[1]
 
 
+@njit(cache=True)
+def verify_in_cone(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, radius, rounds,
+                   axis, cos_reach, n_cat, eps):
+    """One verification of the blind search on a cone's catalog rows in one call: :func:`refine_in_cone`, the
+    refined attitude's matrix (:func:`startrack._kernels.attitude.quat_to_dcm`) and, when the cone answered,
+    :func:`blind_confidence` (``n_cat`` catalog stars, pattern tolerance ``eps``) on the cone's rows: the same
+    numbers as the three calls.  Returns ``(ok, match, q, n_predicted, dcm, agree, core_agree, p_local, e_core)``,
+    the last four 0 when not ``ok``."""
+    ok, match, q, n_pred = refine_in_cone(b, star_vec, img, cat, cos_fov, focal, cx, cy, width, height, k1, k2, k3,
+                                          k4, proj, radius, rounds, axis, cos_reach)
+    dcm = quat_to_dcm(q)
+    if not ok:
+        return False, match, q, n_pred, dcm, 0, 0, 0.0, 0.0
+    agree, core_agree, p_local, e_core = blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps)
+    return True, match, q, n_pred, dcm, agree, core_agree, p_local, e_core
+
+
 @njit(cache=True, inline="always")
 def _boresight_within(q, axis, cos_reach):
     """Whether the boresight of ``q`` (the third row of :func:`quat_to_dcm`) is within ``acos(cos_reach)`` of
