@@ -922,8 +922,6 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
              & ~((elong > options.max_elongation) & (npix >= 8)))
     if options.deblend:
         plain &= ~((npix >= 6) & (elong > 1.35))
-    plain_rows = list(zip(cx.tolist(), cy.tolist(), peak.tolist(), npix.tolist(), nsat.tolist(), minor.tolist(),
-                          [False] * len(labs), flux.tolist()))
     # Most blobs of a frame are noise peaks below min_pixels that the loop below would drop without a record (all
     # but the hot pixels it reports): left out here, at once.  The plain candidates before each blob the loop
     # visits go in first, in label order, as before.
@@ -931,10 +929,17 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
                                                             & (nsat == 0) & (peak > 0)))
     plain_at = np.flatnonzero(plain)
     visit = np.flatnonzero(~plain & ~silent)
-    plain_only = [plain_rows[i] for i in plain_at.tolist()]
+
+    def rows_of(at):
+        """The candidate tuples of the blobs ``at`` (indices into ``labs``)."""
+        return list(zip(cx[at].tolist(), cy[at].tolist(), peak[at].tolist(), npix[at].tolist(), nsat[at].tolist(),
+                        minor[at].tolist(), [False] * len(at), flux[at].tolist()))
+
+    plain_only = rows_of(plain_at)
+    visit_rows = rows_of(visit)
     peak_buf = np.empty((64, 2), dtype=np.int64)
     done = 0
-    for k, before in zip(visit.tolist(), np.searchsorted(plain_at, visit).tolist(), strict=True):
+    for k, before, own in zip(visit.tolist(), np.searchsorted(plain_at, visit).tolist(), visit_rows, strict=True):
         candidates.extend(plain_only[done:before])
         done = before
         row = arr[k].tolist()
@@ -970,13 +975,13 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
                 peaks = peak_buf[:n_peaks].tolist()
                 for (qx, qy) in peaks:
                     candidates.append((float(qx), float(qy), float(src[qy - oy, qx - ox]), area / len(peaks), ns,
-                                       plain_rows[k][5], True, f / len(peaks)))
+                                       own[5], True, f / len(peaks)))
                 continue
         if e > options.max_elongation and area >= 8:
             rejected.append({"x": float(x), "y": float(y), "flux": float(f), "npix": area,
                              "elongation": e, "reason": "elongated (trail or extended object)"})
             continue
-        candidates.append(plain_rows[k])
+        candidates.append(own)
     candidates.extend(plain_only[done:])
     if options.max_stars is not None and len(candidates) > 3 * options.max_stars + 20:
         # Only the brightest blobs can be among the max_stars brightest stars: centroid those
