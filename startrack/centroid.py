@@ -1190,7 +1190,7 @@ def _measure_gauss(residual, candidates, options, noise_mesh, cell, quant_var):
             "x": x, "y": y, "flux": flux, "peak": float(peak), "npix": int(npix),
             "snr": float(snr), "sigma_px": math.sqrt(0.5 * (cxx + cyy)) if fitted else _uncertainty(flux, sigma_psf,
                                                                                                   noise, gain),
-            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": nsat > 0, "_nsat": int(nsat),
+            "fwhm_px": 2.3548 * sigma_psf, "noise_dn": noise, "saturated": bool(nsat > 0), "_nsat": int(nsat),
         }
         if deblended:
             star["deblended"] = True
