@@ -15,8 +15,9 @@ from startrack.rotations import quaternion_to_dcm, radec_roll_to_dcm, random_qua
 class BruteCatalogStars(CatalogStars):
     """The cone as match_catalog tested it before the sky index: every star, one dot product each."""
 
-    def in_cone(self, axis, cos_radius):
-        return np.flatnonzero(self.vectors @ axis > cos_radius)
+    def in_cone(self, axis, cos_radius, mag_limit=None):
+        rows = np.flatnonzero(self.vectors @ axis > cos_radius)
+        return rows if mag_limit is None else rows[self.mag[rows] <= mag_limit]
 
 
 def _attitudes():

@@ -139,6 +139,10 @@ def warm_up(algorithm: str, db, params: IdentifyParams | None = None, camera=Non
     try:
         identify_stars(stars[:12] if len(stars) >= 3 else stars + [{"x": 1.0, "y": 1.0}] * 3, cam, db, algorithm,
                        params)
+        # The final catalog match's kernel (identify's default matches every detection against the catalog).
+        from startrack.identify.catalog_match import warm_final_match
+
+        warm_final_match()
     finally:
         WARMING_UP.reset(token)
 

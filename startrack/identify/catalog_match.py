@@ -7,9 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from startrack._kernels.catalog_match import match_detections
 from startrack.records import Match
 
-__all__ = ["CatalogStars", "match_catalog", "match_identified"]
+__all__ = ["CatalogStars", "match_catalog", "match_identified", "warm_final_match"]
 
 
 @dataclass
@@ -26,6 +27,10 @@ class CatalogStars:
     #: Parallaxes (mas; 0: none), or None: the apparent places' parallax (:func:`match_catalog`'s ``apparent``).
     plx: np.ndarray | None = None
     _id_order: np.ndarray | None = None
+    _mag64: np.ndarray | None = None
+    _mag_order: tuple | None = None
+    _bright: dict | None = None
+    _id64: np.ndarray | None = None
 
     @classmethod
     def from_catalog(cls, catalog, since=None) -> CatalogStars:
@@ -35,6 +40,20 @@ class CatalogStars:
         plx = getattr(catalog, "plx", None)
         return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index(), motion,
                    None if plx is None or not np.any(plx > 0) else np.asarray(plx, dtype=np.float64))
+
+    @property
+    def mag64(self) -> np.ndarray:
+        """``mag`` as contiguous float64 (made once; the final match's kernel reads it)."""
+        if self._mag64 is None or len(self._mag64) != len(self.mag):
+            self._mag64 = np.ascontiguousarray(self.mag, dtype=np.float64)
+        return self._mag64
+
+    @property
+    def id64(self) -> np.ndarray:
+        """``id`` as contiguous int64 (made once; the final match's kernel reads it)."""
+        if self._id64 is None or len(self._id64) != len(self.id):
+            self._id64 = np.ascontiguousarray(self.id, dtype=np.int64)
+        return self._id64
 
     def _rows(self, ids):
         """``(rows, found)``: the row of each of ``ids`` and whether the catalog has it."""
@@ -63,15 +82,46 @@ class CatalogStars:
         out[found] += self.motion[rows[found]]
         return out / np.linalg.norm(out, axis=1, keepdims=True)
 
-    def in_cone(self, axis: np.ndarray, cos_radius: float) -> np.ndarray:
-        """The rows with ``vectors @ axis > cos_radius``, ascending: the stars near the sky index's cone,
-        tested as a pass over every star would test them."""
-        if self.sky is None:
+    def in_cone(self, axis: np.ndarray, cos_radius: float, mag_limit: float | None = None) -> np.ndarray:
+        """The rows with ``vectors @ axis > cos_radius`` (and, with ``mag_limit``, ``mag <= mag_limit``), ascending:
+        the stars near the sky index's cone, tested as a pass over every star would test them.
+
+        With ``mag_limit`` the cone is looked up in the index of the catalog's brightest stars that holds every
+        star at or brighter than the limit (:meth:`_bright_index`): a frame's depth keeps a few per cent of a
+        deep catalog, which the whole catalog's cone would visit all of."""
+        bright = None if mag_limit is None else self._bright_index(mag_limit)
+        if bright is not None:
+            rows, sky = bright
+            near = rows[sky.near(axis, cos_radius)]
+        else:
+            if self.sky is None:
+                from startrack.skyindex import SkyIndex
+
+                self.sky = SkyIndex(self.vectors)
+            near = self.sky.near(axis, cos_radius)
+        near = near[self.vectors[near] @ axis > cos_radius]
+        return near if mag_limit is None else near[self.mag[near] <= mag_limit]
+
+    def _bright_index(self, mag_limit: float):
+        """``(rows, SkyIndex of vectors[rows])``: the brightest ``2^k`` stars (rows ascending), the fewest such
+        that hold every star at or brighter than ``mag_limit``; None when that is the whole catalog.  Made at
+        the first use of each size (at most ``log2(n)`` of them, each at most twice the stars it must hold)."""
+        if self._mag_order is None or len(self._mag_order[0]) != len(self.mag):
+            order = np.argsort(self.mag64, kind="stable")
+            self._mag_order = (order, self.mag64[order])
+            self._bright = {}
+        order, sorted_mag = self._mag_order
+        n = int(np.searchsorted(sorted_mag, mag_limit, side="right"))
+        size = 1 << max(0, n - 1).bit_length()
+        if size >= len(order):
+            return None
+        got = self._bright.get(size)
+        if got is None:
             from startrack.skyindex import SkyIndex
 
-            self.sky = SkyIndex(self.vectors)
-        near = self.sky.near(axis, cos_radius)
-        return near[self.vectors[near] @ axis > cos_radius]
+            rows = np.sort(order[:size])
+            got = self._bright[size] = (rows, SkyIndex(self.vectors[rows]))
+        return got
 
 
 def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
@@ -148,8 +198,7 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
         return matches, None
     vec = stars.vectors
     # The catalog stars in the field's cone only (the sky index), not a pass over the catalog.
-    front = stars.in_cone(dcm[2], cos_fov)
-    front = front[stars.mag[front] <= (np.inf if mag_limit is None else mag_limit)]
+    front = stars.in_cone(dcm[2], cos_fov, mag_limit)
     cone = vec[front] if apparent is None else apparent(vec[front], None if stars.plx is None else stars.plx[front])
     pc = cone @ dcm.T
     x, y = camera.vectors_to_pixels(pc)
@@ -158,50 +207,34 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
     if len(idx) < 1:
         return matches, None
     dots = b_all[todo] @ pc.T                                   # (detections, predicted)
-    rows = np.arange(len(todo))
-    if dots.shape[1] > 1:
-        # The nearest two predicted stars of each detection (the larger cosine first).
-        two = np.argpartition(-dots, 1, axis=1)[:, :2]
-        flip = dots[rows, two[:, 1]] > dots[rows, two[:, 0]]
-        best = np.where(flip, two[:, 1], two[:, 0])
-        other = np.where(flip, two[:, 0], two[:, 1])
-    else:
-        best = other = np.zeros(len(todo), dtype=np.intp)
     r = radius[todo]
-    cos_r = np.cos(r)
-    lam_floor = len(idx) * math.pi * (r * camera.focal_length_px) ** 2 / float(camera.width * camera.height)
-    n_local = np.count_nonzero(dots >= np.cos(10 * r)[:, None], axis=1) - 1
-    ok = dots[rows, best] >= cos_r
-    if dots.shape[1] > 1:
-        near2 = dots[rows, other] >= np.cos(2 * r)
-        distinct = np.einsum("ij,ij->i", pc[best], pc[other]) < cos_r
-        ok &= ~(near2 & distinct)                               # two distinct stars near it: ambiguous
-        pair = near2 & ~distinct & (stars.mag[idx[other]] < stars.mag[idx[best]])
-        best = np.where(pair, other, best)                      # an unresolved pair: the brighter
-    dot = dots[rows, best]
-    offset = np.arccos(np.minimum(1.0, dot))
-    closest = np.maximum(offset, sigma[todo] if sigma is not None else r) / r
-    chance = 1.0 - np.exp(-np.maximum(n_local / 100.0, lam_floor) * np.minimum(1.0, closest) ** 2)
-    ok &= ~(chance > max_chance)
-    cids = stars.id[idx[best]]
-    ok &= ~np.isin(cids, np.array([int(m.id) for m in matches], dtype=cids.dtype))
-    sel = np.flatnonzero(ok)
-    if len(sel) == 0:
+    # The per-detection decisions in one kernel (see there): nearest star, ambiguity, unresolved pairs, chance,
+    # the ids taken, one detection per catalog star.
+    det, cand = match_detections(dots, pc, r, r if sigma is None else sigma[todo], idx, stars.mag64, stars.id64,
+                                 np.array([int(m.id) for m in matches], dtype=np.int64), float(max_chance),
+                                 float(camera.focal_length_px), float(camera.width * camera.height))
+    if len(det) == 0:
         return matches, None
-    # One detection per catalog star: the nearer (larger cosine) wins, the earlier detection on a tie.
-    order = np.lexsort((sel, -dot[sel], cids[sel]))
-    sel = sel[order]
-    first = np.ones(len(sel), dtype=bool)
-    first[1:] = cids[sel[1:]] != cids[sel[:-1]]
-    sel = np.sort(sel[first])
-    cand = {int(cids[k]): (int(todo[k]), float(dot[k]), int(best[k])) for k in sel}
-    new = sorted(cand.items(), key=lambda kv: kv[1][0])
-    out = list(matches) + [Match(i, cid) for cid, (i, _, _) in new]
-    body = np.vstack([b_all[[m.star for m in matches]], b_all[[i for _, (i, _, _) in new]]])
-    ref_all = np.vstack([ref, cone[[k for _, (_, _, k) in new]]])
+    new_star = todo[det].tolist()
+    ids = stars.id[idx[cand]].tolist()
+    out = list(matches) + [Match(i, cid) for i, cid in zip(new_star, ids)]
+    body = np.vstack([b_all[[m.star for m in matches]], b_all[new_star]])
+    ref_all = np.vstack([ref, cone[cand]])
     q = _quest(body, ref_all, 1.0 / radius[[m.star for m in out]] ** 2)
     out.sort(key=lambda m: m.star)
     return out, q
+
+
+def warm_final_match() -> None:
+    """Run the final match's kernel (:func:`startrack._kernels.catalog_match.match_detections`) once on a made-up
+    detection and two predicted stars, with the argument types :func:`_match_once` gives it, so that a process
+    that warms the identification (and the ahead-of-time build made from it) has it compiled."""
+    pc = np.array([[0.0, 0.0, 1.0], [1e-4, 0.0, math.sqrt(1.0 - 1e-8)]])
+    b = np.array([[0.0, 0.0, 1.0]])
+    dots = b @ pc.T
+    r = np.full(1, 1e-3)
+    match_detections(dots, pc, r, r, np.arange(2, dtype=np.int64), np.zeros(2), np.arange(2, dtype=np.int64),
+                     np.zeros(0, dtype=np.int64), 1e-3, 1000.0, 1e6)
 
 
 def _frame_depth(flux, star_index, mags, margin: float = 1.0):
