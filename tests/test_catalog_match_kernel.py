@@ -128,3 +128,48 @@ def test_magnitude_limited_cone_is_the_cut_cone(catalog, limit):
     # a limit that keeps few stars looks them up in a smaller index than the catalog's
     if limit <= 6.5:
         assert stars._bright and max(len(rows) for rows, _ in stars._bright.values()) < len(vec)
+
+
+def _types(args):
+    """What an ahead-of-time entry is chosen by: each array's dtype, dimensions, layout, writability, alignment."""
+    return tuple((a.dtype.str, a.ndim, "C" if a.flags.c_contiguous else "F" if a.flags.f_contiguous else "A",
+                  a.flags.writeable, a.flags.aligned) if isinstance(a, np.ndarray) else type(a) for a in args)
+
+
+def test_warm_up_calls_the_final_match_kernels_with_their_real_argument_types(catalog, monkeypatch):
+    """identify's warm-up (and so the ahead-of-time build) has the final match's kernels for the argument types a
+    real match gives them: else a process's first final match imports numba (~0.3 s inside its time_ms)."""
+    from startrack._kernels import _jit
+    from startrack.camera import Camera
+    from startrack.identify.catalog_match import match_catalog, warm_final_match
+    from startrack.identify.verify import _geometry
+    from startrack.records import Match
+    from startrack.rotations import radec_roll_to_dcm
+
+    seen = {}
+    call = _jit.LazyKernel.__call__
+
+    def spy(self, *args):
+        seen.setdefault(self.qualname, set()).add(_types(args))
+        return call(self, *args)
+
+    monkeypatch.setattr(_jit.LazyKernel, "__call__", spy)
+    warm_final_match()
+    warm, seen = seen, {}
+    cam = Camera.from_fov(15.0, 1280, 960)
+    dcm = radec_roll_to_dcm(80.0, 20.0, 30.0)
+    vec = catalog.vectors()
+    body = vec @ dcm.T
+    front = np.flatnonzero((body[:, 2] > 0.9) & (catalog.mag <= 6.5))
+    x, y = cam.vectors_to_pixels(body[front])
+    rows = front[cam.in_image(x, y, margin=3.0)][:40]
+    b = vec[rows] @ dcm.T
+    matches = [Match(k, int(catalog.id[rows[k]])) for k in range(4)]
+    radius = np.full(len(rows), 2.0 / cam.focal_length_px)
+    got, q = match_catalog(matches, vec[rows[:4]], dcm, b, radius, cam, CatalogStars.from_catalog(catalog), 1e-3,
+                           _geometry(cam)[0], 6.5, radius / 4)
+    assert q is not None and len(got) > 4           # the match added stars: every kernel of it ran
+    names = [n for n in seen if n.endswith(("match_detections", "quest"))]
+    assert len(names) == 2, sorted(seen)
+    for name in names:
+        assert seen[name] <= warm.get(name, set()), (name, seen[name], warm.get(name))

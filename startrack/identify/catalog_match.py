@@ -226,15 +226,19 @@ def _match_once(matches, ref, dcm, b_all, radius, camera, stars, max_chance, cos
 
 
 def warm_final_match() -> None:
-    """Run the final match's kernel (:func:`startrack._kernels.catalog_match.match_detections`) once on a made-up
-    detection and two predicted stars, with the argument types :func:`_match_once` gives it, so that a process
-    that warms the identification (and the ahead-of-time build made from it) has it compiled."""
+    """Run the final match's kernels once on two made-up detections and two predicted stars, with the argument
+    types :func:`_match_once` gives them (:func:`startrack._kernels.catalog_match.match_detections`, and QUEST
+    through :func:`_quest`; two detections, as an array of one row is F-contiguous too), so that a process that
+    warms the identification, and the ahead-of-time build made from one, has them compiled: without QUEST's entry
+    a process's first final match imported numba and loaded the kernel from its cache (~0.3 s, inside that
+    frame's time_ms)."""
     pc = np.array([[0.0, 0.0, 1.0], [1e-4, 0.0, math.sqrt(1.0 - 1e-8)]])
-    b = np.array([[0.0, 0.0, 1.0]])
+    b = np.array([[0.0, 0.0, 1.0], [0.0, 1e-4, math.sqrt(1.0 - 1e-8)]])
     dots = b @ pc.T
-    r = np.full(1, 1e-3)
+    r = np.full(2, 1e-3)
     match_detections(dots, pc, r, r, np.arange(2, dtype=np.int64), np.zeros(2), np.arange(2, dtype=np.int64),
                      np.zeros(0, dtype=np.int64), 1e-3, 1000.0, 1e6)
+    _quest(np.vstack([b[:1], b[1:]]), np.vstack([pc[:1], pc[1:]]), 1.0 / r ** 2)
 
 
 def _frame_depth(flux, star_index, mags, margin: float = 1.0):
