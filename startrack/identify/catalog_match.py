@@ -104,8 +104,10 @@ class CatalogStars:
 
     def _bright_index(self, mag_limit: float):
         """``(rows, SkyIndex of vectors[rows])``: the brightest ``2^k`` stars (rows ascending), the fewest such
-        that hold every star at or brighter than ``mag_limit``; None when that is the whole catalog.  Made at
-        the first use of each size (at most ``log2(n)`` of them, each at most twice the stars it must hold)."""
+        that hold every star at or brighter than ``mag_limit``; None when that is half the catalog or more (its
+        cones would hold at least half the whole catalog's: not worth an index of its own, whose build a
+        process's first frame at that depth pays, ~5 ms for 65,536 stars).  Made at the first use of each size
+        (at most ``log2(n)`` of them, each at most twice the stars it must hold)."""
         if self._mag_order is None or len(self._mag_order[0]) != len(self.mag):
             order = np.argsort(self.mag64, kind="stable")
             self._mag_order = (order, self.mag64[order])
@@ -113,7 +115,7 @@ class CatalogStars:
         order, sorted_mag = self._mag_order
         n = int(np.searchsorted(sorted_mag, mag_limit, side="right"))
         size = 1 << max(0, n - 1).bit_length()
-        if size >= len(order):
+        if 2 * size > len(order):
             return None
         got = self._bright.get(size)
         if got is None:
