@@ -148,3 +148,32 @@ def test_numba_version_is_read_without_importing_it():
             "print('numba' in sys.modules, 'importlib.metadata' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "False"]
+
+
+def test_the_build_tag_covers_every_warm_up():
+    """The AOT build's tag hashes the sources of the warm-ups that decide its entries: a warm-up moved to a module
+    the tag does not read would let a change of it keep a stale build (its new argument types then compiled by
+    numba inside a frame's time)."""
+    import ast
+    import inspect
+    import os
+
+    import startrack
+    from startrack import solve
+    from startrack._kernels import _jit
+
+    package = os.path.dirname(os.path.abspath(startrack.__file__))
+    tree = ast.parse(inspect.getsource(solve.warm_for_build))
+    called = {node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id
+              for node in ast.walk(tree) if isinstance(node, ast.Call)
+              and isinstance(node.func, (ast.Name, ast.Attribute))}
+    warm_ups = {name for name in called if name.startswith("warm")}
+    assert {"warm_up", "warm_bands"} <= warm_ups, warm_ups
+    from startrack import centroid, identify, patterns
+    from startrack.identify import catalog_match
+
+    modules = {"warm_up": identify, "warm_bands": centroid, "warm_kernels": patterns,
+               "warm_final_match": catalog_match}
+    for fn in [solve.warm_for_build, solve._warm, identify.warm_up] + [getattr(m, n) for n, m in modules.items()]:
+        rel = os.path.relpath(inspect.getsourcefile(fn), package).replace(os.sep, "/")
+        assert rel in _jit._WARM_UP_SOURCES, (fn.__qualname__, rel)

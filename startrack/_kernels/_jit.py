@@ -289,6 +289,10 @@ def _cpu_id() -> str:
     return f"{platform.machine()} {platform.processor()}"
 
 
+#: The modules (relative to the package) whose warm-ups run in the AOT build (:func:`startrack.solve.warm_for_build`).
+_WARM_UP_SOURCES = ("solve.py", "patterns.py", "centroid.py", "identify/__init__.py", "identify/catalog_match.py")
+
+
 @functools.lru_cache(maxsize=1)
 def _tag() -> str:
     """Hash of the kernels' source, the versions that compile and run them, and the CPU they are built for."""
@@ -296,8 +300,10 @@ def _tag() -> str:
     h = hashlib.sha1(_versions().encode())
     h.update(_cpu_id().encode())
     files = [os.path.join(here, n) for n in sorted(os.listdir(here)) if n.endswith(".py")]
-    # solve.py holds the warm-up that decides which signatures the build holds.
-    files.append(os.path.join(os.path.dirname(here), "solve.py"))
+    # The warm-up that decides which signatures the build holds: solve.py's warm_for_build and the warm-ups it
+    # calls (a change of theirs alone would leave a build without the entries they now make).
+    package = os.path.dirname(here)
+    files += [os.path.join(package, *name.split("/")) for name in _WARM_UP_SOURCES]
     for path in files:
         with open(path, "rb") as f:
             h.update(os.path.basename(path).encode() + b"\0" + f.read())
