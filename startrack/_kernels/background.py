@@ -88,8 +88,9 @@ def _core_fit(s, f_lo, f_mid, f_hi, z_of, w_of):
     steps' table of :func:`_step_table` for ``len(s)`` values, else empty (computed step by step)."""
     n = s.shape[0]
     tabulated = z_of.shape[0] >= n - 1
-    t = np.zeros(5)
-    u = np.zeros(5)
+    # The sums in scalars (registers), not a 5-array a step (each += a store and a reload on the sum's chain).
+    t0 = t1 = t2 = t3 = t4 = 0.0
+    u0 = u1 = u2 = u3 = u4 = 0.0
     m = 0
     m2 = 0
     i = 0
@@ -108,19 +109,18 @@ def _core_fit(s, f_lo, f_mid, f_hi, z_of, w_of):
                     z = _probit(f)
                     phi = math.exp(-0.5 * z * z)
                     w = phi * phi / (f * (1.0 - f))
-                t[0] += w
-                t[1] += w * x
-                t[2] += w * z
-                t[3] += w * x * x
-                t[4] += w * x * z
+                t0 += w
+                t1 += w * x
+                t2 += w * z
+                t3 += w * x * x
+                t4 += w * x * z
                 m += 1
                 if f <= f_mid:
-                    for k in range(5):
-                        u[k] = t[k]
+                    u0, u1, u2, u3, u4 = t0, t1, t2, t3, t4
                     m2 = m
         i = j + 1
-    a, b = _line(t[0], t[1], t[2], t[3], t[4], m)
-    a2, b2 = _line(u[0], u[1], u[2], u[3], u[4], m2)
+    a, b = _line(t0, t1, t2, t3, t4, m)
+    a2, b2 = _line(u0, u1, u2, u3, u4, m2)
     return a, b, m, a2, b2, m2
 
 
