@@ -317,6 +317,53 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
     return p[0], p[1], p[2], p[3], ok
 
 
+@njit(cache=True, inline="always")
+def _clipped_sums(row, lim, cn, c1, c2):
+    """One residual row into the per-column sums of :func:`subtract_background_rows`' noise: the count, sum and
+    sum of squares (the square in the residual's precision) of the values within ``lim`` of zero."""
+    for x in range(row.shape[0]):
+        v = row[x]
+        keep = abs(v) <= lim[x]
+        cn[x] += 1.0 if keep else 0.0
+        c1[x] += v if keep else 0.0
+        c2[x] += v * v if keep else 0.0
+
+
+@njit(cache=True, inline="always")
+def _clipped_sums4(ra, rb, rc, rd, lim, cn, c1, c2):
+    """:func:`_clipped_sums` of four rows in turn, in one pass over the columns: each column's sums load and
+    store once for the four (a row at a time they were most of the pass), and add the rows in the same order,
+    so the same values to the bit."""
+    for x in range(ra.shape[0]):
+        lx = lim[x]
+        n = cn[x]
+        s1 = c1[x]
+        s2 = c2[x]
+        v = ra[x]
+        keep = abs(v) <= lx
+        n += 1.0 if keep else 0.0
+        s1 += v if keep else 0.0
+        s2 += v * v if keep else 0.0
+        v = rb[x]
+        keep = abs(v) <= lx
+        n += 1.0 if keep else 0.0
+        s1 += v if keep else 0.0
+        s2 += v * v if keep else 0.0
+        v = rc[x]
+        keep = abs(v) <= lx
+        n += 1.0 if keep else 0.0
+        s1 += v if keep else 0.0
+        s2 += v * v if keep else 0.0
+        v = rd[x]
+        keep = abs(v) <= lx
+        n += 1.0 if keep else 0.0
+        s1 += v if keep else 0.0
+        s2 += v * v if keep else 0.0
+        cn[x] = n
+        c1[x] = s1
+        c2[x] = s2
+
+
 @njit(cache=True, nogil=True)
 def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
                              row1, noise_mesh, kappa, truncated_std, noise_out, band0):
@@ -364,6 +411,7 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
     c1 = np.zeros(w)
     c2 = np.zeros(w)
     icell = int(cell)
+    g0 = row0       # the first row not yet in the noise sums (they take a tile row's rows four at a time)
     for y in range(row0, row1):
         fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
         j0 = min(int(fy), ny - 2) if ny > 1 else 0
@@ -399,16 +447,15 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
                 lab_run[q] = fg * m
                 count += m
         row_counts[y] = count
-        if noise:
-            # The row again, from the cache: one loop over the whole row vectorises.
-            row = residual[y - band0]
-            for x in range(w):
-                v = row[x]
-                keep = abs(v) <= lim[x]
-                cn[x] += 1.0 if keep else 0.0
-                c1[x] += v if keep else 0.0
-                c2[x] += v * v if keep else 0.0     # the square in the residual's precision
+        if noise and y + 1 - g0 == 4:
+            # The last four rows again, from the cache, into the columns' sums: each column's in row order.
+            _clipped_sums4(residual[g0 - band0], residual[g0 + 1 - band0], residual[g0 + 2 - band0],
+                           residual[g0 + 3 - band0], lim, cn, c1, c2)
+            g0 = y + 1
         if noise and ((y + 1) % icell == 0 or y + 1 == h):
+            for r in range(g0, y + 1):
+                _clipped_sums(residual[r - band0], lim, cn, c1, c2)
+            g0 = y + 1
             for i in range(nx):
                 n = 0.0
                 s1 = 0.0
