@@ -513,7 +513,8 @@ def label_blobs_into(residual, image, saturation, max_blobs, labels, foreground,
     ``labels`` (the image's shape; an integer type holding ``max_blobs``: uint16 below 65535) holds
     ``foreground`` (above ``max_blobs``) on the pixels to label, 0 elsewhere, on entry (the mask, written by
     :func:`subtract_background_rows`; ``row_counts[y]``, their number in row ``y``: rows without any are not
-    scanned); on return each of those pixels holds its blob's number (some keep
+    scanned, and a row's scan ends at its last; spent: they count down to 0 as the pixels are labelled); on
+    return each of those pixels holds its blob's number (some keep
     ``foreground`` when there are more than ``max_blobs`` blobs); ``table``
     needs ``max_blobs + 1`` rows (each row is cleared when its blob is found);
     ``stack`` is scratch.  Reusing the buffers across frames avoids faulting
@@ -551,11 +552,16 @@ def _label_blobs(residual, image, level_mesh, cell, lazy, saturation, max_blobs,
         lrow = labels[y0]
         for x0 in range(w):
             if lrow[x0] != fg:
+                if row_counts[y0] == 0:
+                    # Every foreground pixel of the row is labelled (row_counts counts down as pixels are
+                    # labelled): the rest of the row holds no seed.
+                    break
                 continue
             n += 1
             if n > max_blobs:
                 return n
             labels[y0, x0] = n
+            row_counts[y0] -= 1
             top = 0
             stack[top] = y0 * w + x0
             top += 1
@@ -607,6 +613,7 @@ def _label_blobs(residual, image, level_mesh, cell, lazy, saturation, max_blobs,
                         if xx < 0 or xx >= w or labels[yy, xx] != fg:
                             continue
                         labels[yy, xx] = n
+                        row_counts[yy] -= 1
                         if top < stack.shape[0]:
                             stack[top] = yy * w + xx
                             top += 1
