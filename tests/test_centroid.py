@@ -11,13 +11,14 @@ from startrack.centroid_accuracy import accuracy_trials, cramer_rao_bound
 from startrack.render import Scene, Sensor, render_image
 
 
+@pytest.mark.parametrize("cut", [0.8, 0.0, 2.5])       # the mask's density: ~20 %, ~50 %, ~1 % of the pixels
 @pytest.mark.parametrize("seed", range(5))
-def test_label_blobs_matches_naive_labelling(seed):
+def test_label_blobs_matches_naive_labelling(seed, cut):
     from startrack._kernels.centroid import label_blobs
 
     rng = np.random.default_rng(seed)
     residual = rng.normal(0, 1, (60, 80)).astype(np.float32)
-    mask = (residual > 0.8).astype(np.uint8)
+    mask = (residual > cut).astype(np.uint8)
     labels, table, n = label_blobs(residual, mask, residual, np.inf, 100000)
     ref, n_ref = label_naive(mask.astype(bool))
     assert n == n_ref
@@ -458,6 +459,80 @@ def test_background_pass_noise_equals_the_separate_clipped_std():
     np.testing.assert_array_equal(labels == 65535, mask0 == 1)
     np.testing.assert_array_equal(counts, mask0.sum(axis=1))
     np.testing.assert_array_equal(noise, want)
+
+
+@pytest.mark.parametrize("cell", [64, 30, 13])
+def test_background_pass_noise_in_strips_of_any_tile_height(cell):
+    """The background pass's noise sums (rows four at a time, a tile row's last rows one at a time) are
+    tile_clipped_std's to the bit for tiles of any height, run whole or in strips of tile rows, and its row
+    counts are the mask's."""
+    from naive import subtract_background_naive
+
+    from startrack._kernels.background import tile_clipped_std
+    from startrack._kernels.centroid import subtract_background_rows
+
+    h, w = 301, 250
+    img = _field((h, w), 30, 9)
+    rng = np.random.default_rng(cell)
+    ny, nx = -(-h // cell), -(-w // cell)
+    level = rng.uniform(190, 230, (ny, nx))
+    sigma = rng.uniform(3, 5, (ny, nx))
+    thresh = 5 * sigma
+    res0, mask0 = subtract_background_naive(img, level, thresh, float(cell))
+    want = tile_clipped_std(res0, cell, sigma, 3.0, 0.986, 1, np.empty_like(sigma))
+    for strips in ([(0, h)], [(0, 2 * cell), (2 * cell, 3 * cell), (3 * cell, h)]):
+        res, labels, counts = np.empty_like(res0), np.zeros(img.shape, np.uint16), np.zeros(h, np.int64)
+        noise = np.full_like(sigma, np.nan)
+        for a, b in strips:
+            subtract_background_rows(img, level, thresh, float(cell), res, labels, 65535, counts, a, b, sigma, 3.0,
+                                     0.986, noise, 0)
+        np.testing.assert_array_equal(res, res0)
+        np.testing.assert_array_equal(counts, mask0.sum(axis=1))
+        np.testing.assert_array_equal(noise, want)
+
+
+def test_measure_candidates_fits_each_candidate_as_alone():
+    """measure_candidates fits each candidate as if alone (nothing carried from one candidate's fits to the
+    next, a wide blob's window among them): each row is the one the candidate gets alone, and its unweighted and
+    weighted fits are gaussian_fit's and weighted_gaussian_fit's from the same start."""
+    from startrack._kernels.centroid import gaussian_fit
+    from startrack._kernels.psf_fit import measure_candidates, weighted_gaussian_fit
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:160, 0:200]
+    res = rng.normal(0.0, 4.0, (160, 200))
+    # 20 stars on a grid (jittered) and a wide blob in the corner (a weighted window over 64 px wide).
+    stars = [(15.0 + 30 * (k % 5) + rng.uniform(-2, 2), 15.0 + 30 * (k // 5) + rng.uniform(-2, 2), rng.uniform(1, 1.8),
+              10 ** rng.uniform(3, 4.5)) for k in range(20)]
+    for x0, y0, sg, f in stars + [(170.3, 130.6, 12.0, 3e5)]:
+        res += f / (2 * np.pi * sg**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sg**2))
+    res = np.ascontiguousarray(res, dtype=np.float32)
+    cand = np.array([(round(x), round(y), rng.uniform(0.8, 2.0), 1.0 if k % 7 == 3 else 0.0)
+                     for k, (x, y, _, _) in enumerate(stars)] + [(170.0, 131.0, 5.0, 0.0)], dtype=np.float64)
+    mesh = np.full((3, 4), 4.0)
+    args = (0.0, mesh, 64, 1.0 / 12.0, 0.5)
+    out = measure_candidates(res, cand, *args, np.zeros((len(cand), 12)))
+    checked = 0
+    for k in range(len(cand)):
+        one = measure_candidates(res, cand[k:k + 1], *args, np.zeros((1, 12)))
+        assert one[0].tobytes() == out[k].tobytes(), k
+        if cand[k, 3]:
+            continue
+        sig = max(0.5, min(cand[k, 2], 5.0))
+        half = int(max(2, math.ceil(3 * sig)))
+        x, y, s_fit, amp, ok = gaussian_fit(res, cand[k, 0], cand[k, 1], sig, half, 50)
+        if not ok:
+            continue
+        nv = math.sqrt(4.0**2 + 1.0 / 12.0) ** 2
+        wx, wy, ws, _, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
+            res, x, y, s_fit, amp, max(half, int(math.ceil(3.5 * s_fit))), nv, 0.5, 30)
+        if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
+            assert out[k, 3] == 1.0
+            assert (out[k, 0], out[k, 1], out[k, 2], out[k, 4], out[k, 5], out[k, 6], out[k, 7], out[k, 8]) == \
+                (wx, wy, ws, cxx, cxy, cyy, chi2, n_pix), k
+            checked += 1
+    assert checked >= 12
+    assert out[-1, 3] == 1.0 and out[-1, 2] > 9.0        # the wide blob fitted (its window > 64 px)
 
 
 def test_mesh_samples_leave_out_saturated_pixels():
