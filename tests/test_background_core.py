@@ -78,3 +78,32 @@ def test_split_blob_matches_the_naive_deblend(seed):
         ref = split_blob_naive(residual, labels, lab, box)
         k = split_blob(residual, labels.astype(np.int32), lab, *box, 2.5, 0.7, out)
         assert [tuple(p) for p in out[:k].tolist()] == [tuple(p) for p in ref]
+
+
+@pytest.mark.parametrize("kind", ["normal", "whole DN", "NaN tiles", "zeros of either sign"])
+def test_median3_is_each_cells_sorted_middle(kind):
+    """median3 (a sorting network for nine finite values) gives, bit for bit, what a stable sort of each cell's
+    finite 3 x 3 neighbours (edges replicated) gives: the middle value, or the mean of the middle two, NaN when
+    none is finite; a zero keeps the sign the sort meets it with."""
+    from startrack._kernels.background import median3
+
+    rng = np.random.default_rng(len(kind))
+    a = rng.normal(100.0, 5.0, (9, 13))
+    if kind == "whole DN":
+        a = np.round(a / 3.0)           # many ties
+    elif kind == "NaN tiles":
+        a[rng.random(a.shape) < 0.35] = np.nan
+        a[0:3, 0:3] = np.nan            # a cell without a finite neighbour
+    elif kind == "zeros of either sign":
+        a = np.where(rng.random(a.shape) < 0.5, 0.0, a)
+        a[rng.random(a.shape) < 0.3] = -0.0
+    got = median3(a)
+    ny, nx = a.shape
+    for j in range(ny):
+        for i in range(nx):
+            vals = [float(a[min(max(j + dj, 0), ny - 1), min(max(i + di, 0), nx - 1)])
+                    for dj in (-1, 0, 1) for di in (-1, 0, 1)]
+            vals = sorted(v for v in vals if v == v)
+            k = len(vals)
+            want = np.nan if k == 0 else vals[k // 2] if k & 1 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
+            assert np.float64(got[j, i]).tobytes() == np.float64(want).tobytes(), (j, i, got[j, i], want)
