@@ -343,6 +343,48 @@ def test_matched_scale_is_focal_scale():
         assert (np.isnan(want) and np.isnan(got)) or want == got, (trial, want, got)
 
 
+def test_scale_interval_holds_the_chord_scale():
+    """scale_interval's O(n) interval holds focal_scale's value as computed, for fields measured at a focal
+    length off by up to 3 %, with noise, with wrong matches among the right ones and with matches that are
+    all wrong, under the attitude that matched them or a poor one; and it is narrow where the residuals
+    are small (exact positions, the true attitude: width < 1e-6), so that it decides the focal loop there.
+    (Fails if a bound's sign or its n factor were wrong: the wrong-match and scaled fields put the scale
+    at either edge.)"""
+    from startrack._kernels.attitude import quat_to_dcm
+    from startrack._kernels.common import pixels_to_unit
+    from startrack._kernels.focal import focal_scale, scale_interval
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    rng = np.random.default_rng(23)
+    narrow = 0
+    for trial, q in enumerate(random_quaternions(200, rng)):
+        n = int(rng.integers(3, 60))
+        f_true = float(rng.uniform(800, 6000))
+        xs, ys = rng.uniform(0, 1280, n), rng.uniform(0, 960, n)
+        scale = 1.0 + float(rng.uniform(-0.03, 0.03)) * (trial % 3 != 0)
+        sv = pixels_to_unit(xs, ys, f_true, 639.5, 479.5) @ quaternion_to_dcm(q)   # the stars, ICRS
+        noisy = trial % 2 == 0
+        b = pixels_to_unit(xs + noisy * rng.normal(0, 0.5, n), ys + noisy * rng.normal(0, 0.5, n), f_true * scale,
+                           639.5, 479.5)
+        mi = np.arange(n, dtype=np.int64)
+        mc = np.arange(n, dtype=np.int64)
+        wrong = trial % 5
+        if wrong == 1:
+            mc[: n // 4] = rng.permutation(mc[: n // 4])       # some wrong matches
+        elif wrong == 2:
+            mc = rng.permutation(mc)                            # all wrong
+        dcm = quaternion_to_dcm(q)
+        if wrong == 3:                                          # an attitude a degree off
+            dcm = quat_to_dcm(np.asarray(random_quaternions(1, rng)[0]) * 0.02 + np.asarray(q))   # (not unit)
+        lo, hi = scale_interval(b, mi, sv, mc, np.ascontiguousarray(dcm))
+        got = focal_scale(b, mi, sv, mc)
+        assert lo <= got <= hi, (trial, lo, got, hi)
+        if wrong in (0, 4) and not noisy and scale == 1.0:
+            assert hi - lo < 1e-6, (trial, lo, hi)
+            narrow += 1
+    assert narrow >= 8
+
+
 def test_focal_scale_of_chords_measures_a_known_focal_error():
     """A field measured with a focal length 1 % short of the true one (every measured angle about 1 %
     too large) gives the focal scale ``f_used / f_true`` (true f = f / scale) to within the tangent

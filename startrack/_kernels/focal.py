@@ -41,6 +41,61 @@ def _pair_chords(b, img, star_vec, cat):
     return ang, mea
 
 
+@njit(cache=True)
+def scale_interval(b, img, star_vec, cat, dcm):
+    """An interval that holds :func:`focal_scale`'s ``s`` of ``img`` -> ``cat`` in O(n), without its pairs:
+    ``(lo, hi)``, both NaN when the detections have no spread (the caller computes ``s`` instead).
+
+    With ``e_u = R r_u - b_u`` (``R`` the rotation of ``dcm``, which leaves every chord as it is) and, for a
+    pair, ``x = b_u - b_v``, ``d = e_u - e_v``, ``m = |x|`` and ``a = |x + d|`` its measured and catalog
+    chords: ``x . d <= (a - m) m <= x . d + |d|^2 / 2`` (projection on ``x``, and the concavity of the square
+    root).  Summed over the pairs (``sum_{u<v} (x_u - x_v) . (y_u - y_v) = n sum_u (x_u - x_bar) . (y_u -
+    y_bar)``), ``s = sum a m / sum m^2`` lies in ``1 + [P, P + R / 2] / Q`` with ``P = sum (b_u - b_bar) .
+    (e_u - e_bar)``, ``R = sum |e_u - e_bar|^2`` and ``Q = sum |b_u - b_bar|^2``.  The interval is widened by
+    a bound of the rounding of both computations (:func:`_chord_scale`'s sums of ``n^2 / 2`` terms and these
+    of ``n``: relative errors of a few ``n^2`` ulps), so that ``s`` as computed lies in it too.  Its width
+    is the residuals' squared over the chords' squared: 1e-7 for residuals of 1e-3 of the chords."""
+    n = img.shape[0]
+    if n < 3:
+        return np.nan, np.nan
+    e = np.empty((n, 3))
+    bm = np.zeros(3)
+    em = np.zeros(3)
+    for t in range(n):
+        c = cat[t]
+        rx = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
+        ry = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
+        rz = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
+        # (dcm of a quaternion of any norm is that norm squared times a rotation: the row back to unit length)
+        rn = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if not rn > 0.0:
+            return np.nan, np.nan
+        e[t, 0] = rx / rn - b[img[t], 0]
+        e[t, 1] = ry / rn - b[img[t], 1]
+        e[t, 2] = rz / rn - b[img[t], 2]
+        for a in range(3):
+            bm[a] += b[img[t], a]
+            em[a] += e[t, a]
+    for a in range(3):
+        bm[a] /= n
+        em[a] /= n
+    p = 0.0
+    r = 0.0
+    q = 0.0
+    for t in range(n):
+        for a in range(3):
+            db = b[img[t], a] - bm[a]
+            de = e[t, a] - em[a]
+            p += db * de
+            r += de * de
+            q += db * db
+    if not q > 0.0 or not math.isfinite(p + r):
+        return np.nan, np.nan
+    npair = n * (n - 1) // 2
+    slack = 1e-10 * (1.0 + math.sqrt(n / q)) + 64.0 * (npair + n) * 2.220446049250313e-16
+    return 1.0 + p / q - slack, 1.0 + (p + 0.5 * r) / q + slack
+
+
 #: A focal-length scale fitted to the matches is applied only when it is this many of its standard
 #: errors (:func:`scale_sigma`) from 1: a smaller one is noise, and a verification at it changes nothing
 #: but the time (at the exact focal length a third of the frames re-verified for one).
