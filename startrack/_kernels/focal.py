@@ -41,6 +41,19 @@ def _pair_chords(b, img, star_vec, cat):
     return ang, mea
 
 
+@njit(cache=True, inline="always")
+def _residual(b, i, star_vec, c, dcm):
+    """``R r_c - b_i`` (:func:`scale_interval`): ``dcm`` of a quaternion of any norm is that norm squared
+    times a rotation ``R``, the row brought back to unit length; NaNs when it has none."""
+    rx = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
+    ry = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
+    rz = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
+    rn = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if not rn > 0.0:
+        return np.nan, np.nan, np.nan
+    return rx / rn - b[i, 0], ry / rn - b[i, 1], rz / rn - b[i, 2]
+
+
 @njit(cache=True)
 def scale_interval(b, img, star_vec, cat, dcm):
     """An interval that holds :func:`focal_scale`'s ``s`` of ``img`` -> ``cat`` in O(n), without its pairs:
@@ -58,37 +71,38 @@ def scale_interval(b, img, star_vec, cat, dcm):
     n = img.shape[0]
     if n < 3:
         return np.nan, np.nan
-    e = np.empty((n, 3))
-    bm = np.zeros(3)
-    em = np.zeros(3)
+    # Two passes (the means, then the sums about them), each computing e_u again: no array to allocate.
+    bx = by = bz = ex = ey = ez = 0.0
     for t in range(n):
-        c = cat[t]
-        rx = dcm[0, 0] * star_vec[c, 0] + dcm[0, 1] * star_vec[c, 1] + dcm[0, 2] * star_vec[c, 2]
-        ry = dcm[1, 0] * star_vec[c, 0] + dcm[1, 1] * star_vec[c, 1] + dcm[1, 2] * star_vec[c, 2]
-        rz = dcm[2, 0] * star_vec[c, 0] + dcm[2, 1] * star_vec[c, 1] + dcm[2, 2] * star_vec[c, 2]
-        # (dcm of a quaternion of any norm is that norm squared times a rotation: the row back to unit length)
-        rn = math.sqrt(rx * rx + ry * ry + rz * rz)
-        if not rn > 0.0:
+        e0, e1, e2 = _residual(b, img[t], star_vec, cat[t], dcm)
+        if math.isnan(e0):
             return np.nan, np.nan
-        e[t, 0] = rx / rn - b[img[t], 0]
-        e[t, 1] = ry / rn - b[img[t], 1]
-        e[t, 2] = rz / rn - b[img[t], 2]
-        for a in range(3):
-            bm[a] += b[img[t], a]
-            em[a] += e[t, a]
-    for a in range(3):
-        bm[a] /= n
-        em[a] /= n
+        bx += b[img[t], 0]
+        by += b[img[t], 1]
+        bz += b[img[t], 2]
+        ex += e0
+        ey += e1
+        ez += e2
+    bx /= n
+    by /= n
+    bz /= n
+    ex /= n
+    ey /= n
+    ez /= n
     p = 0.0
     r = 0.0
     q = 0.0
     for t in range(n):
-        for a in range(3):
-            db = b[img[t], a] - bm[a]
-            de = e[t, a] - em[a]
-            p += db * de
-            r += de * de
-            q += db * db
+        e0, e1, e2 = _residual(b, img[t], star_vec, cat[t], dcm)
+        d0 = b[img[t], 0] - bx
+        d1 = b[img[t], 1] - by
+        d2 = b[img[t], 2] - bz
+        e0 -= ex
+        e1 -= ey
+        e2 -= ez
+        p += d0 * e0 + d1 * e1 + d2 * e2
+        r += e0 * e0 + e1 * e1 + e2 * e2
+        q += d0 * d0 + d1 * d1 + d2 * d2
     if not q > 0.0 or not math.isfinite(p + r):
         return np.nan, np.nan
     npair = n * (n - 1) // 2
