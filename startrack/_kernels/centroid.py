@@ -330,35 +330,24 @@ def _clipped_sums(row, lim, cn, c1, c2):
 
 
 @njit(cache=True, inline="always")
+def _clipped_add(v, lim, n, s1, s2):
+    """``(n, s1, s2)`` with the residual ``v`` added when it is within ``lim`` of zero (the square in the
+    residual's precision), as :func:`_clipped_sums` adds it."""
+    keep = abs(v) <= lim
+    return n + (1.0 if keep else 0.0), s1 + (v if keep else 0.0), s2 + (v * v if keep else 0.0)
+
+
+@njit(cache=True, inline="always")
 def _clipped_sums4(ra, rb, rc, rd, lim, cn, c1, c2):
     """:func:`_clipped_sums` of four rows in turn, in one pass over the columns: each column's sums load and
     store once for the four (a row at a time they were most of the pass), and add the rows in the same order,
     so the same values to the bit."""
     for x in range(ra.shape[0]):
         lx = lim[x]
-        n = cn[x]
-        s1 = c1[x]
-        s2 = c2[x]
-        v = ra[x]
-        keep = abs(v) <= lx
-        n += 1.0 if keep else 0.0
-        s1 += v if keep else 0.0
-        s2 += v * v if keep else 0.0
-        v = rb[x]
-        keep = abs(v) <= lx
-        n += 1.0 if keep else 0.0
-        s1 += v if keep else 0.0
-        s2 += v * v if keep else 0.0
-        v = rc[x]
-        keep = abs(v) <= lx
-        n += 1.0 if keep else 0.0
-        s1 += v if keep else 0.0
-        s2 += v * v if keep else 0.0
-        v = rd[x]
-        keep = abs(v) <= lx
-        n += 1.0 if keep else 0.0
-        s1 += v if keep else 0.0
-        s2 += v * v if keep else 0.0
+        n, s1, s2 = _clipped_add(ra[x], lx, cn[x], c1[x], c2[x])
+        n, s1, s2 = _clipped_add(rb[x], lx, n, s1, s2)
+        n, s1, s2 = _clipped_add(rc[x], lx, n, s1, s2)
+        n, s1, s2 = _clipped_add(rd[x], lx, n, s1, s2)
         cn[x] = n
         c1[x] = s1
         c2[x] = s2
