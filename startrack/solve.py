@@ -588,6 +588,11 @@ def warm_for_build(index=None) -> None:
     catalog = load_catalog().filter_magnitude(mag_max=7.0)
     camera = Camera.from_fov(12.0, 1024, 768)
     index = index if index is not None else _process_index()
+    # The index build's kernels, on the brightest stars (the deep index is built on a frame's first need of it): the
+    # build holds them whether or not this process built the default index before.
+    from startrack.patterns import build_index
+
+    build_index(catalog.filter_magnitude(mag_max=3.0))
     for bits, q in ((16, random_quaternions(1, np.random.default_rng(1))[0]),
                     (8, random_quaternions(1, np.random.default_rng(2))[0])):
         image, _ = render_image(catalog, camera, quaternion_to_dcm(q), Sensor(bit_depth=bits), Scene(),
