@@ -318,6 +318,22 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter):
 
 
 @njit(cache=True, inline="always")
+def _mesh_cell(p, cell, n):
+    """The two mesh tiles whose centres bracket pixel ``p`` along one axis of ``n`` tiles of ``cell`` pixels, and
+    the second one's weight: ``(i0, i1, t)`` of the bilinear background (as ``cv2.resize``), clamped at the edges."""
+    f = min(max((p + 0.5) / cell - 0.5, 0.0), n - 1.0)
+    i0 = min(int(f), n - 2) if n > 1 else 0
+    return i0, min(i0 + 1, n - 1), f - i0
+
+
+@njit(cache=True, inline="always")
+def _mesh_row(mesh, j0, j1, ty, out):
+    """``out[i]``: column ``i`` of ``mesh`` between its rows ``j0`` and ``j1`` at weight ``ty``."""
+    for i in range(mesh.shape[1]):
+        out[i] = mesh[j0, i] * (1.0 - ty) + mesh[j1, i] * ty
+
+
+@njit(cache=True, inline="always")
 def _clipped_sums(row, lim, cn, c1, c2):
     """One residual row into the per-column sums of :func:`subtract_background_rows`' noise: the count, sum and
     sum of squares (the square in the residual's precision) of the values within ``lim`` of zero."""
@@ -384,12 +400,10 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
     starts = np.empty(w + 1, dtype=np.int64)
     n_runs = 0
     for x in range(w):
-        fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
-        a = min(int(fx), nx - 2) if nx > 1 else 0
-        tx[x] = fx - a
+        a, b, tx[x] = _mesh_cell(x, cell, nx)
         if n_runs == 0 or a != ra[n_runs - 1]:
             ra[n_runs] = a
-            rb[n_runs] = min(a + 1, nx - 1)
+            rb[n_runs] = b
             starts[n_runs] = x
             n_runs += 1
     starts[n_runs] = w
@@ -402,13 +416,9 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
     icell = int(cell)
     g0 = row0       # the first row not yet in the noise sums (they take a tile row's rows four at a time)
     for y in range(row0, row1):
-        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
-        j0 = min(int(fy), ny - 2) if ny > 1 else 0
-        j1 = min(j0 + 1, ny - 1)
-        ty = fy - j0
-        for i in range(nx):
-            lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
-            trow[i] = threshold_mesh[j0, i] * (1.0 - ty) + threshold_mesh[j1, i] * ty
+        j0, j1, ty = _mesh_cell(y, cell, ny)
+        _mesh_row(level_mesh, j0, j1, ty, lrow)
+        _mesh_row(threshold_mesh, j0, j1, ty, trow)
         count = 0
         jt = y // icell
         if noise and (y % icell == 0 or y == row0):
@@ -639,14 +649,8 @@ def residual_at(image, level_mesh, cell, y, x):
     """The residual of pixel ``(y, x)``, float32: ``image`` less the bilinear background level, the same
     operations as :func:`subtract_background_rows` (the same value to the bit)."""
     ny, nx = level_mesh.shape
-    fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
-    j0 = min(int(fy), ny - 2) if ny > 1 else 0
-    j1 = min(j0 + 1, ny - 1)
-    ty = fy - j0
-    fx = min(max((x + 0.5) / cell - 0.5, 0.0), nx - 1.0)
-    a = min(int(fx), nx - 2) if nx > 1 else 0
-    b = min(a + 1, nx - 1)
-    t = fx - a
+    j0, j1, ty = _mesh_cell(y, cell, ny)
+    a, b, t = _mesh_cell(x, cell, nx)
     la = level_mesh[j0, a] * (1.0 - ty) + level_mesh[j1, a] * ty
     dl = (level_mesh[j0, b] * (1.0 - ty) + level_mesh[j1, b] * ty) - la
     return np.float32(image[y, x] - (la + dl * t))
@@ -663,19 +667,11 @@ def residual_rows(image, level_mesh, cell, row0, row1, col0, col1, out):
     ra = np.empty(n, dtype=np.int64)
     rb = np.empty(n, dtype=np.int64)
     for q in range(n):
-        fx = min(max((col0 + q + 0.5) / cell - 0.5, 0.0), nx - 1.0)
-        a = min(int(fx), nx - 2) if nx > 1 else 0
-        ra[q] = a
-        rb[q] = min(a + 1, nx - 1)
-        tx[q] = fx - a
+        ra[q], rb[q], tx[q] = _mesh_cell(col0 + q, cell, nx)
     lrow = np.empty(nx)
     for y in range(row0, row1):
-        fy = min(max((y + 0.5) / cell - 0.5, 0.0), ny - 1.0)
-        j0 = min(int(fy), ny - 2) if ny > 1 else 0
-        j1 = min(j0 + 1, ny - 1)
-        ty = fy - j0
-        for i in range(nx):
-            lrow[i] = level_mesh[j0, i] * (1.0 - ty) + level_mesh[j1, i] * ty
+        j0, j1, ty = _mesh_cell(y, cell, ny)
+        _mesh_row(level_mesh, j0, j1, ty, lrow)
         im = image[y]
         res = out[y - row0]
         for q in range(n):
