@@ -1111,13 +1111,25 @@ def _forged(build, save, path, **changes):
     return str(path)
 
 
+def _assert_forgeries_refused(db, save, load, forged, directory, prefix):
+    """Each ``(changes, field, words)`` of ``forged``, saved with its own checksums, is refused by ``load`` with a
+    BadInputError naming the file, ``field`` and a problem holding ``words``."""
+    from startrack.errors import BadInputError
+
+    for k, (changes, field, words) in enumerate(forged):
+        path = _forged(db, save, directory / f"{prefix}{k}.h5", **changes)
+        with pytest.raises(BadInputError) as info:
+            load(path)
+        assert info.value.source == path and info.value.field == field and words in info.value.problem, \
+            (changes.keys(), str(info.value))
+
+
 def test_label_database_arrays_are_checked_before_any_kernel(catalog, tmp_path):
     """main: load_labels read its arrays as they were: a label file (checksums intact: built wrong, or forged) whose
     members named a star beyond the table, whose labels were out of order, whose trend was NaN or whose group size
     disagreed with its members went on to the labelling kernel, which reads past the star table unchecked (members
     100,000 rows beyond it: `identify -a labelling` said "no consistent star pattern found", exit 1).  Now each is a
     BadInputError naming the file and the dataset or attribute, as load_kvector does; a CLI run is refused (exit 2)."""
-    from startrack.errors import BadInputError
     from startrack.labels import build_labels, load_labels, save_labels
 
     db = build_labels(catalog.filter_magnitude(None, 4.0), 30.0, step_deg=4.0)
@@ -1142,12 +1154,7 @@ def test_label_database_arrays_are_checked_before_any_kernel(catalog, tmp_path):
               ({"group_size": 7}, "group_size", "whole number"),
               ({"scale_digits": 40}, "scale_digits", "whole number"),
               ({"fov_deg": float("inf")}, "fov_deg", "finite")]
-    for k, (changes, field, words) in enumerate(forged):
-        path = _forged(db, save_labels, tmp_path / f"f{k}.h5", **changes)
-        with pytest.raises(BadInputError) as info:
-            load_labels(path)
-        assert info.value.source == path and info.value.field == field and words in info.value.problem, \
-            (changes.keys(), str(info.value))
+    _assert_forgeries_refused(db, save_labels, load_labels, forged, tmp_path, "f")
     stars = [{"x": 100.0 + 37 * k % 400, "y": 50.0 + 61 * k % 400, "flux": 100.0 - k} for k in range(10)]
     doc = {"format": "startrack.frame/1", "camera": {"width": 512, "height": 512, "focal_length_px": 900.0,
                                                      "cx": 255.5, "cy": 255.5}, "stars": stars}
@@ -1160,7 +1167,6 @@ def test_triangle_database_arrays_are_checked_before_any_kernel(catalog, tmp_pat
     """main: load_triangles read its arrays as they were: a triangle file (checksums intact) whose triangles named a
     star beyond the table, whose smallest angles were out of order or whose k-vector pointed past the triangles went
     on to the modified pyramid's kernel.  Now each is a BadInputError naming the file and the dataset."""
-    from startrack.errors import BadInputError
     from startrack.triangles import build_triangles, load_triangles, save_triangles
 
     db = build_triangles(catalog.filter_magnitude(None, 4.0), 10.0)
@@ -1188,9 +1194,4 @@ def test_triangle_database_arrays_are_checked_before_any_kernel(catalog, tmp_pat
               ({"line": (0.0, 1.0)}, "kvector_line", "positive"),
               ({"quad": (np.nan, 1.0, 0.0)}, "quadratic", "finite"),
               ({"max_separation_deg": 200.0}, "max_separation_deg", "90")]
-    for k, (changes, field, words) in enumerate(forged):
-        path = _forged(db, save_triangles, tmp_path / f"t{k}.h5", **changes)
-        with pytest.raises(BadInputError) as info:
-            load_triangles(path)
-        assert info.value.source == path and info.value.field == field and words in info.value.problem, \
-            (changes.keys(), str(info.value))
+    _assert_forgeries_refused(db, save_triangles, load_triangles, forged, tmp_path, "t")
