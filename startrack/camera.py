@@ -571,14 +571,7 @@ class Camera:
         if self.is_pinhole:
             u, v = self.undistort((x - self.cx) / self.focal_length_px,
                                   (y - self.cy) / self.focal_length_px)
-            # (u, v, 1) / its norm, the norm summed as numpy's reduction over the last axis sums it (left to right,
-            # the same bits: tests/test_camera.py), without stacking the vectors twice.
-            norm = np.sqrt(u * u + v * v + 1.0)
-            vec = np.empty(np.broadcast_shapes(u.shape, v.shape) + (3,))
-            vec[..., 0] = u / norm
-            vec[..., 1] = v / norm
-            vec[..., 2] = 1.0 / norm
-            return vec
+            return unit_vectors(u, v)
         dx = x - self.cx
         dy = y - self.cy
         rho = np.hypot(dx, dy)
@@ -709,6 +702,19 @@ class Camera:
         """Angular size of one pixel at the principal point, in arcseconds (every projection has
         ``g'(0) = 1``, so it is ``1 / f`` radians)."""
         return math.degrees(1.0 / self.focal_length_px) * 3600.0
+
+
+def unit_vectors(u, v):
+    """``(u, v, 1)`` divided by its norm, shape ``(..., 3)`` (C-contiguous): a pinhole's line-of-sight vectors of
+    the normalised image coordinates ``u``, ``v``.  The norm is summed as numpy's reduction over the last axis sums
+    it (left to right: the bits of ``np.linalg.norm`` of the stacked vectors, tests/test_camera.py), without
+    stacking them twice."""
+    norm = np.sqrt(u * u + v * v + 1.0)
+    vec = np.empty(np.broadcast_shapes(np.shape(u), np.shape(v)) + (3,))
+    vec[..., 0] = u / norm
+    vec[..., 1] = v / norm
+    vec[..., 2] = 1.0 / norm
+    return vec
 
 
 #: :class:`Camera`'s fields, in order (what :meth:`Camera.replace` copies).

@@ -469,16 +469,13 @@ def _combos(n: int):
 
 def _pattern_blocks(n: int):
     """The blocks ``(s0, s1)`` of the ``n`` patterns looked up together (``combos[s0:s1]``): the first one, the next
-    two, then six at a time, as the list of starts ``[0, 1, 3, 6, 12, ...]`` pairs them, made as needed."""
-    prev = None
-    for start in itertools.chain((0, 1, 3), range(6, n, 6)):
-        if prev is not None:
-            if prev >= n:
-                return
-            yield prev, start
-        prev = start
-    if prev < n:
-        yield prev, n
+    two, then six at a time, made as the search reaches them."""
+    start = 0
+    for end in itertools.chain((1, 3), itertools.count(6, 6)):
+        if start >= n:
+            return
+        yield start, min(end, n)
+        start = end
 
 
 def _catalog_prefix(index: PatternIndex, solid_angle: float, want: int) -> int:
@@ -712,7 +709,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
                       opts):
     """Verify one candidate strictly; fit the focal length (and k1 for wide fields) and verify again."""
     from startrack._kernels.verify import screen_in_cone
-    from startrack.camera import Camera
+    from startrack.camera import Camera, unit_vectors
     from startrack.identify.params import tolerance_rad
 
     # Pinhole geometry from f alone (cheap: most candidates end at the screen below).
@@ -723,7 +720,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     n_rows = max(_catalog_prefix(index, solid, max(2 * len(stars), 30)), max(cat_rows) + 1)
     star_vec = index.star_vec[:n_rows]
     star_id = index.star_id[:n_rows]
-    b = _unit_vectors((xy[:, 0] - cx) / f, (xy[:, 1] - cy) / f)
+    b = unit_vectors((xy[:, 0] - cx) / f, (xy[:, 1] - cy) / f)
     r_px = max(1.0, params.match_sigma * sigma)
     if wide:
         # Unknown distortion: first a wider match radius (the false-match probability accounts for it).
@@ -781,18 +778,6 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         if wide:
             vparams = params
     return cam, matches, dcm, p_false
-
-
-def _unit_vectors(u, v):
-    """``(u, v, 1)`` divided by its norm, rows of a C-contiguous ``(n, 3)`` array: the bits of
-    ``np.column_stack([u, v, ones])`` over ``np.linalg.norm`` of it (numpy sums the three squares left to right),
-    without building it twice."""
-    norm = np.sqrt(u * u + v * v + 1.0)
-    out = np.empty((len(u), 3))
-    out[:, 0] = u / norm
-    out[:, 1] = v / norm
-    out[:, 2] = 1.0 / norm
-    return out
 
 
 def _centroid_sigma_px(stars: list, params) -> float:
