@@ -608,8 +608,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     params = IdentifyParams(sigma_px=opts.sigma_px, max_false_probability=opts.max_false_probability)
     sigma = _centroid_sigma_px(stars[:m], params)
     combos = _combos(depths[-1])
-    log.debug("pattern search: %d stars (%s in patterns, %d patterns), field %.1f to %.1f deg, %.1f s", n_all,
-              " then ".join(map(str, depths)), len(combos), opts.fov_min_deg, opts.fov_max_deg, deadline - t0)
+    log.debug("pattern search: %d stars (%s in patterns, %d patterns), field %.1f to %.1f deg, %.1f CPU s left",
+              n_all, " then ".join(map(str, depths)), len(combos), opts.fov_min_deg, opts.fov_max_deg,
+              deadline - search_clock())
     xy_pat = np.ascontiguousarray(xy_all[:depths[-1]])
     # A position hint: a candidate's pattern stars are in the field, so each lies within the field's half
     # diagonal (at the candidate's focal length) of the boresight; those farther than that plus the radius from
