@@ -17,8 +17,14 @@ looked up in constant time.  Here:
   level's pattern size (no cell boundaries, unlike a fixed grid).  A level holds
   every pattern of its stars whose largest edge falls in that level's size range,
   each made once from its brightest star, at most ``max_per_anchor`` per anchor,
-  the most compact first.  The image's bright stars form patterns of all sizes;
-  whichever size their level holds is found.
+  those of its brightest neighbours first (``neighbours`` = ``"brightest"``: the
+  three brightest, then the fourth with two of them, ...; tetra3's breadth-first
+  order within a field).  An image's patterns are of its brightest stars, and a
+  level thinned to a few stars per disk keeps a field's faint stars only where no
+  brighter ones crowd them: the nearest neighbours (``"nearest"``, indexes built
+  before 2026-12-06) spent the anchor's budget on compact groups of faint stars and
+  left out patterns a sparse field's 5-8 detections form.  The image's bright
+  stars form patterns of all sizes; whichever size their level holds is found.
 * **Focal length**: a level's size range bounds the focal length an image pattern
   implies; the image's angles are computed with a focal length in that range
   (several for wide levels, where the projection matters) and refined on the match.
@@ -64,7 +70,10 @@ LEVEL_RATIO = math.sqrt(2.0)
 LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
                 "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "mag_max": 10.0,
-                "version": 1}
+                "neighbours": "brightest", "version": 1}
+"""The default index's build parameters (:func:`build_index`; their hash names the cache file).  ``neighbours``: the
+order an anchor's fainter neighbours make its patterns in, ``"brightest"`` or ``"nearest"`` (a parameter set without
+the key: ``"nearest"``, as every index built before it was)."""
 DEEP_LEVELS_DEG = tuple(0.9 / LEVEL_RATIO * LEVEL_RATIO**k for k in range(14))     # 0.64 ... 57.6 degrees
 DEEP_BUILD_PARAMS = {**BUILD_PARAMS, "levels_deg": [round(v, 6) for v in DEEP_LEVELS_DEG], "catalog": "gaia"}
 """The deep index: the same patterns over Gaia DR3 to G 10 with Hipparcos for the brightest
@@ -132,6 +141,10 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
 
     p = dict(BUILD_PARAMS)
     p.update(params or {})
+    if p.get("neighbours", "nearest") not in ("nearest", "brightest"):
+        from startrack.errors import ParameterError
+
+        raise ParameterError("neighbours", f"must be 'nearest' or 'brightest', got {p['neighbours']!r}", "build_index")
     cat = (catalog or load_catalog(mag_max=p.get("mag_max"))).sorted_by_magnitude()
     if p.get("mag_max") is not None:
         # Fainter stars add build time and size for fields under ~2 degrees only.
@@ -148,7 +161,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
                                         int(p["keep"]))]
         pool = kept
         lp, lk = level_patterns(np.ascontiguousarray(vec[kept]), rho, rho / p["level_ratio"], p["min_edge_ratio"],
-                                int(p["max_per_anchor"]))
+                                int(p["max_per_anchor"]), p.get("neighbours", "nearest") == "brightest")
         order = np.argsort(lk, kind="stable")
         lk = lk[order]
         rows = kept[lp[order]].astype(np.uint32)

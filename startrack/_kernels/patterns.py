@@ -141,14 +141,18 @@ def _key(e_sorted):
 
 
 @njit(cache=True)
-def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor):
+def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_first=False):
     """Every 4-star pattern of ``vec`` with largest edge in (rho_min, rho_max] (rad).
 
     Each pattern is made once, from its brightest star (the anchor) and three of
     its fainter neighbours; patterns whose smallest edge is under ``min_ratio``
     of the largest (nearly coincident stars, whose ratios are noisy) are left
-    out, and an anchor makes at most ``max_per_anchor`` patterns (the most
-    compact first: neighbours are taken nearest first).
+    out, and an anchor makes at most ``max_per_anchor`` patterns: its neighbours
+    taken nearest first (the most compact patterns first), or with
+    ``brightest_first`` in brightness order (``vec`` is sorted brightest first), so
+    that the patterns of the three brightest neighbours come first, then those of the
+    fourth with two of them, and so on (the order in which an image's brightest
+    stars form patterns).
     Returns ``(stars (P, 4) int64 local indices, keys (P,) int64)``.
     """
     counts, nb = _neighbours(vec, rho_max)
@@ -163,11 +167,12 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor):
             k = lst.shape[0]
             if k < 3:
                 continue
-            # nearest first
-            d = np.empty(k)
-            for t in range(k):
-                d[t] = -(vec[a, 0] * vec[lst[t], 0] + vec[a, 1] * vec[lst[t], 1] + vec[a, 2] * vec[lst[t], 2])
-            lst = lst[np.argsort(d)]
+            if not brightest_first:
+                # nearest first
+                d = np.empty(k)
+                for t in range(k):
+                    d[t] = -(vec[a, 0] * vec[lst[t], 0] + vec[a, 1] * vec[lst[t], 1] + vec[a, 2] * vec[lst[t], 2])
+                lst = lst[np.argsort(d)]
             made = 0
             for ib in range(k):
                 if made >= max_per_anchor:
