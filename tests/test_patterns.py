@@ -131,7 +131,8 @@ def test_a_position_hint_keeps_the_answer_and_refuses_elsewhere(index, catalog):
 
 def _confidence_reference(b, img, cat, star_vec, dcm, cos_fov, radius, eps):
     """The numpy form of the blind verification's confidence numbers (as the search computed them before
-    startrack._kernels.verify.blind_confidence)."""
+    startrack._kernels.verify.blind_confidence; a detection's own star, one predicted within ``radius``, not
+    counted in the density around it)."""
     from startrack.patterns import _pattern_chance
 
     predicted = star_vec[cat] @ dcm.T
@@ -140,7 +141,8 @@ def _confidence_reference(b, img, cat, star_vec, dcm, cos_fov, radius, eps):
     pred = star_vec[star_vec @ dcm[2] > cos_fov] @ dcm.T
     p_local = -1.0
     if len(others) and len(pred):
-        counts = np.sum((b[others] @ pred.T) >= math.cos(10.0 * radius), axis=1)
+        dots = b[others] @ pred.T
+        counts = np.sum(dots >= math.cos(10.0 * radius), axis=1) - np.any(dots >= math.cos(radius), axis=1)
         p_local = float(np.mean(np.minimum(1.0, counts * 0.01)))
     return int(ok.sum()), int(ok[:4].sum()), p_local, _pattern_chance(len(star_vec), eps, b[img[:4]])
 
@@ -172,6 +174,29 @@ def test_blind_confidence_kernel_matches_its_numpy_reference(seed):
         assert got[:2] == want[:2]
         assert got[2] == pytest.approx(want[2], rel=1e-12, abs=1e-15)
         assert got[3] == pytest.approx(want[3], rel=1e-9)
+
+
+def test_blind_confidence_does_not_count_the_star_a_detection_landed_on():
+    """The density around another detection is that of the stars it did not land on: a detection on a lone star
+    has no neighbour (0), one on a star with three more within ten radii has three, an unmatched one with one
+    star within ten radii has one.  (Counting the landed-on star gave 1, 4 and 1: every matched detection at least
+    1/100, and sparse true fields refused.)"""
+    from startrack._kernels.verify import blind_confidence
+
+    def unit(x, y):
+        v = np.array([x, y, 1.0])
+        return v / np.linalg.norm(v)
+
+    r = 1e-4
+    core = [unit(0.01, 0.0), unit(-0.01, 0.005), unit(0.0, -0.01), unit(0.008, 0.008)]
+    lone, crowded, unmatched = unit(0.02, 0.02), unit(-0.02, 0.02), unit(0.0, 0.03)
+    neighbours = [unit(-0.02 + 5 * r, 0.02), unit(-0.02, 0.02 + 5 * r), unit(-0.02 - 5 * r, 0.02)]
+    star_vec = np.ascontiguousarray(np.vstack(core + [lone, crowded] + neighbours + [unit(0.0, 0.03 + 3 * r)]))
+    b = np.ascontiguousarray(np.vstack(core + [lone, crowded, unmatched]))
+    img = np.arange(4, dtype=np.int64)
+    got = blind_confidence(b, img, img.copy(), star_vec, np.eye(3), math.cos(0.1), r, len(star_vec), 1e-4)
+    assert got[:2] == (4, 4)
+    assert got[2] == pytest.approx((0 + 3 + 1) * 0.01 / 3, rel=1e-12)
 
 
 @pytest.mark.parametrize("fov, cx_shift", [(2.0, 0.0), (11.4, 0.0), (30.0, 37.5), (70.0, -120.0)])

@@ -778,9 +778,15 @@ def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
     camera.  Returns ``(agree, core_agree, p_local, e_core)``: how many of the proposal's stars (of its first
     four) lie within ``radius`` (rad) of their catalog star under ``dcm``; the mean chance that one of the
     other detections lands within ``radius`` of a star predicted in the field (``star_vec . boresight >
-    cos_fov``) by accident, from the predicted stars within ten radii of it (-1 when there are no other
-    detections or no predicted stars: the caller's floor decides); and the expected chance matches of the
-    first four stars' pattern (:func:`pattern_chance` with ``n_cat`` stars and tolerance ``eps``).
+    cos_fov``) by accident, from the predicted stars within ten radii of it *other than the one it landed on*
+    (-1 when there are no other detections or no predicted stars: the caller's floor decides); and the
+    expected chance matches of the first four stars' pattern (:func:`pattern_chance` with ``n_cat`` stars and
+    tolerance ``eps``).
+
+    The star a detection landed on is the event whose chance is estimated, not evidence of the density around
+    it: counted, it made every matched detection's chance at least 1/100 whatever the sky, and a true field of
+    few stars (4 in the pattern, 2-3 others) improbable enough to be refused.  So a detection with a predicted
+    star within ``radius`` counts the others within ten radii (one fewer), an unmatched one all of them.
     """
     n = b.shape[0]
     k = img.shape[0]
@@ -815,6 +821,7 @@ def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
             for a in range(3):
                 ref[i, a] = dcm[0, a] * b[i, 0] + dcm[1, a] * b[i, 1] + dcm[2, a] * b[i, 2]
         counts = np.zeros(n, dtype=np.int64)
+        landed = np.zeros(n, dtype=np.bool_)
         n_front = 0
         for s in range(star_vec.shape[0]):
             if dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2] <= cos_fov:
@@ -823,14 +830,17 @@ def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
             for i in range(n):
                 if is_core[i]:
                     continue
-                if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cos_local:
+                d = ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2]
+                if d >= cos_local:
                     counts[i] += 1
+                    if d >= cos_r:
+                        landed[i] = True
         if n_front > 0:
             total = 0.0
             frac = (radius / (10.0 * radius)) ** 2
             for i in range(n):
                 if not is_core[i]:
-                    total += min(1.0, counts[i] * frac)
+                    total += min(1.0, (counts[i] - landed[i]) * frac)
             p_local = total / n_others
     return agree, core_agree, p_local, e_core
 
