@@ -763,34 +763,84 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
 
         vparams = replace(params, match_radius_px=r_px)
     eps = tolerance_rad(cam, sigma, params)
-    matches, dcm, p_false, reason = _verify_blind(img, cat_rows, int(n_verified * n_scales), b, cam, star_vec, star_id,
+    trials = int(n_verified * n_scales)
+    if not wide:
+        # An undistorted pinhole whose focal length alone is fitted: the rounds below without a camera per round.
+        return _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo,
+                               f_hi)
+    matches, dcm, p_false, reason = _verify_blind(img, cat_rows, trials, b, cam, star_vec, star_id,
                                                   eps, sigma, vparams, cone)
     if matches is None:
         return None
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
+    for _ in range(3):
+        idx, _, rows = matches
+        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], len(idx) >= 8)
+        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+            return None
+        b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
+        eps = tolerance_rad(cam, sigma, params)
+        m2, dcm2, p2, _ = _verify_blind(idx, rows, trials, b, cam, star_vec, star_id, eps, sigma, vparams, cone)
+        if m2 is None:
+            break
+        matches, dcm, p_false = m2, dcm2, p2
+        vparams = params
+    return cam, matches, dcm, p_false
+
+
+def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo, f_hi):
+    """:func:`_verify_candidate`'s verification and fit-and-verify rounds for an undistorted pinhole ``cam`` (its
+    focal length fitted, no lens terms): the numbers of :func:`_verify_blind` and :func:`_fit_camera` on the
+    focal length alone, without a :class:`~startrack.camera.Camera` per round; the fitted camera made once.
+
+    Returns ``(camera, (stars, ids, rows), dcm, p_false)`` or None."""
+    from startrack.camera import MAX_FOCAL_LENGTH_PX, MIN_FOCAL_LENGTH_PER_SIDE, Camera, unit_vectors
+
+    width, height, cx, cy = cam.width, cam.height, cam.cx, cam.cy
+    f = cam.focal_length_px
+    # What Camera() holds a focal length to (its other values are the candidate camera's): a fit outside makes
+    # the camera, which raises, as a fitted camera always did.
+    f_min, f_max = MIN_FOCAL_LENGTH_PER_SIDE * max(width, height), MAX_FOCAL_LENGTH_PX
+    # _cone_cos's pinhole corner and tolerance_rad's terms, per candidate.
+    corner = math.hypot(max(abs(-0.5 - cx), abs(width - 0.5 - cx)), max(abs(-0.5 - cy), abs(height - 0.5 - cy)))
+    half_deg = math.radians(0.5)
+    tol_fixed = math.radians(params.tolerance_arcsec / 3600.0) if params.tolerance_arcsec is not None else None
+    tol_num = params.tolerance_sigma * math.sqrt(2.0) * sigma
+    margin = math.radians(params.margin_arcsec / 3600.0)
+    dx, dy = xy[:, 0] - cx, xy[:, 1] - cy
+    check = _VerifyCheck(trials, star_vec, star_id, sigma, params, cone, width, height, cx, cy)
+    matches, dcm, p_false, pos = check(np.array(img, dtype=np.int64), np.array(cat_rows, dtype=np.int64), b, f,
+                                       math.cos(math.atan(corner / f) + half_deg), eps, None)
+    if matches is None:
+        return None
+    # Fit the focal length on the matches, re-solve and verify again with it (_fit_camera, _verify_blind).
     previous = None
     for _ in range(3):
         idx, _, rows = matches
-        f_before = cam.focal_length_px
-        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], wide and len(idx) >= 8)
-        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+        f_before = f
+        v = star_vec[rows] @ dcm.T
+        a = np.concatenate([v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]])
+        fit = float(a @ np.concatenate([dx[idx], dy[idx]]) / (a @ a))
+        if fit > 0 and math.isfinite(fit):
+            if not f_min <= fit <= f_max:
+                Camera(width, height, fit, cx, cy)      # raises the camera's ParameterError
+            f = fit
+        if not f_lo <= f <= f_hi * 1.1:
             return None
         pairs = (idx.tolist(), rows.tolist())
-        if not wide and pairs == previous and abs(cam.focal_length_px / f_before - 1.0) < _F_CONVERGED:
+        if pairs == previous and abs(f / f_before - 1.0) < _F_CONVERGED:
             # Converged: the last verification kept the same matches and the fit moves f by less than
             # _F_CONVERGED; another round would move it by a few percent of that (the alternation
             # converges geometrically, ratio < 0.05 on the ESA frames).
             break
         previous = pairs
-        b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
-        eps = tolerance_rad(cam, sigma, params)
-        m2, dcm2, p2, _ = _verify_blind(idx, rows, int(n_verified * n_scales), b, cam, star_vec, star_id, eps, sigma,
-                                        params if not wide else vparams, cone)
+        b = unit_vectors(dx / f, dy / f)
+        eps = tol_fixed if tol_fixed is not None else tol_num / f + margin
+        m2, dcm2, p2, pos2 = check(idx, rows, b, f, math.cos(math.atan(corner / f) + half_deg), eps, pos)
         if m2 is None:
             break
-        matches, dcm, p_false = m2, dcm2, p2
-        if wide:
-            vparams = params
+        matches, dcm, p_false, pos = m2, dcm2, p2, pos2
+    cam = cam if f == cam.focal_length_px else Camera(width, height, f, cx, cy)
     return cam, matches, dcm, p_false
 
 
@@ -864,55 +914,90 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     attitude and the confidence read only those when every attitude of the refinement keeps its field inside the
     cone (checked, else the whole of ``star_vec``): the same numbers either way.
     """
-    from startrack._kernels.attitude import quat_to_dcm, refine
-    from startrack._kernels.verify import blind_confidence
-    from startrack.identify.verify import false_match_probability
-
     img = np.array(image, dtype=np.int64)
     cat = np.array(catalog, dtype=np.int64)
-    if len(img) < 2:
-        return None, None, None, "fewer than two stars identified"
+    f = float(camera.focal_length_px)
     radius_px = params.match_radius_px if params.match_radius_px is not None else \
         max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
-    radius = radius_px / camera.focal_length_px
-    cos_fov = _cone_cos(camera, 0.5)
-    b_vectors = np.ascontiguousarray(b_vectors)
-    n_cat = len(star_vec)
-    geometry = (float(camera.focal_length_px), float(camera.cx), float(camera.cy), float(camera.width),
-                float(camera.height), *camera.lens_terms, radius, 2)
-    # A proposal star agrees when the refined attitude puts its catalog star within the match radius of it
-    # (whether or not the star-by-star matching, which refuses ambiguous neighbours, kept it).  With the
-    # confidence's numbers, in one kernel call (startrack._kernels.verify.blind_confidence): the chance
-    # that a pattern of the proposal's first four stars (three when that is all) matches by coincidence,
-    # and the chance that each other star falls on a predicted catalog star by accident.  On the cone's rows,
-    # the refinement and the confidence in one call (startrack._kernels.verify.verify_in_cone).
-    got = cone.verify(b_vectors, img, cat, cos_fov, geometry, n_cat, float(eps)) if cone is not None else None
-    if got is not None:
-        match, q, n_pred, cat, dcm, agree, core_agree, p_local, e_pyr = got
-        star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
-    else:
-        match, q, n_pred = refine(b_vectors, star_vec, img, cat, cos_fov, *geometry)
-        rows_of = None
-        dcm = quat_to_dcm(q)
-        agree, core_agree, p_local, e_pyr = blind_confidence(b_vectors, img, cat, star_vec, dcm, cos_fov, radius,
-                                                             n_cat, float(eps))
-    n_matched = int(np.count_nonzero(match >= 0))
-    if agree < min(len(img), params.min_matches):
-        return None, dcm, None, "the proposal's stars do not agree with the refined attitude"
-    if n_matched < params.min_matches and not (len(b_vectors) == 3 and n_matched == 3):
-        return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})"
-    p_hit = _local_hit_probability(p_local, camera, n_pred, radius_px)
-    others = len(b_vectors) - min(len(img), 4)
-    p_false = false_match_probability(e_pyr, trials, n_matched - core_agree, others, p_hit)
-    if p_false > params.max_false_probability:
-        return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
-                                    f"{params.max_false_probability:g}")
-    rows = np.flatnonzero(match >= 0)
-    cat_rows = match[rows]
-    ids = star_id[cat_rows]
-    if rows_of is not None:
-        cat_rows = rows_of[cat_rows]
-    return (rows, ids, cat_rows), dcm, p_false, None
+    check = _VerifyCheck(trials, star_vec, star_id, sigma_px, params, cone, camera.width, camera.height, camera.cx,
+                         camera.cy, camera.lens_terms)
+    matches, dcm, p_false, reason, _ = check.verify(img, cat, np.ascontiguousarray(b_vectors), f,
+                                                    _cone_cos(camera, 0.5), eps, radius_px)
+    return matches, dcm, p_false, reason
+
+
+class _VerifyCheck:
+    """:func:`_verify_blind` of one candidate's rounds: what stays the same from one round to the next (the
+    catalog rows, their cone, the image size and principal point, the lens terms), and :meth:`verify` of one
+    round's focal length."""
+
+    def __init__(self, trials, star_vec, star_id, sigma_px, params, cone, width, height, cx, cy,
+                 lens_terms=(0.0, 0.0, 0.0, 0.0, 0)):
+        self.trials, self.star_vec, self.star_id, self.sigma_px = trials, star_vec, star_id, sigma_px
+        self.params, self.cone, self.lens_terms = params, cone, lens_terms
+        self.width, self.height, self.cx, self.cy = width, height, float(cx), float(cy)
+
+    def __call__(self, img, cat, b, f, cos_fov, eps, pos=None):
+        """:meth:`verify` with the match radius of :attr:`params` at focal length ``f``: ``(matches, dcm, p_false,
+        pos)``."""
+        params = self.params
+        radius_px = params.match_radius_px if params.match_radius_px is not None else \
+            max(1.0, params.match_sigma * self.sigma_px + math.radians(params.margin_arcsec / 3600.0) * f)
+        matches, dcm, p_false, _, pos = self.verify(img, cat, b, f, cos_fov, eps, radius_px, pos)
+        return matches, dcm, p_false, pos
+
+    def verify(self, img, cat, b, f, cos_fov, eps, radius_px, pos=None):
+        """One verification (:func:`_verify_blind`) of image stars ``img`` (int64) as rows ``cat`` (int64) of
+        :attr:`star_vec`, directions ``b`` (C-contiguous) at focal length ``f``; ``pos``: the rows' positions in the
+        cone when known (the matches of a verification through it).  Returns ``(matches, dcm, p_false, reason,
+        pos)``: ``pos`` the matches' positions in the cone, None when the whole catalog answered."""
+        from startrack._kernels.attitude import quat_to_dcm, refine
+        from startrack._kernels.verify import blind_confidence
+        from startrack.identify.verify import false_match_probability
+
+        params = self.params
+        if len(img) < 2:
+            return None, None, None, "fewer than two stars identified", None
+        radius = radius_px / f
+        star_vec, star_id = self.star_vec, self.star_id
+        n_cat = len(star_vec)
+        geometry = (f, self.cx, self.cy, float(self.width), float(self.height), *self.lens_terms, radius, 2)
+        # A proposal star agrees when the refined attitude puts its catalog star within the match radius of it
+        # (whether or not the star-by-star matching, which refuses ambiguous neighbours, kept it).  With the
+        # confidence's numbers, in one kernel call (startrack._kernels.verify.blind_confidence): the chance
+        # that a pattern of the proposal's first four stars (three when that is all) matches by coincidence,
+        # and the chance that each other star falls on a predicted catalog star by accident.  On the cone's rows,
+        # the refinement and the confidence in one call (startrack._kernels.verify.verify_in_cone).
+        cone = self.cone
+        got = cone.verify(b, img, cat, cos_fov, geometry, n_cat, float(eps), pos) if cone is not None else None
+        if got is not None:
+            match, q, n_pred, cat, dcm, agree, core_agree, p_local, e_pyr = got
+            star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
+        else:
+            match, q, n_pred = refine(b, star_vec, img, cat, cos_fov, *geometry)
+            rows_of = None
+            dcm = quat_to_dcm(q)
+            agree, core_agree, p_local, e_pyr = blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius,
+                                                                 n_cat, float(eps))
+        n_matched = int(np.count_nonzero(match >= 0))
+        if agree < min(len(img), params.min_matches):
+            return None, dcm, None, "the proposal's stars do not agree with the refined attitude", None
+        if n_matched < params.min_matches and not (len(b) == 3 and n_matched == 3):
+            return None, dcm, None, f"only {n_matched} stars matched (need {params.min_matches})", None
+        p_hit = _local_hit_probability(p_local, self, n_pred, radius_px)     # (the image size is ours)
+        others = len(b) - min(len(img), 4)
+        p_false = false_match_probability(e_pyr, self.trials, n_matched - core_agree, others, p_hit)
+        if p_false > params.max_false_probability:
+            return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
+                                        f"{params.max_false_probability:g}"), None
+        rows = np.flatnonzero(match >= 0)
+        cat_rows = match[rows]
+        ids = star_id[cat_rows]
+        pos = None
+        if rows_of is not None:
+            pos = cat_rows
+            cat_rows = rows_of[cat_rows]
+        return (rows, ids, cat_rows), dcm, p_false, None, pos
 
 
 #: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room
@@ -933,21 +1018,23 @@ class _CatalogCone:
         self.axis = axis
         self.radius = radius
 
-    def verify(self, b, img, cat, cos_fov, geometry, n_cat, eps):
+    def verify(self, b, img, cat, cos_fov, geometry, n_cat, eps, pos=None):
         """:func:`startrack._kernels.attitude.refine` and :func:`startrack._kernels.verify.blind_confidence` on the
         cone's rows (:func:`startrack._kernels.verify.verify_in_cone`): ``(match, q, n_predicted, cat, dcm, agree,
         core_agree, p_local, e_core)`` with ``match`` and ``cat`` (the proposal's rows) indexing :attr:`vec`, or
         ``None`` when the cone cannot answer for the whole catalog (a proposal star outside it, or an attitude whose
-        field leaves it)."""
+        field leaves it).  ``pos``: the positions of ``cat`` in :attr:`rows` when the caller knows them (the matches of
+        an earlier verification through the cone), else looked up."""
         from startrack._kernels.verify import verify_in_cone
 
         reach = self.radius - math.acos(max(-1.0, min(1.0, cos_fov))) - 1e-9
         if reach <= 0.0:
             return None
-        pos = np.searchsorted(self.rows, cat)
-        n = len(self.rows)
-        if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
-            return None
+        if pos is None:
+            pos = np.searchsorted(self.rows, cat)
+            n = len(self.rows)
+            if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
+                return None
         ok, match, q, n_pred, dcm, agree, core_agree, p_local, e_core = verify_in_cone(
             b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach), n_cat, eps)
         return (match, q, n_pred, pos, dcm, agree, core_agree, p_local, e_core) if ok else None
@@ -969,7 +1056,8 @@ def _local_hit_probability(p_local: float, camera, n_pred: int, radius_px: float
     The density of catalog stars is taken around each image star (within ten
     match radii, ``p_local`` of :func:`startrack._kernels.verify.blind_confidence`), not over the whole
     image: in a cluster (the Hyades, the Pleiades) chance coincidences are far more likely than the field
-    average suggests.  The global average (``n_pred`` stars predicted in the image) is the floor.
+    average suggests.  The global average (``n_pred`` stars predicted in the image) is the floor.  ``camera``:
+    anything with the image's ``width`` and ``height``.
     """
     floor = min(1.0, n_pred * math.pi * radius_px**2 / (camera.width * camera.height))
     return float(max(floor, p_local))
