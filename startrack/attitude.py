@@ -237,6 +237,29 @@ def covariance(body, sigmas_rad):
     return np.linalg.inv(info)
 
 
+def round_decimals(values, ndigits: int) -> list:
+    """``[round(float(v), ndigits) for v in values]`` (Python's correctly rounded decimal rounding, ties to even), to
+    the bit, without a decimal conversion per value.
+
+    ``rint(v 10^n) / 10^n`` is that value whenever ``v 10^n`` (rounded once by its product) is not within a
+    millionth of a half-integer, where the product's rounding could move it across: the nearest integer is then
+    the exact one's, and dividing an integer below 2^53 by ``10^n`` (both exact doubles) gives the double nearest
+    to the decimal number, as ``round`` does.  The other values (near a tie, beyond 2^52, not finite) go through
+    ``round``."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    scale = 10.0 ** ndigits
+    y = v * scale
+    n = np.rint(y)
+    with np.errstate(invalid="ignore"):
+        safe = (np.abs(np.abs(y - n) - 0.5) > 1e-6) & (np.abs(y) < 2.0**52)
+    out = (n / scale).tolist()
+    if not safe.all():
+        vals = v.tolist()
+        for k in np.flatnonzero(~safe).tolist():
+            out[k] = round(vals[k], ndigits)
+    return out
+
+
 @dataclass
 class AttitudeResult:
     """The ``attitude`` section of a frame document."""
@@ -276,8 +299,8 @@ class AttitudeResult:
             ra=float(ra), dec=float(dec), roll=float(roll),
             euler123_deg={"yaw": float(yaw), "pitch": float(pitch), "roll": float(roll123)},
             n_stars=len(self.used), loss=self.loss,
-            residuals=[{"star": s, "id": i, "residual_arcsec": round(float(r), 4)}
-                       for (s, i), r in zip(self.used, self.residuals_arcsec)],
+            residuals=[{"star": s, "id": i, "residual_arcsec": r}
+                       for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))],
             rms_residual_arcsec=float(np.sqrt(np.mean(np.square(self.residuals_arcsec)))) if self.residuals_arcsec
             else None,
             time_ms=round(self.time_ms, 4),
@@ -431,7 +454,7 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
 
 def _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, loss, t0):
     used = [labels[k] for k in keep.tolist()]
-    out = AttitudeResult("ok", method, dcm, None, used, rejected, list(np.degrees(resid) * 3600), loss, cov,
+    out = AttitudeResult("ok", method, dcm, None, used, rejected, (np.degrees(resid) * 3600).tolist(), loss, cov,
                          (time.perf_counter() - t0) * 1000)
     out.variance_factor = math.sqrt(factor2)
     return out

@@ -251,6 +251,10 @@ class StarTable(_Record):
         validates a section read from a file.
         """
         n = len(stars)
+        if n:
+            keys = tuple(stars[0])
+            if all(tuple(s) == keys for s in stars):
+                return cls._from_rows(keys, stars)
         x = np.array([s["x"] for s in stars], dtype=np.float64)
         y = np.array([s["y"] for s in stars], dtype=np.float64)
         flux = np.array([s.get("flux", np.nan) if s.get("flux") is not None else np.nan for s in stars],
@@ -276,6 +280,35 @@ class StarTable(_Record):
                 rest = other_keys[keys] = [k for k in keys if k not in known]
             other.append({k: s[k] for k in rest})
         return cls(x, y, flux, sigma, columns, other if any(other) else None)
+
+    @classmethod
+    def _from_rows(cls, keys: tuple, stars: list) -> StarTable:
+        """:meth:`from_list` of stars that all have the keys ``keys``, in that order (a detector's list): the same
+        table, made column by column."""
+        cols = dict(zip(keys, zip(*[s.values() for s in stars], strict=True), strict=True))
+        n = len(stars)
+        x = np.array(cols["x"], dtype=np.float64)
+        y = np.array(cols["y"], dtype=np.float64)
+        flux = cols.get("flux")
+        if flux is None:
+            flux = np.full(n, np.nan)
+        else:
+            flux = np.array([np.nan if v is None else v for v in flux] if None in flux else flux, dtype=np.float64)
+        columns = {}
+        sigma = None
+        for name in _STAR_NUMERIC:
+            values = cols.get(name)
+            if values is not None and _all_numbers(values):
+                col = np.array(values, dtype=np.float64)
+                if name == "sigma_px":
+                    sigma = col
+                else:
+                    columns[name] = col
+        known = {"x", "y", "flux", "sigma_px", *columns}
+        rest = [k for k in keys if k not in known]
+        other = [dict(zip(rest, row, strict=True)) for row in zip(*[cols[k] for k in rest], strict=True)] if rest \
+            else None
+        return cls(x, y, flux, sigma, columns, other)
 
     def to_list(self) -> list:
         """The ``stars`` section: one object per star, ``x``, ``y``, ``flux`` first."""

@@ -465,8 +465,11 @@ def pointing(dcm, camera, mirrored: bool = False) -> dict:
         return {"ra": math.degrees(math.atan2(v[1], v[0])) % 360.0,
                 "dec": math.degrees(math.asin(max(-1.0, min(1.0, float(v[2])))))}
 
-    c = radec((camera.width - 1) / 2.0, (camera.height - 1) / 2.0)
-    return {"center_ra": c["ra"], "center_dec": c["dec"], "principal_point": radec(camera.cx, camera.cy)}
+    x0, y0 = (camera.width - 1) / 2.0, (camera.height - 1) / 2.0
+    c = radec(x0, y0)
+    # (the principal point of a camera not calibrated is the image centre: the same numbers)
+    return {"center_ra": c["ra"], "center_dec": c["dec"],
+            "principal_point": dict(c) if (camera.cx, camera.cy) == (x0, y0) else radec(camera.cx, camera.cy)}
 
 
 def index_plan(fov_range=None, catalog: str | None = None, deep_available: bool | None = None):
@@ -1207,14 +1210,15 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
 
     if identification.status != "ok":
         return Attitude.failed(f"not identified: {identification.reason}", ReasonCode.NOT_IDENTIFIED, method)
-    idx = [m for m in identification.matches if int(m[1]) in rows]
-    star = np.array([int(m[0]) for m in idx], dtype=np.int64)
+    labels = [(int(m[0]), int(m[1])) for m in identification.matches]
+    labels = [m for m in labels if m[1] in rows]
+    star = np.array([m[0] for m in labels], dtype=np.int64)
     body = camera.pixels_to_vectors(stars.x[star], stars.y[star]).reshape(-1, 3)
-    ref = np.asarray(vectors)[[rows[int(m[1])] for m in idx]].reshape(-1, 3)
+    ref = np.asarray(vectors)[[rows[m[1]] for m in labels]].reshape(-1, 3)
     if observer is not None:
         from startrack.apparent import aberrate
 
-        plx = None if not parallax_mas else np.array([parallax_mas.get(int(m[1]), 0.0) for m in idx])
+        plx = None if not parallax_mas else np.array([parallax_mas.get(m[1], 0.0) for m in labels])
         ref = aberrate(ref, observer, parallax_mas=plx)
     if sigma_px is not None:
         sig_px = np.full(len(star), float(sigma_px))
@@ -1223,7 +1227,7 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     else:
         sig_px = np.full(len(star), DEFAULT_SIGMA_PX)
     sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
-    res = estimate_attitude(body, ref, sig, method, [(int(m[0]), int(m[1])) for m in idx])
+    res = estimate_attitude(body, ref, sig, method, labels)
     att = from_section(Attitude, res.section(), "attitude", validate=False)      # our own section: no re-checks
     if att.status != "ok" and att.reason_code is None:
         att.reason_code = getattr(res, "reason_code", None) or ReasonCode.TOO_FEW_STARS
