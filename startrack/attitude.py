@@ -319,6 +319,59 @@ class AttitudeResult:
         return out
 
 
+    def record(self):
+        """The :class:`~startrack.records.Attitude` of :meth:`section`: what ``from_section(Attitude,
+        self.section(), validate=False)`` reads back, made without the section (a result with ``bound`` through
+        it)."""
+        from startrack.records import Attitude, ReasonCode, Status
+
+        if self.bound:
+            from startrack.formats.sections import from_section
+
+            return from_section(Attitude, self.section(), "attitude", validate=False)
+        att = Attitude(Status(self.status), self.method)
+        if self.reason:
+            att.reason = self.reason
+        if self.reason_code:
+            code = str(self.reason_code)
+            try:
+                att.reason_code = ReasonCode(code)
+            except ValueError:
+                att.reason_code = code
+        if self.dcm is None:
+            if self.rejected:
+                att.rejected = self.rejected
+            return att
+        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
+
+        ra, dec, roll = dcm_to_radec_roll(self.dcm)
+        yaw, pitch, roll123 = dcm_to_euler123(self.dcm)
+        arcsec = math.degrees(1.0) * 3600.0
+        att.quaternion = np.array([float(v) for v in dcm_to_quaternion(self.dcm)], dtype=np.float64)
+        att.ra, att.dec, att.roll = float(ra), float(dec), float(roll)
+        att.euler123_deg = {"yaw": float(yaw), "pitch": float(pitch), "roll": float(roll123)}
+        att.n_stars = len(self.used)
+        if self.loss is not None:
+            att.loss = float(self.loss)
+        att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
+                         for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))]
+        if self.residuals_arcsec:
+            att.rms_residual_arcsec = float(np.sqrt(np.mean(np.square(self.residuals_arcsec))))
+        att.time_ms = float(round(self.time_ms, 4))
+        att.variance_factor = float(round(float(self.variance_factor), 4))
+        if self.cov_rad2 is not None:
+            p = self.cov_rad2
+            att.covariance_arcsec2 = np.array([[float(v) * arcsec**2 for v in row] for row in p], dtype=np.float64)
+            att.sigma_cross_boresight_arcsec = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
+            att.sigma_pitch_yaw_arcsec = np.array([float(math.sqrt(p[0, 0]) * arcsec),
+                                                   float(math.sqrt(p[1, 1]) * arcsec)], dtype=np.float64)
+            att.sigma_roll_arcsec = float(math.sqrt(p[2, 2]) * arcsec)
+        if self.rejected:
+            att.rejected = self.rejected
+        att.details = {"dcm": [[float(v) for v in row] for row in self.dcm]}
+        return att
+
+
 def _fail(method, code, reason, t0, used=(), rejected=()):
     return AttitudeResult("failed", method, reason=reason, reason_code=code, used=list(used), rejected=list(rejected),
                           time_ms=(time.perf_counter() - t0) * 1000)

@@ -1205,7 +1205,6 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         ``failed`` with ``reason_code`` ``not_identified`` when the identification failed.
     """
     from startrack.attitude import estimate_attitude
-    from startrack.formats.sections import from_section
     from startrack.records import Attitude, ReasonCode
 
     if identification.status != "ok":
@@ -1228,7 +1227,7 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
         sig_px = np.full(len(star), DEFAULT_SIGMA_PX)
     sig = np.maximum(sig_px, 0.05) / camera.focal_length_px
     res = estimate_attitude(body, ref, sig, method, labels)
-    att = from_section(Attitude, res.section(), "attitude", validate=False)      # our own section: no re-checks
+    att = res.record()      # from_section(Attitude, res.section(), validate=False), made directly
     if att.status != "ok" and att.reason_code is None:
         att.reason_code = getattr(res, "reason_code", None) or ReasonCode.TOO_FEW_STARS
     if epoch is not None:
