@@ -554,7 +554,8 @@ def warm_kernels(index: PatternIndex) -> None:
     # The verification on the whole catalog, when a refined field leaves its candidate's cone (_verify_blind).
     blind_confidence(b, rows, rows, index.star_vec[:2], quat_to_dcm(q), 0.5, 0.01, 2, 0.01)
     cone_rows = np.empty(2, dtype=np.int64)
-    _, k, axis = screen_in_cone(b, 2, index.star_vec, 2, rows, rows, 0.5, 0.01, 0.4, cone_rows)
+    # (no sky index: the same argument types as a sky index's arrays, _screen_sky)
+    _, k, axis = screen_in_cone(b, 2, index.star_vec, 2, rows, rows, 0.5, 0.01, 0.4, cone_rows, *_NO_SKY)
     verify_in_cone(b, np.ascontiguousarray(index.star_vec[:2]), rows, rows.copy(), 0.5, 100.0, 5.0, 5.0, 10.0, 10.0,
                    0.0, 0.0, 0.0, 0.0, 0, 0.01, 1, axis, 0.9, 2, 0.01)
     _WARMED.add(types)
@@ -748,7 +749,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     cone_radius = math.acos(cos_fov) + _CONE_SLACK_RAD
     hits, k, axis = screen_in_cone(b, n_screen, index.star_vec, n_rows, np.asarray(img, dtype=np.int64),
                                    np.asarray(cat_rows, dtype=np.int64), cos_fov, r_px / f, math.cos(cone_radius),
-                                   cone_rows)
+                                   cone_rows, *_screen_sky(index, n_rows, cone_radius))
     if hits < min(2, n_screen - 4):
         return None
     cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
@@ -998,6 +999,45 @@ class _VerifyCheck:
             pos = cat_rows
             cat_rows = rows_of[cat_rows]
         return (rows, ids, cat_rows), dcm, p_false, None, pos
+
+
+_NO_SKY = (np.zeros(0, dtype=np.int64), np.zeros(0))      # screen_in_cone without a sky index: every row
+
+#: The screens' rows read one by one (every row of their catalog prefix), in units of the pattern index's stars,
+#: after which a process builds the index's sky index (_screen_sky).  A build reads each star once at ~70 times the
+#: cost of a screen's row (~8 ms for the default index's 106,000 stars, ~1 ns a row): after about as much work as the
+#: build costs, never more than twice the work of the better choice made in hindsight.  Speed only: the same
+#: answer either way.
+SKY_SCREEN_AFTER = 64.0
+
+_SKY_SCREEN: dict = {}      # id(index) -> [index, rows read one by one, sky cells, sky ra] (_screen_sky)
+
+
+def _screen_sky(index: PatternIndex, n_rows: int, cone_radius: float) -> tuple:
+    """The sky index (``cells``, ``ra``: :class:`startrack.skyindex.SkyIndex`) of ``index``'s stars for a screen of
+    the first ``n_rows`` rows within ``cone_radius`` (rad) of a boresight
+    (:func:`startrack._kernels.verify.screen_in_cone`), or :data:`_NO_SKY` (every row read): the sky index when the
+    cone holds under a tenth of the prefix's stars on average, once this process's screens have read
+    :data:`SKY_SCREEN_AFTER` times the index's stars one by one (a solve or two never pays for the build; a
+    session of many does, once)."""
+    m = len(index.star_id)
+    state = _SKY_SCREEN.get(id(index))
+    if state is None or state[0] is not index:
+        if len(_SKY_SCREEN) > 4:
+            _SKY_SCREEN.clear()
+        state = _SKY_SCREEN[id(index)] = [index, 0, None, None]
+    if m * (1.0 - math.cos(min(cone_radius, math.pi))) / 2.0 >= n_rows / 10.0:
+        state[1] += n_rows
+        return _NO_SKY
+    if state[2] is None:
+        if state[1] < SKY_SCREEN_AFTER * m:
+            state[1] += n_rows
+            return _NO_SKY
+        from startrack.skyindex import SkyIndex
+
+        sky = SkyIndex(np.array(index.star_vec))      # (a writable copy: the sky index kernel's one compiled type)
+        state[2], state[3] = sky.cells, sky.ra
+    return state[2], state[3]
 
 
 #: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room

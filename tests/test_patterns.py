@@ -324,11 +324,22 @@ def test_verification_in_a_cone_is_the_whole_catalogs(seed):
     radius = 2.0 / f
     cone_radius = math.acos(cos_fov) + math.radians(1.0)
     rows = np.empty(n_rows, dtype=np.int64)
-    hits, k, axis = screen_in_cone(b, 20, star_vec, n_rows, img, cat, cos_fov, radius, math.cos(cone_radius), rows)
+    no_sky = (np.zeros(0, dtype=np.int64), np.zeros(0))
+    hits, k, axis = screen_in_cone(b, 20, star_vec, n_rows, img, cat, cos_fov, radius, math.cos(cone_radius), rows,
+                                   *no_sky)
     want_hits, want_axis = _screen_reference(b, 20, star_vec, n_rows, img, cat, cos_fov, radius)
     assert hits == want_hits
     np.testing.assert_allclose(axis, want_axis, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(rows[:k], np.flatnonzero(star_vec[:n_rows] @ axis > math.cos(cone_radius)))
+    # Through a sky index of every row (the prefix's stars among the cone's): the same count, rows and axis.
+    from startrack.skyindex import SkyIndex
+
+    sky = SkyIndex(star_vec, n_bands=[8, 100, 141, 400][seed])
+    rows_sky = np.full(n_rows, -7, dtype=np.int64)
+    got = screen_in_cone(b, 20, star_vec, n_rows, img, cat, cos_fov, radius, math.cos(cone_radius), rows_sky,
+                         sky.cells, sky.ra)
+    assert got[:2] == (hits, k) and got[2].tobytes() == axis.tobytes()
+    np.testing.assert_array_equal(rows_sky[:k], rows[:k])
     rows = rows[:k]
     assert np.all(np.isin(cat, rows)) and k < n_rows / 50
     sub = np.ascontiguousarray(star_vec[rows])
