@@ -845,24 +845,6 @@ def blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius, n_cat, eps):
     return agree, core_agree, p_local, e_core
 
 
-@njit(cache=True, inline="always")
-def _screen_row(s, star_vec, bz0, bz1, bz2, cos_sub, cos_fov, ref, is_pat, hit, cosr, n, rows, k):
-    """:func:`screen_in_cone`'s test of catalog row ``s``: kept in ``rows`` (returns the new count) when within the
-    cone, and a hit for each screened image star within the match radius of it when in the field."""
-    z = bz0 * star_vec[s, 0] + bz1 * star_vec[s, 1] + bz2 * star_vec[s, 2]
-    if z > cos_sub:
-        rows[k] = s
-        k += 1
-    if z < cos_fov:
-        return k
-    for i in range(n):
-        if is_pat[i] or hit[i]:
-            continue
-        if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cosr:
-            hit[i] = True
-    return k
-
-
 @njit(cache=True)
 def screen_in_cone(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius, cos_sub, rows, sky_cells, sky_ra):
     """The blind search's screen of a candidate and the catalog rows its verification may read, in one pass.
@@ -875,7 +857,7 @@ def screen_in_cone(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius, cos
 
     ``sky_cells``/``sky_ra``: the sky index of every row of ``star_vec``
     (:func:`startrack._kernels.sky_index.sky_index`): only the stars of the cone's bands and right ascensions are
-    tested, in ascending order, with the same arithmetic (:func:`_screen_row`); empty arrays: every row below
+    tested, in ascending order, with the same arithmetic; empty arrays: every row below
     ``n_rows``.  The same answer either way.
     """
     q, _ = quest(b[img], star_vec[cat], np.ones(img.shape[0]))
@@ -896,18 +878,29 @@ def screen_in_cone(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius, cos
     bz2 = dcm[2, 2]
     k = 0
     m = star_vec.shape[0]
-    if m > 0 and sky_ra.shape[0] == m and sky_cells.shape[0] > 0 and sky_cells.shape[0] == m + 2 + sky_cells[0]:
+    sky = m > 0 and sky_ra.shape[0] == m and sky_cells.shape[0] > 0 and sky_cells.shape[0] == m + 2 + sky_cells[0]
+    if sky:
         # Every row with z > cos_sub or z >= cos_fov (a superset: 1e-9 below the smaller), ascending.
         near = np.empty(m, dtype=np.int64)
-        count = cone_stars(bz0, bz1, bz2, min(cos_sub, cos_fov) - 1e-9, star_vec, sky_cells, sky_ra, near)
-        for t in range(count):
-            s = near[t]
-            if s >= n_rows:
-                break
-            k = _screen_row(s, star_vec, bz0, bz1, bz2, cos_sub, cos_fov, ref, is_pat, hit, cosr, n, rows, k)
+        n_near = cone_stars(bz0, bz1, bz2, min(cos_sub, cos_fov) - 1e-9, star_vec, sky_cells, sky_ra, near)
     else:
-        for s in range(n_rows):
-            k = _screen_row(s, star_vec, bz0, bz1, bz2, cos_sub, cos_fov, ref, is_pat, hit, cosr, n, rows, k)
+        near = np.empty(0, dtype=np.int64)
+        n_near = n_rows
+    for t in range(n_near):
+        s = near[t] if sky else t
+        if s >= n_rows:
+            break
+        z = bz0 * star_vec[s, 0] + bz1 * star_vec[s, 1] + bz2 * star_vec[s, 2]
+        if z > cos_sub:
+            rows[k] = s
+            k += 1
+        if z < cos_fov:
+            continue
+        for i in range(n):
+            if is_pat[i] or hit[i]:
+                continue
+            if ref[i, 0] * star_vec[s, 0] + ref[i, 1] * star_vec[s, 1] + ref[i, 2] * star_vec[s, 2] >= cosr:
+                hit[i] = True
     count = 0
     for i in range(n):
         if hit[i]:
