@@ -45,6 +45,18 @@ def test_solver_and_cli_give_the_same_answer(which, rendered, esa_db, solve_cach
     assert len(result.identification.matches) >= 10
     assert result.attitude.ra == pytest.approx(cli_doc["attitude"]["ra"], abs=1e-9)
     assert result.attitude.dec == pytest.approx(cli_doc["attitude"]["dec"], abs=1e-9)
+    # A long session's blind search screens its candidates through the pattern index's sky index
+    # (patterns._screen_sky): the same answer, to the bit.
+    import startrack.patterns as patterns
+
+    monkeypatch.setattr(patterns, "SKY_SCREEN_AFTER", 0.0)
+    monkeypatch.setattr(patterns, "_SKY_SCREEN", {})
+    sky = startrack.Solver().solve(image)
+    assert any(state[2] is not None for state in patterns._SKY_SCREEN.values())
+    assert _pairs(sky.identification.matches) == _pairs(result.identification.matches)
+    assert sky.attitude.quaternion.tobytes() == result.attitude.quaternion.tobytes()
+    assert sky.identification.false_match_probability == result.identification.false_match_probability
+    assert sky.camera == result.camera
     # identify with its defaults on the same detections and camera.
     cent = run_cli("centroid", image, "--camera", ESA_CAMERA, check=True).stdout
     cli_id = json.loads(run_cli("identify", "-d", esa_db, input=cent, check=True).stdout)["identification"]

@@ -213,3 +213,59 @@ def test_wcs_keywords_are_the_header_without_astropy(k1, k2):
             "wcs_keywords(np.eye(3), Camera.from_fov(12, 64, 48, k1=0.01)); print('astropy' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_round_decimals_is_pythons_round():
+    """round_decimals gives round(float(v), n) to the bit: random magnitudes, decimal ties, signs, non-finite values,
+    values beyond 2^52."""
+    from startrack.attitude import round_decimals
+
+    rng = np.random.default_rng(5)
+    ties = [float(f"{k}.{j:04d}5") for k in range(40) for j in range(0, 10000, 97)]
+    values = np.concatenate([rng.random(20000) * 10.0 ** rng.uniform(-7, 8, 20000), -rng.random(500), ties,
+                             [0.0, -0.0, math.nan, math.inf, -math.inf, 2.0**60, 5e-5, 1.5e-4, 2.5e-3, 1e-300]])
+    for ndigits in (3, 4):
+        got = round_decimals(values, ndigits)
+        want = [round(float(v), ndigits) for v in values]
+        assert all(type(g) is float for g in got)
+        same = [(g == w and math.copysign(1.0, g) == math.copysign(1.0, w)) or (g != g and w != w)
+                for g, w in zip(got, want, strict=True)]
+        assert all(same), [(v, g, w) for v, g, w, ok in zip(values, got, want, same, strict=True) if not ok][:5]
+
+
+def test_attitude_record_is_its_section_read_back():
+    """AttitudeResult.record() is the Attitude that from_section makes of its section: every field, its type and
+    bits, for solved, rejected, duplicate and failed results."""
+    import dataclasses
+    import json
+
+    from startrack.attitude import AttitudeResult
+    from startrack.formats.sections import from_section
+    from startrack.records import Attitude, ReasonCode
+
+    rng = np.random.default_rng(1)
+    results = [AttitudeResult("failed", "quest", reason="x", reason_code="not_a_code"),
+               AttitudeResult("failed", "quest", reason="", reason_code=ReasonCode.TOO_FEW_STARS, rejected=[{"star": 1}]),
+               AttitudeResult("ok", "quest", np.eye(3), None, [], [], [], None, None)]
+    for _ in range(120):
+        a = quaternion_to_dcm(random_quaternions(1, rng)[0])
+        k = int(rng.integers(0, 12))
+        r = rng.normal(size=(k, 3))
+        r /= np.linalg.norm(r, axis=1)[:, None]
+        b = r @ a.T + rng.normal(scale=1e-5, size=(k, 3))
+        if k > 3 and rng.random() < 0.3:
+            b[0] += 1e-2                                   # an outlier: rejected
+        labels = [(i, 100 + i) for i in range(k)]
+        if k > 2 and rng.random() < 0.1:
+            labels[1] = labels[0]                          # a duplicate match: failed
+        results.append(estimate_attitude(b, r, np.full(k, 1e-5), str(rng.choice(["quest", "svd"])), labels))
+    assert sum(res.status == "ok" for res in results) > 60 and sum(bool(res.rejected) for res in results) > 5
+    for res in results:
+        got, want = res.record(), from_section(Attitude, res.section(), "attitude", validate=False)
+        for f in dataclasses.fields(Attitude):
+            x, y = getattr(got, f.name), getattr(want, f.name)
+            assert type(x) is type(y), f.name
+            if isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f.name
+            else:
+                assert x == y and json.dumps(x, default=str) == json.dumps(y, default=str), f.name

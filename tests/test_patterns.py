@@ -547,3 +547,69 @@ def test_sparse_fields_are_identified_or_refused_never_wrong(sparse_indexes, cat
         assert tried >= 30, tried
         if false_stars == 0:
             assert solved >= 0.45 * tried, (solved, tried)
+
+
+def _pinhole_rounds_reference(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo,
+                              f_hi):
+    """The fit-and-verify rounds of an undistorted pinhole as the blind search made them with a camera per round
+    (_fit_camera, Camera.pixels_to_vectors, tolerance_rad, _verify_blind looking the cone's rows up each time)."""
+    from startrack.identify.params import tolerance_rad
+    from startrack.patterns import _F_CONVERGED, _fit_camera, _verify_blind
+
+    matches, dcm, p_false, _ = _verify_blind(img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params,
+                                             cone)
+    if matches is None:
+        return None
+    previous = None
+    for _ in range(3):
+        idx, _, rows = matches
+        f_before = cam.focal_length_px
+        cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], False)
+        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+            return None
+        pairs = (idx.tolist(), rows.tolist())
+        if pairs == previous and abs(cam.focal_length_px / f_before - 1.0) < _F_CONVERGED:
+            break
+        previous = pairs
+        b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
+        eps = tolerance_rad(cam, sigma, params)
+        m2, dcm2, p2, _ = _verify_blind(idx, rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone)
+        if m2 is None:
+            break
+        matches, dcm, p_false = m2, dcm2, p2
+    return cam, matches, dcm, p_false
+
+
+def test_pinhole_rounds_are_the_camera_rounds(index, catalog, monkeypatch):
+    """_verify_pinhole (the focal length alone, the cone positions carried from round to round) gives the rounds
+    made with a camera per round, to the bit, on every candidate the search verifies, right or wrong."""
+    import startrack.patterns as patterns
+
+    _, idx = index
+    cat = catalog.filter_magnitude(None, 6.0)
+    calls = []
+    real = patterns._verify_pinhole
+
+    def spy(*args):
+        got = real(*args)
+        calls.append((args, got))
+        return got
+
+    monkeypatch.setattr(patterns, "_verify_pinhole", spy)
+    rng = np.random.default_rng(38)
+    for fov in (8.0, 12.0, 18.0):
+        cam = Camera.from_fov(fov, 1024, 768)
+        for q in random_quaternions(4, rng):
+            stars, _ = star_list(cat, cam, quaternion_to_dcm(q), Sensor(), Scene(mag_limit=6.0), rng, sigma_px=0.4,
+                                 max_stars=40)
+            solve_blind(stars, 1024, 768, idx, BlindOptions(timeout_s=5.0))
+    assert sum(got is not None for _, got in calls) >= 6 and len(calls) >= 8, len(calls)
+    for args, got in calls:
+        want = _pinhole_rounds_reference(*args)
+        assert (got is None) == (want is None)
+        if got is None:
+            continue
+        assert got[0] == want[0] and got[0].focal_length_px == want[0].focal_length_px
+        for a, b in zip(got[1], want[1], strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        assert got[2].tobytes() == want[2].tobytes() and got[3] == want[3]

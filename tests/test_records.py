@@ -137,3 +137,42 @@ def test_own_attitude_section_read_without_checks_is_the_checked_record():
         else:
             assert a == b, f.name
     assert own.rejected and own.covariance_arcsec2 is not None and "dcm" in own.details
+
+
+def test_star_table_of_stars_with_the_same_keys_is_the_general_ones():
+    """StarTable.from_list's path for stars that share their keys (column by column) makes the table of the
+    general path (star by star): the same columns, dtypes, NaN fluxes, numeric columns and other keys."""
+    import random
+
+    rng = random.Random(3)
+    names = ["flux", "peak", "sigma_px", "npix", "snr", "mag", "name", "saturated", "fwhm_px", "cov_px2"]
+    checked = 0
+    for _ in range(600):
+        keys = ["x", "y"] + rng.sample(names, rng.randint(0, 7))
+        rng.shuffle(keys)
+        stars = []
+        for _ in range(rng.randint(1, 6)):
+            star = {}
+            for k in keys:
+                r = rng.random()
+                star[k] = (rng.uniform(0, 99) if k in "xy" else None if r < 0.05 else rng.randint(0, 9) if r < 0.2
+                           else r < 0.23 if r < 0.25 else "a" if k == "name" and r < 0.3 else [[r]] if k == "cov_px2"
+                           else rng.uniform(-5, 5))
+            stars.append(star)
+        fast = StarTable.from_list(stars)
+        # The general path: one more star with the keys in another order, dropped from the table after.
+        if len(keys) < 2:
+            continue
+        general = StarTable.from_list(stars + [dict(reversed(list(stars[0].items())))])
+        n = len(stars)
+        for name in ("x", "y", "flux"):
+            assert getattr(fast, name).tobytes() == getattr(general, name)[:n].tobytes(), name
+        assert (fast.sigma_px is None) == (general.sigma_px is None)
+        if fast.sigma_px is not None:
+            assert fast.sigma_px.tobytes() == general.sigma_px[:n].tobytes()
+        assert list(fast.columns) == list(general.columns)
+        for name, col in fast.columns.items():
+            assert col.dtype == np.float64 and col.tobytes() == general.columns[name][:n].tobytes(), name
+        assert fast.other == (general.other[:n] if general.other is not None else None)
+        checked += 1
+    assert checked > 500
