@@ -591,6 +591,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     """
     from startrack._kernels.patterns import query_patterns
     from startrack.identify.params import IdentifyParams
+    from startrack.records import Match
 
     opts = options or BlindOptions()
     warm_kernels(index)
@@ -683,7 +684,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 res = None
             if res is not None:
                 cam, (m_star, m_id, m_row), dcm, p_false = res
-                matches = [{"star": ranked[s_], "id": int(i_)} for s_, i_ in zip(m_star.tolist(), m_id.tolist())]
+                matches = list(map(Match._make, zip([ranked[s_] for s_ in m_star.tolist()], m_id.tolist())))
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],
@@ -700,15 +701,16 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
 
 def _blind_result(matches, time_ms, reason, false_probability=None, dcm=None, extra=None):
     """The :class:`~startrack.records.Identification` of a blind search: ``ok`` with ``matches``
-    (``{"star", "id"}`` each) and the attitude ``dcm``, else ``failed`` with ``reason``; ``extra`` becomes
-    ``details``."""
+    (:class:`~startrack.records.Match` of ints, or ``{"star", "id"}`` each) and the attitude ``dcm``, else ``failed``
+    with ``reason``; ``extra`` becomes ``details``."""
     from startrack.records import Identification, Match, ReasonCode, Status
     from startrack.rotations import dcm_to_quaternion
 
     extra = dict(extra or {})
     ok = matches is not None
     return Identification(Status.OK if ok else Status.FAILED, "patterns",
-                          [Match(int(m["star"]), int(m["id"])) for m in matches or []], time_ms=time_ms,
+                          [m if type(m) is Match else Match(int(m["star"]), int(m["id"])) for m in matches or []],
+                          time_ms=time_ms,
                           reason=reason, reason_code=None if ok else ReasonCode.NO_PATTERN,
                           false_match_probability=false_probability, focal_scale=extra.pop("focal_scale", None),
                           quaternion_estimate=None if dcm is None else dcm_to_quaternion(dcm), details=extra)
