@@ -241,11 +241,11 @@ def round_decimals(values, ndigits: int) -> list:
     """``[round(float(v), ndigits) for v in values]`` (Python's correctly rounded decimal rounding, ties to even), to
     the bit, without a decimal conversion per value.
 
-    ``rint(v 10^n) / 10^n`` is that value whenever ``v 10^n`` (rounded once by its product) is not within a
-    millionth of a half-integer, where the product's rounding could move it across: the nearest integer is then
-    the exact one's, and dividing an integer below 2^53 by ``10^n`` (both exact doubles) gives the double nearest
-    to the decimal number, as ``round`` does.  The other values (near a tie, beyond 2^52, not finite) go through
-    ``round``."""
+    ``rint(v 10^n) / 10^n`` is that value: below 2^52 the half-integers are doubles, so rounding the product
+    ``y = v 10^n`` (monotonic) never carries it across one, only onto one (a tie, or near enough: within a
+    millionth, taken through ``round``); the nearest integer is then the exact product's, and dividing an integer
+    below 2^53 by ``10^n`` (both exact doubles) gives the double nearest to the decimal number, as ``round`` does.
+    The other values (near a tie, beyond 2^52, not finite) go through ``round``."""
     v = np.asarray(values, dtype=np.float64).reshape(-1)
     scale = 10.0 ** ndigits
     y = v * scale

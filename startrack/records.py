@@ -293,7 +293,8 @@ class StarTable(_Record):
         if flux is None:
             flux = np.full(n, np.nan)
         else:
-            flux = np.array([np.nan if v is None else v for v in flux] if None in flux else flux, dtype=np.float64)
+            flux = np.array([np.nan if v is None else v for v in flux] if any(v is None for v in flux) else flux,
+                            dtype=np.float64)
         columns = {}
         sigma = None
         for name in _STAR_NUMERIC:

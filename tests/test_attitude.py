@@ -222,7 +222,10 @@ def test_round_decimals_is_pythons_round():
 
     rng = np.random.default_rng(5)
     ties = [float(f"{k}.{j:04d}5") for k in range(40) for j in range(0, 10000, 97)]
-    values = np.concatenate([rng.random(20000) * 10.0 ** rng.uniform(-7, 8, 20000), -rng.random(500), ties,
+    # Decimal ties and near-ties of large values, where the product v 1e4 is rounded by more than a millionth.
+    big = [float(f"{k}.{j:04d}{d}") for k in rng.integers(10**6, 10**11, 300).tolist() for j in (0, 4999, 5000, 1234)
+           for d in ("5", "49999", "50001")]
+    values = np.concatenate([rng.random(20000) * 10.0 ** rng.uniform(-7, 8, 20000), -rng.random(500), ties, big,
                              [0.0, -0.0, math.nan, math.inf, -math.inf, 2.0**60, 5e-5, 1.5e-4, 2.5e-3, 1e-300]])
     for ndigits in (3, 4):
         got = round_decimals(values, ndigits)
