@@ -1,4 +1,4 @@
-"""Random detections (no star at all) through the blind search: any ``ok`` is a wrong answer.
+"""Feeds results/results-sparse-2026-12-06.md: random detections (no star) through the blind search, any ok wrong.
 
 Point lists of 5-40 uniformly random positions on three sensors (1024x768, 1600x1200, 640x480), each through
 :func:`startrack.patterns.solve_blind` with the shipped pattern index and a time limit per list; prints the count of
