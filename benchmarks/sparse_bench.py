@@ -1,6 +1,6 @@
 """Feeds results/results-sparse-2026-12-06.md: sparse fields (issue 38's generalisation gap), the blind search on
-rendered frames of 5-20 degrees holding ~5-20 detectable stars, beside tetra3rs given the field of view.  A documented study, not a `make bench` section
-(a few minutes per 100 frames and setting).
+rendered frames of 5-20 degrees holding ~5-20 detectable stars, beside tetra3rs given the field of view.  A
+documented study, not a `make bench` section (a few minutes per 100 frames and setting).
 
 Every frame is rendered in this process (startrack.render, the same sensor model as ``startrack render``) with a
 random pointing (``--seed``), a few hot pixels, and an exposure chosen so that the sensor's detection limit
