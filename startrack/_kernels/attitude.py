@@ -122,6 +122,38 @@ def quest_pairs(b, img, r, cat, w):
     return quest_profile(bm, lam0)
 
 
+@njit(cache=True)
+def quest_pairs_unit(b, img, r, cat):
+    """:func:`quest_pairs` with every weight 1 (the same sums in the same order: ``1.0 * x`` is ``x``, so the
+    same bits), without a weight array."""
+    fw = np.empty(13)
+    q = fw[:4]
+    lam = _quest_unit_into(b, img, r, cat, fw[4:].reshape((3, 3)), q)
+    return q, lam
+
+
+@njit(cache=True, inline="always")
+def _quest_unit_into(b, img, r, cat, bm, q):
+    """:func:`quest_pairs_unit` on the caller's scratch ``bm`` (3, 3), the quaternion into ``q`` (4);
+    returns lambda."""
+    bm[:] = 0.0
+    for t in range(img.shape[0]):
+        i = img[t]
+        c = cat[t]
+        for u in range(3):
+            for v in range(3):
+                bm[u, v] += b[i, u] * r[c, v]
+    lam0 = 0.0
+    for t in range(img.shape[0]):
+        lam0 += math.sqrt(_norm2(b, img[t]) * _norm2(r, cat[t]))
+    q1, q2, q3, q4, lam = _quest_scalars(bm, lam0)
+    q[0] = q1
+    q[1] = q2
+    q[2] = q3
+    q[3] = q4
+    return lam
+
+
 @njit(cache=True, inline="always")
 def _norm2(v, i):
     """``|v[i]|^2`` (the row's squared length, without a view of the row)."""
@@ -138,7 +170,12 @@ def quest_profile(bm, lam0):
 @njit(cache=True)
 def _quest_scalars(bm, lam0):
     """:func:`quest_profile` as five scalars ``(q1, q2, q3, q4, lambda)`` (no array: it runs once per
-    leave-one-out star)."""
+    leave-one-out star).  ``bm`` is read at the start only, so that numba releases its reference there
+    and drops the pair of reference-count updates (the rare sequential rotations work on copies of its
+    values)."""
+    b00, b01, b02 = bm[0, 0], bm[0, 1], bm[0, 2]
+    b10, b11, b12 = bm[1, 0], bm[1, 1], bm[1, 2]
+    b20, b21, b22 = bm[2, 0], bm[2, 1], bm[2, 2]
     lam0 *= 1.0 + 1e-12
     q1, q2, q3, q4, lam, g = _quest_core(bm, lam0)
     if g > 1e-2:
@@ -146,12 +183,21 @@ def _quest_scalars(bm, lam0):
             return -q1, -q2, -q3, -q4, lam
         return q1, q2, q3, q4, lam
     best_g = g
+    bm2 = np.empty((3, 3))
     for axis in range(3):
-        bm2 = bm.copy()
-        for row in range(3):
-            for col in range(3):
-                if col != axis:
-                    bm2[row, col] = -bm[row, col]
+        # bm with every column but ``axis`` negated
+        k0 = axis == 0
+        k1 = axis == 1
+        k2 = axis == 2
+        bm2[0, 0] = b00 if k0 else -b00
+        bm2[0, 1] = b01 if k1 else -b01
+        bm2[0, 2] = b02 if k2 else -b02
+        bm2[1, 0] = b10 if k0 else -b10
+        bm2[1, 1] = b11 if k1 else -b11
+        bm2[1, 2] = b12 if k2 else -b12
+        bm2[2, 0] = b20 if k0 else -b20
+        bm2[2, 1] = b21 if k1 else -b21
+        bm2[2, 2] = b22 if k2 else -b22
         p1, p2, p3, p4, lam2, g2 = _quest_core(bm2, lam0)
         if g2 > best_g:
             # Undo the 180-degree turn of the reference frame: q = q' (x) e_axis.
@@ -173,8 +219,15 @@ def _quest_scalars(bm, lam0):
 @njit(cache=True)
 def quat_to_dcm(q):
     """``A(q) = (q4^2 - |q|^2) I + 2 q q^T - 2 q4 [q x]`` (paper 000 Eq. 21)."""
-    q1, q2, q3, q4 = q[0], q[1], q[2], q[3]
     a = np.empty((3, 3))
+    dcm_into(q, a)
+    return a
+
+
+@njit(cache=True, inline="always")
+def dcm_into(q, a):
+    """:func:`quat_to_dcm` of ``q`` into the 3 x 3 array ``a``."""
+    q1, q2, q3, q4 = q[0], q[1], q[2], q[3]
     a[0, 0] = q1 * q1 - q2 * q2 - q3 * q3 + q4 * q4
     a[0, 1] = 2 * (q1 * q2 + q3 * q4)
     a[0, 2] = 2 * (q1 * q3 - q2 * q4)
@@ -184,7 +237,6 @@ def quat_to_dcm(q):
     a[2, 0] = 2 * (q1 * q3 + q2 * q4)
     a[2, 1] = 2 * (q2 * q3 - q1 * q4)
     a[2, 2] = -q1 * q1 - q2 * q2 + q3 * q3 + q4 * q4
-    return a
 
 
 @njit(cache=True)
@@ -243,10 +295,15 @@ def match_projected(b, stars, pv, radius, match):
     blob), of which the nearer is taken.  Each catalog star is used once (the closer image
     star wins).  ``match[i]`` becomes a catalog index or -1.
     """
+    _match_projected(b, stars, pv, radius, match, np.empty(b.shape[0]))
+
+
+@njit(cache=True, inline="always")
+def _match_projected(b, stars, pv, radius, match, best_cos):
+    """:func:`match_projected` with the caller's scratch ``best_cos`` (n): the cosine of the angle to the
+    nearest star (clipped to 1 as the angle's acos is), the larger the closer, without an acos per
+    detection."""
     n = b.shape[0]
-    # The cosine of the angle to the nearest star (clipped to 1 as the angle's acos is):
-    # the larger it is the closer the star, without an acos per detection.
-    best_cos = np.empty(n)
     cos_r = math.cos(radius)
     cos_2r = math.cos(2.0 * radius)
     for i in range(n):
@@ -319,16 +376,26 @@ def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k
     """
     n = b.shape[0]
     m = star_vec.shape[0]
-    match = np.full(n, -1, dtype=np.int64)
-    prev = np.empty(n, dtype=np.int64)
-    mi = np.empty(n, dtype=np.int64)
-    mc = np.empty(n, dtype=np.int64)
+    # match, the round before's, the matched detections and their stars: one allocation (rows).
+    work = np.empty((4, n), dtype=np.int64)
+    match = work[0]
+    prev = work[1]
+    mi = work[2]
+    mc = work[3]
+    match[:] = -1
+    # The attitude matrix, QUEST's profile matrix and quaternion, each detection's nearest cosine: one allocation.
+    fw = np.empty(22 + n)
+    dcm = fw[:9].reshape((3, 3))
+    bm = fw[9:18].reshape((3, 3))
+    qr = fw[18:22]
+    best_cos = fw[22:]
     margin = radius * focal
     for rnd in range(rounds):
         prev[:] = match
-        counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
+        dcm_into(q, dcm)
+        counts = project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
                                margin, lists, pv)
-        match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
+        _match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match, best_cos)
         nm = 0
         same = rnd > 0
         for i in range(n):
@@ -340,10 +407,12 @@ def refine_from(b, star_vec, q, cos_fov, focal, cx, cy, width, height, k1, k2, k
                 same = False
         if nm < 2 or same:
             return match, q, counts
-        q, _ = quest_pairs(b, mi[:nm], star_vec, mc[:nm], np.ones(nm))
-    counts = project_stars(star_vec, quat_to_dcm(q), cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
+        _quest_unit_into(b, mi[:nm], star_vec, mc[:nm], bm, qr)
+        q = qr
+    dcm_into(q, dcm)
+    counts = project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj,
                            margin, lists, pv)
-    match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match)
+    _match_projected(b, lists[m:m + counts[1]], pv[m:m + counts[1]], radius, match, best_cos)
     return match, q, counts
 
 
@@ -356,16 +425,18 @@ def leave_one_out(b, r, w):
     ``w_i b_i r_i^T`` (a rank-one downdate), and so is the Newton start ``sum w |b| |r|``:
     the same QUEST solve as from the other pairs' sum, without the O(n) re-sum per star."""
     n = b.shape[0]
-    out = np.full(n, np.inf)
+    work = np.empty(2 * n + 9)     # (out, c and bmi: one allocation)
+    out = work[:n]
+    out[:] = np.inf
     if n < 3:
         return out
     bm = profile(b, r, w)
-    c = np.empty(n)
+    c = work[n:2 * n]
     total = 0.0
     for j in range(n):
         c[j] = w[j] * math.sqrt(_norm2(b, j) * _norm2(r, j))
         total += c[j]
-    bmi = np.empty((3, 3))
+    bmi = work[2 * n:].reshape((3, 3))
     for i in range(n):
         for p in range(3):
             for q in range(3):

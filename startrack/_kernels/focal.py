@@ -30,8 +30,9 @@ def _pair_chords(b, img, star_vec, cat):
     ``img`` -> ``cat``, in the order ``(0, 1), (0, 2), ..., (1, 2), ...`` (the scale estimates' order)."""
     n = img.shape[0]
     npair = n * (n - 1) // 2
-    ang = np.empty(npair)
-    mea = np.empty(npair)
+    chords = np.empty((2, npair))       # (ang and mea: rows of one allocation)
+    ang = chords[0]
+    mea = chords[1]
     t = 0
     for u in range(n):
         for v in range(u + 1, n):

@@ -170,7 +170,7 @@ def pyramid_fourth(b, tol, margin, i, j, k, tri, tri_s, t, star_vec, pair_cos, a
     ``(r, R)``, the first other image star ``r`` (in index order) whose three angles to the triangle
     match exactly one catalog star ``R``, else ``(-1, -1)`` (:func:`pyramid_candidates`' second step).
 
-    ``win`` (n, 6) and ``made`` (n, bool, False at the triad's first triangle): the other stars'
+    ``win`` (n, 6) and ``made`` (n, 0 at the triad's first triangle; bool or integers): the other stars'
     cosine windows, made at their first use and kept for the triad's next triangles."""
     n = b.shape[0]
     scaled = focal_error > 0.0
@@ -188,12 +188,12 @@ def pyramid_fourth(b, tol, margin, i, j, k, tri, tri_s, t, star_vec, pair_cos, a
             win[r, 0], win[r, 1] = _side(b, tol, margin, i, r)
             win[r, 2], win[r, 3] = _side(b, tol, margin, j, r)
             win[r, 4], win[r, 5] = _side(b, tol, margin, k, r)
-            made[r] = True
+            made[r] = 1
         elif not made[r]:
             win[r, 0], win[r, 1] = _pair_window(b, tol, margin, i, r)
             win[r, 2], win[r, 3] = _pair_window(b, tol, margin, j, r)
             win[r, 4], win[r, 5] = _pair_window(b, tol, margin, k, r)
-            made[r] = True
+            made[r] = 1
         if scaled:
             # The triangle's own scales (a narrower range than the search's).
             lo, hi = _scaled_window(win[r, 0], win[r, 1], tri_s[t, 0], tri_s[t, 1])
@@ -377,8 +377,12 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     margin = fpar[0]
     b_all = pixels_to_unit(xs, ys, fpar[1], fpar[2], fpar[3])
     use = ipar[7]
-    b = np.ascontiguousarray(b_all[:use])
-    tol = np.zeros(use)
+    b = b_all[:use]
+    # The search stars' tolerances and their cosine windows to a triad (pyramid_fourth), in one allocation.
+    fw = np.empty(7 * use)
+    tol = fw[:use]
+    tol[:] = 0.0
+    win = fw[use:].reshape((use, 6))
     if fpar[15] >= 0.0:
         for u in range(use):
             tol[u] = fpar[15] * sig_px[u] / fpar[1]
@@ -400,11 +404,13 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
     if ipar[8] == 2 and t < n_tr:
         extra -= n_tr - t
         t = n_tr
-    key = np.empty(9, dtype=np.int64)
-    # A proposal's image and catalog stars (3 or 4: views of these, which the verification only reads).
-    img4 = np.empty(4, dtype=np.int64)
-    cat4 = np.empty(4, dtype=np.int64)
-    win = np.empty((use, 6))
+    # A proposal's key (below) and its image and catalog stars (3 or 4: views of img4 and cat4, which the
+    # verification only reads), in one allocation.
+    iw = np.empty(17 + use, dtype=np.int64)
+    key = iw[:9]
+    img4 = iw[9:13]
+    cat4 = iw[13:17]
+    made = iw[17:]      # (pyramid_fourth's: 0/1)
     # A triad of the second pass compares free_focal_patterns() triads' patterns: ``extra`` (kept in state[4]
     # between calls) counts those beyond one of the triads before t (the count is (t + 1 + extra) * fourth).
     # A triad's pyramid is completed by whichever other search star matches (the first that does), so a
@@ -426,7 +432,7 @@ def pyramid_identify(xs, ys, sig_px, flux_in, triads, fpar, ipar, state, seen, b
                                               line, kquad, quad, ipar[3] != 0, ipar[1] * (1 + more), focal_error)
         # pyramid_candidates' rows (at most 256), each triangle's fourth star looked for when the search
         # comes to it: the triangles after an accepted proposal's are never completed.
-        made = np.zeros(use, dtype=np.bool_)
+        made[:] = 0
         rr = -1
         for tn in range(tri.shape[0]):
             r4 = -1

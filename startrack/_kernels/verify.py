@@ -6,7 +6,15 @@ import math
 import numpy as np
 
 from startrack._kernels._jit import njit
-from startrack._kernels.attitude import leave_one_out, quat_to_dcm, quest, quest_pairs, refine_from
+from startrack._kernels.attitude import (
+    dcm_into,
+    leave_one_out,
+    quat_to_dcm,
+    quest,
+    quest_pairs,
+    quest_pairs_unit,
+    refine_from,
+)
 from startrack._kernels.common import _angle, _dot_rows, _median_in_place, pixels_to_unit
 from startrack._kernels.focal import (
     _chord_scale,
@@ -21,7 +29,8 @@ from startrack._kernels.sky_index import cone_stars
 
 
 @njit(cache=True, inline="always")
-def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, on_stars, on_pv):
+def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, on_stars, on_pv, zp,
+                  matched):
     """The verification's bookkeeping after the attitude, in one pass.
 
     * catalog stars predicted in the image with ``dcm``: ``on_stars``, projected to ``on_pv``
@@ -45,15 +54,16 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
       fluxes).
 
     ``star_vec``/``star_mag`` may be the part of the database near the field; the
-    database-wide counts come from ``mag_sorted``, every database magnitude sorted.
+    database-wide counts come from ``mag_sorted``, every database magnitude sorted.  ``zp`` and ``matched``:
+    scratch, ``n`` floats and ``len(star_vec)`` integers.
 
     Returns ``(match, n_pred, p_local, missing, n_bright, cut, p_mag, n_bright_pred, zero_point, scatter)``,
     ``n_bright_pred`` the predicted stars brighter than ``cut``, the zero point and scatter NaN with
-    fewer than three matched fluxes.
+    fewer than three matched fluxes; ``match`` is the argument, updated in place.
     """
     n = b.shape[0]
     npred = on_stars.shape[0]
-    out = match.copy()
+    out = match
     for i in range(n):
         c = out[i]
         if c < 0:
@@ -99,7 +109,6 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
             out[i] = best
     p_local = hit_sum / n_others if n_others > 0 else 0.0
     # Bright stars that should have been detected.
-    zp = np.empty(n)
     nz = 0
     faint = -np.inf
     for i in range(n):
@@ -134,10 +143,10 @@ def check_matches(b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, ins
         worst = max(worst, frac)
     if worst > 0.0:
         p_mag /= worst
-    matched = np.zeros(star_vec.shape[0], dtype=np.bool_)
+    matched[:] = 0
     for i in range(n):
         if out[i] >= 0:
-            matched[out[i]] = True
+            matched[out[i]] = 1
     missing = 0
     bright = 0
     for u in range(npred):
@@ -229,19 +238,24 @@ def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, m
     undetected catalog star); in the proposal's core only when the detection is
     the brighter (saturated true stars look fainter, never brighter).
 
-    Returns ``(match, n_refused, n_inconsistent)``.
+    Returns ``(match, n_refused, n_inconsistent)``, ``match`` the argument, updated in place.
     """
     n = b.shape[0]
-    out = match.copy()
+    out = match
     # Projected stars (their rows in ``stars``) within some detection's radius.
-    cand = np.full((n, 8), -1, dtype=np.int64)
-    ncand = np.zeros(n, dtype=np.int64)
-    cnt = np.zeros(n, dtype=np.int64)
+    nproj = stars.shape[0]
+    # (cand, ncand, cnt, parent, members and first below: one allocation)
+    iw = np.empty(12 * n + nproj, dtype=np.int64)
+    cand = iw[:8 * n].reshape((n, 8))
+    cand[:] = -1
+    work = iw[8 * n:12 * n].reshape((4, n))
+    work[:] = 0
+    ncand = work[0]
+    cnt = work[1]
     rmax = 0.0
     for i in range(n):
         rmax = max(rmax, radius[i])
     cos_rmax = math.cos(rmax)
-    nproj = stars.shape[0]
     for u in range(nproj):
         for i in range(n):
             d = b[i, 0] * pv[u, 0] + b[i, 1] * pv[u, 1] + b[i, 2] * pv[u, 2]
@@ -256,8 +270,11 @@ def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, m
     # Groups: detections sharing a star (union-find over detections, each joined to the first detection
     # that listed the star; a group's root is its lowest detection, so the groups and their roots do not
     # depend on the order of the joins).
-    parent = np.arange(n)
-    first = np.full(nproj, -1, dtype=np.int64)
+    parent = work[2]
+    for i in range(n):
+        parent[i] = i
+    first = iw[12 * n:]
+    first[:] = -1
     for i in range(n):
         for c in range(min(ncand[i], 8)):
             u = cand[i, c]
@@ -280,7 +297,7 @@ def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, m
     for i in range(n):
         cnt[parent[i]] += 1
     refused = 0
-    members = np.empty(n, dtype=np.int64)
+    members = work[3]
     for root in range(n):
         if cnt[root] < 2:
             continue
@@ -382,11 +399,11 @@ def resolve_conflicts(b, star_mag, match, radius, cos_r, sigma, inst, is_core, m
 
 @njit(cache=True, inline="always")
 def _to_global(match, sub):
-    out = np.full(match.shape[0], -1, dtype=np.int64)
+    """``match``'s indices into ``sub`` as ``sub``'s values (-1 stays), in place."""
     for i in range(match.shape[0]):
         if match[i] >= 0:
-            out[i] = sub[match[i]]
-    return out
+            match[i] = sub[match[i]]
+    return match
 
 
 @njit(cache=True)
@@ -415,13 +432,19 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
     m_all = star_vec_all.shape[0]
     # The database stars near the field (the proposal's attitude, 2 deg of margin beyond the
     # corners): every later pass works on them only; the proposal's stars are always in.
-    q0, _ = quest_pairs(b, img, star_vec_all, cat_all, np.ones(img.shape[0]))
-    a0 = quat_to_dcm(q0)
+    q0, _ = quest_pairs_unit(b, img, star_vec_all, cat_all)
+    # The boresight of q0: the third row of quat_to_dcm(q0) (the same arithmetic).
+    q1, q2, q3, q4 = q0[0], q0[1], q0[2], q0[3]
+    ax = 2 * (q1 * q3 + q2 * q4)
+    ay = 2 * (q2 * q3 - q1 * q4)
+    az = -q1 * q1 - q2 * q2 + q3 * q3 + q4 * q4
     cos_sub = math.cos(math.acos(min(1.0, cos_fov)) + math.radians(2.0))
-    sub = np.empty(m_all + cat_all.shape[0], dtype=np.int64)
-    ns = cone_stars(a0[2, 0], a0[2, 1], a0[2, 2], cos_sub, star_vec_all, sky_cells, sky_ra, sub)
+    n_cat = cat_all.shape[0]
+    sub = np.empty(m_all + 2 * n_cat, dtype=np.int64)     # (and cat: its last n_cat)
+    cat = sub[m_all + n_cat:]
+    sub = sub[:m_all + n_cat]
+    ns = cone_stars(ax, ay, az, cos_sub, star_vec_all, sky_cells, sky_ra, sub)
     ns0 = ns
-    cat = np.empty(cat_all.shape[0], dtype=np.int64)
     for t in range(cat_all.shape[0]):
         pos = np.searchsorted(sub[:ns], cat_all[t])
         if pos < ns and sub[pos] == cat_all[t]:
@@ -431,38 +454,49 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
             cat[t] = ns
             ns += 1
     sub = sub[:ns]
-    star_vec = np.empty((ns, 3))
-    star_mag = np.empty(ns)
+    # The floats of the stars near the field and of the detections, in one allocation: the stars' vectors and
+    # magnitudes, their projection (pv, below), each detection's cos(radius), instrumental magnitude and
+    # zero point (check_matches), the matched pairs and weights of the leave-one-out test and the core's vectors.
+    fw = np.empty(13 * ns + 10 * n + 21)
+    star_vec = fw[:3 * ns].reshape((ns, 3))
+    star_mag = fw[3 * ns:4 * ns]
+    pv = fw[4 * ns:13 * ns].reshape((3 * ns, 3))
+    f0 = 13 * ns
+    cos_r = fw[f0:f0 + n]
+    inst = fw[f0 + n:f0 + 2 * n]
+    zp = fw[f0 + 2 * n:f0 + 3 * n]
+    f0 += 3 * n
     for t in range(ns):
         s = sub[t]
         star_vec[t, 0] = star_vec_all[s, 0]
         star_vec[t, 1] = star_vec_all[s, 1]
         star_vec[t, 2] = star_vec_all[s, 2]
         star_mag[t] = star_mag_all[s]
-    near = (sub, ns0, a0[2, 0], a0[2, 1], a0[2, 2], cos_sub)
+    near = (sub, ns0, ax, ay, az, cos_sub)
     rmax = 0.0
     for i in range(n):
         rmax = max(rmax, radius[i])
     # The proposal's attitude is q0 (the same stars and weights); the projection of the refined
     # attitude stays in lists/pv for the checks below.
-    lists = np.empty(3 * ns, dtype=np.int64)
-    pv = np.empty((3 * ns, 3))
+    # (lists, is_core, the leave-one-out's matched detections and check_matches' scratch: one allocation)
+    li = np.empty(4 * ns + 2 * n, dtype=np.int64)
+    lists = li[:3 * ns]
     match, q, counts = refine_from(b, star_vec, q0, cos_fov, focal, cx, cy, width, height, k1, k2, k3, k4, proj, rmax, 2,
                                    lists, pv)
-    dcm = quat_to_dcm(q)
-    is_core = np.zeros(n, dtype=np.bool_)
+    dcm = fw[f0 + 7 * n + 12:f0 + 7 * n + 21].reshape((3, 3))
+    dcm_into(q, dcm)
+    is_core = li[3 * ns:3 * ns + n]
+    is_core[:] = 0
     nc = min(4, img.shape[0])
     for t in range(nc):
-        is_core[img[t]] = True
-    cos_r = np.empty(n)
-    inst = np.empty(n)
+        is_core[img[t]] = 1
     for i in range(n):
         # (the radii are mostly equal: one cosine for a run of them)
         cos_r[i] = cos_r[i - 1] if i > 0 and radius[i] == radius[i - 1] else math.cos(radius[i])
         inst[i] = -2.5 * math.log10(flux[i]) if (np.isfinite(flux[i]) and flux[i] > 0) else np.nan
     match, n_pred, p_local, missing, n_bright, _, p_mag, bright_pred, z0, scatter = check_matches(
         b, star_vec, star_mag, dcm, match, cos_r, radius, is_core, inst, mag_sorted, lists[2 * ns:2 * ns + counts[2]],
-        pv[2 * ns:2 * ns + counts[2]])
+        pv[2 * ns:2 * ns + counts[2]], zp, li[3 * ns + 2 * n:])
     if not use_mags:
         p_mag = 1.0
     match, _, _ = resolve_conflicts(b, star_mag, match, radius, cos_r, sig_rad, inst, is_core, max_chi2, z0, scatter,
@@ -472,10 +506,10 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         if match[i] >= 0:
             nm += 1
     if nm >= 4:
-        bb = np.empty((nm, 3))
-        rr = np.empty((nm, 3))
-        w = np.empty(nm)
-        mi = np.empty(nm, dtype=np.int64)
+        bb = fw[f0:f0 + 3 * nm].reshape((nm, 3))
+        rr = fw[f0 + 3 * nm:f0 + 6 * nm].reshape((nm, 3))
+        w = fw[f0 + 6 * nm:f0 + 7 * nm]
+        mi = li[3 * ns + n:3 * ns + n + nm]
         t = 0
         ws = 0.0
         for i in range(n):
@@ -517,7 +551,7 @@ def verify_core(b, star_vec_all, star_mag_all, mag_sorted, img, cat_all, radius,
         return (code, _to_global(match, sub), q, dcm, n_pred, p_local, missing, n_bright, p_mag, bright_pred, 0.0,
                 0.0) + near
     # The core's pattern chance with the window of its actual residual.
-    bc = np.empty((nc, 3))
+    bc = fw[f0 + 7 * n:f0 + 7 * n + 3 * nc].reshape((nc, 3))
     smax = 0.0
     for t in range(nc):
         for u in range(3):
@@ -601,8 +635,9 @@ def _verify_pinhole(b, star_vec, star_mag, mag_sorted, img, cat, sig_px, flux, u
     the stars near the field (:func:`verify_core`'s last six values).
     """
     n = b.shape[0]
-    radius = np.empty(n)
-    sig_rad = np.empty(n)
+    rs = np.empty((2, n))
+    radius = rs[0]
+    sig_rad = rs[1]
     margin_px = margin_rad * focal
     for i in range(n):
         r = fixed_radius_px if fixed_radius_px > 0 else max(1.0, match_sigma * sig_px[i] + margin_px)
@@ -701,8 +736,9 @@ def verify_focal(xs, ys, b0, star_vec, star_mag, mag_sorted, img, cat, sig_px, f
     for _ in range(4):
         if code != 0 or nm < 3:
             break
-        mi = np.empty(nm, dtype=np.int64)
-        mc = np.empty(nm, dtype=np.int64)
+        pairs = np.empty((2, nm), dtype=np.int64)      # (mi and mc: rows of one allocation)
+        mi = pairs[0]
+        mc = pairs[1]
         t = 0
         far = 0.0
         for i in range(n):
