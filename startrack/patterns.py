@@ -50,7 +50,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -512,8 +512,12 @@ def _fit_camera(cam, dcm, xy, ref, fit_k1):
         f, fk1 = float(sol[0]), float(sol[1])
         k1 = fk1 / f if f > 0 else 0.0
     else:
+        # k1 held (0 for a pinhole): too few matches to fit it.
+        k1 = cam.k1
+        if k1:
+            r2 = u * u + w * w
+            a = a * np.concatenate([1.0 + k1 * r2, 1.0 + k1 * r2])
         f = float(a @ obs / (a @ a))
-        k1 = 0.0
     if not f > 0 or not math.isfinite(f) or abs(k1) > 1.0:
         return cam
     return cam.replace(focal_length_px=f, k1=k1, k2=0.0)
@@ -721,6 +725,24 @@ def _blind_result(matches, time_ms, reason, false_probability=None, dcm=None, ex
 #: ~500 px radii and 13-60 stars: ~1e-5 to 1e-4), and the steps left would add up to ~5 % of it.
 _F_CONVERGED = 1e-5
 
+#: The chance of coincidence below which a wide field's first verification (a pinhole's, with a match radius padded
+#: for the unknown distortion) goes on to the focal length and k1 fit: a screen (speed only; every answer passes the
+#: false-match limit on its fitted camera).
+_WIDE_SCREEN_P = 1e-2
+
+#: Fit-and-verify rounds of a wide field (the radius shrinks to the fitted camera's misfit, then to the strict one).
+_WIDE_ROUNDS = 5
+
+
+def _misfit_rms_px(cam, dcm, xy, ref) -> float:
+    """RMS distance (pixels) between the detections ``xy`` and their catalog stars ``ref`` projected by a pinhole
+    ``cam`` of radial k1 (:func:`_fit_camera`'s model) at attitude ``dcm``."""
+    v = ref @ dcm.T
+    u = v[:, 0] / v[:, 2]
+    w = v[:, 1] / v[:, 2]
+    s = cam.focal_length_px * (1.0 + cam.k1 * (u * u + w * w))
+    return float(np.sqrt(np.mean((cam.cx + s * u - xy[:, 0]) ** 2 + (cam.cy + s * w - xy[:, 1]) ** 2)))
+
 
 def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params, sigma, n_verified, f_lo, f_hi,
                       opts):
@@ -760,35 +782,53 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     pts = [xy[a].tolist() for a in img]
     pattern_px = max(math.hypot(p[0] - q[0], p[1] - q[1]) for p in pts for q in pts)
     n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
-    vparams = params
-    if wide:
-        from dataclasses import replace
-
-        vparams = replace(params, match_radius_px=r_px)
     eps = tolerance_rad(cam, sigma, params)
     trials = int(n_verified * n_scales)
     if not wide:
         # An undistorted pinhole whose focal length alone is fitted: the rounds below without a camera per round.
         return _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo,
                                f_hi)
+    # A wide field's first verification is a pinhole's at the pattern's focal length with a padded radius: the start
+    # of the focal length and k1 fit, not the decision.  Its chance of coincidence is the padded radius's (a true 73
+    # deg field of k1 -0.1: 1e-7 to 1e-5, against 1e-160 once fitted), so the false-match limit holds at the strict
+    # radius on a fitted camera below (the same look-elsewhere count); a verification at a wider radius only has to
+    # be less likely a coincidence than _WIDE_SCREEN_P.
+    screen = replace(params, max_false_probability=max(params.max_false_probability, _WIDE_SCREEN_P))
     matches, dcm, p_false, reason = _verify_blind(img, cat_rows, trials, b, cam, star_vec, star_id,
-                                                  eps, sigma, vparams, cone)
+                                                  eps, sigma, replace(screen, match_radius_px=r_px), cone)
     if matches is None:
         return None
+    decided = False         # whether the matches held passed the false-match limit
+    verified_cam = cam
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
-    for _ in range(3):
+    previous = None
+    for _ in range(_WIDE_ROUNDS):
         idx, _, rows = matches
         cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], len(idx) >= 8)
         if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
             return None
+        pairs = (idx.tolist(), rows.tolist())
+        if decided and pairs == previous:
+            break
+        previous = pairs
+        round_params = params
+        if not decided:
+            # The radius covers the fitted camera's misfit on the matches (three rms), down to the strict radius.
+            strict_px = max(1.0, params.match_sigma * sigma + math.radians(params.margin_arcsec / 3600.0) *
+                            cam.focal_length_px)
+            misfit_px = 3.0 * _misfit_rms_px(cam, dcm, xy[idx], star_vec[rows])
+            if misfit_px > strict_px:
+                round_params = replace(screen, match_radius_px=min(r_px, misfit_px))
         b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
         eps = tolerance_rad(cam, sigma, params)
-        m2, dcm2, p2, _ = _verify_blind(idx, rows, trials, b, cam, star_vec, star_id, eps, sigma, vparams, cone)
+        m2, dcm2, p2, _ = _verify_blind(idx, rows, trials, b, cam, star_vec, star_id, eps, sigma, round_params, cone)
         if m2 is None:
             break
-        matches, dcm, p_false = m2, dcm2, p2
-        vparams = params
-    return cam, matches, dcm, p_false
+        matches, dcm, p_false, verified_cam = m2, dcm2, p2, cam
+        decided = decided or round_params is params
+    if not decided:
+        return None         # a wide field whose fitted camera never passed the limit at the strict radius
+    return verified_cam, matches, dcm, p_false      # the camera its matches were verified with
 
 
 def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo, f_hi):
