@@ -714,6 +714,10 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     allsky = camera is None and opts.projection != "pinhole" and opts.fov_range() is None
     if camera is None and opts.projection not in ("auto", "pinhole"):
         depths = ()         # a fisheye projection given: the all-sky search only
+    if len(cres.stars) >= BlindOptions.max_pattern_stars:
+        # No deeper detection pass for this frame (pinhole(): the brightest of a deeper list are those searched): it
+        # takes no share of the false-match budget.
+        depths = tuple(d for d in depths if d != "deep")
     # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does
     # (the all-sky search one share per parity).
     shares = len(order) * (len(depths) + (1 if allsky else 0))
