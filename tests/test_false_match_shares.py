@@ -26,7 +26,8 @@ def test_a_detection_pass_that_cannot_run_takes_no_share(monkeypatch, n):
     half the limit instead of a quarter (a frame of fewer keeps the quarter)."""
     seen = []
 
-    def search(stars, *_, options=None):
+    def search(stars, width, height, index, options):       # solve_blind's arguments as solve passes them
+        assert width == 640 and height == 480 and index is not None
         seen.append((len(stars), options.max_false_probability))
         return None, patterns._blind_result(None, 0.0, "no star pattern identified"), \
             {"patterns": 0, "candidates": 0, "verified": 0}
