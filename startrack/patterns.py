@@ -54,7 +54,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from startrack.errors import BadInputError
+from startrack.errors import BadInputError, ParameterError
 from startrack.timeutil import search_clock
 
 __all__ = ["INDEX_FORMAT", "LEVELS_DEG", "DEEP_LEVELS_DEG", "INDEX_KINDS", "DEEP_FOV_DEG", "PatternIndex", "build_index", "save_index", "open_index", "check_index",
@@ -498,7 +498,9 @@ def _catalog_prefix(index: PatternIndex, solid_angle: float, want: int) -> int:
 
 
 def _fit_camera(cam, dcm, xy, ref, fit_k1):
-    """Least-squares focal length (and k1) for fixed attitude: x - c = f u (1 + k1 r^2) per axis (linear in f, f k1)."""
+    """Least-squares focal length (and k1) for fixed attitude: x - c = f u (1 + k1 r^2) per axis (linear in f, f k1).
+
+    ``cam`` unchanged when the fit is degenerate; None when the fitted lens is no lens (a Camera refuses it)."""
 
     v = ref @ dcm.T
     u = v[:, 0] / v[:, 2]
@@ -520,7 +522,10 @@ def _fit_camera(cam, dcm, xy, ref, fit_k1):
         f = float(a @ obs / (a @ a))
     if not f > 0 or not math.isfinite(f) or abs(k1) > 1.0:
         return cam
-    return cam.replace(focal_length_px=f, k1=k1, k2=0.0)
+    try:
+        return cam.replace(focal_length_px=f, k1=k1, k2=0.0)
+    except ParameterError:
+        return None         # no lens (a corner moved by more than its radius): not this frame's camera
 
 
 _WARMED: set = set()     # the array types of the indexes whose kernels this process has ready
@@ -725,10 +730,12 @@ def _blind_result(matches, time_ms, reason, false_probability=None, dcm=None, ex
 #: ~500 px radii and 13-60 stars: ~1e-5 to 1e-4), and the steps left would add up to ~5 % of it.
 _F_CONVERGED = 1e-5
 
-#: The chance of coincidence below which a wide field's first verification (a pinhole's, with a match radius padded
-#: for the unknown distortion) goes on to the focal length and k1 fit: a screen (speed only; every answer passes the
-#: false-match limit on its fitted camera).
-_WIDE_SCREEN_P = 1e-2
+#: The chance of coincidence below which a wide field's verification at a radius wider than the strict one (the first,
+#: a pinhole's with the radius padded for the unknown distortion, and those whose radius covers the fitted camera's
+#: misfit) goes on to the next fit: 1, none (the agreement and minimum matches still apply).  A true 85 deg field of k1
+#: -0.1 scored 0.01 to 0.5 there and 1e-189 once fitted; every answer passes the false-match limit at the strict
+#: radius on its fitted camera, so this is a speed setting, never a correctness one.
+_WIDE_SCREEN_P = 1.0
 
 #: Fit-and-verify rounds of a wide field (the radius shrinks to the fitted camera's misfit, then to the strict one).
 _WIDE_ROUNDS = 5
@@ -791,8 +798,8 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     # A wide field's first verification is a pinhole's at the pattern's focal length with a padded radius: the start
     # of the focal length and k1 fit, not the decision.  Its chance of coincidence is the padded radius's (a true 73
     # deg field of k1 -0.1: 1e-7 to 1e-5, against 1e-160 once fitted), so the false-match limit holds at the strict
-    # radius on a fitted camera below (the same look-elsewhere count); a verification at a wider radius only has to
-    # be less likely a coincidence than _WIDE_SCREEN_P.
+    # radius on a fitted camera below (the same look-elsewhere count); a verification at a wider radius is a screen
+    # (_WIDE_SCREEN_P).
     screen = replace(params, max_false_probability=max(params.max_false_probability, _WIDE_SCREEN_P))
     matches, dcm, p_false, reason = _verify_blind(img, cat_rows, trials, b, cam, star_vec, star_id,
                                                   eps, sigma, replace(screen, match_radius_px=r_px), cone)
@@ -805,7 +812,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     for _ in range(_WIDE_ROUNDS):
         idx, _, rows = matches
         cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], len(idx) >= 8)
-        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+        if cam is None or not f_lo <= cam.focal_length_px <= f_hi * 1.1:
             return None
         pairs = (idx.tolist(), rows.tolist())
         if decided and pairs == previous:
