@@ -618,8 +618,8 @@ def test_pinhole_rounds_are_the_camera_rounds(index, catalog, monkeypatch):
 
 @pytest.mark.parametrize("fov, k1", [(50.0, -0.15), (70.0, -0.1)])
 def test_wide_distorted_fields_are_identified_within_one_searchs_share(index, catalog, fov, k1):
-    """Wide fields of strong barrel distortion with the false-match limit the CLI gives one search of a blind solve
-    (1e-6 split twelve ways: parities, detection depths, all-sky, the deep index): identified, every match right, the
+    """Wide fields of strong barrel distortion with the smallest false-match limit the CLI gives one search of a blind
+    solve (1e-6 split twelve ways: parities, detection depths, all-sky, the deep index): identified, every match right, the
     focal length and k1 measured.  A wide candidate's first verification (a pinhole's with a padded match radius) is
     a screen; the answer passed the limit at the strict radius on its fitted camera.  (This small index's patterns
     reach 23 deg: wider fields than these have none of their brightest stars' patterns in it.)"""
