@@ -689,9 +689,38 @@ def _mask_in_bands(image, level_mesh, thresh_mesh, cell, labels, foreground, row
             residual_rows(image, level, float(cell), a, r0, 0, w, res[:r0 - a])
             residual_rows(image, level, float(cell), r1, b, 0, w, res[r1 - a:])
             det = cv2.GaussianBlur(res, (k, k), options.filter_sigma_px, dst=det_buf[:b - a])
-            subtract_background_rows(det, zeros, det_thresh, float(cell), det, labels, int(foreground), row_counts,
+            band_thresh = det_thresh
+            if options.threshold_dn is None:
+                band_thresh = det_thresh * (_filtered_noise(res, det, norm) / norm)
+            subtract_background_rows(det, zeros, band_thresh, float(cell), det, labels, int(foreground), row_counts,
                                      r0, r1, sig, _CLIP_KAPPA, _CLIP_STD, np.empty((0, 0)), a)
     return _noise_floor(out, sigma_mesh) if noise else None
+
+
+#: The matched filter's measured noise counts (:func:`_filtered_noise`) when over this many times white noise's.
+_WHITE_EXCESS = 1.2
+
+
+def _filtered_noise(residual, smoothed, norm):
+    """The matched filter's noise in units of a pixel's: the kernel's L2 norm ``norm`` when the residual's noise is
+    white; measured (the smoothed residual's robust spread over the residual's) when that is larger.
+
+    A background the mesh does not follow (daylight, cloud, a texture: structure a few pixels to a cell wide) is
+    not white: the filter keeps it whole while the white-noise threshold drops by the norm (0.28 for a 1 px PSF),
+    so that its bumps became hundreds of detections for the blind search to try (a daylight frame: 0 detections,
+    then 51 through the filter, a 5 s search).  The spread is measured on ~65,000 pixels of each.
+    """
+    step = max(1, int(math.sqrt(residual.size / 65536.0)))
+    a, b = residual[::step, ::step], smoothed[::step, ::step]
+    spread_a = float(np.median(np.abs(a - np.median(a))))
+    if not spread_a > 0:        # a frame of one or two grey levels: no spread to compare with
+        return norm
+    spread_b = float(np.median(np.abs(b - np.median(b))))
+    # White noise measures the norm within ~1 % (the spreads' sampling error on the 65,000 pixels; a few % on a
+    # band's few thousand): only a clear excess is structure, so that a white-noise frame's threshold, in bands or
+    # whole, stays the norm's.
+    measured = spread_b / spread_a
+    return measured if measured > _WHITE_EXCESS * norm else norm
 
 
 def _workspace(shape, max_blobs, whole=True):
@@ -841,6 +870,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         det = cv2.GaussianBlur(residual, (k, k), options.filter_sigma_px)
         g1 = cv2.getGaussianKernel(k, options.filter_sigma_px)
         norm = float(np.sqrt(np.sum((g1 @ g1.T) ** 2))) if options.threshold_dn is None else 1.0
+        if options.threshold_dn is None:
+            norm = _filtered_noise(residual, det, norm)
         # The smoothed residual's level is 0 everywhere; its threshold follows the frame's own noise mesh.
         # The mask of the smoothed residual (its own level, 0, subtracted in place: the same values).
         _subtract_background(det, np.zeros(thresh_mesh.shape), thresh_mesh * norm, cell, det, labels, foreground,
