@@ -37,7 +37,7 @@ from startrack.identify.algorithm import (
 )
 from startrack.identify.catalog_match import apparent_quaternion, match_identified
 from startrack.identify.params import IdentifyParams, _frame_arrays, _table_arrays, _tolerances, star_sigmas_px
-from startrack.identify.verify import _geometry, _pixels_to_vectors, _verify_fused, _verify_with_focal
+from startrack.identify.verify import _geometry, _pixels_to_vectors, _scaled_camera, _verify_fused, _verify_with_focal
 from startrack.records import Identification, ReasonCode, StarTable, Status
 
 __all__ = ["FUSED_SEARCH", "FUSED_VERIFY", "WARMING_UP", "focal_scales", "run", "search_levels", "search_plan"]
@@ -285,12 +285,14 @@ def _deepen(frame, out, plan, eps, deadline):
     for deeper, focal_pass, scale in _steps(frame, plan, eps):
         if last.accepted is not None or last.code != ReasonCode.NO_PATTERN or time.perf_counter() > deadline:
             break
-        trials0 += max(last.tried, last.patterns)
         cam, fr = camera, frame
         if scale is not None:
-            cam = camera.with_focal_length(camera.focal_length_px / scale)
+            cam = _scaled_camera(camera, scale)
+            if cam is None:     # no camera at this focal length (its lens's terms): no search there
+                continue
             fr = (algorithm, config, frame_stars, xs, ys, None if in_kernel else _pixels_to_vectors(cam, xs, ys),
                   flux, sig_px, fused, in_kernel, cam, db, params)
+        trials0 += max(last.tried, last.patterns)
         margin, eps = _tolerances(params, sig_px, deeper, cam.focal_length_px)
         if algorithm.prepare is not None:
             dt = _prepare(algorithm, config, cam, db, eps)

@@ -412,7 +412,9 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
         scale = None    # within noise (or beyond belief): keep the nominal focal length
     cam = camera
     if scale is not None:
-        cam = camera.with_focal_length(camera.focal_length_px / scale)
+        cam = _scaled_camera(camera, scale)
+        if cam is None:
+            return _not_a_camera(camera, scale), None
         b_all = _pixels_to_vectors(cam, xs, ys)
     v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags,
                geom if scale is None else None, abs(scale - 1.0) if scale is not None else 0.0)
@@ -429,7 +431,9 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
     # (None also when the tentative matches cannot tell the field's scale from 1: noise.)
     if step is not None and abs(step - 1.0) >= 5e-4 and abs(total * step - 1.0) <= params.max_focal_error:
         total *= step
-        cam = camera.with_focal_length(camera.focal_length_px / total)
+        cam = _scaled_camera(camera, total)
+        if cam is None:
+            return _not_a_camera(camera, total), None
         b_all = _pixels_to_vectors(cam, xs, ys)
         v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
     for _ in range(4):
@@ -446,7 +450,28 @@ def _verify_with_focal(proposal, xs, ys, b_all, flux, sig_px, camera, db, eps, p
         if abs(step - 1.0) * far < 0.1 * float(radius_px.min()) or not significant:
             break
         total *= step
-        cam = camera.with_focal_length(camera.focal_length_px / total)
+        cam = _scaled_camera(camera, total)
+        if cam is None:
+            return _not_a_camera(camera, total), None
         b_all = _pixels_to_vectors(cam, xs, ys)
         v = verify(proposal, b_all, flux, sig_px, cam, db, eps, params, trials, use_mags, None, abs(total - 1.0))
     return v, (None if total == 1.0 else total)
+
+
+def _scaled_camera(camera, scale):
+    """``camera`` with its focal length divided by ``scale``, or None when that is no camera: a lens whose terms, fitted
+    at the first focal length, move the image's farthest corner by more than its own distance from the centre at
+    the shorter one (:class:`~startrack.camera.Camera` refuses it)."""
+    from startrack.errors import ParameterError
+
+    try:
+        return camera.with_focal_length(camera.focal_length_px / scale)
+    except ParameterError:
+        return None
+
+
+def _not_a_camera(camera, scale):
+    """The verdict on a proposal whose focal-length scale makes ``camera`` no camera (:func:`_scaled_camera`): refused."""
+    return _Verdict(None, None, None, None, None,
+                    f"the focal length the stars imply ({camera.focal_length_px / scale:.6g} px) makes the lens no "
+                    f"camera (its distortion moves the farthest corner by more than 100 %)", ReasonCode.NO_PATTERN)
