@@ -259,16 +259,7 @@ class StarTable(_Record):
         y = np.array([s["y"] for s in stars], dtype=np.float64)
         flux = np.array([s.get("flux", np.nan) if s.get("flux") is not None else np.nan for s in stars],
                         dtype=np.float64)
-        columns = {}
-        sigma = None
-        for name in _STAR_NUMERIC:
-            values = [s.get(name) for s in stars]
-            if n and _all_numbers(values):
-                col = np.array(values, dtype=np.float64)
-                if name == "sigma_px":
-                    sigma = col
-                else:
-                    columns[name] = col
+        sigma, columns = _numeric_columns(lambda name: [s.get(name) for s in stars] if n else None)
         known = {"x", "y", "flux", "sigma_px", *columns}
         # The stars of one list mostly share their keys (in order): the other keys found once per set of keys.
         other_keys: dict = {}
@@ -295,16 +286,7 @@ class StarTable(_Record):
         else:
             flux = np.array([np.nan if v is None else v for v in flux] if any(v is None for v in flux) else flux,
                             dtype=np.float64)
-        columns = {}
-        sigma = None
-        for name in _STAR_NUMERIC:
-            values = cols.get(name)
-            if values is not None and _all_numbers(values):
-                col = np.array(values, dtype=np.float64)
-                if name == "sigma_px":
-                    sigma = col
-                else:
-                    columns[name] = col
+        sigma, columns = _numeric_columns(cols.get)
         known = {"x", "y", "flux", "sigma_px", *columns}
         rest = [k for k in keys if k not in known]
         other = [dict(zip(rest, row, strict=True)) for row in zip(*[cols[k] for k in rest], strict=True)] if rest \
@@ -341,6 +323,22 @@ def _all_numbers(values: list) -> bool:
     if set(map(type, values)) <= _NUMBER_TYPES:
         return True
     return all(_is_number(v) for v in values)
+
+
+def _numeric_columns(values_of) -> tuple:
+    """``(sigma_px, columns)`` of a star list: each numeric column of :data:`_STAR_NUMERIC` whose values
+    (``values_of(name)``, None: no such column) are all numbers, as float64; ``sigma_px`` apart (None: none)."""
+    columns = {}
+    sigma = None
+    for name in _STAR_NUMERIC:
+        values = values_of(name)
+        if values is not None and _all_numbers(values):
+            col = np.array(values, dtype=np.float64)
+            if name == "sigma_px":
+                sigma = col
+            else:
+                columns[name] = col
+    return sigma, columns
 
 
 @dataclass(repr=False)
