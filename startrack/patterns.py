@@ -143,8 +143,6 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
     p = dict(BUILD_PARAMS)
     p.update(params or {})
     if p.get("neighbours", "nearest") not in ("nearest", "brightest"):
-        from startrack.errors import ParameterError
-
         raise ParameterError("neighbours", f"must be 'nearest' or 'brightest', got {p['neighbours']!r}", "build_index")
     cat = (catalog or load_catalog(mag_max=p.get("mag_max"))).sorted_by_magnitude()
     if p.get("mag_max") is not None:
@@ -360,8 +358,6 @@ def _write_stamp(stamp_path: str, stamp: dict | None) -> None:
 
 def _kind_params(kind: str) -> dict:
     if kind not in INDEX_KINDS:
-        from startrack.errors import ParameterError
-
         raise ParameterError("kind", f"must be one of {', '.join(INDEX_KINDS)}, got {kind!r}")
     return INDEX_KINDS[kind]
 
@@ -826,8 +822,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         round_params = params
         if not decided:
             # The radius covers the fitted camera's misfit on the matches (three rms), down to the strict radius.
-            strict_px = max(1.0, params.match_sigma * sigma + math.radians(params.margin_arcsec / 3600.0) *
-                            cam.focal_length_px)
+            strict_px = _match_radius_px(params, sigma, cam.focal_length_px)
             misfit_px = 3.0 * _misfit_rms_px(cam, dcm, xy[idx], star_vec[rows])
             if misfit_px > strict_px:
                 round_params = replace(screen, match_radius_px=min(r_px, misfit_px))
@@ -853,8 +848,8 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
 
     width, height, cx, cy = cam.width, cam.height, cam.cx, cam.cy
     f = cam.focal_length_px
-    # What Camera() holds a focal length to (its other values are the candidate camera's): a fit outside makes
-    # the camera, which raises, as a fitted camera always did.
+    # What Camera() holds a focal length to (its other values are the candidate camera's): a fit outside is no
+    # camera, and the candidate is refused (_fit_camera's None).
     f_min, f_max = MIN_FOCAL_LENGTH_PER_SIDE * max(width, height), MAX_FOCAL_LENGTH_PX
     # _cone_cos's pinhole corner and tolerance_rad's terms, per candidate.
     corner = math.hypot(max(abs(-0.5 - cx), abs(width - 0.5 - cx)), max(abs(-0.5 - cy), abs(height - 0.5 - cy)))
@@ -878,7 +873,7 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
         fit = float(a @ np.concatenate([dx[idx], dy[idx]]) / (a @ a))
         if fit > 0 and math.isfinite(fit):
             if not f_min <= fit <= f_max:
-                Camera(width, height, fit, cx, cy)      # raises the camera's ParameterError
+                return None         # no camera (Camera refuses the focal length): not this frame's, as _fit_camera
             f = fit
         if not f_lo <= f <= f_hi * 1.1:
             return None
@@ -951,6 +946,14 @@ def _pattern_chance(n_cat: int, eps: float, vecs) -> float:
     return float(n_cat**4 * eps**5 * math.sin(th_ij) / denom)
 
 
+def _match_radius_px(params, sigma_px: float, f: float) -> float:
+    """The blind verification's strict match radius (pixels) at focal length ``f``: ``params.match_radius_px``, else
+    ``match_sigma`` centroid sigmas plus the angle margin, at least a pixel."""
+    if params.match_radius_px is not None:
+        return params.match_radius_px
+    return max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * f)
+
+
 def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray, camera, star_vec, star_id,
                   eps: float, sigma_px: float, params, cone=None):
     """Attitude, remaining stars and confidence of a candidate: image stars ``image`` are the index's rows
@@ -972,8 +975,7 @@ def _verify_blind(image: list, catalog: list, trials: int, b_vectors: np.ndarray
     img = np.array(image, dtype=np.int64)
     cat = np.array(catalog, dtype=np.int64)
     f = float(camera.focal_length_px)
-    radius_px = params.match_radius_px if params.match_radius_px is not None else \
-        max(1.0, params.match_sigma * sigma_px + math.radians(params.margin_arcsec / 3600.0) * camera.focal_length_px)
+    radius_px = _match_radius_px(params, sigma_px, f)
     check = _VerifyCheck(trials, star_vec, star_id, sigma_px, params, cone, camera.width, camera.height, camera.cx,
                          camera.cy, camera.lens_terms)
     matches, dcm, p_false, reason, _ = check.verify(img, cat, np.ascontiguousarray(b_vectors), f,
@@ -995,9 +997,7 @@ class _VerifyCheck:
     def __call__(self, img, cat, b, f, cos_fov, eps, pos=None):
         """:meth:`verify` with the match radius of :attr:`params` at focal length ``f``: ``(matches, dcm, p_false,
         pos)``."""
-        params = self.params
-        radius_px = params.match_radius_px if params.match_radius_px is not None else \
-            max(1.0, params.match_sigma * self.sigma_px + math.radians(params.margin_arcsec / 3600.0) * f)
+        radius_px = _match_radius_px(self.params, self.sigma_px, f)
         matches, dcm, p_false, _, pos = self.verify(img, cat, b, f, cos_fov, eps, radius_px, pos)
         return matches, dcm, p_false, pos
 

@@ -566,7 +566,7 @@ def _pinhole_rounds_reference(xy, img, cat_rows, trials, b, cam, star_vec, star_
         idx, _, rows = matches
         f_before = cam.focal_length_px
         cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], False)
-        if not f_lo <= cam.focal_length_px <= f_hi * 1.1:
+        if cam is None or not f_lo <= cam.focal_length_px <= f_hi * 1.1:
             return None
         pairs = (idx.tolist(), rows.tolist())
         if pairs == previous and abs(cam.focal_length_px / f_before - 1.0) < _F_CONVERGED:
