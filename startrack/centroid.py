@@ -907,7 +907,14 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     1/12 DN^2 (on an 8-bit frame whose analogue noise is below a DN, the measured
     background noise is ~0 and the rounding is all the noise there is).
     """
-    from startrack._kernels.centroid import aperture_flux, gaussian_fit, quine_offset, split_blob, windowed_centroid
+    from startrack._kernels.centroid import (
+        LM_STOP_PX,
+        aperture_flux,
+        gaussian_fit,
+        quine_offset,
+        split_blob,
+        windowed_centroid,
+    )
     from startrack._kernels.psf_fit import weighted_gaussian_fit
 
     quant = _QUANT_VAR if integer else 0.0
@@ -1053,7 +1060,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
                 x = xi + quine_offset(colsum[0], colsum[1], colsum[2], sigma_psf)
                 y = yi + quine_offset(rowsum[0], rowsum[1], rowsum[2], sigma_psf)
         elif method == "gauss":
-            x, y, s_fit, amp, ok = gaussian_fit(res, cx - ox, cy - oy, sigma_psf, half, 50)
+            x, y, s_fit, amp, ok = gaussian_fit(res, cx - ox, cy - oy, sigma_psf, half, 50, LM_STOP_PX)
             if ok:
                 sigma_psf = s_fit
                 # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).

@@ -495,7 +495,7 @@ def test_measure_candidates_fits_each_candidate_as_alone():
     """measure_candidates fits each candidate as if alone (nothing carried from one candidate's fits to the
     next, a wide blob's window among them): each row is the one the candidate gets alone, and its unweighted and
     weighted fits are gaussian_fit's and weighted_gaussian_fit's from the same start."""
-    from startrack._kernels.centroid import gaussian_fit
+    from startrack._kernels.centroid import LM_START_STOP_PX, gaussian_fit
     from startrack._kernels.psf_fit import measure_candidates, weighted_gaussian_fit
 
     rng = np.random.default_rng(3)
@@ -520,7 +520,7 @@ def test_measure_candidates_fits_each_candidate_as_alone():
             continue
         sig = max(0.5, min(cand[k, 2], 5.0))
         half = int(max(2, math.ceil(3 * sig)))
-        x, y, s_fit, amp, ok = gaussian_fit(res, cand[k, 0], cand[k, 1], sig, half, 50)
+        x, y, s_fit, amp, ok = gaussian_fit(res, cand[k, 0], cand[k, 1], sig, half, 50, LM_START_STOP_PX)
         if not ok:
             continue
         nv = math.sqrt(4.0**2 + 1.0 / 12.0) ** 2
