@@ -646,6 +646,12 @@ class Camera:
             across_x = tx[0] + tx[1] if -0.5 <= self.cx <= self.width - 0.5 else abs(tx[1] - tx[0])
             across_y = ty[0] + ty[1] if -0.5 <= self.cy <= self.height - 0.5 else abs(ty[1] - ty[0])
             return math.degrees(across_x), math.degrees(across_y)
+        if not self.has_distortion:
+            # The two edges' directions lie in one plane through the boresight (y = 0, then x = 0): the angle
+            # between them is the difference of their angles from the boresight (exact; no vectors made).
+            f = self.focal_length_px
+            return (math.degrees(math.atan((self.width - 0.5 - self.cx) / f) - math.atan((-0.5 - self.cx) / f)),
+                    math.degrees(math.atan((self.height - 0.5 - self.cy) / f) - math.atan((-0.5 - self.cy) / f)))
         vx = self.pixels_to_vectors(xs, np.full(2, self.cy))
         vy = self.pixels_to_vectors(np.full(2, self.cx), ys)
         ax = math.degrees(math.acos(float(np.clip(vx[0] @ vx[1], -1, 1))))

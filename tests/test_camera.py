@@ -56,6 +56,20 @@ def test_fov_from_model():
     assert cam.fov_deg[0] == pytest.approx(2 * math.degrees(math.atan(376 / 6850)), abs=1e-9)
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.integers(8, 6000), st.integers(8, 6000), st.floats(5.0, 1e5), st.floats(-0.5, 1.5), st.floats(-0.5, 1.5))
+def test_undistorted_field_of_view_is_the_angle_between_its_edges(w, h, f, fx, fy):
+    """An undistorted pinhole's fov_deg (from the edges' angles off the boresight) is the angle between the unit
+    vectors of its two edges through the principal point, from their cross and dot products, principal points
+    outside the image included."""
+    cam = Camera(w, h, f, fx * w, fy * h)
+    got = cam.fov_deg
+    for edges in ((np.array([-0.5, w - 0.5]), np.full(2, cam.cy)), (np.full(2, cam.cx), np.array([-0.5, h - 0.5]))):
+        a, b = cam.pixels_to_vectors(*edges)
+        want = math.degrees(math.atan2(np.linalg.norm(np.cross(a, b)), float(a @ b)))
+        assert got[0 if edges[1][0] == edges[1][1] else 1] == pytest.approx(want, rel=1e-12, abs=1e-12)
+
+
 def test_distortion_moves_corners_outward():
     plain = Camera.from_fov(20, 1000, 1000)
     barrel = Camera.from_fov(20, 1000, 1000, k1=-0.1)
