@@ -760,7 +760,10 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     options : CentroidOptions
     saturation : float, optional
         The DN at which a pixel is saturated (default: the largest DN a
-        file of the image's type holds, else the image maximum).
+        file of the image's type holds for uint8 and uint16 pixels, else
+        none).  Below it, or without one, the frame's largest value is a
+        clip when it makes a flat plateau (:data:`_CLIP_PLATEAU_PX` pixels
+        at exactly that value in one blob); a lone largest pixel is not.
     source : str
         Name for messages.
 
@@ -803,6 +806,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
                               reason, params)
 
     sat = options.saturation_dn if options.saturation_dn is not None else saturation
+    if sat is None and image.dtype in (np.uint8, np.uint16):
+        sat = float(np.iinfo(image.dtype).max)      # as an 8- or 16-bit file says (imageio.read_image): the CLI's
     # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
     bottom, top = float(img.min()), float(img.max())      # numpy's vectorised passes; NaN propagates
     probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
@@ -817,7 +822,12 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         # One value everywhere (an array of zeros, a dark frame of one DN) carries no signal; it is saturated
         # only when that value reaches a saturation level given or read from the file.
         return result([], [], top, 0.0, "image is constant: no signal")
-    sat = top if sat is None else sat       # the saturation level when none is given: the largest value
+    # Below the level given (or with none), the frame may still be clipped: a flat plateau at its largest value
+    # (_clip_confirmed, after the labelling) is clipping on any sensor -- a 12-bit camera in 16-bit words, a full
+    # well or an encoder below the type's range, pixels scaled or converted after the clip.  Until then the
+    # largest value is the candidate level; every frame has a largest value, and a lone one is no clip.
+    inferred = sat is None or top < sat
+    sat = top if inferred else sat
     # np.mean of the comparison: its count over the probe's size (the same division, without a float copy).
     frac_sat = (np.count_nonzero(probe >= sat) / probe.size if probe.size else 0.0) if sat > bottom else 1.0
     if frac_sat > 0.95:
@@ -854,6 +864,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         residual = _Bands(img, level_mesh, cell)
         n_found = label_blobs_lazy(img, residual.level, float(cell), float(sat), max_blobs, labels, foreground,
                                    counts, table, ws["stack"])
+        if inferred:
+            _clip_confirmed(table, n_found, max_blobs)
         try:
             noise_mesh = sigma_mesh if noise_mesh is None else noise_mesh
             return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel,
@@ -879,6 +891,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         _subtract_background(det, np.zeros(thresh_mesh.shape), thresh_mesh * norm, cell, det, labels, foreground,
                              counts, sigma_mesh, False)
     n_found = label_blobs_into(residual, img, float(sat), max_blobs, labels, foreground, counts, table, ws["stack"])
+    if inferred:
+        _clip_confirmed(table, n_found, max_blobs)
     try:
         noise_mesh = sigma_mesh if noise_mesh is None else noise_mesh
         return _measure(img, residual, labels, table, n_found, max_blobs, options, noise_mesh, cell, glevel, gsigma,
@@ -889,6 +903,29 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
             labels.fill(0)
         else:
             clear_labels(labels, table, n_found)
+
+
+#: Pixels at exactly the frame's largest value, in one blob, that make a plateau: clipping (:func:`_clip_confirmed`).
+#: One is every frame's brightest pixel; two are a whole-DN tie of a peak's top pixels; three or more pixels at
+#: one value, the largest of the frame, are a flat top that no point-spread function has.
+_CLIP_PLATEAU_PX = 3
+
+
+def _clip_confirmed(table, n_found: int, max_blobs: int) -> bool:
+    """Whether the frame's largest value, the candidate saturation level of :func:`find_stars` when none is
+    given (or the level given is above every pixel), is a clip: a blob holds :data:`_CLIP_PLATEAU_PX` or more
+    pixels at it (column 10 of the labelling's ``table``).  When not, the blobs' counts of saturated pixels
+    are set to 0: no star is saturated (a noisy true peak is not clipped; calling it so kept a 33 deg
+    photograph's Dubhe, its blob 3 times the point sources' width, as a star the CLI set apart).  Reads only
+    the blob table: no pass over the pixels."""
+    n = min(n_found, max_blobs)
+    if n <= 0:
+        return False
+    nsat = table[1:n + 1, 10]
+    if float(nsat.max()) >= _CLIP_PLATEAU_PX:
+        return True
+    nsat[:] = 0.0
+    return False
 
 
 #: A candidate's flux (its last entry, always > 0): candidates are sorted on it brightest first with

@@ -310,7 +310,9 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
         ``bit_depth`` (8 or 16 as stored, 32 for floating-point files; 12-bit
         data arrive in 16-bit files), ``channels`` of the file, ``saturation``
         (the largest DN the decoded type can hold: 255 for 8-bit files, also
-        colour ones, 65535 for 16-bit; the largest value for floating point).
+        colour ones, 65535 for 16-bit; None for floating point, whose type says
+        nothing: :func:`startrack.centroid.find_stars` reads a clip from the
+        pixels, as it does for an array handed to the Python API).
     """
     if not isinstance(path, str) or not path:
         raise BadInputError(str(path), None, "is not an image path")
@@ -377,10 +379,9 @@ def _read_fits(path, limit):
     dtype = data.dtype
     img = np.ascontiguousarray(data, dtype=np.float32)
     if dtype.kind == "f":
-        finite = img[np.isfinite(img)]
-        return img, 32, 1, float(finite.max()) if finite.size else 0.0
+        return img, 32, 1, None
     bit_depth = 8 if dtype.itemsize == 1 else 16
-    return img, bit_depth, 1, float(np.iinfo(dtype).max) if dtype.itemsize <= 2 else float(img.max())
+    return img, bit_depth, 1, float(np.iinfo(dtype).max) if dtype.itemsize <= 2 else None
 
 
 def _read_cv2(path, limit, whole_dn=False):
@@ -419,5 +420,4 @@ def _read_cv2(path, limit, whole_dn=False):
         return img, 8, channels, 255.0
     if dtype == np.uint16:
         return img, 16, channels, 65535.0
-    finite = img[np.isfinite(img)]
-    return img, 32, channels, float(finite.max()) if finite.size else 0.0
+    return img, 32, channels, None

@@ -168,7 +168,9 @@ class Solver:
         camera : Camera, optional
             A calibrated camera (default: the solver's): no field-of-view search.
         saturation : float, optional
-            Saturation level in DN (read from the file for a path).
+            Saturation level in DN (read from the file for a path; for uint8 and uint16 pixels their type's
+            largest value, as the file's).  A flat plateau at the image's largest value is clipping too, given
+            or not (:func:`startrack.centroid.find_stars`): the answer is the CLI's for the same pixels.
         ra_deg, dec_deg, radius_deg : float, optional
             The boresight lies within ``radius_deg`` of ``(ra_deg, dec_deg)`` (ICRS, degrees; all three or
             none): the search skips patterns elsewhere, and refuses a solution outside the circle.
