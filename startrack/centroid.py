@@ -713,16 +713,27 @@ def _filtered_noise(residual, smoothed, norm):
     cost ~3 ms a call, as much again as the rest of a 1024 x 768 frame's matched-filter detection).
     """
     step = max(1, int(math.sqrt(residual.size / 8192.0)))
-    a, b = residual[::step, ::step], smoothed[::step, ::step]
-    spread_a = float(np.median(np.abs(a - np.median(a))))
+    spread_a = _spread(residual[::step, ::step])
     if not spread_a > 0:        # a frame of one or two grey levels: no spread to compare with
         return norm
-    spread_b = float(np.median(np.abs(b - np.median(b))))
+    spread_b = _spread(smoothed[::step, ::step])
     # White noise measures the norm within a few % (the spreads' sampling error on the ~8,000 pixels, or on a band's
     # few thousand): only a clear excess is structure, so that a white-noise frame's threshold, in bands or
     # whole, stays the norm's.
     measured = spread_b / spread_a
     return measured if measured > _WHITE_EXCESS * norm else norm
+
+
+def _spread(sample) -> float:
+    """The median absolute deviation from the median of ``sample`` (a copy is partitioned in place: ~5 times
+    faster than ``np.median`` twice; the upper middle value of an even count, not the mean of the two)."""
+    a = np.array(sample, dtype=np.float64).ravel()
+    k = a.size // 2
+    a.partition(k)
+    np.subtract(a, a[k], out=a)
+    np.abs(a, out=a)
+    a.partition(k)
+    return float(a[k])
 
 
 def _workspace(shape, max_blobs, whole=True):
