@@ -177,3 +177,34 @@ def test_the_build_tag_covers_every_warm_up():
     for fn in [solve.warm_for_build, solve._warm, identify.warm_up] + [getattr(m, n) for n, m in modules.items()]:
         rel = os.path.relpath(inspect.getsourcefile(fn), package).replace(os.sep, "/")
         assert rel in _jit._WARM_UP_SOURCES, (fn.__qualname__, rel)
+
+
+def test_a_nested_call_compiles_its_callee_once_for_literal_and_counted_arguments():
+    """numba typed a call between kernels with its literal arguments' types (``f(a, 0)``; a counter ``k = 0 ...
+    k += 1`` still ``Literal[int](0)`` in type inference's first pass) and compiled the callee again for each: a
+    first solve compiled refine_from, _sort_indices and _sort_small twice.  One int64 specialization serves
+    every call, with the same values."""
+    from numba.core import types
+
+    @_jit.njit(cache=False)
+    def head_sum(a, n):
+        return a[:n].sum()
+
+    @_jit.njit(cache=False)
+    def literal_calls(a):
+        return head_sum(a, 0) + head_sum(a, 2) + head_sum(a, a.shape[0])
+
+    @_jit.njit(cache=False)
+    def counted_call(a):
+        k = 0
+        for i in range(a.shape[0]):
+            if a[i] > 0.5:
+                k += 1
+        return head_sum(a, k)
+
+    a = np.array([0.0, 1.0, 2.0, 0.25, 3.0])
+    assert literal_calls(a) == 0.0 + 1.0 + a.sum()
+    assert counted_call(a) == a[:3].sum()
+    sigs = head_sum.dispatcher.signatures
+    assert len(sigs) == 1, sigs
+    assert sigs[0][1] == types.int64

@@ -71,9 +71,7 @@ def njit(*args, **options):
         kernel = LazyKernel(py_func, options)
         _KERNELS.append(kernel)
         if _MATERIALISED:
-            import numba
-
-            kernel._dispatcher = numba.njit(**options)(py_func)
+            kernel._dispatcher = _dispatcher(kernel)
         return kernel
 
     return wrap
@@ -217,6 +215,29 @@ class LazyKernel:
         return f"<LazyKernel {self.qualname}>"
 
 
+def _dispatcher(kernel):
+    """numba's dispatcher of ``kernel``, whose calls from other kernels compile for the arguments' plain types.
+
+    numba types a call between kernels with the arguments' literal types when it knows them (``f(x, 0)``, or a
+    counter ``k = 0 ... k += 1`` whose type is still ``Literal[int](0)`` in type inference's first pass) and
+    compiles the callee for each: a second specialization of ``f``, typed, lowered and optimised again, for
+    nothing the kernels need (none of them asks for a literal).  Here a nested call's literal arguments are
+    replaced by their plain types (``int64``, ``bool``) before numba looks for or compiles a specialization.
+    """
+    import numba
+    from numba.core import types
+
+    dispatcher = numba.njit(**kernel.options)(kernel.py_func)
+    literal_template = dispatcher.get_call_template
+
+    def get_call_template(args, kws):
+        return literal_template(tuple(types.unliteral(a) for a in args),
+                                {name: types.unliteral(a) for name, a in kws.items()})
+
+    dispatcher.get_call_template = get_call_template
+    return dispatcher
+
+
 def _materialise() -> None:
     """Import numba and bind every lazy kernel to a dispatcher.
 
@@ -235,7 +256,7 @@ def _materialise() -> None:
 
     for k in _KERNELS:
         if k._dispatcher is None:
-            k._dispatcher = numba.njit(**k.options)(k.py_func)
+            k._dispatcher = _dispatcher(k)
     _MATERIALISED = True
     prange = numba.prange
     for name, mod in list(sys.modules.items()):
