@@ -1108,6 +1108,9 @@ class _CatalogCone:
     def __init__(self, rows, star_vec, star_id, axis, radius):
         self.rows = rows
         self.vec = np.ascontiguousarray(star_vec[rows])
+        # As writable as the catalog (a memory-mapped index's is not): then verify_in_cone, refine and
+        # blind_confidence share their callees' compiled code (numba compiles a read-only array's kernels apart).
+        self.vec.flags.writeable = star_vec.flags.writeable
         self.ids = star_id[rows]
         self.axis = axis
         self.radius = radius

@@ -666,3 +666,22 @@ def test_blind_bench_70_degree_frame_end_to_end(tmp_path, cli, solve_cache):
     _, cross, roll = _attitude_error_rad(quaternion_to_dcm(doc["attitude"]["quaternion"]),
                                          quaternion_to_dcm(truth["truth"]["quaternion"]))
     assert math.degrees(cross) * 3600 < 30 and abs(math.degrees(roll)) * 3600 < 60
+
+
+@pytest.mark.parametrize("writeable", [False, True])
+def test_a_cone_is_as_writable_as_its_catalog(writeable):
+    """numba compiles a read-only array's kernels apart: the cone's rows (verify_in_cone) as writable as the
+    catalog refine and blind_confidence read (a memory-mapped index's is read-only), so that the three share
+    one compiled refine_from, blind_confidence and project_stars (a writable cone of a read-only index compiled
+    them twice, ~3 s of a first solve)."""
+    from startrack.patterns import _CatalogCone
+
+    rng = np.random.default_rng(3)
+    vec = rng.normal(size=(40, 3))
+    vec /= np.linalg.norm(vec, axis=1)[:, None]
+    vec.flags.writeable = writeable
+    rows = np.array([2, 5, 7, 30])
+    cone = _CatalogCone(rows, vec, np.arange(40) + 100, vec[5], 0.3)
+    assert cone.vec.flags.writeable == writeable and cone.vec.flags.c_contiguous
+    np.testing.assert_array_equal(cone.vec, vec[rows])
+    np.testing.assert_array_equal(cone.ids, rows + 100)
