@@ -130,6 +130,28 @@ def _edges(v0, v1, v2, v3, e):
 
 
 @njit(cache=True)
+def _edges_rows(v, i0, i1, i2, i3, e):
+    """:func:`_edges` of the rows ``i0 .. i3`` of ``v`` (the same arithmetic, without a view per row).  A call,
+    not inlined: query_patterns' three copies of the six angles took ~0.9 s of its ~3.5 s compilation."""
+    e[0] = _angle_rows(v, i0, i1)
+    e[1] = _angle_rows(v, i0, i2)
+    e[2] = _angle_rows(v, i0, i3)
+    e[3] = _angle_rows(v, i1, i2)
+    e[4] = _angle_rows(v, i1, i3)
+    e[5] = _angle_rows(v, i2, i3)
+
+
+@njit(cache=True, inline="always")
+def _angle_rows(v, i, j):
+    """:func:`_angle` of the rows ``i`` and ``j`` of ``v``."""
+    cx = v[i, 1] * v[j, 2] - v[i, 2] * v[j, 1]
+    cy = v[i, 2] * v[j, 0] - v[i, 0] * v[j, 2]
+    cz = v[i, 0] * v[j, 1] - v[i, 1] * v[j, 0]
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz),
+                      v[i, 0] * v[j, 0] + v[i, 1] * v[j, 1] + v[i, 2] * v[j, 2])
+
+
+@njit(cache=True)
 def _key(e_sorted):
     key = 0
     for i in range(5):
@@ -374,7 +396,7 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                 f0 = f_small * (f_big / f_small) ** ((sub + 0.5) / n_sub)
                 for k in range(4):
                     _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f0, iv[k])
-                _edges(iv[0], iv[1], iv[2], iv[3], ie)
+                _edges_rows(iv, 0, 1, 2, 3, ie)
                 _sort6(ie, es)
                 _sort6(ie, ie_sorted)
                 # tolerance per ratio: centroid noise on the two edges plus the geometry allowance
@@ -419,7 +441,7 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         if (allowed[pats[pj, 0]] == 0 or allowed[pats[pj, 1]] == 0 or allowed[pats[pj, 2]] == 0
                                 or allowed[pats[pj, 3]] == 0):
                             continue
-                        _edges(vec[pats[pj, 0]], vec[pats[pj, 1]], vec[pats[pj, 2]], vec[pats[pj, 3]], ce)
+                        _edges_rows(vec, pats[pj, 0], pats[pj, 1], pats[pj, 2], pats[pj, 3], ce)
                         if not _sorted_fit(ie_sorted, ie, ce, 3.0 * 1.4142 * sigma_px / f0, g + 0.002, cs):
                             continue
                         q, err, scale = _best_permutation(ie, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f0,
@@ -432,7 +454,7 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                             f = f / scale
                             for k in range(4):
                                 _pixel_vec(xy[combos[ci, k], 0], xy[combos[ci, k], 1], cx, cy, f, ivr[k])
-                            _edges(ivr[0], ivr[1], ivr[2], ivr[3], ier)
+                            _edges_rows(ivr, 0, 1, 2, 3, ier)
                             q, err, scale = _best_permutation(ier, ce, perms, pairs, 3.0 * 1.4142 * sigma_px / f,
                                                               tol_geom * rho * rho + 0.001)
                         if f < f_lo or f > f_hi or err > 1.0:
