@@ -126,3 +126,19 @@ def assert_chart_draws(png, colours, min_fraction=2e-4):
     px = png_pixels(png)
     for bgr in colours:
         assert colour_fraction(px, bgr, tol=30) > min_fraction, (png, bgr)
+
+
+def star_field(shape, n_stars, seed, sigma=1.3, margin=3, log_flux=(2.5, 4.5), clip=None):
+    """``n_stars`` Gaussian stars (flux 10**U(log_flux)) at least ``margin`` px inside a frame of ``shape`` on a sloped
+    background with noise 4 (float64); ``clip``: every pixel above it set to it."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = 200.0 + 0.05 * xx + 0.03 * yy + rng.normal(0.0, 4.0, shape)
+    for x0, y0, f in zip(rng.uniform(margin, w - margin, n_stars), rng.uniform(margin, h - margin, n_stars),
+                         10 ** rng.uniform(*log_flux, n_stars)):
+        img += f / (2 * np.pi * sigma**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sigma**2))
+    return img if clip is None else np.minimum(img, clip)
+

@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import star_field
 from naive import centre_of_mass_naive, label_naive
 
 from startrack.camera import Camera
@@ -355,16 +356,7 @@ def test_scratch_memory_per_pixel_is_bounded():
 
 def _field(shape, n_stars, seed, sigma=1.3, saturate=False):
     """A star field of ``n_stars`` Gaussian stars on a sloped background (float32), some saturated when asked."""
-    rng = np.random.default_rng(seed)
-    h, w = shape
-    yy, xx = np.mgrid[0:h, 0:w]
-    img = 200.0 + 0.05 * xx + 0.03 * yy + rng.normal(0.0, 4.0, shape)
-    for x0, y0, f in zip(rng.uniform(3, w - 3, n_stars), rng.uniform(3, h - 3, n_stars),
-                         10 ** rng.uniform(2.5, 4.5, n_stars)):
-        img += f / (2 * np.pi * sigma**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sigma**2))
-    if saturate:
-        img = np.minimum(img, 3000.0)
-    return img.astype(np.float32)
+    return star_field(shape, n_stars, seed, sigma, clip=3000.0 if saturate else None).astype(np.float32)
 
 
 @pytest.mark.parametrize("method,max_stars", [("gauss", 60), ("gauss", None), ("com", None)])

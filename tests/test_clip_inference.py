@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 import pytest
-from conftest import DATA, run_cli
+from conftest import DATA, run_cli, star_field
 
 import startrack
 from startrack.centroid import CentroidOptions, find_stars
@@ -21,16 +21,7 @@ ESA_CAMERA = os.path.join(DATA, "real", "camera.json")
 
 def _field(seed, clip=None, shape=(240, 320), n_stars=40, sigma=1.3):
     """Gaussian stars on a sloped, noisy background (float32); ``clip``: every pixel above it set to it."""
-    rng = np.random.default_rng(seed)
-    h, w = shape
-    yy, xx = np.mgrid[0:h, 0:w]
-    img = 200.0 + 0.05 * xx + 0.03 * yy + rng.normal(0.0, 4.0, shape)
-    for x0, y0, f in zip(rng.uniform(5, w - 5, n_stars), rng.uniform(5, h - 5, n_stars),
-                         10 ** rng.uniform(2.5, 4.7, n_stars)):
-        img += f / (2 * np.pi * sigma**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sigma**2))
-    if clip is not None:
-        img = np.minimum(img, clip)
-    return img.astype(np.float32)
+    return star_field(shape, n_stars, seed, sigma, margin=5, log_flux=(2.5, 4.7), clip=clip).astype(np.float32)
 
 
 def _stars(res):
