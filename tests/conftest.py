@@ -142,3 +142,20 @@ def star_field(shape, n_stars, seed, sigma=1.3, margin=3, log_flux=(2.5, 4.5), c
         img += f / (2 * np.pi * sigma**2) * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * sigma**2))
     return img if clip is None else np.minimum(img, clip)
 
+
+def assert_same_record(got, want):
+    """Two records of one dataclass field by field: the same types, arrays with the same dtype, shape and bytes,
+    other values equal and written alike as JSON."""
+    import dataclasses
+    import json
+
+    import numpy as np
+
+    for f in dataclasses.fields(want):
+        x, y = getattr(got, f.name), getattr(want, f.name)
+        assert type(x) is type(y), f.name
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f.name
+        else:
+            assert x == y and json.dumps(x, default=str) == json.dumps(y, default=str), f.name
+

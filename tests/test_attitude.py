@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import assert_same_record
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -239,8 +240,6 @@ def test_round_decimals_is_pythons_round():
 def test_attitude_record_is_its_section_read_back():
     """AttitudeResult.record() is the Attitude that from_section makes of its section: every field, its type and
     bits, for solved, rejected, duplicate and failed results."""
-    import dataclasses
-    import json
 
     from startrack.attitude import AttitudeResult
     from startrack.formats.sections import from_section
@@ -264,11 +263,4 @@ def test_attitude_record_is_its_section_read_back():
         results.append(estimate_attitude(b, r, np.full(k, 1e-5), str(rng.choice(["quest", "svd"])), labels))
     assert sum(res.status == "ok" for res in results) > 60 and sum(bool(res.rejected) for res in results) > 5
     for res in results:
-        got, want = res.record(), from_section(Attitude, res.section(), "attitude", validate=False)
-        for f in dataclasses.fields(Attitude):
-            x, y = getattr(got, f.name), getattr(want, f.name)
-            assert type(x) is type(y), f.name
-            if isinstance(x, np.ndarray):
-                assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f.name
-            else:
-                assert x == y and json.dumps(x, default=str) == json.dumps(y, default=str), f.name
+        assert_same_record(res.record(), from_section(Attitude, res.section(), "attitude", validate=False))

@@ -4,6 +4,7 @@ import pathlib
 
 import numpy as np
 import pytest
+from conftest import assert_same_record
 
 from startrack.errors import BadInputError
 from startrack.formats.sections import (
@@ -127,15 +128,7 @@ def test_own_attitude_section_read_without_checks_is_the_checked_record():
     section = res.section()
     checked = from_section(Attitude, section, "attitude")
     own = from_section(Attitude, section, "attitude", validate=False)
-    import dataclasses
-
-    for f in dataclasses.fields(Attitude):
-        a, b = getattr(own, f.name), getattr(checked, f.name)
-        assert type(a) is type(b), f.name
-        if isinstance(a, np.ndarray):
-            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f.name
-        else:
-            assert a == b, f.name
+    assert_same_record(own, checked)
     assert own.rejected and own.covariance_arcsec2 is not None and "dcm" in own.details
 
 
