@@ -922,21 +922,16 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
 _CLIP_PLATEAU_PX = 3
 
 
-def _clip_confirmed(table, n_found: int, max_blobs: int) -> bool:
-    """Whether the frame's largest value, the candidate saturation level of :func:`find_stars` when none is
-    given (or the level given is above every pixel), is a clip: a blob holds :data:`_CLIP_PLATEAU_PX` or more
-    pixels at it (column 10 of the labelling's ``table``).  When not, the blobs' counts of saturated pixels
-    are set to 0: no star is saturated (a noisy true peak is not clipped; calling it so kept a 33 deg
+def _clip_confirmed(table, n_found: int, max_blobs: int) -> None:
+    """Keep the frame's largest value, the candidate saturation level of :func:`find_stars` when none is
+    given (or the level given is above every pixel), only if it is a clip: a blob holds :data:`_CLIP_PLATEAU_PX`
+    or more pixels at it (column 10 of the labelling's ``table``).  When not, the blobs' counts of saturated
+    pixels are set to 0: no star is saturated (a noisy true peak is not clipped; calling it so kept a 33 deg
     photograph's Dubhe, its blob 3 times the point sources' width, as a star the CLI set apart).  Reads only
     the blob table: no pass over the pixels."""
     n = min(n_found, max_blobs)
-    if n <= 0:
-        return False
-    nsat = table[1:n + 1, 10]
-    if float(nsat.max()) >= _CLIP_PLATEAU_PX:
-        return True
-    nsat[:] = 0.0
-    return False
+    if n > 0 and float(table[1:n + 1, 10].max()) < _CLIP_PLATEAU_PX:
+        table[1:n + 1, 10] = 0.0
 
 
 #: A candidate's flux (its last entry, always > 0): candidates are sorted on it brightest first with
@@ -957,15 +952,7 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     1/12 DN^2 (on an 8-bit frame whose analogue noise is below a DN, the measured
     background noise is ~0 and the rounding is all the noise there is).
     """
-    from startrack._kernels.centroid import (
-        LM_STOP_PX,
-        aperture_flux,
-        gaussian_fit,
-        quine_offset,
-        split_blob,
-        windowed_centroid,
-    )
-    from startrack._kernels.psf_fit import weighted_gaussian_fit
+    from startrack._kernels.centroid import aperture_flux, quine_offset, split_blob, windowed_centroid
 
     quant = _QUANT_VAR if integer else 0.0
 
@@ -1086,17 +1073,17 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
         stars = _measure_brightest(residual, candidates, options, sigma_mesh, cell, quant, memo)
         candidates = []
     h_img, w_img = img.shape
+    # The other methods (com, iwc, quine) and the deblended peaks of a non-gauss frame, star by star.
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
         if isinstance(residual, _Bands):
             # A window of the residual holding every pixel read below (the windowed centroid moves at most
             # ``half``, its window ``half`` more, the aperture within ``half``); positions in it less its corner.
-            oy, ox, res = residual.window(cx, cy, (15 if method == "gauss" else 3) * half + 4)
+            oy, ox, res = residual.window(cx, cy, 3 * half + 4)
         else:
             oy, ox, res = 0, 0, residual
         x, y, ok = cx, cy, True
-        fit = None
         xi, yi = int(round(cx)), int(round(cy))
         if deblended or method == "iwc":
             x, y, ok = windowed_centroid(res, cx - ox, cy - oy, sigma_psf, half, 30)
@@ -1109,20 +1096,6 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
                 rowsum = win.sum(axis=1)
                 x = xi + quine_offset(colsum[0], colsum[1], colsum[2], sigma_psf)
                 y = yi + quine_offset(rowsum[0], rowsum[1], rowsum[2], sigma_psf)
-        elif method == "gauss":
-            x, y, s_fit, amp, ok = gaussian_fit(res, cx - ox, cy - oy, sigma_psf, half, 50, LM_STOP_PX)
-            if ok:
-                sigma_psf = s_fit
-                # Inverse-variance weights (shot noise + background): the fit that reaches the bound (issue 21).
-                n_var = sigma_at(x + ox, y + oy) ** 2
-                inv_g = 1.0 / options.gain_e_per_dn if options.gain_e_per_dn else 0.0
-                wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
-                    res, x, y, s_fit, amp, max(half, math.ceil(3.5 * s_fit)), n_var, inv_g, 30)
-                if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
-                    x, y, sigma_psf = wx, wy, ws
-                    fit = {"cov_px2": [[float(cxx), float(cxy)], [float(cxy), float(cyy)]],
-                           "fit_chi2": float(chi2), "fit_dof": int(n_pix - 5)}
-            x, y = x + ox, y + oy
         if not ok:
             x, y = cx, cy
         # Aperture flux: the blob, or for deblended stars a 3-sigma aperture.
@@ -1143,10 +1116,6 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
             # The thresholded COM's own error model: pixel phase (truncation, rounding) and propagated noise.
             star["sigma_px"] = _com_uncertainty(flux, peak, sig_est, options.psf_sigma_px, thresh_at(x, y), noise,
                                                 options.gain_e_per_dn, integer, nsat > 0)
-        if fit is not None:
-            # The weighted fit's own covariance is the estimate's sigma (issue 21); its chi-square tests the model.
-            star["sigma_px"] = math.sqrt(0.5 * (fit["cov_px2"][0][0] + fit["cov_px2"][1][1]))
-            star.update(fit)
         stars.append(star)
     if options.gain_e_per_dn:
         # Without the gain the weights lack the stars' shot noise and chi-square cannot test the model.
