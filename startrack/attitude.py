@@ -615,17 +615,19 @@ def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dic
         # Forward (A/B): distorted (u, v) -> undistorted - distorted, least squares on a grid over the image.
         xs = np.linspace(-0.5, camera.width - 0.5, 41) - camera.cx
         ys = np.linspace(-0.5, camera.height - 0.5, 41) - camera.cy
-        gu, gv = np.meshgrid(xs, ys)
-        uu, vv = camera.undistort(gu.ravel() / f, gv.ravel() / f)
-        du = uu * f - gu.ravel()
-        dv = vv * f - gv.ravel()
+        gu, gv = (g.ravel() for g in np.meshgrid(xs, ys))
+        uu, vv = camera.undistort(gu / f, gv / f)
         terms = [(p, q) for p in range(sip_order + 1) for q in range(sip_order + 1 - p) if p + q >= 2]
-        design = np.stack([gu.ravel() ** p * gv.ravel() ** q for p, q in terms], axis=1)
+        # The powers of u and v once each (not a power per term), and one least-squares solve for A and B together
+        # (2 ms of a 27 degree frame's 6 ms solve was this fit, made again for each frame's fitted camera).
+        upow, vpow = np.ones((sip_order + 1, gu.size)), np.ones((sip_order + 1, gv.size))
+        for n in range(1, sip_order + 1):
+            upow[n] = upow[n - 1] * gu
+            vpow[n] = vpow[n - 1] * gv
+        design = np.stack([upow[p] * vpow[q] for p, q in terms], axis=1)
         scale = np.max(np.abs(design), axis=0)
-        ca, *_ = np.linalg.lstsq(design / scale, du, rcond=None)
-        cb, *_ = np.linalg.lstsq(design / scale, dv, rcond=None)
-        ca /= scale
-        cb /= scale
+        coef, *_ = np.linalg.lstsq(design / scale, np.stack([uu * f - gu, vv * f - gv], axis=1), rcond=None)
+        ca, cb = coef[:, 0] / scale, coef[:, 1] / scale
         hdr["A_ORDER"] = sip_order
         hdr["B_ORDER"] = sip_order
         # Mirrored: u -> -u, so A(u, v) -> -A(-u, v) and B(u, v) -> B(-u, v) (AP/BP alike).
