@@ -65,8 +65,8 @@ log = logging.getLogger(__name__)
 
 INDEX_FORMAT = "startrack.patterns/1"
 _MAGIC = b"STPATIDX"
-#: 2: the header carries ``header_sha256`` and ``data_sha256`` (issue 41).
-_FILE_LAYOUT = 2
+#: 2: the header carries ``header_sha256`` and ``data_sha256`` (issue 41).  3: the array ``shapes``.
+_FILE_LAYOUT = 3
 LEVEL_RATIO = math.sqrt(2.0)
 LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
@@ -111,6 +111,7 @@ class PatternIndex:
     level_prefix: np.ndarray     # (L, 65537) int64 key-prefix offsets within each level
     patterns: np.ndarray         # (P, 4) uint32 star rows
     keys: np.ndarray             # (P,) uint32 25-bit keys, sorted within each level
+    shapes: np.ndarray           # (P, 6) uint16 sorted edges over their sum (_kernels.patterns.pattern_shapes)
     params: dict = field(default_factory=dict)
     path: str | None = None
 
@@ -120,7 +121,7 @@ class PatternIndex:
 
 
 _ARRAYS = ("star_id", "star_vec", "star_mag", "level_rho", "level_start", "level_count", "level_prefix",
-           "patterns", "keys")
+           "patterns", "keys", "shapes")
 
 
 def build_index(catalog=None, progress=None, params: dict | None = None) -> PatternIndex:
@@ -137,7 +138,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
     -------
     PatternIndex
     """
-    from startrack._kernels.patterns import level_patterns, prefix_table, thin_uniform_radius
+    from startrack._kernels.patterns import level_patterns, pattern_shapes, prefix_table, thin_uniform_radius
     from startrack.catalog import load_catalog
 
     p = dict(BUILD_PARAMS)
@@ -150,7 +151,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
         cat = cat.filter_magnitude(None, p["mag_max"])
     vec = np.ascontiguousarray(cat.vectors())
     rhos = [math.radians(v) for v in p["levels_deg"]]
-    all_p, all_k, starts, counts, prefixes = [], [], [], [], []
+    all_p, all_k, all_s, starts, counts, prefixes = [], [], [], [], [], []
     start = 0
     pool = np.arange(len(vec))
     for i, rho in enumerate(rhos):
@@ -166,6 +167,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
         rows = kept[lp[order]].astype(np.uint32)
         all_p.append(rows)
         all_k.append(lk.astype(np.uint32))
+        all_s.append(pattern_shapes(vec, rows))
         prefixes.append(prefix_table(lk))
         starts.append(start)
         counts.append(len(lk))
@@ -178,7 +180,8 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
              n_stars=int(len(cat)), patterns_per_level=[int(c) for c in counts])
     return PatternIndex(cat.id.astype(np.int64), vec, cat.mag.astype(np.float32), np.array(rhos),
                         np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64),
-                        np.stack(prefixes).astype(np.int64), np.concatenate(all_p), np.concatenate(all_k), p)
+                        np.stack(prefixes).astype(np.int64), np.concatenate(all_p), np.concatenate(all_k),
+                        np.concatenate(all_s) if all_s else np.zeros((0, 6), dtype=np.uint16), p)
 
 
 def _data_sha256(mapped, head_len: int) -> str:
@@ -256,6 +259,8 @@ def check_index(index: PatternIndex, source: str | None = None) -> None:
         bad("patterns", f"names a star row beyond the {n_stars} stars")
     if n_pat and int(index.keys.max()) >= 1 << 25:
         bad("keys", "holds a key beyond 25 bits")
+    if index.shapes.shape != (n_pat, 6) or index.shapes.dtype != np.uint16:
+        bad("shapes", f"shape {index.shapes.shape} ({index.shapes.dtype}) is not {n_pat} x 6 uint16")
     if index.level_start.shape != (n_lev,) or index.level_count.shape != (n_lev,) or \
             index.level_prefix.shape != (n_lev, PREFIX_SIZE + 1):
         bad("level_start", f"the level tables do not match {n_lev} levels")
@@ -299,6 +304,9 @@ def open_index(path: str, verify: bool = True) -> PatternIndex:
         raise BadInputError(path, "header", "does not match its checksum: the file is damaged")
     size = os.path.getsize(path)
     out = {}
+    if isinstance(header.get("arrays"), dict) and "keys" in header["arrays"] and "shapes" not in header["arrays"]:
+        raise BadInputError(path, "shapes", "is missing (an index written before the pattern shapes, file layout 3): "
+                            "build it again ('startrack cache build' for the cache)")
     try:
         for name in _ARRAYS:
             spec = header["arrays"][name]
@@ -531,7 +539,7 @@ _WARMED: set = set()     # the array types of the indexes whose kernels this pro
 def _index_types(index: PatternIndex) -> tuple:
     return tuple((a.dtype.str, a.ndim, a.flags.c_contiguous, a.flags.writeable)
                  for a in (index.level_rho, index.level_start, index.level_prefix, index.keys, index.patterns,
-                           index.star_vec))
+                           index.shapes, index.star_vec))
 
 
 def warm_kernels(index: PatternIndex) -> None:
@@ -549,7 +557,7 @@ def warm_kernels(index: PatternIndex) -> None:
 
     xy = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 12.0]])
     query_patterns(xy, 5.0, 5.0, np.zeros((0, 4), dtype=np.int64), index.level_rho, LEVEL_RATIO,
-                   index.level_start, index.level_prefix, index.keys, index.patterns, index.star_vec,
+                   index.level_start, index.level_prefix, index.keys, index.patterns, index.shapes, index.star_vec,
                    _every_row(len(index.star_id)), 0.5, 0.1, 1.0, 2.0, 1)
     b = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]])
     b /= np.linalg.norm(b, axis=1)[:, None]
@@ -660,8 +668,8 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             break
         block = combos[s0:s1]
         ci, cf = query_patterns(xy_pat, cx, cy, block, index.level_rho, LEVEL_RATIO, index.level_start,
-                                index.level_prefix, index.keys, index.patterns, index.star_vec, allowed, float(sigma),
-                                float(opts.tol_geom), f_lo, f_hi, 4096)
+                                index.level_prefix, index.keys, index.patterns, index.shapes, index.star_vec, allowed,
+                                float(sigma), float(opts.tol_geom), f_lo, f_hi, 4096)
         info["patterns"] += len(block)
         info["candidates"] += len(ci)
         order = np.lexsort((cf[:, 1], ci[:, 0]))      # by image pattern (brightest first), best fit first

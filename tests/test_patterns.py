@@ -26,7 +26,7 @@ def index(catalog, tmp_path_factory):
 
 def test_file_round_trip_is_exact(index):
     built, opened = index
-    for name in ("star_id", "star_vec", "level_rho", "level_start", "level_prefix", "patterns", "keys"):
+    for name in ("star_id", "star_vec", "level_rho", "level_start", "level_prefix", "patterns", "keys", "shapes"):
         assert np.array_equal(np.asarray(getattr(built, name)), np.asarray(getattr(opened, name))), name
     assert opened.params["patterns_per_level"] == built.params["patterns_per_level"]
     assert len(opened.keys) > 10000
@@ -91,7 +91,8 @@ def test_the_lookup_mask_drops_exactly_the_patterns_with_a_star_outside(index, c
                          rng, sigma_px=0.3, max_stars=12)
     xy = np.array([[s["x"], s["y"]] for s in stars])
     combos = _combos(len(xy))
-    args = (idx.level_rho, LEVEL_RATIO, idx.level_start, idx.level_prefix, idx.keys, idx.patterns, idx.star_vec)
+    args = (idx.level_rho, LEVEL_RATIO, idx.level_start, idx.level_prefix, idx.keys, idx.patterns, idx.shapes,
+            idx.star_vec)
     every = np.ones(len(idx.star_id), dtype=np.uint8)
     ci, cf = query_patterns(xy, 511.5, 383.5, combos, *args, every, 1.0, 0.1, 500.0, 20000.0, 100000)
     assert len(ci) > 20
@@ -260,9 +261,11 @@ def test_sorted_edge_prefilter_never_refuses_a_fitting_correspondence(seed):
     assert fits > 200 and refused > 500
 
 
-def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypatch):
-    """query_patterns with its sorted-edge pre-filter returns the candidates it returns without it (the kernel's
-    Python body with the filter passing everything is the oracle), in the same order, to the bit."""
+@pytest.mark.parametrize("passing", [("_sorted_fit",), ("_shape_passes",), ("_sorted_fit", "_shape_passes")])
+def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypatch, passing):
+    """query_patterns with its pre-filters (the catalog pattern's stored shape, then its sorted edges) returns the
+    candidates it returns without them (the kernel's Python body with the filters passing everything is the
+    oracle), in the same order, to the bit."""
     import startrack._kernels.patterns as kp
     from startrack.patterns import LEVEL_RATIO, _combos
 
@@ -275,13 +278,60 @@ def test_query_patterns_prefilter_changes_no_candidate(index, catalog, monkeypat
     xy = np.array([[s["x"], s["y"]] for s in stars])
     combos = _combos(len(xy))[:12]
     args = (xy, 511.5, 383.5, combos, idx.level_rho, LEVEL_RATIO, idx.level_start, idx.level_prefix, idx.keys,
-            idx.patterns, idx.star_vec, np.ones(len(idx.star_id), dtype=np.uint8), 1.0, 0.1, 500.0, 20000.0, 10000)
+            idx.patterns, idx.shapes, idx.star_vec, np.ones(len(idx.star_id), dtype=np.uint8), 1.0, 0.1, 500.0,
+            20000.0, 10000)
     ci, cf = kp.query_patterns(*args)
     assert len(ci) > 5
-    monkeypatch.setattr(kp, "_sorted_fit", lambda *_: True)
+    for name in passing:
+        monkeypatch.setattr(kp, name, lambda *_: True)
     wi, wf = kp.query_patterns.py_func(*args)
     np.testing.assert_array_equal(ci, wi)
     np.testing.assert_array_equal(cf, wf)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_shape_prefilter_never_refuses_what_the_sorted_edges_accept(seed):
+    """The stored shape's bounds (_shape_bounds, _shape_passes) are a necessary condition of _sorted_fit: on catalog
+    patterns made from the image's own (stars moved by up to 1.5 tolerances, scaled), every one _sorted_fit accepts
+    passes them, and they refuse nearly all it refuses (they are its test, widened by the shape's rounding)."""
+    from startrack._kernels.patterns import (
+        _edges_rows,
+        _shape_bounds,
+        _shape_passes,
+        _sort6,
+        _sorted_fit,
+        pattern_shapes,
+    )
+
+    rng = np.random.default_rng(100 + seed)
+    accepted = refused_sorted = refused_both = 0
+    for _ in range(3000):
+        spread = rng.uniform(0.005, 0.4)
+        xy = rng.normal(size=(4, 2)) * spread
+        v = np.column_stack([xy, np.ones(4)])
+        v /= np.linalg.norm(v, axis=1)[:, None]
+        ie = np.empty(6)
+        _edges_rows(v, 0, 1, 2, 3, ie)
+        sig_ang, rel_geom = rng.uniform(1e-6, 1e-3), rng.uniform(0.0, 0.06)
+        step = (sig_ang / ie.mean() + rel_geom) * spread
+        c = np.column_stack([(xy[rng.permutation(4)] + rng.uniform(-1.5, 1.5, size=(4, 2)) * step)
+                             * rng.uniform(0.5, 2.0), np.ones(4)])
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        ce = np.empty(6)
+        _edges_rows(c, 0, 1, 2, 3, ce)
+        ie_sorted = np.empty(6)
+        _sort6(ie, ie_sorted)
+        q_lo, q_hi = np.empty(6), np.empty(6)
+        _shape_bounds(ie_sorted, sig_ang, rel_geom, q_lo, q_hi)
+        shape_ok = _shape_passes(pattern_shapes(c, np.arange(4).reshape(1, 4)), 0, q_lo, q_hi)
+        if _sorted_fit(ie_sorted, ie, ce, sig_ang, rel_geom, np.empty(6)):
+            accepted += 1
+            assert shape_ok, (ie, ce, sig_ang, rel_geom)
+        else:
+            refused_sorted += 1
+            refused_both += not shape_ok
+    assert accepted > 300 and refused_sorted > 300
+    assert refused_both >= 0.9 * refused_sorted
 
 
 def _screen_reference(b, n_screen, star_vec, n_rows, img, cat, cos_fov, radius):
@@ -374,7 +424,7 @@ def test_a_candidate_refused_at_refinement_leaves_the_probe_for_the_next():
     pattern's own shape at a focal length below ``f_lo`` (it passes the comparison at the probe's guess, and its
     refined focal length is refused), then the right one (the image stars, with centroid noise, at 7844 px).  The
     right one is found as it is found alone: the refused decoy must not leave the image edges at its focal length."""
-    from startrack._kernels.patterns import _edges, _key, prefix_table, query_patterns
+    from startrack._kernels.patterns import _edges, _key, pattern_shapes, prefix_table, query_patterns
 
     xy = np.array([[872.3209341278791, 106.69952956431172], [720.676627729201, 630.6071718870826],
                    [1005.3922026207168, 648.0311518991821], [434.28504109466917, 752.4009281354162]])
@@ -396,7 +446,7 @@ def test_a_candidate_refused_at_refinement_leaves_the_probe_for_the_next():
 
     def look_up(allowed):
         return query_patterns(xy, 511.5, 383.5, np.array([[0, 1, 2, 3]]), np.array([rho]), math.sqrt(2.0),
-                              np.array([0]), prefix_table(keys)[None, :], keys, pats, vec,
+                              np.array([0]), prefix_table(keys)[None, :], keys, pats, pattern_shapes(vec, pats), vec,
                               np.array(allowed, dtype=np.uint8), 1.0, 0.05, f_lo, 20000.0, 100)
 
     alone_i, alone_f = look_up([0] * 4 + [1] * 4)

@@ -13,6 +13,13 @@ from startrack._kernels._jit import njit
 NBINS = 32
 PREFIX_SHIFT = 9            # a 25-bit key >> 9 is a 16-bit prefix
 PREFIX_SIZE = 1 << 16
+#: A pattern's shape (:func:`pattern_shapes`): its six edges ascending over their sum, times this, rounded to a
+#: uint16.  Every edge is at most a third of the sum (the largest edge ``AB`` is at most ``AC + CB`` and ``AD + DB``),
+#: so 0.5 in 65,535 steps keeps a resolution of 3.8e-6 of the sum.
+SHAPE_SCALE = 131070.0
+#: The shape pre-filter's allowance for that rounding, as a fraction of the edge sum: 2.6 times the largest rounding
+#: error (0.5 / SHAPE_SCALE), so that no pattern :func:`_sorted_fit` accepts is refused.
+SHAPE_SLACK = 1e-5
 
 
 @njit(cache=True, inline="always")
@@ -241,6 +248,27 @@ def prefix_table(sorted_keys):
     return table
 
 
+@njit(cache=True)
+def pattern_shapes(vec, pats):
+    """Each pattern's shape: its six edge angles (:func:`_edges_rows`, as :func:`query_patterns` computes them)
+    ascending, over their sum, times :data:`SHAPE_SCALE`, rounded (uint16, ``(P, 6)``).
+
+    :func:`query_patterns` compares them with an image pattern before it reads the catalog pattern's stars: most
+    catalog patterns of a probed key fail there, on one 12-byte row instead of a pattern row and four star
+    vectors (memory reads that miss the cache on a 2-million-pattern index)."""
+    out = np.empty((pats.shape[0], 6), dtype=np.uint16)
+    ce = np.empty(6)
+    cs = np.empty(6)
+    for p in range(pats.shape[0]):
+        _edges_rows(vec, pats[p, 0], pats[p, 1], pats[p, 2], pats[p, 3], ce)
+        _sort6(ce, cs)
+        total = cs[0] + cs[1] + cs[2] + cs[3] + cs[4] + cs[5]
+        for t in range(6):
+            q = int(cs[t] / total * SHAPE_SCALE + 0.5) if total > 0.0 else 0
+            out[p, t] = min(max(q, 0), 65535)
+    return out
+
+
 @njit(cache=True, inline="always")
 def _pixel_vec(x, y, cx, cy, f, out):
     u = (x - cx) / f
@@ -337,9 +365,34 @@ def _sorted_fit(ie_sorted, ie, ce, sig_ang, rel_geom, cs):
     return True
 
 
+@njit(cache=True, inline="always")
+def _shape_bounds(ie_sorted, sig_ang, rel_geom, q_lo, q_hi):
+    """The bounds (:func:`pattern_shapes`' units) on each sorted edge of a catalog pattern's shape that
+    :func:`_sorted_fit` can accept for the image edges ``ie_sorted`` (ascending).
+
+    :func:`_sorted_fit` accepts when ``|c_t si / sc - i_t| <= (sig_ang + rel_geom i_t)(1 + 1e-9)`` for every sorted
+    edge (``c_t`` the catalog's, ``i_t`` the image's, ``sc``, ``si`` their sums): a bound on the shape ``c_t / sc``.
+    A stored shape is within ``0.5 / SHAPE_SCALE`` of it, less than :data:`SHAPE_SLACK`, which widens the bounds."""
+    si = ie_sorted[0] + ie_sorted[1] + ie_sorted[2] + ie_sorted[3] + ie_sorted[4] + ie_sorted[5]
+    for t in range(6):
+        room = (sig_ang + rel_geom * ie_sorted[t]) * (1.0 + 1e-9) + SHAPE_SLACK * si
+        q_lo[t] = (ie_sorted[t] - room) / si * SHAPE_SCALE
+        q_hi[t] = (ie_sorted[t] + room) / si * SHAPE_SCALE
+
+
+@njit(cache=True, inline="always")
+def _shape_passes(shapes, p, q_lo, q_hi):
+    """Whether the shape of catalog pattern ``p`` lies within the bounds of :func:`_shape_bounds`."""
+    for t in range(6):
+        v = shapes[p, t]
+        if v < q_lo[t] or v > q_hi[t]:
+            return False
+    return True
+
+
 @njit(cache=True)
-def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, vec, allowed,
-                   sigma_px, tol_geom, f_lo, f_hi, max_out):
+def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, level_prefix, keys, pats, shapes, vec,
+                   allowed, sigma_px, tol_geom, f_lo, f_hi, max_out):
     """Catalog candidates for image 4-star patterns.
 
     For each image pattern (``combos``, rows of 4 star indices into ``xy``) and
@@ -350,7 +403,9 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
     then refined on the pattern and the edges compared again.
 
     ``allowed`` (uint8, one per catalog star row): a catalog pattern with a star whose entry is 0 is not
-    compared (a position hint: stars that cannot be in the field).
+    compared (a position hint: stars that cannot be in the field).  ``shapes`` (:func:`pattern_shapes`, one row per
+    pattern): a catalog pattern whose shape cannot pass :func:`_sorted_fit` (its bounds widened by the shapes'
+    rounding, :data:`SHAPE_SLACK`) is not compared either; the candidates are those of the comparison alone.
 
     Returns rows ``(combo, level, i0..i3 -> catalog c0..c3 , f, misfit)`` as two arrays:
     ints (n, 6) = combo, level, c0, c1, c2, c3 (catalog star of image star combos[combo, k]),
@@ -372,6 +427,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
     cs = np.empty(6)
     ivr = np.empty((4, 3))          # the refinement's own arrays: a refused candidate leaves the probe's
     ier = np.empty(6)               # ``ie`` (at f0) as it was for the next catalog patterns
+    q_lo = np.empty(6)              # the probe's bounds on a catalog pattern's shape (pattern_shapes' units)
+    q_hi = np.empty(6)
     for ci in range(combos.shape[0]):
         # pixel extent
         lpx = 0.0
@@ -401,6 +458,7 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                 _sort6(ie, ie_sorted)
                 # tolerance per ratio: centroid noise on the two edges plus the geometry allowance
                 g = tol_geom * (rho * rho) + 0.06 * (rho * rho) * math.log(f_big / f_small) / n_sub
+                _shape_bounds(ie_sorted, 3.0 * 1.4142 * sigma_px / f0, g + 0.002, q_lo, q_hi)
                 for t in range(5):
                     r = es[t] / es[5]
                     tol = 3.0 * 1.4142 * sigma_px * (1.0 / (es[t] * f0) + 1.0 / (es[5] * f0)) * r + g + 0.002
@@ -438,6 +496,8 @@ def query_patterns(xy, cx, cy, combos, level_rho, level_ratio, level_start, leve
                         if b4 < lo_b[4] or b4 > hi_b[4]:
                             continue
                         pj = base + j
+                        if not _shape_passes(shapes, pj, q_lo, q_hi):
+                            continue
                         if (allowed[pats[pj, 0]] == 0 or allowed[pats[pj, 1]] == 0 or allowed[pats[pj, 2]] == 0
                                 or allowed[pats[pj, 3]] == 0):
                             continue
