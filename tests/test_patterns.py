@@ -735,3 +735,25 @@ def test_a_cone_is_as_writable_as_its_catalog(writeable):
     assert cone.vec.flags.writeable == writeable and cone.vec.flags.c_contiguous
     np.testing.assert_array_equal(cone.vec, vec[rows])
     np.testing.assert_array_equal(cone.ids, rows + 100)
+
+
+def test_an_index_without_pattern_shapes_is_refused_naming_them(index, tmp_path, monkeypatch):
+    """A file of layout 2 (before the pattern shapes) is refused with the array named, not read as damaged; an index
+    whose shapes do not match its patterns is refused before any kernel reads them."""
+    from dataclasses import replace
+
+    import startrack.patterns as sp
+    from startrack.errors import BadInputError
+
+    built, _ = index
+    path = str(tmp_path / "old.idx")
+    with monkeypatch.context() as m:
+        m.setattr(sp, "_ARRAYS", tuple(a for a in sp._ARRAYS if a != "shapes"))
+        sp.save_index(built, path)
+    with pytest.raises(BadInputError) as info:
+        sp.open_index(path)
+    assert info.value.field == "shapes" and "build it again" in str(info.value)
+    with pytest.raises(BadInputError, match="shapes"):
+        sp.check_index(replace(built, shapes=built.shapes[:-1]), "forged")
+    with pytest.raises(BadInputError, match="shapes"):
+        sp.check_index(replace(built, shapes=built.shapes.astype(np.int32)), "forged")
