@@ -25,7 +25,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from startrack.errors import BadInputError, ParameterError
-from startrack.records import ReasonCode
+from startrack.records import Attitude, ReasonCode, Status
+from startrack.rotations import (
+    _angles_deg_one,
+    _dcm_to_quaternion_one,
+    dcm_to_euler123,
+    dcm_to_quaternion,
+    dcm_to_radec_roll,
+)
 
 __all__ = [
     "METHODS",
@@ -246,10 +253,22 @@ def round_decimals(values, ndigits: int) -> list:
     millionth, taken through ``round``); the nearest integer is then the exact product's, and dividing an integer
     below 2^53 by ``10^n`` (both exact doubles) gives the double nearest to the decimal number, as ``round`` does.
     The other values (near a tie, beyond 2^52, not finite) go through ``round``."""
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    return _round_decimals_1d(np.asarray(values, dtype=np.float64).reshape(-1), ndigits)
+
+
+def _round_decimals_1d(v, ndigits: int) -> list:
+    """:func:`round_decimals` of a 1-D float64 array.
+
+    When every ``|y|`` is below 2^52 (so no value is infinite: ``y - n`` warns of nothing) and every ``|y - n|``
+    (exact: ``n`` is ``y``'s nearest integer) is more than two millionths from 0.5, every value is safe and
+    ``n / 10^n`` is the answer; otherwise each value is decided as the docstring says."""
+    if not len(v):
+        return []
     scale = 10.0 ** ndigits
     y = v * scale
     n = np.rint(y)
+    if np.abs(y).max() < 2.0**52 and np.abs(y - n).max() < 0.5 - 2e-6:       # NaN fails both
+        return (n / scale).tolist()
     with np.errstate(invalid="ignore"):
         safe = (np.abs(np.abs(y - n) - 0.5) > 1e-6) & (np.abs(y) < 2.0**52)
     out = (n / scale).tolist()
@@ -279,8 +298,6 @@ class AttitudeResult:
     bound: dict | None = None
 
     def section(self) -> dict:
-        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
-
         out = {"status": self.status, "method": self.method}
         if self.reason:
             out["reason"] = self.reason
@@ -290,14 +307,13 @@ class AttitudeResult:
             if self.rejected:
                 out["rejected"] = self.rejected
             return out
-        ra, dec, roll = dcm_to_radec_roll(self.dcm)
-        yaw, pitch, roll123 = dcm_to_euler123(self.dcm)
+        (ra, dec, roll, yaw, pitch, roll123), _ = self._angles()
         arcsec = math.degrees(1.0) * 3600.0
         out.update(
             quaternion=[float(v) for v in dcm_to_quaternion(self.dcm)],
             dcm=[[float(v) for v in row] for row in self.dcm],
-            ra=float(ra), dec=float(dec), roll=float(roll),
-            euler123_deg={"yaw": float(yaw), "pitch": float(pitch), "roll": float(roll123)},
+            ra=ra, dec=dec, roll=roll,
+            euler123_deg={"yaw": yaw, "pitch": pitch, "roll": roll123},
             n_stars=len(self.used), loss=self.loss,
             residuals=[{"star": s, "id": i, "residual_arcsec": r}
                        for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))],
@@ -323,8 +339,6 @@ class AttitudeResult:
         """The :class:`~startrack.records.Attitude` of :meth:`section`: what ``from_section(Attitude,
         self.section(), validate=False)`` reads back, made without the section (a result with ``bound`` through
         it)."""
-        from startrack.records import Attitude, ReasonCode, Status
-
         if self.bound:
             from startrack.formats.sections import from_section
 
@@ -342,34 +356,61 @@ class AttitudeResult:
             if self.rejected:
                 att.rejected = self.rejected
             return att
-        from startrack.rotations import dcm_to_euler123, dcm_to_quaternion, dcm_to_radec_roll
-
-        ra, dec, roll = dcm_to_radec_roll(self.dcm)
-        yaw, pitch, roll123 = dcm_to_euler123(self.dcm)
+        # The section's numbers in the section's arithmetic (test_attitude_record: every field's bits and type), the
+        # one-matrix parts in Python floats (~40 -> ~15 us a solved frame).
+        (ra, dec, roll, yaw, pitch, roll123), rows = self._angles()
         arcsec = math.degrees(1.0) * 3600.0
-        att.quaternion = np.array([float(v) for v in dcm_to_quaternion(self.dcm)], dtype=np.float64)
-        att.ra, att.dec, att.roll = float(ra), float(dec), float(roll)
-        att.euler123_deg = {"yaw": float(yaw), "pitch": float(pitch), "roll": float(roll123)}
+        q = _dcm_to_quaternion_one(rows) if rows is not None else None
+        att.quaternion = q if q is not None else np.array([float(v) for v in dcm_to_quaternion(self.dcm)],
+                                                          dtype=np.float64)
+        att.ra, att.dec, att.roll = ra, dec, roll
+        att.euler123_deg = {"yaw": yaw, "pitch": pitch, "roll": roll123}
         att.n_stars = len(self.used)
         if self.loss is not None:
             att.loss = float(self.loss)
-        att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
-                         for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))]
-        if self.residuals_arcsec:
-            att.rms_residual_arcsec = float(np.sqrt(np.mean(np.square(self.residuals_arcsec))))
+        res = np.asarray(self.residuals_arcsec)
+        if res.dtype == np.float64 and res.ndim == 1:
+            # np.square(list) and round_decimals' float64 array are this one array: convert the list once.
+            att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
+                             for (s, i), r in zip(self.used, _round_decimals_1d(res, 4))]
+            if self.residuals_arcsec:
+                # float(np.sqrt(np.mean(x))): np.mean is np.add.reduce(x, axis=None) / len(x).
+                att.rms_residual_arcsec = math.sqrt(float(np.add.reduce(np.square(res), axis=None)) / len(res))
+        else:
+            att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
+                             for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))]
+            if self.residuals_arcsec:
+                att.rms_residual_arcsec = float(np.sqrt(np.mean(np.square(self.residuals_arcsec))))
         att.time_ms = float(round(self.time_ms, 4))
         att.variance_factor = float(round(float(self.variance_factor), 4))
         if self.cov_rad2 is not None:
             p = self.cov_rad2
-            att.covariance_arcsec2 = np.array([[float(v) * arcsec**2 for v in row] for row in p], dtype=np.float64)
+            if type(p) is np.ndarray and p.shape == (3, 3) and p.dtype == np.float64:
+                att.covariance_arcsec2 = np.multiply(p, arcsec**2, order="C")     # float(v) * arcsec**2, each v
+            else:
+                att.covariance_arcsec2 = np.array([[float(v) * arcsec**2 for v in row] for row in p], dtype=np.float64)
             att.sigma_cross_boresight_arcsec = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
             att.sigma_pitch_yaw_arcsec = np.array([float(math.sqrt(p[0, 0]) * arcsec),
                                                    float(math.sqrt(p[1, 1]) * arcsec)], dtype=np.float64)
             att.sigma_roll_arcsec = float(math.sqrt(p[2, 2]) * arcsec)
         if self.rejected:
             att.rejected = self.rejected
-        att.details = {"dcm": [[float(v) for v in row] for row in self.dcm]}
+        att.details = {"dcm": rows if rows is not None else [[float(v) for v in row] for row in self.dcm]}
         return att
+
+    def _angles(self):
+        """``(ra, dec, roll, yaw, pitch, roll123)`` of :func:`~startrack.rotations.dcm_to_radec_roll` and
+        :func:`~startrack.rotations.dcm_to_euler123` as Python floats, and ``dcm.tolist()`` when the one-matrix path
+        took it (a finite 3 x 3 float64 array; else None)."""
+        d = self.dcm
+        if type(d) is np.ndarray and d.shape == (3, 3) and d.dtype == np.float64:
+            rows = d.tolist()
+            angles = _angles_deg_one(d, rows)
+            if angles is not None:
+                return angles, rows
+        ra, dec, roll = dcm_to_radec_roll(d)
+        yaw, pitch, roll123 = dcm_to_euler123(d)
+        return (float(ra), float(dec), float(roll), float(yaw), float(pitch), float(roll123)), None
 
 
 def _fail(method, code, reason, t0, used=(), rejected=()):

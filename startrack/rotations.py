@@ -368,11 +368,62 @@ def _dcm_to_euler123_one(a):
     pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
     yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
     cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    r2 = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]])
-    r1 = np.array([[1.0, 0.0, 0.0], [0.0, cy, sy], [0.0, -sy, cy]])
-    rest = a @ np.swapaxes(r2 @ r1, -1, -2)
+    rest = a @ np.swapaxes(_r2_r1(cp, sp, cy, sy), -1, -2)
     roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
     return yaw, pitch, roll
+
+
+def _r2_r1(cp, sp, cy, sy):
+    """``R2(pitch) @ R1(yaw)`` (cosines and sines, Python floats) as numpy's matmul of the two makes it, to the bit.
+
+    ``[[cp, 0, -sp], [0, 1, 0], [sp, 0, cp]] @ [[1, 0, 0], [0, cy, sy], [0, -sy, cy]]``: each entry a sum of three
+    products of which at most one is not an exact zero, so any matmul (fused or not, in any order) gives that product
+    rounded once; when all three are zeros one is +0 (``0 * 0``, or ``cp * 0`` / ``0 * cy`` when ``sp`` or ``sy``
+    is 0 or their product underflows: then ``cp``, ``cy`` are near 1), so the sum is +0: each entry is its product
+    ``+ 0.0``."""
+    return np.array([[cp + 0.0, (-sp) * (-sy) + 0.0, (-sp) * cy + 0.0],
+                     [0.0, cy + 0.0, sy + 0.0],
+                     [sp + 0.0, cp * (-sy) + 0.0, cp * cy + 0.0]])
+
+
+_RAD_TO_DEG = 180.0 / math.pi        # np.degrees' factor (numpy's rad2deg is x * (180.0 / NPY_PI))
+
+
+def _angles_deg_one(a, rows):
+    """``dcm_to_radec_roll(a) + dcm_to_euler123(a)``, six Python floats (degrees), to the bit, for an attitude
+    record (once per solved frame): ``a`` one 3 x 3 float64 ndarray, ``rows`` its ``a.tolist()``.  None unless
+    every entry's square is finite and their sum is below 1e300 (then no product or sum below overflows; the
+    callers take the public functions, which decide).
+
+    Bit for bit the single-matrix paths' arithmetic (:func:`_dcm_to_radec_roll_one`, :func:`_dcm_to_euler123_one`):
+    the transcendental functions are still numpy's (``arctan2`` and ``hypot`` are not libm's everywhere: numpy's
+    SIMD ``arctan2`` differs from ``math.atan2`` in the last bit for ~4% of arguments on an AVX-512 machine), one
+    ufunc call for each stage's arguments together (a ufunc treats each element alike, whatever its neighbours); the
+    euler roll's last matrix product is numpy's ``@`` on the same arrays (BLAS, fused: not Python's sums).  In
+    Python floats: products, sums of three from +0.0 left to right (numpy's sum of fewer than 8 values), ``%``
+    (``np.mod``'s fmod and sign fix) and ``x * (180 / pi)`` (``np.degrees``)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = rows
+    size2 = (a00 * a00 + a01 * a01 + a02 * a02) + (a10 * a10 + a11 * a11 + a12 * a12) + (a20 * a20 + a21 * a21
+                                                                                          + a22 * a22)
+    if not size2 < 1e300:       # NaN, inf or a huge entry
+        return None
+    # Boresight (a20, a21, a22): ra = mod(atan2(a21, a20), 2 pi), dec = atan2(a22, hypot(a20, a21)); euler:
+    # pitch = atan2(a20, hypot(a21, a22)), yaw = atan2(-a21, a22).
+    h_bore, h_pitch = np.hypot((a20, a21), (a21, a22)).tolist()
+    ra, dec, pitch, yaw = np.arctan2((a21, a22, a20, -a21), (a20, h_bore, h_pitch, a22)).tolist()
+    ra = ra % (2 * math.pi)
+    angles = (ra, dec, pitch, yaw)
+    sr, sd, sp, sy = np.sin(angles).tolist()
+    cr, cd, cp, cy = np.cos(angles).tolist()
+    # roll: up = -a[1], east = (-sin ra, cos ra, 0), north = (-sin dec cos ra, -sin dec sin ra, cos dec).
+    # np.sum of three values: ((0.0 + x0) + x1) + x2 (numpy's reduction starts at the identity +0.0, so a sum of
+    # zeros is +0; the angle of a zero row then is atan2(+0, +0) = 0, not 180).
+    up_e = ((0.0 + (-a10) * (-sr)) + (-a11) * cr) + (-a12) * 0.0
+    up_n = ((0.0 + (-a10) * (-sd * cr)) + (-a11) * (-sd * sr)) + (-a12) * cd
+    rest = a @ np.swapaxes(_r2_r1(cp, sp, cy, sy), -1, -2)
+    roll, roll123 = np.arctan2((up_e, rest[0, 1]), (up_n, rest[0, 0])).tolist()
+    d = _RAD_TO_DEG
+    return (ra * d) % 360.0, dec * d, roll * d, yaw * d, pitch * d, roll123 * d
 
 
 def _propagate_attitude_rad(dcm, rate_rad_s, dt):
