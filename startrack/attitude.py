@@ -470,12 +470,15 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         return _fail(method, ReasonCode.TOO_FEW_STARS, f"{n} identified star(s): at least 2 are needed", t0)
     if len(r) != n or len(sig) != n or len(labels) != n:
         return _fail(method, ReasonCode.BAD_INPUT, "star vectors, references, sigmas and labels differ in length", t0)
-    if not (np.all(np.isfinite(b)) and np.all(np.isfinite(r)) and np.all(np.isfinite(sig)) and np.all(sig > 0)):
+    # b and r stacked: one finiteness check and one normalisation (row by row the same arithmetic).
+    br = np.concatenate((b, r))
+    if not (np.isfinite(br).all() and sig.min() > 0 and sig.max() < math.inf):      # a NaN fails both
         return _fail(method, ReasonCode.BAD_INPUT, "non-finite star vectors or uncertainties", t0)
     if not (math.isfinite(gate) and gate > 0 and math.isfinite(max_variance_factor) and max_variance_factor >= 1):
         raise ParameterError("gate", f"must be a positive number, got {gate!r}")
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    r = r / np.linalg.norm(r, axis=1, keepdims=True)
+    # np.linalg.norm(x, axis=1, keepdims=True) of a real array is this expression.
+    br = br / np.sqrt(np.add.reduce(br * br, axis=(1,), keepdims=True))
+    b, r = br[:n], br[n:]
     stars = [s for s, _ in labels if s is not None]
     ids = [i for _, i in labels if i is not None]
     if len(set(stars)) != len(stars) or len(set(ids)) != len(ids):
@@ -493,12 +496,11 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
         if code == 0 and factor2 <= max_variance_factor**2:
             keep = keep[:nk]
             resid = resid[:nk]
-            w = w[:nk]
             rejected = [{"star": labels[k][0], "id": labels[k][1],
                          "residual_arcsec": round(float(np.degrees(rr) * 3600), 3),
                          "reason": f"chi-square {c2:.1f} above the gate {gate:g}"}
                         for k, rr, c2 in zip(rej[:n_rej].tolist(), rej_resid[:n_rej].tolist(),
-                                             rej_chi2[:n_rej].tolist(), strict=True)]
+                                             rej_chi2[:n_rej].tolist(), strict=True)] if n_rej else []
             return _ok(method, dcm, labels, keep, rejected, resid, factor2, cov, float(loss), t0)
     keep = np.arange(n)
     rejected = []
