@@ -307,24 +307,26 @@ class AttitudeResult:
             if self.rejected:
                 out["rejected"] = self.rejected
             return out
-        (ra, dec, roll, yaw, pitch, roll123), _ = self._angles()
+        # The numbers of one matrix in Python floats, the residuals converted once: the same bits
+        # (tests/test_attitude_fast_paths.py).
+        (ra, dec, roll, yaw, pitch, roll123), rows = self._angles()
+        q = _dcm_to_quaternion_one(rows) if rows is not None else None
         arcsec = math.degrees(1.0) * 3600.0
+        rounded, rms = self._residual_numbers()
         out.update(
-            quaternion=[float(v) for v in dcm_to_quaternion(self.dcm)],
-            dcm=[[float(v) for v in row] for row in self.dcm],
+            quaternion=q.tolist() if q is not None else [float(v) for v in dcm_to_quaternion(self.dcm)],
+            dcm=rows if rows is not None else [[float(v) for v in row] for row in self.dcm],
             ra=ra, dec=dec, roll=roll,
             euler123_deg={"yaw": yaw, "pitch": pitch, "roll": roll123},
             n_stars=len(self.used), loss=self.loss,
-            residuals=[{"star": s, "id": i, "residual_arcsec": r}
-                       for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))],
-            rms_residual_arcsec=float(np.sqrt(np.mean(np.square(self.residuals_arcsec)))) if self.residuals_arcsec
-            else None,
+            residuals=[{"star": s, "id": i, "residual_arcsec": r} for (s, i), r in zip(self.used, rounded)],
+            rms_residual_arcsec=rms,
             time_ms=round(self.time_ms, 4),
             variance_factor=round(float(self.variance_factor), 4),
         )
         if self.cov_rad2 is not None:
             p = self.cov_rad2
-            out["covariance_arcsec2"] = [[float(v) * arcsec**2 for v in row] for row in p]
+            out["covariance_arcsec2"] = self._covariance_arcsec2().tolist()
             out["sigma_cross_boresight_arcsec"] = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
             out["sigma_pitch_yaw_arcsec"] = [float(math.sqrt(p[0, 0]) * arcsec), float(math.sqrt(p[1, 1]) * arcsec)]
             out["sigma_roll_arcsec"] = float(math.sqrt(p[2, 2]) * arcsec)
@@ -356,8 +358,7 @@ class AttitudeResult:
             if self.rejected:
                 att.rejected = self.rejected
             return att
-        # The section's numbers in the section's arithmetic (test_attitude_record: every field's bits and type), the
-        # one-matrix parts in Python floats (~40 -> ~15 us a solved frame).
+        # The section's numbers in the section's arithmetic (test_attitude_record: every field's bits and type).
         (ra, dec, roll, yaw, pitch, roll123), rows = self._angles()
         arcsec = math.degrees(1.0) * 3600.0
         q = _dcm_to_quaternion_one(rows) if rows is not None else None
@@ -368,27 +369,15 @@ class AttitudeResult:
         att.n_stars = len(self.used)
         if self.loss is not None:
             att.loss = float(self.loss)
-        res = np.asarray(self.residuals_arcsec)
-        if res.dtype == np.float64 and res.ndim == 1:
-            # np.square(list) and round_decimals' float64 array are this one array: convert the list once.
-            att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
-                             for (s, i), r in zip(self.used, _round_decimals_1d(res, 4))]
-            if self.residuals_arcsec:
-                # float(np.sqrt(np.mean(x))): np.mean is np.add.reduce(x, axis=None) / len(x).
-                att.rms_residual_arcsec = math.sqrt(float(np.add.reduce(np.square(res), axis=None)) / len(res))
-        else:
-            att.residuals = [{"star": s, "id": i, "residual_arcsec": r}
-                             for (s, i), r in zip(self.used, round_decimals(self.residuals_arcsec, 4))]
-            if self.residuals_arcsec:
-                att.rms_residual_arcsec = float(np.sqrt(np.mean(np.square(self.residuals_arcsec))))
+        rounded, rms = self._residual_numbers()
+        att.residuals = [{"star": s, "id": i, "residual_arcsec": r} for (s, i), r in zip(self.used, rounded)]
+        if rms is not None:
+            att.rms_residual_arcsec = rms
         att.time_ms = float(round(self.time_ms, 4))
         att.variance_factor = float(round(float(self.variance_factor), 4))
         if self.cov_rad2 is not None:
             p = self.cov_rad2
-            if type(p) is np.ndarray and p.shape == (3, 3) and p.dtype == np.float64:
-                att.covariance_arcsec2 = np.multiply(p, arcsec**2, order="C")     # float(v) * arcsec**2, each v
-            else:
-                att.covariance_arcsec2 = np.array([[float(v) * arcsec**2 for v in row] for row in p], dtype=np.float64)
+            att.covariance_arcsec2 = self._covariance_arcsec2()
             att.sigma_cross_boresight_arcsec = float(math.sqrt((p[0, 0] + p[1, 1]) / 2.0) * arcsec)
             att.sigma_pitch_yaw_arcsec = np.array([float(math.sqrt(p[0, 0]) * arcsec),
                                                    float(math.sqrt(p[1, 1]) * arcsec)], dtype=np.float64)
@@ -397,6 +386,26 @@ class AttitudeResult:
             att.rejected = self.rejected
         att.details = {"dcm": rows if rows is not None else [[float(v) for v in row] for row in self.dcm]}
         return att
+
+    def _residual_numbers(self):
+        """``round_decimals(residuals_arcsec, 4)`` and ``float(np.sqrt(np.mean(np.square(residuals_arcsec))))`` (None
+        without residuals), the list converted once when it converts to float64 by itself (np.square's own array)."""
+        res = np.asarray(self.residuals_arcsec)
+        if res.dtype == np.float64 and res.ndim == 1:
+            rounded = _round_decimals_1d(res, 4)
+            # np.mean(x) is np.add.reduce(x, axis=None) / len(x); np.sqrt and math.sqrt are correctly rounded.
+            return rounded, (math.sqrt(float(np.add.reduce(np.square(res), axis=None)) / len(res))
+                             if self.residuals_arcsec else None)
+        rounded = round_decimals(self.residuals_arcsec, 4)
+        return rounded, (float(np.sqrt(np.mean(np.square(self.residuals_arcsec)))) if self.residuals_arcsec else None)
+
+    def _covariance_arcsec2(self):
+        """``np.array([[float(v) * arcsec**2 for v in row] for row in cov_rad2])``: one product for a float64 3 x 3."""
+        p = self.cov_rad2
+        arcsec = math.degrees(1.0) * 3600.0
+        if type(p) is np.ndarray and p.shape == (3, 3) and p.dtype == np.float64:
+            return np.multiply(p, arcsec**2, order="C")
+        return np.array([[float(v) * arcsec**2 for v in row] for row in p], dtype=np.float64)
 
     def _angles(self):
         """``(ra, dec, roll, yaw, pitch, roll123)`` of :func:`~startrack.rotations.dcm_to_radec_roll` and
