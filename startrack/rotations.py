@@ -368,7 +368,9 @@ def _dcm_to_euler123_one(a):
     pitch = np.arctan2(a[..., 2, 0], np.hypot(a[..., 2, 1], a[..., 2, 2]))
     yaw = np.arctan2(-a[..., 2, 1], a[..., 2, 2])
     cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    rest = a @ np.swapaxes(_r2_r1(cp, sp, cy, sy), -1, -2)
+    r2 = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]])
+    r1 = np.array([[1.0, 0.0, 0.0], [0.0, cy, sy], [0.0, -sy, cy]])
+    rest = a @ np.swapaxes(r2 @ r1, -1, -2)
     roll = np.arctan2(rest[..., 0, 1], rest[..., 0, 0])
     return yaw, pitch, roll
 
@@ -420,7 +422,7 @@ def _angles_deg_one(a, rows):
     # zeros is +0; the angle of a zero row then is atan2(+0, +0) = 0, not 180).
     up_e = ((0.0 + (-a10) * (-sr)) + (-a11) * cr) + (-a12) * 0.0
     up_n = ((0.0 + (-a10) * (-sd * cr)) + (-a11) * (-sd * sr)) + (-a12) * cd
-    rest = a @ np.swapaxes(_r2_r1(cp, sp, cy, sy), -1, -2)
+    rest = a @ _r2_r1(cp, sp, cy, sy).T         # np.swapaxes(m, -1, -2) of a 3 x 3: the same view
     roll, roll123 = np.arctan2((up_e, rest[0, 1]), (up_n, rest[0, 0])).tolist()
     d = _RAD_TO_DEG
     return (ra * d) % 360.0, dec * d, roll * d, yaw * d, pitch * d, roll123 * d
