@@ -261,7 +261,8 @@ def _round_decimals_1d(v, ndigits: int) -> list:
 
     When every ``|y|`` is below 2^52 (so no value is infinite: ``y - n`` warns of nothing) and every ``|y - n|``
     (exact: ``n`` is ``y``'s nearest integer) is more than two millionths from 0.5, every value is safe and
-    ``n / 10^n`` is the answer; otherwise each value is decided as the docstring says."""
+    ``n / 10^n`` is the answer (the old per-value mask would mark them all safe); otherwise each value is decided as
+    :func:`round_decimals` says."""
     if not len(v):
         return []
     scale = 10.0 ** ndigits
