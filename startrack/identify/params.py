@@ -93,6 +93,10 @@ class IdentifyParams:
 
 def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
     """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
+    if params.sigma_px is not None:
+        out = np.empty(len(stars))
+        out.fill(float(params.sigma_px))        # _sigmas' values, without its closure (every frame's call)
+        return out
     return _sigmas(len(stars), params, lambda: _floats([s.get("sigma_px") for s in stars]))
 
 
@@ -134,6 +138,7 @@ def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
 
 _NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # types read as themselves (None: NaN)
 _GET_X, _GET_Y = operator.itemgetter("x"), operator.itemgetter("y")
+_F64 = np.dtype(np.float64)      # the dtype itself: numpy converts np.float64 (the type) to it on every call
 
 
 def _table_arrays(table, params: IdentifyParams):
@@ -152,15 +157,15 @@ def _frame_arrays(frame_stars):
     """``x``, ``y`` and ``flux`` (NaN where missing or not an int or float, e.g. a string) of the stars as
     float64 arrays."""
     n = len(frame_stars)
-    xs = np.fromiter(map(_GET_X, frame_stars), np.float64, n)
-    ys = np.fromiter(map(_GET_Y, frame_stars), np.float64, n)
+    xs = np.fromiter(map(_GET_X, frame_stars), _F64, n)
+    ys = np.fromiter(map(_GET_Y, frame_stars), _F64, n)
     return xs, ys, _floats([s.get("flux") for s in frame_stars])
 
 
 def _floats(values: list) -> np.ndarray:
     """``values`` as float64, NaN for None and for anything not an int or float (e.g. a string)."""
     if _NUMBER.issuperset(map(type, values)):         # None is NaN too
-        return np.array(values, dtype=np.float64)
+        return np.array(values, _F64)
     return np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=np.float64)
 
 

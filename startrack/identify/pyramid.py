@@ -326,12 +326,16 @@ def _accepted(buffers, dcm, n, got):
     # outlive it.  res_i: every detection's match, the matched detections, their ids, their database indices.
     state, _, _, res_i, res_f = buffers
     _, _, tried, patterns, _, _ = state.tolist()
-    matched = res_i[n:n + nm]
-    matches = list(map(_new_tuple, repeat(Match), zip(matched.tolist(), res_i[n + nm:n + 2 * nm].tolist())))
-    return SearchOutcome(_Verdict(matches, matched, res_i[n + 2 * nm:n + 3 * nm], dcm, float(p_false), None, None,
+    end = n + nm
+    matched = res_i[n:end]
+    matches = list(map(_new_tuple, repeat(Match), zip(matched.tolist(), res_i[end:end + nm].tolist())))
+    return SearchOutcome(_Verdict(matches, matched, res_i[end + nm:end + 2 * nm], dcm, float(p_false), None, None,
                                   None, res_f[:4].copy(), rms),
                          None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {}, tried, patterns,
-                         "no consistent star pattern found", ReasonCode.NO_PATTERN)
+                         _NO_PATTERN_FOUND, _NO_PATTERN)
+
+
+_NO_PATTERN_FOUND, _NO_PATTERN = "no consistent star pattern found", ReasonCode.NO_PATTERN   # (global look-ups)
 
 
 def _failed(buffers, db, params, reason, code):
