@@ -165,7 +165,10 @@ def _frame_arrays(frame_stars):
 def _floats(values: list) -> np.ndarray:
     """``values`` as float64, NaN for None and for anything not an int or float (e.g. a string)."""
     if _NUMBER.issuperset(map(type, values)):         # None is NaN too
-        return np.array(values, _F64)
+        try:
+            return np.fromiter(values, _F64, len(values))       # np.array's values, without its shape discovery
+        except TypeError:                                       # a None: np.array makes it NaN
+            return np.array(values, _F64)
     return np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=np.float64)
 
 

@@ -261,7 +261,7 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     patterns against every pair: the kernel's count never falls below the first tier's)."""
     xs = frame.xs
     n = len(xs)
-    first = _first_tier(db, camera, frame.use)
+    first = _first_tier(db, camera, frame.use) if frame.use > PATTERN_STARS else None     # (its test, without its call)
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
