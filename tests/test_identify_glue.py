@@ -118,6 +118,45 @@ def test_star_dicts_and_a_star_table_identify_alike(issue14):
                 assert a.quaternion_estimate.tobytes() == b.quaternion_estimate.tobytes()
 
 
+def test_the_fused_search_follows_each_frames_camera(issue14, monkeypatch):
+    """run keeps the last camera's pinhole test by identity: frames alternating between a pinhole camera and a
+    distorted one (the same sensor with k1 != 0, a frozen copy) take the fused kernel for the first only, and
+    identify as each camera alone does."""
+    import dataclasses
+
+    from startrack.identify import driver
+    from startrack.identify import pyramid as P
+
+    cam, db, (stars, _), _ = issue14
+    bent = dataclasses.replace(cam, k1=1e-9)
+    assert bent.has_distortion and not cam.has_distortion
+    frames = [f for f, _, _ in make_frames(stars, cam, Condition(sigma_px=0.3, min_catalog_stars=4), 6, 21,
+                                            mag_limit=5.5)]
+    params = IdentifyParams(sigma_px=0.3)
+
+    def record(res):
+        res.details.pop("prepare_ms", None)      # (the first frame of a camera prepares its first tier)
+        return _record(res)
+
+    alone = {}
+    for c in (cam, bent):
+        driver._PLAIN = (None, False)
+        alone[id(c)] = [record(identify_stars(f, c, db, "pyramid", params)) for f in frames]
+    drive = P._drive
+    kernel_calls = []
+
+    def counted(plan, args, frame):
+        kernel_calls.append(1)
+        return drive(plan, args, frame)
+
+    monkeypatch.setattr(P, "_drive", counted)
+    for k, f in enumerate(frames):
+        for c in ((cam, bent) if k % 2 else (bent, cam)):
+            before = len(kernel_calls)
+            assert record(identify_stars(f, c, db, "pyramid", params)) == alone[id(c)][k]
+            assert (len(kernel_calls) > before) == (c is cam)
+
+
 if __name__ == "__main__":      # print the digest of this checkout's code (PYTHONPATH=the checkout)
     import sys
 
