@@ -7,7 +7,7 @@ from startrack.cli.options import handle_errors, quiet_option
 @click.command("cache", short_help="List, build or clear the cached star index and databases.")
 @click.argument("action", type=click.Choice(["list", "build", "clear"]), default="list")
 @click.option("--catalog", type=click.Choice(["hipparcos", "gaia"]), default="hipparcos", show_default=True,
-              help="build: the index of this catalog (gaia: the deep index of 0.8-3 deg fields, ~180 MB, about a "
+              help="build: the index of this catalog (gaia: the deep index of 0.8-3 deg fields, ~280 MB, about a "
                    "minute; the extra startrack[gaia]).")
 @quiet_option
 @handle_errors
