@@ -131,52 +131,44 @@ def _solve_small_into(m, x):
 
 
 @njit(cache=True, inline="always")
-def _axis_factors(coords, c, s, g, dg_dc, dg_ds):
-    """Pixel-integrated 1-D Gaussian ``g(k; c, s)`` (paper 003 Eq. 5) at each pixel
-    ``k`` of ``coords``, with its derivatives in ``c`` and ``s``."""
+def _axis_factors(k0, n_px, c, s, axes, row):
+    """Pixel-integrated 1-D Gaussian ``g(k; c, s)`` (paper 003 Eq. 5) at the pixels ``k0 <= k < k0 + n_px``
+    into ``axes[row, :n_px]``, its derivatives in ``c`` and ``s`` into rows ``row + 1`` and ``row + 2``."""
     r2 = math.sqrt(2.0) * s
     norm = math.sqrt(math.pi) * r2
-    ea = 0.0
     eb = 0.0
-    pa = 0.0
     pb = 0.0
-    for n in range(coords.shape[0]):
-        k = coords[n]
-        ua = (k - 0.5 - c) / r2
-        ub = (k + 0.5 - c) / r2
-        if n > 0 and k == coords[n - 1] + 1:
+    for n in range(n_px):
+        k = k0 + n
+        if n > 0:
             # The pixel's lower edge is the previous pixel's upper edge (k - 0.5 == (k - 1) + 0.5 exactly for
-            # whole k, so ua is the previous ub to the bit): its erf and exp are already known.
+            # whole k, so it is the previous upper edge to the bit): its erf and exp are already known.
             ea = eb
             pa = pb
         else:
+            ua = (k - 0.5 - c) / r2
             ea = math.erf(ua)
             pa = math.exp(-ua * ua)
+        ub = (k + 0.5 - c) / r2
         eb = math.erf(ub)
         pb = math.exp(-ub * ub)
-        g[n] = 0.5 * (eb - ea)
-        dg_dc[n] = (pa - pb) / norm
-        dg_ds[n] = ((k - 0.5 - c) * pa - (k + 0.5 - c) * pb) / (norm * s)
+        axes[row, n] = 0.5 * (eb - ea)
+        axes[row + 1, n] = (pa - pb) / norm
+        axes[row + 2, n] = ((k - 0.5 - c) * pa - (k + 0.5 - c) * pb) / (norm * s)
 
 
 @njit(cache=True)
-def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes):
-    """Cost of the pixel-integrated Gaussian model at ``p`` and its normal equations.
+def _gauss_normal_equations(residual, y0, ny, x0, nx, p, jtj, jtr, axes):
+    """Cost of the pixel-integrated Gaussian model at ``p`` on the window of rows ``y0 <= y < y0 + ny`` and
+    columns ``x0 <= x < x0 + nx``, and its normal equations.
 
     The model is separable, so the row and column factors are computed once
-    per axis, not once per pixel; the symmetric ``J^T J`` is accumulated once
-    per pair of parameters, in scalars.
+    per axis, not once per pixel (into the caller's scratch ``axes``: rows 0-2 along y, 3-5 along x); the
+    symmetric ``J^T J`` is accumulated once per pair of parameters, in scalars.
     """
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
-    # The axis factors in the caller's scratch (rows 0-2 along y, 3-5 along x): no allocation per evaluation.
-    gy = axes[0, :ys.shape[0]]
-    dgy_dc = axes[1, :ys.shape[0]]
-    dgy_ds = axes[2, :ys.shape[0]]
-    gx = axes[3, :xs.shape[0]]
-    dgx_dc = axes[4, :xs.shape[0]]
-    dgx_ds = axes[5, :xs.shape[0]]
-    _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
-    _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
+    _axis_factors(y0, ny, cy, s, axes, 0)
+    _axis_factors(x0, nx, cx, s, axes, 3)
     cost = 0.0
     a00 = a01 = a02 = a03 = a04 = 0.0
     a11 = a12 = a13 = a14 = 0.0
@@ -184,18 +176,19 @@ def _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes):
     a33 = a34 = 0.0
     a44 = 0.0
     b0 = b1 = b2 = b3 = b4 = 0.0
-    for m in range(ys.shape[0]):
-        row = ys[m]
-        gym = gy[m]
-        dyc = dgy_dc[m]
-        dys = dgy_ds[m]
-        for n in range(xs.shape[0]):
-            r = residual[row, xs[n]] - (amp * gx[n] * gym + bg)
+    for m in range(ny):
+        row = y0 + m
+        gym = axes[0, m]
+        dyc = axes[1, m]
+        dys = axes[2, m]
+        for n in range(nx):
+            gxn = axes[3, n]
+            r = residual[row, x0 + n] - (amp * gxn * gym + bg)
             cost += r * r
-            j0 = amp * dgx_dc[n] * gym
-            j1 = amp * gx[n] * dyc
-            j2 = amp * (dgx_ds[n] * gym + gx[n] * dys)
-            j3 = gx[n] * gym
+            j0 = amp * axes[4, n] * gym
+            j1 = amp * gxn * dyc
+            j2 = amp * (axes[5, n] * gym + gxn * dys)
+            j3 = gxn * gym
             b0 += j0 * r
             b1 += j1 * r
             b2 += j2 * r
@@ -256,6 +249,23 @@ LM_START_STOP_PX = 1e-3
 
 
 @njit(cache=True)
+def fit_workspace(width):
+    """Scratch of the Gaussian fits for windows up to ``width`` px a side: ``(p, jtj, jtr, jtj2, jtr2, a, delta,
+    trial, axes)`` (five-vectors, 5 x 5 matrices and the ``(6, width)`` axis factors).  A caller fitting many
+    stars allocates it once (:func:`startrack._kernels.psf_fit.measure_candidates`), not once per fit."""
+    return (np.empty(5), np.empty((5, 5)), np.empty(5), np.empty((5, 5)), np.empty(5), np.empty((5, 5)), np.empty(5),
+            np.empty(5), np.empty((6, max(width, 1))))
+
+
+@njit(cache=True, inline="always")
+def window_bounds(c, half, n):
+    """The window ``|k - round(c)| <= half`` along an axis of ``n`` pixels, clipped to it: ``(first, count)``."""
+    ci = int(math.floor(c + 0.5))
+    k0 = max(0, ci - half)
+    return k0, max(0, min(n, ci + half + 1) - k0)
+
+
+@njit(cache=True)
 def gaussian_fit(residual, x0, y0, sigma0, half, n_iter, stop_px):
     """2-D pixel-integrated Gaussian least squares (Levenberg-Marquardt).
 
@@ -264,29 +274,30 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter, stop_px):
     The iterations stop after a step below ``stop_px`` (pixels) on both axes (:data:`LM_STOP_PX` for a
     centroid).  Returns ``(cx, cy, s, A, ok)``.
     """
+    return gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, fit_workspace(2 * half + 1))
+
+
+@njit(cache=True)
+def gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, ws):
+    """:func:`gaussian_fit` in the scratch ``ws`` of :func:`fit_workspace` (at least ``2 half + 1`` wide)."""
+    p, jtj, jtr, jtj2, jtr2, a, delta, trial, axes = ws
     h, w = residual.shape
-    xi = int(math.floor(x0 + 0.5))
-    yi = int(math.floor(y0 + 0.5))
-    ys = np.arange(max(0, yi - half), min(h, yi + half + 1))
-    xs = np.arange(max(0, xi - half), min(w, xi + half + 1))
-    if ys.shape[0] * xs.shape[0] < 9:
+    ya, ny = window_bounds(y0, half, h)
+    xa, nx = window_bounds(x0, half, w)
+    if ny * nx < 9:
         return x0, y0, sigma0, 0.0, False
     tot = 0.0
-    for y in ys:
-        for x in xs:
+    for y in range(ya, ya + ny):
+        for x in range(xa, xa + nx):
             tot += residual[y, x]
-    p = np.array([x0, y0, sigma0, max(tot, 1e-9), 0.0])
-    jtj = np.zeros((5, 5))
-    jtr = np.zeros(5)
-    jtj2 = np.zeros((5, 5))
-    jtr2 = np.zeros(5)
-    axes = np.empty((6, max(ys.shape[0], xs.shape[0])))
-    cost = _gauss_normal_equations(residual, ys, xs, p, jtj, jtr, axes)
+    p[0] = x0
+    p[1] = y0
+    p[2] = sigma0
+    p[3] = max(tot, 1e-9)
+    p[4] = 0.0
+    cost = _gauss_normal_equations(residual, ya, ny, xa, nx, p, jtj, jtr, axes)
     lam = 1e-3
     ok = False
-    a = np.empty((5, 5))
-    delta = np.empty(5)
-    trial = np.empty(5)
     for _ in range(n_iter):
         for r in range(5):
             for c in range(5):
@@ -303,12 +314,10 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter, stop_px):
             if lam > 1e8:
                 break
             continue
-        new_cost = _gauss_normal_equations(residual, ys, xs, trial, jtj2, jtr2, axes)
+        new_cost = _gauss_normal_equations(residual, ya, ny, xa, nx, trial, jtj2, jtr2, axes)
         if new_cost < cost:
-            p[:] = trial
+            _accept(p, jtj, jtr, trial, jtj2, jtr2)
             cost = new_cost
-            jtj[:, :] = jtj2
-            jtr[:] = jtr2
             lam = max(lam * 0.3, 1e-9)
             ok = True
             if abs(delta[0]) < stop_px and abs(delta[1]) < stop_px:
@@ -324,6 +333,16 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter, stop_px):
     if abs(p[0] - x0) > half or abs(p[1] - y0) > half:
         return x0, y0, sigma0, 0.0, False
     return p[0], p[1], p[2], p[3], ok
+
+
+@njit(cache=True, inline="always")
+def _accept(p, jtj, jtr, trial, jtj2, jtr2):
+    """A fit's accepted step: the trial parameters and their normal equations become the current ones."""
+    for r in range(5):
+        p[r] = trial[r]
+        jtr[r] = jtr2[r]
+        for c in range(5):
+            jtj[r, c] = jtj2[r, c]
 
 
 @njit(cache=True, inline="always")

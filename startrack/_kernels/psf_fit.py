@@ -13,18 +13,18 @@ which is efficient: its covariance reaches the bound ``I^-1`` of
 """
 import math
 
-import numpy as np
-
 from startrack._kernels._jit import njit
 from startrack._kernels.centroid import (
     LM_START_STOP_PX,
     LM_STOP_PX,
+    _accept,
     _axis_factors,
-    _solve_small,
     _solve_small_into,
     _store_normal,
     aperture_flux,
-    gaussian_fit,
+    fit_workspace,
+    gaussian_fit_in,
+    window_bounds,
     windowed_centroid,
 )
 
@@ -35,17 +35,11 @@ IRLS_STOP_PX = 1e-5
 
 
 @njit(cache=True)
-def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr, axes):
+def _weighted_normal_equations(residual, y0, ny, x0, nx, p, noise_var, inv_gain, jtj, jtr, axes):
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
     # The axis factors in the caller's scratch (rows 0-2 along y, 3-5 along x): no allocation per evaluation.
-    gy = axes[0, :ys.shape[0]]
-    dgy_dc = axes[1, :ys.shape[0]]
-    dgy_ds = axes[2, :ys.shape[0]]
-    gx = axes[3, :xs.shape[0]]
-    dgx_dc = axes[4, :xs.shape[0]]
-    dgx_ds = axes[5, :xs.shape[0]]
-    _axis_factors(ys, cy, s, gy, dgy_dc, dgy_ds)
-    _axis_factors(xs, cx, s, gx, dgx_dc, dgx_ds)
+    _axis_factors(y0, ny, cy, s, axes, 0)
+    _axis_factors(x0, nx, cx, s, axes, 3)
     cost = 0.0
     a00 = a01 = a02 = a03 = a04 = 0.0
     a11 = a12 = a13 = a14 = 0.0
@@ -54,20 +48,21 @@ def _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jt
     a44 = 0.0
     b0 = b1 = b2 = b3 = b4 = 0.0
     # The symmetric J^T W J accumulated once per pair of parameters, in scalars.
-    for m in range(ys.shape[0]):
-        row = ys[m]
-        gym = gy[m]
-        dyc = dgy_dc[m]
-        dys = dgy_ds[m]
-        for n in range(xs.shape[0]):
-            model = amp * gx[n] * gym
+    for m in range(ny):
+        row = y0 + m
+        gym = axes[0, m]
+        dyc = axes[1, m]
+        dys = axes[2, m]
+        for n in range(nx):
+            gxn = axes[3, n]
+            model = amp * gxn * gym
             w = 1.0 / (max(model, 0.0) * inv_gain + noise_var)
-            r = residual[row, xs[n]] - (model + bg)
+            r = residual[row, x0 + n] - (model + bg)
             cost += w * r * r
-            j0 = amp * dgx_dc[n] * gym
-            j1 = amp * gx[n] * dyc
-            j2 = amp * (dgx_ds[n] * gym + gx[n] * dys)
-            j3 = gx[n] * gym
+            j0 = amp * axes[4, n] * gym
+            j1 = amp * gxn * dyc
+            j2 = amp * (axes[5, n] * gym + gxn * dys)
+            j3 = gxn * gym
             w0 = w * j0
             w1 = w * j1
             w2 = w * j2
@@ -130,27 +125,30 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
         the ``n_pix`` pixels: ``chi-square(n_pix - 5)`` when the model holds
         (a second star in the window, a truncated or non-Gaussian PSF raise it).
     """
+    return weighted_gaussian_fit_in(residual, x0, y0, s0, amp0, half, noise_var, inv_gain, n_iter,
+                                    fit_workspace(2 * half + 1))
+
+
+@njit(cache=True)
+def weighted_gaussian_fit_in(residual, x0, y0, s0, amp0, half, noise_var, inv_gain, n_iter, ws):
+    """:func:`weighted_gaussian_fit` in the scratch ``ws`` of :func:`startrack._kernels.centroid.fit_workspace`
+    (at least ``2 half + 1`` wide)."""
+    p, jtj, jtr, jtj2, jtr2, a, delta, trial, axes = ws
     h, w = residual.shape
-    xi = int(math.floor(x0 + 0.5))  # noqa: RUF046 (numba)
-    yi = int(math.floor(y0 + 0.5))  # noqa: RUF046 (numba)
-    ys = np.arange(max(0, yi - half), min(h, yi + half + 1))
-    xs = np.arange(max(0, xi - half), min(w, xi + half + 1))
+    ya, ny = window_bounds(y0, half, h)
+    xa, nx = window_bounds(x0, half, w)
     nan = math.nan
-    n_pix = ys.shape[0] * xs.shape[0]
+    n_pix = ny * nx
     if n_pix < 9 or not noise_var > 0.0 or not amp0 > 0.0:
         return x0, y0, s0, amp0, False, nan, nan, nan, nan, n_pix
-    p = np.array([x0, y0, s0, amp0, 0.0])
-    jtj = np.zeros((5, 5))
-    jtr = np.zeros(5)
-    jtj2 = np.zeros((5, 5))
-    jtr2 = np.zeros(5)
-    axes = np.empty((6, max(ys.shape[0], xs.shape[0])))
-    cost = _weighted_normal_equations(residual, ys, xs, p, noise_var, inv_gain, jtj, jtr, axes)
+    p[0] = x0
+    p[1] = y0
+    p[2] = s0
+    p[3] = amp0
+    p[4] = 0.0
+    cost = _weighted_normal_equations(residual, ya, ny, xa, nx, p, noise_var, inv_gain, jtj, jtr, axes)
     lam = 1e-4
     ok = False
-    a = np.empty((5, 5))
-    delta = np.empty(5)
-    trial = np.empty(5)
     for _ in range(n_iter):
         for r in range(5):
             for c in range(5):
@@ -167,13 +165,11 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
             if lam > 1e8:
                 break
             continue
-        new_cost = _weighted_normal_equations(residual, ys, xs, trial, noise_var, inv_gain, jtj2, jtr2, axes)
+        new_cost = _weighted_normal_equations(residual, ya, ny, xa, nx, trial, noise_var, inv_gain, jtj2, jtr2, axes)
         # The weights move with the model, so the cost is compared at the new weights (IRLS).
         if new_cost <= cost * (1.0 + 1e-9) or lam < 1e-3:
-            p[:] = trial
+            _accept(p, jtj, jtr, trial, jtj2, jtr2)
             cost = new_cost
-            jtj[:, :] = jtj2
-            jtr[:] = jtr2
             lam = max(lam * 0.3, 1e-9)
             ok = True
             if abs(delta[0]) < IRLS_STOP_PX and abs(delta[1]) < IRLS_STOP_PX:
@@ -188,18 +184,32 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
                 break
     if abs(p[0] - x0) > 1.0 or abs(p[1] - y0) > 1.0:
         return x0, y0, s0, amp0, False, nan, nan, nan, nan, n_pix
-    # The weighted normal matrix at the accepted solution (jtj, from its weights) inverted:
-    # the position block of the estimate's covariance.
-    ident = np.zeros(5)
-    cov = np.empty((5, 2))
+    # The weighted normal matrix at the accepted solution (jtj, from its weights) inverted, a column at a time in
+    # the scratch: the position block of the estimate's covariance.
+    c00 = c10 = c01 = c11 = 0.0
     for c in range(2):
-        ident[:] = 0.0
-        ident[c] = 1.0
-        col, solved = _solve_small(jtj.copy(), ident)
-        if not solved:
+        for r in range(5):
+            for q in range(5):
+                a[r, q] = jtj[r, q]
+            delta[r] = 0.0
+        delta[c] = 1.0
+        if not _solve_small_into(a, delta):
             return p[0], p[1], p[2], p[3], False, nan, nan, nan, nan, n_pix
-        cov[:, c] = col
-    return p[0], p[1], p[2], p[3], ok, cov[0, 0], 0.5 * (cov[0, 1] + cov[1, 0]), cov[1, 1], cost, n_pix
+        if c == 0:
+            c00 = delta[0]
+            c10 = delta[1]
+        else:
+            c01 = delta[0]
+            c11 = delta[1]
+    return p[0], p[1], p[2], p[3], ok, c00, 0.5 * (c01 + c10), c11, cost, n_pix
+
+
+@njit(cache=True, inline="always")
+def _wide_enough(ws, half, h, w):
+    """``ws``, or a new :func:`startrack._kernels.centroid.fit_workspace` when its axis factors are narrower than a
+    window of ``half`` px on an ``h x w`` image."""
+    need = min(2 * half + 1, max(h, w))
+    return ws if ws[8].shape[1] >= need else fit_workspace(need)
 
 
 @njit(cache=True, nogil=True)
@@ -216,6 +226,8 @@ def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, i
     """
     h, w = residual.shape
     ny, nx = noise_mesh.shape
+    # The fits' scratch, once per call (widened when a window needs it): no allocation per candidate.
+    ws = fit_workspace(min(max(h, w), 31))
     for k in range(cand.shape[0]):
         cx = cand[k, 0]
         cy = cand[k, 1]
@@ -229,19 +241,22 @@ def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, i
             x, y, ok = windowed_centroid(residual, cx, cy, sigma_psf, half, 30)
         else:
             # The unweighted fit only starts the weighted one (LM_START_STOP_PX), which moves on to its optimum.
-            x, y, s_fit, amp, ok = gaussian_fit(residual, cx, cy, sigma_psf, half, 50, LM_START_STOP_PX)
+            ws = _wide_enough(ws, half, h, w)
+            x, y, s_fit, amp, ok = gaussian_fit_in(residual, cx, cy, sigma_psf, half, 50, LM_START_STOP_PX, ws)
             if ok and math.isfinite(x) and math.isfinite(y):
                 sigma_psf = s_fit
                 xc = min(max(x, 0.0), w - 1.0)
                 yc = min(max(y, 0.0), h - 1.0)
                 nv = math.sqrt(noise_mesh[min(int(yc) // cell, ny - 1), min(int(xc) // cell, nx - 1)] ** 2
                                + quant_var) ** 2
-                wx, wy, ws, wa, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit(
-                    residual, x, y, s_fit, amp, max(half, int(math.ceil(3.5 * s_fit))), nv, inv_gain, 30)
+                half_w = max(half, int(math.ceil(3.5 * s_fit)))
+                ws = _wide_enough(ws, half_w, h, w)
+                wx, wy, w_s, _, wok, cxx, cxy, cyy, chi2, n_pix = weighted_gaussian_fit_in(
+                    residual, x, y, s_fit, amp, half_w, nv, inv_gain, 30, ws)
                 if wok and cxx > 0 and cyy > 0 and cxx * cyy > cxy * cxy:
                     x = wx
                     y = wy
-                    sigma_psf = ws
+                    sigma_psf = w_s
                     out[k, 3] = 1.0
                     out[k, 4] = cxx
                     out[k, 5] = cxy
@@ -250,7 +265,7 @@ def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, i
                     out[k, 8] = n_pix
                 else:
                     # No weighted fit: the unweighted one is the centroid, carried on to its own precision.
-                    x2, y2, s2, _, ok2 = gaussian_fit(residual, x, y, s_fit, half, 50, LM_STOP_PX)
+                    x2, y2, s2, _, ok2 = gaussian_fit_in(residual, x, y, s_fit, half, 50, LM_STOP_PX, ws)
                     if ok2 and math.isfinite(x2) and math.isfinite(y2) and abs(x2 - cx) <= half \
                             and abs(y2 - cy) <= half:
                         x = x2
