@@ -99,7 +99,7 @@ def _solve_small(a, b):
     return x, ok
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _solve_small_into(m, x):
     """:func:`_solve_small` in place: ``m`` is overwritten, ``x`` (the right-hand side) becomes the solution;
     returns ok.  The fits' loops call it on their own scratch (no allocation an iteration)."""
@@ -157,7 +157,7 @@ def _axis_factors(k0, n_px, c, s, axes, row):
         axes[row + 2, n] = ((k - 0.5 - c) * pa - (k + 0.5 - c) * pb) / (norm * s)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gauss_normal_equations(residual, y0, ny, x0, nx, p, jtj, jtr, axes):
     """Cost of the pixel-integrated Gaussian model at ``p`` on the window of rows ``y0 <= y < y0 + ny`` and
     columns ``x0 <= x < x0 + nx``, and its normal equations.

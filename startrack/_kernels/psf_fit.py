@@ -34,7 +34,7 @@ from startrack._kernels.centroid import (
 IRLS_STOP_PX = 1e-5
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _weighted_normal_equations(residual, y0, ny, x0, nx, p, noise_var, inv_gain, jtj, jtr, axes):
     cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
     # The axis factors in the caller's scratch (rows 0-2 along y, 3-5 along x): no allocation per evaluation.
