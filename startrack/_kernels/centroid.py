@@ -277,7 +277,7 @@ def gaussian_fit(residual, x0, y0, sigma0, half, n_iter, stop_px):
     return gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, fit_workspace(2 * half + 1))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, ws):
     """:func:`gaussian_fit` in the scratch ``ws`` of :func:`fit_workspace` (at least ``2 half + 1`` wide)."""
     p, jtj, jtr, jtj2, jtr2, a, delta, trial, axes = ws

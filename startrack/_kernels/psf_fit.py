@@ -129,7 +129,7 @@ def weighted_gaussian_fit(residual, x0, y0, s0, amp0, half, noise_var, inv_gain,
                                     fit_workspace(2 * half + 1))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def weighted_gaussian_fit_in(residual, x0, y0, s0, amp0, half, noise_var, inv_gain, n_iter, ws):
     """:func:`weighted_gaussian_fit` in the scratch ``ws`` of :func:`startrack._kernels.centroid.fit_workspace`
     (at least ``2 half + 1`` wide)."""
