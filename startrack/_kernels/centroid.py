@@ -102,8 +102,20 @@ def _solve_small(a, b):
 @njit(cache=True, inline="always")
 def _solve_small_into(m, x):
     """:func:`_solve_small` in place: ``m`` is overwritten, ``x`` (the right-hand side) becomes the solution;
-    returns ok.  The fits' loops call it on their own scratch (no allocation an iteration)."""
-    n = x.shape[0]
+    returns ok."""
+    return _solve_n_into(m, x, x.shape[0])
+
+
+@njit(cache=True, inline="always")
+def _solve5_into(m, x):
+    """:func:`_solve_small_into` of a fit's 5 x 5 system on its own scratch (no allocation an iteration), the size
+    known to the compiler (its loops unrolled; the same operations in the same order)."""
+    return _solve_n_into(m, x, 5)
+
+
+@njit(cache=True, inline="always")
+def _solve_n_into(m, x, n):
+    """:func:`_solve_small_into` of the leading ``n`` x ``n`` system."""
     for col in range(n):
         piv = col
         best = abs(m[col, col])
@@ -305,7 +317,7 @@ def gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, ws):
             delta[r] = jtr[r]
         for d in range(5):
             a[d, d] += lam * (jtj[d, d] + 1e-12)
-        if not _solve_small_into(a, delta):
+        if not _solve5_into(a, delta):
             break
         for d in range(5):
             trial[d] = p[d] + delta[d]

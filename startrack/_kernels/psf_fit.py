@@ -19,7 +19,7 @@ from startrack._kernels.centroid import (
     LM_STOP_PX,
     _accept,
     _axis_factors,
-    _solve_small_into,
+    _solve5_into,
     _store_normal,
     aperture_flux,
     fit_workspace,
@@ -156,7 +156,7 @@ def weighted_gaussian_fit_in(residual, x0, y0, s0, amp0, half, noise_var, inv_ga
             delta[r] = jtr[r]
         for d in range(5):
             a[d, d] += lam * (jtj[d, d] + 1e-12)
-        if not _solve_small_into(a, delta):
+        if not _solve5_into(a, delta):
             break
         for d in range(5):
             trial[d] = p[d] + delta[d]
@@ -193,7 +193,7 @@ def weighted_gaussian_fit_in(residual, x0, y0, s0, amp0, half, noise_var, inv_ga
                 a[r, q] = jtj[r, q]
             delta[r] = 0.0
         delta[c] = 1.0
-        if not _solve_small_into(a, delta):
+        if not _solve5_into(a, delta):
             return p[0], p[1], p[2], p[3], False, nan, nan, nan, nan, n_pix
         if c == 0:
             c00 = delta[0]
