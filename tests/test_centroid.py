@@ -485,8 +485,9 @@ def test_background_pass_noise_in_strips_of_any_tile_height(cell):
 
 def test_measure_candidates_fits_each_candidate_as_alone():
     """measure_candidates fits each candidate as if alone (nothing carried from one candidate's fits to the
-    next, a wide blob's window among them): each row is the one the candidate gets alone, and its unweighted and
-    weighted fits are gaussian_fit's and weighted_gaussian_fit's from the same start."""
+    next through the scratch they share, a wide blob's window among them, first or last): each row is the one the
+    candidate gets alone, and its unweighted and weighted fits are gaussian_fit's and weighted_gaussian_fit's from
+    the same start."""
     from startrack._kernels.centroid import LM_START_STOP_PX, gaussian_fit
     from startrack._kernels.psf_fit import measure_candidates, weighted_gaussian_fit
 
@@ -504,6 +505,9 @@ def test_measure_candidates_fits_each_candidate_as_alone():
     mesh = np.full((3, 4), 4.0)
     args = (0.0, mesh, 64, 1.0 / 12.0, 0.5)
     out = measure_candidates(res, cand, *args, np.zeros((len(cand), 12)))
+    # The wide blob first (the fits' scratch at its widest, then reused for the small windows): the same rows.
+    rev = measure_candidates(res, cand[::-1].copy(), *args, np.zeros((len(cand), 12)))
+    assert rev[::-1].tobytes() == out.tobytes()
     checked = 0
     for k in range(len(cand)):
         one = measure_candidates(res, cand[k:k + 1], *args, np.zeros((1, 12)))
