@@ -170,6 +170,38 @@ def _axis_factors(k0, n_px, c, s, axes, row):
 
 
 @njit(cache=True, inline="always")
+def _axis_values(k0, n_px, c, s, axes, row):
+    """:func:`_axis_factors`' ``g`` alone (no derivatives): the same values to the bit."""
+    r2 = math.sqrt(2.0) * s
+    eb = 0.0
+    for n in range(n_px):
+        k = k0 + n
+        if n > 0:
+            ea = eb
+        else:
+            ea = math.erf((k - 0.5 - c) / r2)
+        eb = math.erf((k + 0.5 - c) / r2)
+        axes[row, n] = 0.5 * (eb - ea)
+
+
+@njit(cache=True, inline="always")
+def _gauss_cost(residual, y0, ny, x0, nx, p, axes):
+    """:func:`_gauss_normal_equations`' cost alone (the same value to the bit), for a step whose normal equations
+    are not needed."""
+    cx, cy, s, amp, bg = p[0], p[1], p[2], p[3], p[4]
+    _axis_values(y0, ny, cy, s, axes, 0)
+    _axis_values(x0, nx, cx, s, axes, 3)
+    cost = 0.0
+    for m in range(ny):
+        row = y0 + m
+        gym = axes[0, m]
+        for n in range(nx):
+            r = residual[row, x0 + n] - (amp * axes[3, n] * gym + bg)
+            cost += r * r
+    return cost
+
+
+@njit(cache=True, inline="always")
 def _gauss_normal_equations(residual, y0, ny, x0, nx, p, jtj, jtr, axes):
     """Cost of the pixel-integrated Gaussian model at ``p`` on the window of rows ``y0 <= y < y0 + ny`` and
     columns ``x0 <= x < x0 + nx``, and its normal equations.
@@ -326,19 +358,22 @@ def gaussian_fit_in(residual, x0, y0, sigma0, half, n_iter, stop_px, ws):
             if lam > 1e8:
                 break
             continue
+        if abs(delta[0]) < stop_px and abs(delta[1]) < stop_px:
+            # A step below the convergence tolerance is the last: taken when it lowers the cost, else the minimum
+            # is reached, to the precision of the arithmetic (raising the damping up to 1e8 would only repeat the
+            # evaluation).  Its cost alone decides; its normal equations would not be used.
+            if _gauss_cost(residual, ya, ny, xa, nx, trial, axes) < cost:
+                for d in range(5):
+                    p[d] = trial[d]
+                ok = True
+            break
         new_cost = _gauss_normal_equations(residual, ya, ny, xa, nx, trial, jtj2, jtr2, axes)
         if new_cost < cost:
             _accept(p, jtj, jtr, trial, jtj2, jtr2)
             cost = new_cost
             lam = max(lam * 0.3, 1e-9)
             ok = True
-            if abs(delta[0]) < stop_px and abs(delta[1]) < stop_px:
-                break
         else:
-            # A step below the convergence tolerance that does not lower the cost: the minimum, to the
-            # precision of the arithmetic (raising the damping up to 1e8 would only repeat the evaluation).
-            if abs(delta[0]) < stop_px and abs(delta[1]) < stop_px:
-                break
             lam *= 10.0
             if lam > 1e8:
                 break
