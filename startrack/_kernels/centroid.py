@@ -87,35 +87,15 @@ def quine_offset(i_left, i_mid, i_right, sigma):
     return side * 0.5 * (lo + hi)
 
 
-@njit(cache=True)
-def _solve_small(a, b):
-    """Solve ``a x = b`` for a small dense system (Gaussian elimination, partial pivoting).
-
-    numba's ``np.linalg`` needs SciPy's BLAS; these systems are 5 x 5.
-    Returns ``(x, ok)``.
-    """
-    x = b.copy()
-    ok = _solve_small_into(a.copy(), x)
-    return x, ok
-
-
-@njit(cache=True, inline="always")
-def _solve_small_into(m, x):
-    """:func:`_solve_small` in place: ``m`` is overwritten, ``x`` (the right-hand side) becomes the solution;
-    returns ok."""
-    return _solve_n_into(m, x, x.shape[0])
-
-
 @njit(cache=True, inline="always")
 def _solve5_into(m, x):
-    """:func:`_solve_small_into` of a fit's 5 x 5 system on its own scratch (no allocation an iteration), the size
-    known to the compiler (its loops unrolled; the same operations in the same order)."""
-    return _solve_n_into(m, x, 5)
+    """Solve the 5 x 5 system ``m x = b`` of a fit's step in place (Gaussian elimination, partial pivoting):
+    ``m`` is overwritten, ``x`` (the right-hand side ``b``) becomes the solution; returns ok.
 
-
-@njit(cache=True, inline="always")
-def _solve_n_into(m, x, n):
-    """:func:`_solve_small_into` of the leading ``n`` x ``n`` system."""
+    numba's ``np.linalg`` needs SciPy's BLAS.  The fits call it on their own scratch (no allocation an
+    iteration); the size is known to the compiler, which unrolls the loops.
+    """
+    n = 5
     for col in range(n):
         piv = col
         best = abs(m[col, col])
