@@ -138,7 +138,7 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
     -------
     PatternIndex
     """
-    from startrack._kernels.patterns import level_patterns, pattern_shapes, prefix_table, thin_uniform_radius
+    from startrack._kernels.patterns import level_patterns, prefix_table, thin_uniform_radius
     from startrack.catalog import load_catalog
 
     p = dict(BUILD_PARAMS)
@@ -160,14 +160,14 @@ def build_index(catalog=None, progress=None, params: dict | None = None) -> Patt
         kept = pool[thin_uniform_radius(np.ascontiguousarray(vec[pool]), rho * p["thin_radius_fraction"],
                                         int(p["keep"]))]
         pool = kept
-        lp, lk = level_patterns(np.ascontiguousarray(vec[kept]), rho, rho / p["level_ratio"], p["min_edge_ratio"],
-                                int(p["max_per_anchor"]), p.get("neighbours", "nearest") == "brightest")
+        lp, lk, ls = level_patterns(np.ascontiguousarray(vec[kept]), rho, rho / p["level_ratio"], p["min_edge_ratio"],
+                                    int(p["max_per_anchor"]), p.get("neighbours", "nearest") == "brightest")
         order = np.argsort(lk, kind="stable")
         lk = lk[order]
         rows = kept[lp[order]].astype(np.uint32)
         all_p.append(rows)
         all_k.append(lk.astype(np.uint32))
-        all_s.append(pattern_shapes(vec, rows))
+        all_s.append(ls[order])
         prefixes.append(prefix_table(lk))
         starts.append(start)
         counts.append(len(lk))

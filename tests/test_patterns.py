@@ -512,12 +512,12 @@ def test_level_patterns_is_its_reference(brightest_first, cap):
     v = np.column_stack([rng.normal(0, 0.05, (30, 2)), np.ones(30)])
     v /= np.linalg.norm(v, axis=1)[:, None]
     rho = math.radians(8.0)
-    got, keys = level_patterns(np.ascontiguousarray(v), rho, rho / math.sqrt(2), 0.05, cap, brightest_first)
+    got, keys, _ = level_patterns(np.ascontiguousarray(v), rho, rho / math.sqrt(2), 0.05, cap, brightest_first)
     want = _level_patterns_reference(v, rho, rho / math.sqrt(2), 0.05, cap, brightest_first)
     assert [tuple(r) for r in got.tolist()] == want
     assert len(want) > 50 and len(keys) == len(want)
     if cap == 10**6:
-        other, _ = level_patterns(np.ascontiguousarray(v), rho, rho / math.sqrt(2), 0.05, cap, not brightest_first)
+        other, _, _ = level_patterns(np.ascontiguousarray(v), rho, rho / math.sqrt(2), 0.05, cap, not brightest_first)
         assert sorted(map(sorted, other.tolist())) == sorted(map(sorted, got.tolist()))
 
 
@@ -757,3 +757,15 @@ def test_an_index_without_pattern_shapes_is_refused_naming_them(index, tmp_path,
         sp.check_index(replace(built, shapes=built.shapes[:-1]), "forged")
     with pytest.raises(BadInputError, match="shapes"):
         sp.check_index(replace(built, shapes=built.shapes.astype(np.int32)), "forged")
+
+
+def test_the_built_shapes_are_those_of_the_stored_patterns(index):
+    """build_index takes each pattern's shape from level_patterns' sorted edges; they are pattern_shapes' of the
+    stored star rows (the edges the look-up computes), row for row."""
+    from startrack._kernels.patterns import pattern_shapes
+
+    built, opened = index
+    want = pattern_shapes(np.ascontiguousarray(built.star_vec), np.ascontiguousarray(built.patterns))
+    assert len(want) > 10000
+    np.testing.assert_array_equal(built.shapes, want)
+    np.testing.assert_array_equal(opened.shapes, want)

@@ -122,8 +122,36 @@ def _neighbours(vec, radius):
                                     nb[counts[i] + fill[i]] = j
                                     fill[i] += 1
     for i in range(m):
-        nb[counts[i]:counts[i + 1]] = np.sort(nb[counts[i]:counts[i + 1]])
+        _sort_run(nb, counts[i], counts[i + 1])
     return counts, nb
+
+
+@njit(cache=True)
+def _argsort_run(d):
+    """The order that sorts ``d`` ascending, ties in their order (insertion sort: an anchor's few neighbours; no
+    numpy sort to compile)."""
+    idx = np.arange(d.shape[0])
+    for t in range(1, d.shape[0]):
+        i = idx[t]
+        v = d[i]
+        u = t
+        while u > 0 and d[idx[u - 1]] > v:
+            idx[u] = idx[u - 1]
+            u -= 1
+        idx[u] = i
+    return idx
+
+
+@njit(cache=True, inline="always")
+def _sort_run(a, lo, hi):
+    """``a[lo:hi]`` ascending in place (insertion sort: an anchor's few neighbours; no numpy sort to compile)."""
+    for t in range(lo + 1, hi):
+        v = a[t]
+        u = t
+        while u > lo and a[u - 1] > v:
+            a[u] = a[u - 1]
+            u -= 1
+        a[u] = v
 
 
 @njit(cache=True, inline="always")
@@ -182,13 +210,16 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_f
     that the patterns of the three brightest neighbours come first, then those of the
     fourth with two of them, and so on (the order in which an image's brightest
     stars form patterns).
-    Returns ``(stars (P, 4) int64 local indices, keys (P,) int64)``.
+    Returns ``(stars (P, 4) int64 local indices, keys (P,) int64, shapes (P, 6) uint16)``, the shapes as
+    :func:`pattern_shapes` makes them (from the same sorted edges).
     """
     counts, nb = _neighbours(vec, rho_max)
     m = vec.shape[0]
     e = np.empty(6)
+    es = np.empty(6)
     out_p = np.empty((0, 4), dtype=np.int64)
     out_k = np.empty(0, dtype=np.int64)
+    out_s = np.empty((0, 6), dtype=np.uint16)
     for p in range(2):
         total = 0
         for a in range(m):
@@ -201,7 +232,7 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_f
                 d = np.empty(k)
                 for t in range(k):
                     d[t] = -(vec[a, 0] * vec[lst[t], 0] + vec[a, 1] * vec[lst[t], 1] + vec[a, 2] * vec[lst[t], 2])
-                lst = lst[np.argsort(d)]
+                lst = lst[_argsort_run(d)]
             made = 0
             for ib in range(k):
                 if made >= max_per_anchor:
@@ -216,7 +247,7 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_f
                     for idd in range(ic):
                         dd = lst[idd]
                         _edges(vec[a], vec[b], vec[c], vec[dd], e)
-                        es = np.sort(e)
+                        _sort6(e, es)
                         if es[5] > rho_max or es[5] <= rho_min or es[0] < min_ratio * es[5]:
                             continue
                         if p == 1:
@@ -225,6 +256,7 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_f
                             out_p[total, 2] = c
                             out_p[total, 3] = dd
                             out_k[total] = _key(es)
+                            _shape_row(es, out_s, total)
                         total += 1
                         made += 1
                         if made >= max_per_anchor:
@@ -232,7 +264,8 @@ def level_patterns(vec, rho_max, rho_min, min_ratio, max_per_anchor, brightest_f
         if p == 0:
             out_p = np.empty((total, 4), dtype=np.int64)
             out_k = np.empty(total, dtype=np.int64)
-    return out_p, out_k
+            out_s = np.empty((total, 6), dtype=np.uint16)
+    return out_p, out_k, out_s
 
 
 @njit(cache=True)
@@ -262,11 +295,17 @@ def pattern_shapes(vec, pats):
     for p in range(pats.shape[0]):
         _edges_rows(vec, pats[p, 0], pats[p, 1], pats[p, 2], pats[p, 3], ce)
         _sort6(ce, cs)
-        total = cs[0] + cs[1] + cs[2] + cs[3] + cs[4] + cs[5]
-        for t in range(6):
-            q = int(cs[t] / total * SHAPE_SCALE + 0.5) if total > 0.0 else 0
-            out[p, t] = min(max(q, 0), 65535)
+        _shape_row(cs, out, p)
     return out
+
+
+@njit(cache=True, inline="always")
+def _shape_row(cs, out, p):
+    """Row ``p`` of :func:`pattern_shapes`' array from the six edges ``cs``, ascending."""
+    total = cs[0] + cs[1] + cs[2] + cs[3] + cs[4] + cs[5]
+    for t in range(6):
+        q = int(cs[t] / total * SHAPE_SCALE + 0.5) if total > 0.0 else 0
+        out[p, t] = min(max(q, 0), 65535)
 
 
 @njit(cache=True, inline="always")
