@@ -112,9 +112,8 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     margin, eps = _tolerances(params, sig_px, use, camera.focal_length_px)
     prepare_ms = None
     if algorithm.prepare is not None:
-        tp = time.perf_counter()        # (_prepare, without its call)
-        if algorithm.prepare(config, camera, db, eps):
-            pause = time.perf_counter() - tp
+        pause = _prepare(algorithm, config, camera, db, eps)
+        if pause:
             prepare_ms = pause * 1000
             t0 += pause       # loading for this sensor, not identification: not in time_ms
     deadline = t0 + params.max_time_ms / 1000.0
@@ -124,19 +123,13 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
         log.debug("%s: %d stars (%d searched), tolerance %.1f arcsec, budget %d proposals / %g ms, database %s",
                   name, n_all, use, math.degrees(eps) * 3600, params.max_proposals, params.max_time_ms,
                   getattr(db, "path", None) or type(db).__name__)
-    plain = _PLAIN
-    if plain[0] is not camera:
-        plain = _plain(camera)
-    fused = FUSED_VERIFY and plain[1] and (params.match_radius_px is None or params.match_radius_px > 0)
+    fused = FUSED_VERIFY and not camera.has_distortion and camera.is_pinhole and (params.match_radius_px is None or
+                                                               params.match_radius_px > 0)
     in_kernel = fused and FUSED_SEARCH and algorithm.fused is not None and not debug
     b_all = None if in_kernel else _pixels_to_vectors(camera, xs, ys)
     frame = (algorithm, config, frame_stars, xs, ys, b_all, flux, sig_px, fused, in_kernel, camera, db, params)
     plan = search_plan(n_all, params, algorithm.focal_passes) if use < n_all else None
-    if in_kernel:       # _search's first branch, without its call
-        out = algorithm.fused(config, FusedFrame(xs, ys, flux, sig_px, use, eps, margin, deadline, 0,
-                                                 plan[0][1] if plan else BOTH_PASSES), camera, db, params)
-    else:
-        out = _search(frame, use, eps, margin, deadline, 0, plan[0][1] if plan else BOTH_PASSES)
+    out = _search(frame, use, eps, margin, deadline, 0, plan[0][1] if plan else BOTH_PASSES)
     searched, searches, swept = use, 1, None
     if out.accepted is None:
         out, searched, searches, eps, pause, swept = _deepen(frame, out, plan or [(use, BOTH_PASSES)], eps,
@@ -217,17 +210,6 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
 
 
 _TOL_ARCSEC: dict = {}      # the reported tolerance (arcsec, 3 decimals) per eps: round() costs a string conversion
-
-
-def _plain(camera):
-    """``(camera, a pinhole camera without distortion)``, kept as the last camera's (:data:`_PLAIN`): the fused
-    paths' test, two properties of a frozen camera, looked up by identity for the next frame."""
-    global _PLAIN
-    _PLAIN = got = (camera, bool(not camera.has_distortion and camera.is_pinhole))
-    return got
-
-
-_PLAIN = (None, False)
 
 
 def search_levels(n_stars: int, params: IdentifyParams) -> list:

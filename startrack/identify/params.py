@@ -93,10 +93,6 @@ class IdentifyParams:
 
 def star_sigmas_px(stars: list, params: IdentifyParams) -> np.ndarray:
     """1-sigma centroid noise per star (px): the parameter, else the star's ``sigma_px`` (scaled), else 0.5."""
-    if params.sigma_px is not None:
-        out = np.empty(len(stars))
-        out.fill(float(params.sigma_px))        # _sigmas' values, without its closure (every frame's call)
-        return out
     return _sigmas(len(stars), params, lambda: _floats([s.get("sigma_px") for s in stars]))
 
 

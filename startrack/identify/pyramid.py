@@ -261,7 +261,7 @@ def fused_pyramid(config: PyramidConfig, frame, camera, db, params):
     patterns against every pair: the kernel's count never falls below the first tier's)."""
     xs = frame.xs
     n = len(xs)
-    first = _first_tier(db, camera, frame.use) if frame.use > PATTERN_STARS else None     # (its test, without its call)
+    first = _first_tier(db, camera, frame.use)
     if first is not None:
         plan = _plan(first)
         buffers, rest, dcm = _inputs(plan, config, frame, camera, params, n, True)
@@ -405,13 +405,6 @@ def _inputs(plan, config, frame, camera, params, n, first=False):
             and last[4] == margin and last[5] == eps):
         by_use = last[6]
         rest = by_use.get(use)
-        if (rest is not None and buffers is not None and rest[3] is buffers[0] and len(buffers[3]) >= 4 * n
-                and not frame.trials0):
-            # The thread's last frame's arguments, as they are (the common case: the test below, with nothing to
-            # add to by_use).
-            buffers[0].fill(0)
-            buffers[2].fill(0)
-            return buffers, rest, dcm
     else:
         by_use = {}
         rest = None
