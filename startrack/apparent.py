@@ -380,8 +380,9 @@ def image_time_tags(path: str):
     """``(fits_header, exif_datetime)`` of an image file: the primary FITS header of a FITS file, the EXIF
     ``DateTimeOriginal`` (else ``DateTime``) of another; ``None`` for what the file does not carry.
 
-    A TIFF or JPEG file's tags are read directly (:func:`_exif_datetime`: a few hundred bytes, no imaging
-    library to load); other files, and any such file this reader does not follow, through Pillow."""
+    A TIFF, JPEG or PNG file's tags are read directly (:func:`_exif_datetime`: a few hundred bytes, no imaging
+    library to load, no pixels decoded: Pillow decodes a whole PNG to look for an EXIF chunk after its pixels);
+    other files, and any such file this reader does not follow, through Pillow."""
     import os
 
     ext = os.path.splitext(str(path))[1].lower()
@@ -417,8 +418,9 @@ _TIFF_TEXT = {2: "latin-1", 129: "utf-8"}
 
 def _exif_datetime(path: str):
     """``(True, DateTimeOriginal or DateTime or None)`` read from a classic TIFF file's first directory (and its
-    EXIF directory), or a JPEG file's EXIF segment, as Pillow reads them; ``(False, None)`` for any other file
-    (the caller asks Pillow).  Raises ``ValueError``/``struct.error`` for a file it cannot follow."""
+    EXIF directory), a JPEG file's EXIF segment or a PNG file's ``eXIf`` chunk, as Pillow reads them; ``(False,
+    None)`` for any other file, and for a PNG whose EXIF is in a text chunk (the caller asks Pillow).  Raises
+    ``ValueError``/``struct.error`` for a file it cannot follow."""
     import io
     import struct
 
@@ -436,9 +438,56 @@ def _exif_datetime(path: str):
                 body = fh.read(size - 2)
                 if kind == 0xE1 and body[:6] == b"Exif\0\0":
                     return True, _tiff_datetime(io.BytesIO(body[6:]))
+        if head == b"\x89PNG":
+            return _png_datetime(fh)
         if head not in (b"II*\0", b"MM\0*"):
             return False, None
         return True, _tiff_datetime(fh)
+
+
+#: PNG text chunks: one keyed ``Raw profile type exif`` holds EXIF as Pillow reads it when no ``eXIf`` chunk does.
+_PNG_TEXT = (b"tEXt", b"zTXt", b"iTXt")
+
+
+def _png_datetime(fh):
+    """:func:`_exif_datetime` of the PNG file ``fh``: its chunks' headers read, their data skipped (``IDAT``'s too),
+    an ``eXIf`` chunk's TIFF structure read as Pillow reads it (the last before the pixels, else the last after them:
+    Pillow reads on to the chunks after the pixels only when it found none before).  ``(False, None)`` when a text chunk may hold
+    the EXIF (Pillow's ``Raw profile type exif``) or the ``eXIf`` data starts with its own ``Exif`` header."""
+    import io
+    import struct
+
+    fh.seek(0)
+    if fh.read(8) != b"\x89PNG\r\n\x1a\n":
+        raise ValueError("not a PNG signature")
+    exif = [None, None]         # before the pixels, after them
+    pixels = 0
+    while True:
+        head = fh.read(8)
+        if len(head) < 8:
+            raise ValueError("a PNG chunk lies beyond the file")
+        length, kind = struct.unpack(">I", head[:4])[0], head[4:]
+        if kind == b"IEND":
+            break
+        if kind == b"eXIf":
+            data = fh.read(length)
+            if len(data) < length:
+                raise ValueError("a PNG chunk lies beyond the file")
+            exif[pixels] = data
+            fh.seek(4, 1)
+        elif kind in _PNG_TEXT:
+            if fh.read(min(length, 22)).startswith(b"Raw profile type exif"):
+                return False, None
+            fh.seek(length - min(length, 22) + 4, 1)
+        else:
+            pixels = pixels or int(kind == b"IDAT")
+            fh.seek(length + 4, 1)
+    exif = exif[0] if exif[0] is not None else exif[1]
+    if exif is None:
+        return True, None
+    if exif.startswith(b"Exif\0\0"):
+        return False, None
+    return True, _tiff_datetime(io.BytesIO(exif))
 
 
 def _tiff_datetime(fh):

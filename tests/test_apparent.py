@@ -209,7 +209,7 @@ def _pillow_time_tag(path):
                                   {"dt": "2019:07:29 20:47:26", "dto": "2021:01:02 03:04:05"},
                                   {"dt": "2019:07:29 20:47:26", "dto": ""}, {"dt": "abc"}])
 def test_image_time_tags_read_directly_agree_with_pillow(tmp_path, fmt, tags):
-    """The direct TIFF/JPEG tag reader gives what Pillow gives (a PNG goes to Pillow itself)."""
+    """The direct TIFF/JPEG/PNG tag reader gives what Pillow gives."""
     from PIL import Image
 
     exif = Image.Exif()
@@ -224,10 +224,61 @@ def test_image_time_tags_read_directly_agree_with_pillow(tmp_path, fmt, tags):
     if fmt == "jpeg" or "dto" not in tags:      # Pillow writes a TIFF or PNG EXIF directory, or not, by version
         assert want == (tags.get("dto") or tags.get("dt"))      # the oracle holds what was written
     found, got = ap._exif_datetime(path)
-    assert found == (fmt != "png")
-    if found:
-        assert got == want
+    assert found
+    assert got == want
     assert ap.image_time_tags(path) == (None, want)
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+@pytest.mark.parametrize("where", ["after the pixels", "text chunk", "two eXIf chunks", "truncated"])
+def test_png_time_tags_without_decoding_agree_with_pillow(tmp_path, where):
+    """A PNG's eXIf chunk after its pixels (where Pillow decodes the image to reach it), one before and one after, an EXIF
+    held in a text chunk (left to Pillow) and a truncated file (refused, Pillow decides): Pillow's answer."""
+    import io
+
+    from PIL import Image
+
+    def exif_bytes(dto):
+        exif = Image.Exif()
+        exif[0x0132] = "2019:07:29 20:47:26"
+        exif.get_ifd(0x8769)[0x9003] = dto
+        return exif.tobytes()[6:]           # the TIFF structure (Exif.tobytes() starts with its Exif header)
+
+    buf = io.BytesIO()
+    Image.fromarray((np.arange(64 * 48) % 251).astype(np.uint8).reshape(48, 64)).save(buf, format="png")
+    raw = buf.getvalue()
+    end = raw.rindex(b"IEND") - 4           # the IEND chunk's length field
+    if where == "after the pixels":
+        data = raw[:end] + _png_chunk(b"eXIf", exif_bytes("2021:01:02 03:04:05")) + raw[end:]
+    elif where == "two eXIf chunks":
+        data = raw[:33] + _png_chunk(b"eXIf", exif_bytes("2001:01:01 01:01:01")) + raw[33:end] \
+            + _png_chunk(b"eXIf", exif_bytes("2021:01:02 03:04:05")) + raw[end:]
+    elif where == "text chunk":
+        hexed = (b"Exif\0\0" + exif_bytes("2011:11:11 11:11:11")).hex().encode()
+        data = raw[:33] + _png_chunk(b"tEXt", b"Raw profile type exif\0\nexif\n %d\n" % (len(hexed) // 2) + hexed
+                                     + b"\n") + raw[33:]
+    else:
+        data = raw[:end - 20]
+    path = tmp_path / "frame.png"
+    path.write_bytes(data)
+    if where == "truncated":
+        with pytest.raises(ValueError):
+            ap._exif_datetime(str(path))
+        assert ap.image_time_tags(str(path)) == (None, None)
+        return
+    want = _pillow_time_tag(str(path))
+    found, got = ap._exif_datetime(str(path))
+    if where == "text chunk":
+        assert not found and want == "2011:11:11 11:11:11"     # Pillow's to read
+    else:
+        assert found and got == want == ("2001:01:01 01:01:01" if where == "two eXIf chunks" else "2021:01:02 03:04:05")
+    assert ap.image_time_tags(str(path)) == (None, want)
 
 
 def test_image_time_tags_of_a_big_endian_tiff(tmp_path):
