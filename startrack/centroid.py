@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import math
 import operator
+import struct
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -623,6 +624,37 @@ class _Bands:
             out[k] = part[0]
 
 
+#: The order keys (:func:`startrack._kernels.centroid.float32_key_range`) of ``+inf`` and ``-inf``: a key at or beyond
+#: either is a pixel that is not finite.
+_KEY_POS_INF = 0x7F800000
+_KEY_NEG_INF = -0x7F800001
+
+
+def _pixel_range(img):
+    """``(smallest, largest)`` pixel of ``img`` as floats, both NaN when a pixel is NaN or infinite (as
+    ``float(img.min()), float(img.max())``, whose NaN propagates, and an infinity is not finite either).  A
+    C-contiguous float32 frame (every frame find_stars measures whole) in one pass of
+    :func:`startrack._kernels.centroid.float32_key_range`; others by numpy."""
+    if img.dtype != np.float32 or not img.flags.c_contiguous or img.size == 0:
+        return float(img.min()), float(img.max())
+    from startrack._kernels.centroid import float32_key_range
+
+    lo, hi = float32_key_range(img.reshape(-1).view(np.int32))
+    if hi >= _KEY_POS_INF or lo <= _KEY_NEG_INF:
+        return math.nan, math.nan
+    return _key_value(int(lo)), _key_value(int(hi))
+
+
+def _key_value(key: int) -> float:
+    """The float32 value (as a float) of an order key of :func:`startrack._kernels.centroid.float32_key_range`."""
+    bits = key ^ ((key >> 31) & 0x7FFFFFFF)       # the flip undoes itself
+    return _F32.unpack(_I32.pack(bits))[0]
+
+
+_I32 = struct.Struct("<i")
+_F32 = struct.Struct("<f")
+
+
 def _banded(image, options) -> bool:
     """Whether :func:`find_stars` measures ``image`` in bands (:class:`_Bands`): a frame of at least
     :data:`_BAND_MIN_PIXELS` and a mesh background (at least 2 x 2 tiles)."""
@@ -820,7 +852,7 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     if sat is None and image.dtype in (np.uint8, np.uint16):
         sat = float(np.iinfo(image.dtype).max)      # as an 8- or 16-bit file says (imageio.read_image): the CLI's
     # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
-    bottom, top = float(img.min()), float(img.max())      # numpy's vectorised passes; NaN propagates
+    bottom, top = _pixel_range(img)      # NaN when a pixel is not finite
     probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
     if not (math.isfinite(bottom) and math.isfinite(top)):
         finite = img[np.isfinite(img)]

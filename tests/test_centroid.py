@@ -658,3 +658,42 @@ def test_mesh_core_stats_is_each_tiles_core_stats(kind):
             continue
         expected = core_stats_of_sorted(ordered[t, :counts[t]].astype(np.float64))
         assert (level.ravel()[t], sigma.ravel()[t]) == expected
+
+
+def test_pixel_range_is_numpys_min_and_max_in_one_pass():
+    """_pixel_range (one pass over the float32 bits) gives numpy's min and max of every finite frame, and NaN for
+    both when a pixel is NaN or infinite of either sign (numpy's NaN propagates; an infinity is not finite):
+    magnitudes from subnormal to 3e38, negatives, signed zeros, whole DN."""
+    import math
+
+    from startrack.centroid import _pixel_range
+
+    rng = np.random.default_rng(38)
+    specials = [0.0, -0.0, 1.0, -1.0, 3e38, -3e38, 1e-45, -1e-45]
+    for trial in range(1500):
+        shape = (int(rng.integers(1, 40)), int(rng.integers(1, 40)))
+        kind = trial % 6
+        if kind == 0:
+            a = rng.normal(0, 1e3, shape)
+        elif kind == 1:
+            a = rng.integers(0, 65535, shape).astype(float)
+        elif kind == 2:
+            a = rng.normal(0, 1, shape) * 10.0 ** int(rng.integers(-45, 38))
+        elif kind == 3:
+            a = -np.abs(rng.normal(0, 1e-40, shape))
+        elif kind == 4:
+            a = rng.choice(specials, shape)
+        else:
+            a = rng.normal(0, 1, shape)
+        a = a.astype(np.float32)
+        if trial % 7 == 0:
+            a.flat[int(rng.integers(a.size))] = [np.nan, np.inf, -np.inf, -np.nan][trial % 4]
+        got = _pixel_range(a)
+        want = (float(a.min()), float(a.max()))
+        if math.isfinite(want[0]) and math.isfinite(want[1]):
+            assert got == want, (a, got, want)
+        else:
+            assert math.isnan(got[0]) and math.isnan(got[1]), (a, got, want)
+    # Not float32, or not contiguous: numpy's own answer.
+    v = np.arange(12.0).reshape(3, 4)
+    assert _pixel_range(v) == (0.0, 11.0) and _pixel_range(v.astype(np.float32)[:, ::2]) == (0.0, 10.0)
