@@ -278,11 +278,13 @@ _PIXELS_PER_CHUNK = 100_000
 
 
 def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, labels, foreground, row_counts, sigma_mesh,
-                         noise: bool):
+                         noise: bool, keys: list | None = None):
     """``residual``, the mask in ``labels`` (:func:`startrack._kernels.centroid.subtract_background_rows`) and,
     when ``noise``, the pixel-noise mesh of :func:`_pixel_noise_mesh` from the same pass (else None); strips of whole tile rows
-    on :func:`threads` threads (the same values whatever their number)."""
-    from startrack._kernels.centroid import subtract_background_rows
+    on :func:`threads` threads (the same values whatever their number).  ``keys`` (a list; a C-contiguous float32
+    ``image``): each strip's smallest and largest pixel order key
+    (:func:`startrack._kernels.centroid.subtract_background_rows_keyed`) are appended to it."""
+    from startrack._kernels.centroid import subtract_background_rows, subtract_background_rows_keyed
 
     h, w = image.shape
     ny, nx = level_mesh.shape
@@ -292,16 +294,28 @@ def _subtract_background(image, level_mesh, thresh_mesh, cell, residual, labels,
     args = (image, np.ascontiguousarray(level_mesh, dtype=np.float64),
             np.ascontiguousarray(thresh_mesh, dtype=np.float64), float(cell), residual, labels, int(foreground),
             row_counts)
+    if keys is None:
+        kernel, extra = subtract_background_rows, ()
+    else:
+        kernel, extra = subtract_background_rows_keyed, (image.view(np.int32),)
     n_threads = min(threads(), h * w // _PIXELS_PER_THREAD)
     if n_threads <= 1 or (ny, nx) == (1, 1):
-        subtract_background_rows(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0)
+        got = kernel(*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0, *extra)
+        if keys is not None:
+            keys.append(got)
     else:
-        kernel = subtract_background_rows.resolve((*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0))
+        kernel = kernel.resolve((*args, 0, h, sig, _CLIP_KAPPA, _CLIP_STD, out, 0, *extra))
         # Chunks of whole tile rows, about _PIXELS_PER_CHUNK pixels each.
         step = max(1, _PIXELS_PER_CHUNK // (int(cell) * w))
         rows = [min(h, int(cell) * j) for j in range(0, ny, step)] + [h]
-        _run_chunks(lambda i: kernel(*args, rows[i], rows[i + 1], sig, _CLIP_KAPPA, _CLIP_STD, out, 0),
-                    len(rows) - 1, n_threads)
+        got = [None] * (len(rows) - 1)
+
+        def run(i):
+            got[i] = kernel(*args, rows[i], rows[i + 1], sig, _CLIP_KAPPA, _CLIP_STD, out, 0, *extra)
+
+        _run_chunks(run, len(rows) - 1, n_threads)
+        if keys is not None:
+            keys.extend(got)
     return _noise_floor(out, sigma_mesh) if noise else None
 
 
@@ -651,6 +665,9 @@ def _key_value(key: int) -> float:
     return _F32.unpack(_I32.pack(bits))[0]
 
 
+#: find_stars takes a whole float32 frame's range from its background pass (False: from a pass of its own, as
+#: other frames; the tests compare the two).
+_FUSED_RANGE = True
 _I32 = struct.Struct("<i")
 _F32 = struct.Struct("<f")
 
@@ -851,54 +868,111 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     sat = options.saturation_dn if options.saturation_dn is not None else saturation
     if sat is None and image.dtype in (np.uint8, np.uint16):
         sat = float(np.iinfo(image.dtype).max)      # as an 8- or 16-bit file says (imageio.read_image): the CLI's
-    # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
-    bottom, top = _pixel_range(img)      # NaN when a pixel is not finite
     probe = img[:: max(1, img.shape[0] // 128), :: max(1, img.shape[1] // 128)]
-    if not (math.isfinite(bottom) and math.isfinite(top)):
-        finite = img[np.isfinite(img)]
-        if finite.size == 0:
-            return result([], [], float("nan"), 0.0, "image is constant: no finite pixel value")
-        bottom, top = float(finite.min()), float(finite.max())
-        probe = probe[np.isfinite(probe)]
-    span = top - bottom
-    if span <= 0 and (sat is None or top < sat):
-        # One value everywhere (an array of zeros, a dark frame of one DN) carries no signal; it is saturated
-        # only when that value reaches a saturation level given or read from the file.
-        return result([], [], top, 0.0, "image is constant: no signal")
-    # Below the level given (or with none), the frame may still be clipped: a flat plateau at its largest value
-    # (_clip_confirmed, after the labelling) is clipping on any sensor -- a 12-bit camera in 16-bit words, a full
-    # well or an encoder below the type's range, pixels scaled or converted after the clip.  Until then the
-    # largest value is the candidate level; every frame has a largest value, and a lone one is no clip.
-    inferred = sat is None or top < sat
-    sat = top if inferred else sat
-    # np.mean of the comparison: its count over the probe's size (the same division, without a float copy).
-    frac_sat = (np.count_nonzero(probe >= sat) / probe.size if probe.size else 0.0) if sat > bottom else 1.0
-    if frac_sat > 0.95:
-        # Over 95 % saturated: daylight, a lens cap off in the sun.  A bright body over part of the frame (the Moon,
-        # a lit building) leaves the rest to search.
-        return result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of pixels)")
-    det_img = img
-    if options.background == "tophat":
-        det_img = _tophat(img, options)
-    # Saturated pixels are no data for the background (only looked for when the probe saw some).
-    level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options,
-                                                                 sat if frac_sat > 0 and det_img is img else None)
-    if not gsigma > 0 and span <= 0:
-        return result([], [], glevel, 0.0, "image is constant: no signal")
-    sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
-    cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+    given_sat = sat
+
+    def levels(bottom, top, probe):
+        """The frame's saturation level and what the range says before any search: ``(result or None, sat,
+        inferred, frac_sat, span)``."""
+        span = top - bottom
+        if span <= 0 and (given_sat is None or top < given_sat):
+            # One value everywhere (an array of zeros, a dark frame of one DN) carries no signal; it is saturated
+            # only when that value reaches a saturation level given or read from the file.
+            return result([], [], top, 0.0, "image is constant: no signal"), None, False, 0.0, span
+        # Below the level given (or with none), the frame may still be clipped: a flat plateau at its largest value
+        # (_clip_confirmed, after the labelling) is clipping on any sensor -- a 12-bit camera in 16-bit words, a
+        # full well or an encoder below the type's range, pixels scaled or converted after the clip.  Until then the
+        # largest value is the candidate level; every frame has a largest value, and a lone one is no clip.
+        inferred = given_sat is None or top < given_sat
+        level = top if inferred else given_sat
+        # np.mean of the comparison: its count over the probe's size (the same division, without a float copy).
+        frac_sat = (np.count_nonzero(probe >= level) / probe.size if probe.size else 0.0) if level > bottom else 1.0
+        if frac_sat > 0.95:
+            # Over 95 % saturated: daylight, a lens cap off in the sun.  A bright body over part of the frame (the
+            # Moon, a lit building) leaves the rest to search.
+            return (result([], [], float(np.median(probe)), 0.0, f"image is saturated ({100 * frac_sat:.0f}% of "
+                           "pixels)"), level, inferred, frac_sat, span)
+        return None, level, inferred, frac_sat, span
+
     integer = _is_integer_image(img)
-    if options.threshold_dn is not None:
-        thresh_mesh = np.full(level_mesh.shape, float(options.threshold_dn))
-    else:
-        # A pixel's noise: the background's normal sigma, and on whole DN the rounding's 1/12 DN^2 (the
-        # whole noise of a frame whose pixels sit in one or two grey levels, where sigma is 0).
-        thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
+
+    def background(det_img, bg_sat):
+        """The background mesh (saturated pixels no data when ``bg_sat``) and the detection threshold's."""
+        level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options, bg_sat)
+        sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
+        if options.threshold_dn is not None:
+            thresh_mesh = np.full(level_mesh.shape, float(options.threshold_dn))
+        else:
+            # A pixel's noise: the background's normal sigma, and on whole DN the rounding's 1/12 DN^2 (the
+            # whole noise of a frame whose pixels sit in one or two grey levels, where sigma is 0).
+            thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
+        return level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh
+
     max_blobs = 20000
-    ws = _workspace(img.shape, max_blobs, not banded)
-    residual, labels, table = ws["residual"], ws["labels"], ws["table"]
-    foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
-    counts = ws["row_counts"]
+    # A whole float32 frame (the mesh background, no top-hat) has its range from the background pass itself
+    # (subtract_background_rows_keyed): one pass over the pixels fewer.  That pass needs the background first,
+    # whose saturated pixels depend on the range: it is made with what the probe already tells (pixels at a
+    # level given are saturated whatever the range), and made again in the one case the range changes that (no
+    # level given or reached, and the probe holds the frame's largest value: saturated pixels at an inferred
+    # level).  A frame with a pixel that is not finite takes the passes below instead.  The same numbers either way.
+    fused = (_FUSED_RANGE and not banded and options.background == "mesh" and img.dtype == np.float32
+             and img.flags.c_contiguous)
+    if fused:
+        guess = sat if sat is not None and probe.size and np.count_nonzero(probe >= sat) else None
+        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(img, guess)
+        cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+        ws = _workspace(img.shape, max_blobs, True)
+        residual, labels, table = ws["residual"], ws["labels"], ws["table"]
+        foreground = int(np.iinfo(labels.dtype).max)
+        counts = ws["row_counts"]
+        keys = []
+        noise_mesh = _subtract_background(img, level_mesh, thresh_mesh, cell, residual, labels, foreground, counts,
+                                          sigma_mesh, options.method == "gauss", keys)
+        lo, hi = min(k[0] for k in keys), max(k[1] for k in keys)
+        if hi >= _KEY_POS_INF or lo <= _KEY_NEG_INF:
+            fused = False           # NaN or infinite pixels: the passes below
+            labels.fill(0)          # (which may return before writing the mask again)
+        else:
+            early, sat, inferred, frac_sat, span = levels(_key_value(int(lo)), _key_value(int(hi)), probe)
+            if early is None:
+                bg_sat = sat if frac_sat > 0 else None
+                if (bg_sat is None) != (guess is None) or (bg_sat is not None and bg_sat != guess):
+                    level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(img, bg_sat)
+                    cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+                    if gsigma > 0 or span > 0:
+                        noise_mesh = _subtract_background(img, level_mesh, thresh_mesh, cell, residual, labels,
+                                                          foreground, counts, sigma_mesh, options.method == "gauss")
+                if not gsigma > 0 and span <= 0:
+                    early = result([], [], glevel, 0.0, "image is constant: no signal")
+            if early is not None:
+                labels.fill(0)          # the reused buffer is left as the next frame expects it
+                return early
+            det_img = img
+    if not fused:
+        # NaN (or infinite) pixels -- a dead region, a mosaic's gaps -- are no data: the levels of the rest.
+        bottom, top = _pixel_range(img)      # NaN when a pixel is not finite
+        if not (math.isfinite(bottom) and math.isfinite(top)):
+            finite = img[np.isfinite(img)]
+            if finite.size == 0:
+                return result([], [], float("nan"), 0.0, "image is constant: no finite pixel value")
+            bottom, top = float(finite.min()), float(finite.max())
+            probe = probe[np.isfinite(probe)]
+        early, sat, inferred, frac_sat, span = levels(bottom, top, probe)
+        if early is not None:
+            return early
+        det_img = img
+        if options.background == "tophat":
+            det_img = _tophat(img, options)
+        # Saturated pixels are no data for the background (only looked for when the probe saw some).
+        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(
+            det_img, sat if frac_sat > 0 and det_img is img else None)
+        if not gsigma > 0 and span <= 0:
+            return result([], [], glevel, 0.0, "image is constant: no signal")
+        cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+        ws = _workspace(img.shape, max_blobs, not banded)
+        residual, labels, table = ws["residual"], ws["labels"], ws["table"]
+        foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
+        counts = ws["row_counts"]
     if banded:
         from startrack._kernels.centroid import label_blobs_lazy
 
@@ -918,8 +992,9 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
                 labels.fill(0)
             else:
                 clear_labels(labels, table, n_found)
-    noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, labels, foreground, counts,
-                                      sigma_mesh, options.method == "gauss")
+    if not fused:
+        noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, labels, foreground,
+                                          counts, sigma_mesh, options.method == "gauss")
     if options.matched_filter:
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
         # the filtered image is the pixel noise times the kernel's L2 norm.
@@ -1107,6 +1182,8 @@ def _measure(img, residual, labels, table, n_found, max_blobs, options, sigma_me
     h_img, w_img = img.shape
     # The other methods (com, iwc, quine) and the deblended peaks of a non-gauss frame, star by star.
     for (cx, cy, peak, npix, nsat, sig_est, deblended, _) in candidates:
+        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(sig_est)):
+            continue        # a blob of infinite pixels: no position, no star (as measure_candidates)
         sigma_psf = options.psf_sigma_px or max(0.5, min(sig_est, 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
         if isinstance(residual, _Bands):

@@ -697,3 +697,69 @@ def test_pixel_range_is_numpys_min_and_max_in_one_pass():
     # Not float32, or not contiguous: numpy's own answer.
     v = np.arange(12.0).reshape(3, 4)
     assert _pixel_range(v) == (0.0, 11.0) and _pixel_range(v.astype(np.float32)[:, ::2]) == (0.0, 10.0)
+
+
+def _fused_and_not(img, opts, saturation, monkeypatch):
+    """find_stars of ``img`` with the range from the background pass, and with the separate range pass; and the
+    saturation levels of the background estimates the first made."""
+    import startrack.centroid as c
+
+    calls = []
+    estimate = c.estimate_background
+    monkeypatch.setattr(c, "estimate_background", lambda *a, **k: (calls.append(a[2] if len(a) > 2 else None),
+                                                                    estimate(*a, **k))[1])
+    fused = find_stars(img, opts, saturation=saturation)
+    n_fused = len(calls)
+    with monkeypatch.context() as m:
+        m.setattr(c, "_FUSED_RANGE", False)
+        plain = find_stars(img, opts, saturation=saturation)
+    return fused, plain, calls[:n_fused]
+
+
+@pytest.mark.parametrize("case", ["clip-inferred", "clip-given", "given-above", "none", "constant", "constant-sat",
+                                  "saturated", "negative"])
+def test_range_from_the_background_pass_changes_nothing(case, monkeypatch):
+    """The range taken from the background pass (and the background made again when it shows saturated pixels at an
+    inferred level) gives the stars, rejections, levels and reasons of the separate range pass, bit for bit."""
+    img = _field((480, 640), 150, 11, saturate=case.startswith("clip"))
+    sat = {"clip-given": 3000.0, "given-above": 1e5, "constant-sat": 7.0, "saturated": 500.0}.get(case)
+    if case.startswith("clip"):
+        # A plateau at the clip on the probe's grid (every 3rd row, 5th column): the probe sees saturated pixels.
+        img[96:104, 200:208] = img.max()
+    elif case.startswith("constant"):
+        img = np.full((300, 400), 7.0, dtype=np.float32)
+    elif case == "saturated":
+        img = np.full((300, 400), 600.0, dtype=np.float32)
+        img[:10, :10] = 100.0
+    elif case == "negative":
+        img = img - 5000.0
+    for opts in (CentroidOptions(max_stars=60), CentroidOptions(method="com"), CentroidOptions(matched_filter=True)):
+        fused, plain, saturations = _fused_and_not(img, opts, sat, monkeypatch)
+        assert repr(fused.stars) == repr(plain.stars) and fused.rejected == plain.rejected
+        assert (repr(fused.background_level), repr(fused.background_sigma), fused.reason) == \
+            (repr(plain.background_level), repr(plain.background_sigma), plain.reason)
+        if case == "clip-inferred":
+            # The first background knew no saturated pixels; the range showed them (the plateau at the inferred
+            # level is on the probe): made again with them.
+            assert saturations == [None, float(img.max())], saturations
+            assert fused.stars and any(s_["saturated"] for s_ in fused.stars)
+        elif case == "clip-given":
+            # Pixels at the level given on the probe: saturated whatever the range, the first background knew it.
+            assert saturations == [3000.0], saturations
+        elif case in ("none", "given-above", "negative"):
+            assert saturations[:1] == [None] and len(fused.stars) >= 60
+
+
+@pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
+def test_a_pixel_that_is_not_finite_is_no_star_and_no_crash(value):
+    """An infinite (or NaN) pixel in a float frame is no data: every method, with and without the matched filter
+    (which spreads it over the kernel's width), measures the frame's stars at finite positions (an infinite blob
+    once made the Gaussian fits read outside the frame, and the other methods raise)."""
+    img = _field((480, 640), 120, 3)
+    img[5, 5] = value
+    img[200, 300] = value
+    for method in ("gauss", "com", "iwc", "quine"):
+        for matched in (False, True):
+            res = find_stars(img, CentroidOptions(method=method, matched_filter=matched))
+            assert len(res.stars) >= 100, (method, matched, len(res.stars))
+            assert all(math.isfinite(s_["x"]) and math.isfinite(s_["y"]) for s_ in res.stars)

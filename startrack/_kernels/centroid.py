@@ -449,6 +449,23 @@ def float32_key_range(bits):
 @njit(cache=True, nogil=True)
 def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
                              row1, noise_mesh, kappa, truncated_std, noise_out, band0):
+    """:func:`_subtract_rows` without the pixels' range."""
+    _subtract_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0, row1,
+                   noise_mesh, kappa, truncated_std, noise_out, band0, np.empty((0, 0), dtype=np.int32), False)
+
+
+@njit(cache=True, nogil=True)
+def subtract_background_rows_keyed(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts,
+                                   row0, row1, noise_mesh, kappa, truncated_std, noise_out, band0, bits):
+    """:func:`_subtract_rows` of a float32 ``image`` (``bits``: its ``int32`` view), returning the smallest and
+    largest order key of its rows ``row0 <= y < row1`` (:func:`float32_key_range`'s, from the same pass)."""
+    return _subtract_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
+                          row1, noise_mesh, kappa, truncated_std, noise_out, band0, bits, True)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _subtract_rows(image, level_mesh, threshold_mesh, cell, residual, labels, foreground, row_counts, row0,
+                   row1, noise_mesh, kappa, truncated_std, noise_out, band0, bits, keyed):
     """``residual = image - level`` and the mask ``residual > threshold`` (both maps bilinear between tile centres,
     as ``cv2.resize``) of the rows ``row0 <= y < row1`` into ``residual`` and ``labels`` (``foreground``
     above the threshold, else 0: what :func:`label_blobs_into` labels; no separate mask; ``row_counts[y]`` their
@@ -465,10 +482,17 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
 
     ``image`` and ``residual`` may be bands of the frame: their row ``y - band0`` is the frame's row ``y`` (0 for
     whole frames); ``labels`` and ``row_counts`` are the whole frame's.
+
+    ``keyed``: ``bits`` is the float32 ``image``'s ``int32`` view, and the smallest and largest order key
+    (:func:`float32_key_range`) of the rows' pixels are returned (else ``bits`` is not read).
     """
     h = labels.shape[0]
     w = image.shape[1]
     ny, nx = level_mesh.shape
+    kmask = np.int32(0x7FFFFFFF)
+    kshift = np.int32(31)
+    klo = np.int32(0x7FFFFFFF)
+    khi = np.int32(-0x7FFFFFFF - 1)
     noise = noise_out.shape[0] == ny and noise_out.shape[1] == nx
     fg = foreground
     tx = np.empty(w)
@@ -498,6 +522,13 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
         _mesh_row(threshold_mesh, j0, j1, ty, trow)
         count = 0
         jt = y // icell
+        if keyed:
+            brow = bits[y - band0]
+            for x in range(w):
+                kb = brow[x]
+                kk = np.int32(kb ^ np.int32(np.int32(kb >> kshift) & kmask))
+                klo = np.int32(min(klo, kk))
+                khi = np.int32(max(khi, kk))
         if noise and (y % icell == 0 or y == row0):
             for x in range(w):
                 lim[x] = kappa * noise_mesh[jt, x // icell]
@@ -546,6 +577,7 @@ def subtract_background_rows(image, level_mesh, threshold_mesh, cell, residual, 
                 var = (s2 - s1 * s1 / n) / (n - 1)
                 if var > 0.0:
                     noise_out[jt, i] = math.sqrt(var) / truncated_std
+    return klo, khi
 
 
 @njit(cache=True)

@@ -231,6 +231,11 @@ def measure_candidates(residual, cand, psf_sigma, noise_mesh, cell, quant_var, i
     for k in range(cand.shape[0]):
         cx = cand[k, 0]
         cy = cand[k, 1]
+        if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(cand[k, 2])):
+            # A blob of infinite pixels (an infinity in a float frame, spread by the matched filter) has no
+            # position: no star (flux 0), and no window read at an undefined place.
+            out[k, :] = 0.0
+            continue
         sigma_psf = psf_sigma if psf_sigma > 0 else max(0.5, min(cand[k, 2], 5.0))
         half = int(max(2, math.ceil(3 * sigma_psf)))
         x = cx
