@@ -381,11 +381,18 @@ def _r2_r1(cp, sp, cy, sy):
     ``[[cp, 0, -sp], [0, 1, 0], [sp, 0, cp]] @ [[1, 0, 0], [0, cy, sy], [0, -sy, cy]]``: each entry a sum of three
     products of which at most one is not an exact zero, so any matmul (fused or not, in any order) gives that product
     rounded once; when all three are zeros one is +0 (``0 * 0``, or ``cp * 0`` / ``0 * cy`` when ``sp`` or ``sy``
-    is 0 or their product underflows: then ``cp``, ``cy`` are near 1), so the sum is +0: each entry is its product
-    ``+ 0.0``."""
-    return np.array([[cp + 0.0, (-sp) * (-sy) + 0.0, (-sp) * cy + 0.0],
+    is 0), so the sum is +0: each entry is its product ``+ 0.0``.  A product of two non-zero factors that underflows
+    to zero is the exception: a fused multiply-add rounds the exact tiny product once with the sum and keeps its sign
+    (-0.0), a separate multiply and add make +0.0, and which numpy's matmul does depends on the machine (angles below
+    ~1e-154 rad): numpy's matmul itself then."""
+    p01, p02, p21, p22 = (-sp) * (-sy), (-sp) * cy, cp * (-sy), cp * cy
+    if (p01 == 0.0 and sp != 0.0 and sy != 0.0) or (p02 == 0.0 and sp != 0.0 and cy != 0.0) \
+            or (p21 == 0.0 and cp != 0.0 and sy != 0.0) or (p22 == 0.0 and cp != 0.0 and cy != 0.0):
+        return np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]]) @ \
+            np.array([[1.0, 0.0, 0.0], [0.0, cy, sy], [0.0, -sy, cy]])
+    return np.array([[cp + 0.0, p01 + 0.0, p02 + 0.0],
                      [0.0, cy + 0.0, sy + 0.0],
-                     [sp + 0.0, cp * (-sy) + 0.0, cp * cy + 0.0]])
+                     [sp + 0.0, p21 + 0.0, p22 + 0.0]])
 
 
 _RAD_TO_DEG = 180.0 / math.pi        # np.degrees' factor (numpy's rad2deg is x * (180.0 / NPY_PI))
