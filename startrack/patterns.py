@@ -626,7 +626,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
         ranked = list(range(n_all))
     stars = [stars[i] for i in ranked]
     m = min(n_all, opts.verify_stars)
-    xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
+    # (one flat list of floats, then its (m, 2) view: the same array as a list of pairs, without a list per star)
+    xy_all = np.array([v for s in stars[:m] for v in (s["x"], s["y"])], dtype=np.float64).reshape(m, 2) if m \
+        else np.array([], dtype=np.float64)
     n_pat = min(m, opts.pattern_stars)
     # Deeper searches when every pattern of the brightest stars is spent: a frame whose brightest detections
     # are mostly not catalog stars (a foreground's pieces, satellites, hot pixels) is found among later ones.
@@ -902,12 +904,19 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
     return cam, matches, dcm, p_false
 
 
+_FLOAT = {float}
+
+
 def _centroid_sigma_px(stars: list, params) -> float:
     """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
     if params.sigma_px is not None:
         return float(params.sigma_px)
-    reported = [v for v in (s.get("sigma_px") for s in stars)
-                if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
+    values = [s.get("sigma_px") for s in stars]
+    if set(map(type, values)) == _FLOAT:
+        # Every value a Python float (a detector's list): finite and positive is 0 < v < inf (NaN fails both).
+        reported = [v for v in values if 0.0 < v < math.inf]
+    else:
+        reported = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
     if reported:
         return float(max(0.05, min(2.0, _median(reported) * 1.5)))
     return 0.5
