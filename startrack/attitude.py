@@ -621,13 +621,33 @@ def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
     return hdr
 
 
+def _boresight_east_north_one(a):
+    """``ra, dec = dcm_to_radec_roll(a)[:2]`` and ``east, north = east_north(ra, dec)`` of one 3 x 3 float64 matrix,
+    to the bit: the same ufuncs on the same values (:func:`startrack.rotations._dcm_to_radec_roll_one`'s ra and dec,
+    numpy's degrees and radians of them), without the roll :func:`wcs_keywords` does not use, each sine and cosine
+    once, and east and north built directly rather than stacked (``-sin(dec) * cos(ra)`` is ``(-sin dec) cos ra``
+    either way; ``zeros_like`` of a 0-d value is +0.0)."""
+    bore = a[..., 2, :]
+    ra = np.mod(np.degrees(np.mod(np.arctan2(bore[..., 1], bore[..., 0]), 2 * np.pi)), 360.0)
+    dec = np.degrees(np.arctan2(bore[..., 2], np.hypot(bore[..., 0], bore[..., 1])))
+    ra_r = np.radians(np.asarray(ra, dtype=np.float64))
+    dec_r = np.radians(np.asarray(dec, dtype=np.float64))
+    sr, cr, sd = np.sin(ra_r), np.cos(ra_r), np.sin(dec_r)
+    east = np.array([-sr, cr, 0.0])
+    north = np.array([-sd * cr, -sd * sr, np.cos(dec_r)])
+    return ra, dec, east, north
+
+
 def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dict:
     """The keywords of :func:`wcs_header` and their values, in order, as a dict (without astropy)."""
-    from startrack.rotations import dcm_to_radec_roll, east_north
-
     a = np.asarray(dcm, dtype=np.float64)
-    ra, dec, _ = dcm_to_radec_roll(a)
-    east, north = east_north(ra, dec)
+    if a.shape == (3, 3):
+        ra, dec, east, north = _boresight_east_north_one(a)
+    else:
+        from startrack.rotations import dcm_to_radec_roll, east_north
+
+        ra, dec, _ = dcm_to_radec_roll(a)
+        east, north = east_north(ra, dec)
     k = math.degrees(1.0) / camera.focal_length_px
     cd = k * np.array([[a[0] @ east, a[1] @ east], [a[0] @ north, a[1] @ north]])
     flip = -1.0 if mirrored else 1.0

@@ -376,3 +376,24 @@ def test_estimate_attitude_bad_input_as_before(where, bad):
             assert estimate_attitude(b, r, sig, gate=-1.0).reason_code == ReasonCode.BAD_INPUT
         else:
             assert res.reason_code != ReasonCode.BAD_INPUT
+
+
+def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
+    """wcs_keywords' one-matrix path (_boresight_east_north_one): ra, dec of dcm_to_radec_roll and east, north of
+    east_north at them, to the bit and of the same types and shapes, on random rotations and at the poles, ra 0 and
+    360, and the axis flips."""
+    from startrack.attitude import _boresight_east_north_one
+    from startrack.rotations import dcm_to_radec_roll, east_north, quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
+
+    mats = [quaternion_to_dcm(q) for q in random_quaternions(20000, np.random.default_rng(5))]
+    mats += [radec_roll_to_dcm(ra, dec, roll) for ra in (0.0, 90.0, 180.0, 359.9999999, 1e-12)
+             for dec in (-90.0, -89.9999999, 0.0, 45.0, 90.0) for roll in (0.0, 180.0, -90.0)]
+    mats += [np.eye(3), -np.eye(3), np.diag([1.0, -1.0, -1.0])]
+    for a in mats:
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        ra, dec, _ = dcm_to_radec_roll(a)
+        east, north = east_north(ra, dec)
+        got = _boresight_east_north_one(a)
+        for want, value in zip((ra, dec, east, north), got, strict=True):
+            assert type(value) is type(want) and np.shape(value) == np.shape(want)
+            assert np.asarray(value).tobytes() == np.asarray(want).tobytes(), a
