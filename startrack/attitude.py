@@ -489,9 +489,19 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     # np.linalg.norm(x, axis=1, keepdims=True) of a real array is this expression.
     br = br / np.sqrt(np.add.reduce(br * br, axis=(1,), keepdims=True))
     b, r = br[:n], br[n:]
-    stars = [s for s, _ in labels if s is not None]
-    ids = [i for _, i in labels if i is not None]
-    if len(set(stars)) != len(stars) or len(set(ids)) != len(ids):
+    # A star index or catalog id (None: unknown, not compared) given twice.  The pairs' columns at once; only labels
+    # with a None take the lists without them.
+    col_s, col_i = zip(*labels)
+    set_s, set_i = set(col_s), set(col_i)
+    if None in set_s or None in set_i:
+        stars = [s for s in col_s if s is not None]
+        ids = [i for i in col_i if i is not None]
+        repeated = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
+    else:
+        repeated = len(set_s) != len(col_s) or len(set_i) != len(col_i)
+    if repeated:
+        stars = [s for s, _ in labels if s is not None]
+        ids = [i for _, i in labels if i is not None]
         dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
         dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
         what = "; ".join(x for x in (f"star(s) {dup_s} matched more than once" if dup_s else "",

@@ -797,7 +797,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
     cam = Camera(width, height, float(f), cx, cy)
     # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
-    pts = [xy[a].tolist() for a in img]
+    pts = xy[img].tolist()      # (the pattern stars' rows at once: the same floats as a row each)
     pattern_px = max(math.hypot(p[0] - q[0], p[1] - q[1]) for p in pts for q in pts)
     n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
     eps = tolerance_rad(cam, sigma, params)
@@ -1023,8 +1023,6 @@ class _VerifyCheck:
         :attr:`star_vec`, directions ``b`` (C-contiguous) at focal length ``f``; ``pos``: the rows' positions in the
         cone when known (the matches of a verification through it).  Returns ``(matches, dcm, p_false, reason,
         pos)``: ``pos`` the matches' positions in the cone, None when the whole catalog answered."""
-        from startrack._kernels.attitude import quat_to_dcm, refine
-        from startrack._kernels.verify import blind_confidence
         from startrack.identify.verify import false_match_probability
 
         params = self.params
@@ -1046,12 +1044,16 @@ class _VerifyCheck:
             match, q, n_pred, cat, dcm, agree, core_agree, p_local, e_pyr = got
             star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
         else:
+            from startrack._kernels.attitude import quat_to_dcm, refine
+            from startrack._kernels.verify import blind_confidence
+
             match, q, n_pred = refine(b, star_vec, img, cat, cos_fov, *geometry)
             rows_of = None
             dcm = quat_to_dcm(q)
             agree, core_agree, p_local, e_pyr = blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius,
                                                                  n_cat, float(eps))
-        n_matched = int(np.count_nonzero(match >= 0))
+        matched = match >= 0
+        n_matched = int(np.count_nonzero(matched))
         if agree < min(len(img), params.min_matches):
             return None, dcm, None, "the proposal's stars do not agree with the refined attitude", None
         if n_matched < params.min_matches and not (len(b) == 3 and n_matched == 3):
@@ -1062,7 +1064,7 @@ class _VerifyCheck:
         if p_false > params.max_false_probability:
             return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
                                         f"{params.max_false_probability:g}"), None
-        rows = np.flatnonzero(match >= 0)
+        rows = np.flatnonzero(matched)
         cat_rows = match[rows]
         ids = star_id[cat_rows]
         pos = None

@@ -397,3 +397,27 @@ def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
         for want, value in zip((ra, dec, east, north), got, strict=True):
             assert type(value) is type(want) and np.shape(value) == np.shape(want)
             assert np.asarray(value).tobytes() == np.asarray(want).tobytes(), a
+
+
+def test_duplicate_labels_are_found_as_by_the_lists_without_none():
+    """estimate_attitude's repeated-label test (the label columns' sets, the lists without None only when a None is
+    there) decides and words it as the lists of the star indices and ids that are not None did: random labels with
+    None, repeats and both."""
+    rng = np.random.default_rng(11)
+    a = np.eye(3)
+    for _ in range(400):
+        n = int(rng.integers(2, 9))
+        r = rng.normal(size=(n, 3))
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        pool_s = [None, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9][: int(rng.integers(2, 12))]
+        pool_i = [None, 100, 101, 102, 103, 104, 105, 106, 107, 108][: int(rng.integers(2, 11))]
+        labels = [(pool_s[int(rng.integers(len(pool_s)))], pool_i[int(rng.integers(len(pool_i)))]) for _ in range(n)]
+        stars = [s for s, _ in labels if s is not None]
+        ids = [i for _, i in labels if i is not None]
+        want = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
+        res = estimate_attitude(r @ a.T, r, np.full(n, 1e-5), labels=labels)
+        assert (res.reason_code == ReasonCode.DUPLICATE_MATCH) == want, labels
+        if want:
+            dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
+            dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
+            assert (f"star(s) {dup_s}" in res.reason) == bool(dup_s) and (f"id(s) {dup_i}" in res.reason) == bool(dup_i)
