@@ -700,7 +700,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 res = None
             if res is not None:
                 cam, (m_star, m_id, m_row), dcm, p_false = res
-                matches = list(map(Match._make, zip([ranked[s_] for s_ in m_star.tolist()], m_id.tolist())))
+                # (Match._make of each pair without its length check: zip's pairs are pairs)
+                matches = list(map(tuple.__new__, itertools.repeat(Match),
+                                   zip(map(ranked.__getitem__, m_star.tolist()), m_id.tolist())))
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],

@@ -1188,6 +1188,8 @@ def _failed(reason, code, t0, stars=None, centroid=None, **kw):
 #: Centroid 1-sigma (px) assumed for a star that carries none, as ``startrack attitude`` and ``identify`` assume.
 DEFAULT_SIGMA_PX = 0.5
 
+_PLAIN_MAPPINGS = (dict, type(type.__dict__))        # dict and mappingproxy (a catalog's rows_by_id)
+
 
 def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
                         sigma_px: float | None = None, epoch: float | None = None, observer=None,
@@ -1228,10 +1230,19 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     if identification.status != "ok":
         return Attitude.failed(f"not identified: {identification.reason}", ReasonCode.NOT_IDENTIFIED, method)
     labels = [(int(m[0]), int(m[1])) for m in identification.matches]
-    labels = [m for m in labels if m[1] in rows]
+    if type(rows) in _PLAIN_MAPPINGS:
+        # Each id looked up once (a catalog's rows_by_id holds every star: its look-ups are the cache misses here); a
+        # dict's get is None exactly when the id is not in it (its values are rows, never None).
+        found = [rows.get(m[1]) for m in labels]
+        if None in found:
+            labels = [m for m, r in zip(labels, found) if r is not None]
+            found = [r for r in found if r is not None]
+    else:
+        labels = [m for m in labels if m[1] in rows]
+        found = [rows[m[1]] for m in labels]
     star = np.array([m[0] for m in labels], dtype=np.int64)
     body = camera.pixels_to_vectors(stars.x[star], stars.y[star]).reshape(-1, 3)
-    ref = np.asarray(vectors)[[rows[m[1]] for m in labels]].reshape(-1, 3)
+    ref = np.asarray(vectors)[found].reshape(-1, 3)
     if observer is not None:
         from startrack.apparent import aberrate
 
