@@ -682,7 +682,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             near = cos_hint >= np.cos(np.minimum(reach, math.pi))
             info["outside_hint"] += int(len(order) - np.count_nonzero(near))
             order = order[near]
-        for row, (f, _err) in zip(ci[order], cf[order], strict=True):
+        # (each candidate's row and focal length read as it is reached: most searches end at the first)
+        for j in order.tolist():
+            row, f = ci[j], cf[j, 0]
             if search_clock() > deadline:
                 break
             img = [int(v) for v in block[row[0]]]
@@ -880,7 +882,9 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
     for _ in range(3):
         idx, _, rows = matches
         f_before = f
-        v = star_vec[rows] @ dcm.T
+        # The matches' catalog vectors: their rows of the cone's copy when they were verified through it (the same
+        # numbers as star_vec's rows, cone.vec = star_vec[cone.rows], already in the cache).
+        v = (star_vec[rows] if pos is None else cone.vec[pos]) @ dcm.T
         a = np.concatenate([v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]])
         fit = float(a @ np.concatenate([dx[idx], dy[idx]]) / (a @ a))
         if fit > 0 and math.isfinite(fit):
@@ -1151,7 +1155,10 @@ class _CatalogCone:
         if pos is None:
             pos = np.searchsorted(self.rows, cat)
             n = len(self.rows)
-            if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
+            # Every proposal row in the cone: each position inside it and holding that row (a pattern's few rows
+            # compared one by one).
+            if cat.size and (n == 0 or not all(q < n and self.rows[q] == c
+                                               for q, c in zip(pos.tolist(), cat.tolist()))):
                 return None
         ok, match, q, n_pred, dcm, agree, core_agree, p_local, e_core = verify_in_cone(
             b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach), n_cat, eps)
