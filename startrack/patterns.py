@@ -620,7 +620,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
     # stars of one PSF the order is the flux order.
     if opts.rank == "peak":
-        keys = [(-s.get("peak", s.get("flux", 0.0)), -s.get("flux", 0.0)) for s in stars]
+        keys = [(-s.get("peak", f), -f) for s in stars for f in (s.get("flux", 0.0),)]     # (each flux read once)
         ranked = sorted(range(n_all), key=keys.__getitem__)
     else:
         ranked = list(range(n_all))
