@@ -620,13 +620,15 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
     # stars of one PSF the order is the flux order.
     if opts.rank == "peak":
-        keys = [(-s.get("peak", s.get("flux", 0.0)), -s.get("flux", 0.0)) for s in stars]
+        keys = [(-s.get("peak", f), -f) for s in stars for f in (s.get("flux", 0.0),)]     # (each flux read once)
         ranked = sorted(range(n_all), key=keys.__getitem__)
     else:
         ranked = list(range(n_all))
     stars = [stars[i] for i in ranked]
     m = min(n_all, opts.verify_stars)
-    xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
+    # (one flat list of floats, then its (m, 2) view: the same array as a list of pairs, without a list per star)
+    xy_all = np.array([v for s in stars[:m] for v in (s["x"], s["y"])], dtype=np.float64).reshape(m, 2) if m \
+        else np.array([], dtype=np.float64)
     n_pat = min(m, opts.pattern_stars)
     # Deeper searches when every pattern of the brightest stars is spent: a frame whose brightest detections
     # are mostly not catalog stars (a foreground's pieces, satellites, hot pixels) is found among later ones.
@@ -680,7 +682,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
             near = cos_hint >= np.cos(np.minimum(reach, math.pi))
             info["outside_hint"] += int(len(order) - np.count_nonzero(near))
             order = order[near]
-        for row, (f, _err) in zip(ci[order], cf[order], strict=True):
+        # (each candidate's row and focal length read as it is reached: most searches end at the first)
+        for j in order.tolist():
+            row, f = ci[j], cf[j, 0]
             if search_clock() > deadline:
                 break
             img = [int(v) for v in block[row[0]]]
@@ -698,7 +702,9 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 res = None
             if res is not None:
                 cam, (m_star, m_id, m_row), dcm, p_false = res
-                matches = list(map(Match._make, zip([ranked[s_] for s_ in m_star.tolist()], m_id.tolist())))
+                # (Match._make of each pair without its length check: zip's pairs are pairs)
+                matches = list(map(tuple.__new__, itertools.repeat(Match),
+                                   zip(map(ranked.__getitem__, m_star.tolist()), m_id.tolist())))
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],
@@ -795,7 +801,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
     cam = Camera(width, height, float(f), cx, cy)
     # Look-elsewhere: every candidate verified so far, times the distinguishable focal lengths.
-    pts = [xy[a].tolist() for a in img]
+    pts = xy[img].tolist()      # (the pattern stars' rows at once: the same floats as a row each)
     pattern_px = max(math.hypot(p[0] - q[0], p[1] - q[1]) for p in pts for q in pts)
     n_scales = max(1.0, math.log(f_hi / f_lo) / max(3.0 * 1.4142 * sigma / pattern_px, 1e-4))
     eps = tolerance_rad(cam, sigma, params)
@@ -876,7 +882,9 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
     for _ in range(3):
         idx, _, rows = matches
         f_before = f
-        v = star_vec[rows] @ dcm.T
+        # The matches' catalog vectors: their rows of the cone's copy when they were verified through it (the same
+        # numbers as star_vec's rows, cone.vec = star_vec[cone.rows], already in the cache).
+        v = (star_vec[rows] if pos is None else cone.vec[pos]) @ dcm.T
         a = np.concatenate([v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]])
         fit = float(a @ np.concatenate([dx[idx], dy[idx]]) / (a @ a))
         if fit > 0 and math.isfinite(fit):
@@ -902,12 +910,19 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
     return cam, matches, dcm, p_false
 
 
+_FLOAT = {float}
+
+
 def _centroid_sigma_px(stars: list, params) -> float:
     """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
     if params.sigma_px is not None:
         return float(params.sigma_px)
-    reported = [v for v in (s.get("sigma_px") for s in stars)
-                if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
+    values = [s.get("sigma_px") for s in stars]
+    if set(map(type, values)) == _FLOAT:
+        # Every value a Python float (a detector's list): finite and positive is 0 < v < inf (NaN fails both).
+        reported = [v for v in values if 0.0 < v < math.inf]
+    else:
+        reported = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
     if reported:
         return float(max(0.05, min(2.0, _median(reported) * 1.5)))
     return 0.5
@@ -1014,8 +1029,6 @@ class _VerifyCheck:
         :attr:`star_vec`, directions ``b`` (C-contiguous) at focal length ``f``; ``pos``: the rows' positions in the
         cone when known (the matches of a verification through it).  Returns ``(matches, dcm, p_false, reason,
         pos)``: ``pos`` the matches' positions in the cone, None when the whole catalog answered."""
-        from startrack._kernels.attitude import quat_to_dcm, refine
-        from startrack._kernels.verify import blind_confidence
         from startrack.identify.verify import false_match_probability
 
         params = self.params
@@ -1037,12 +1050,16 @@ class _VerifyCheck:
             match, q, n_pred, cat, dcm, agree, core_agree, p_local, e_pyr = got
             star_vec, star_id, rows_of = cone.vec, cone.ids, cone.rows
         else:
+            from startrack._kernels.attitude import quat_to_dcm, refine
+            from startrack._kernels.verify import blind_confidence
+
             match, q, n_pred = refine(b, star_vec, img, cat, cos_fov, *geometry)
             rows_of = None
             dcm = quat_to_dcm(q)
             agree, core_agree, p_local, e_pyr = blind_confidence(b, img, cat, star_vec, dcm, cos_fov, radius,
                                                                  n_cat, float(eps))
-        n_matched = int(np.count_nonzero(match >= 0))
+        matched = match >= 0
+        n_matched = int(np.count_nonzero(matched))
         if agree < min(len(img), params.min_matches):
             return None, dcm, None, "the proposal's stars do not agree with the refined attitude", None
         if n_matched < params.min_matches and not (len(b) == 3 and n_matched == 3):
@@ -1053,7 +1070,7 @@ class _VerifyCheck:
         if p_false > params.max_false_probability:
             return None, dcm, p_false, (f"false-match probability {p_false:.2g} above the limit "
                                         f"{params.max_false_probability:g}"), None
-        rows = np.flatnonzero(match >= 0)
+        rows = np.flatnonzero(matched)
         cat_rows = match[rows]
         ids = star_id[cat_rows]
         pos = None
@@ -1138,7 +1155,10 @@ class _CatalogCone:
         if pos is None:
             pos = np.searchsorted(self.rows, cat)
             n = len(self.rows)
-            if cat.size and (n == 0 or pos.max() >= n or not (self.rows[np.minimum(pos, n - 1)] == cat).all()):
+            # Every proposal row in the cone: each position inside it and holding that row (a pattern's few rows
+            # compared one by one).
+            if cat.size and (n == 0 or not all(q < n and self.rows[q] == c
+                                               for q, c in zip(pos.tolist(), cat.tolist()))):
                 return None
         ok, match, q, n_pred, dcm, agree, core_agree, p_local, e_core = verify_in_cone(
             b, self.vec, img, pos, cos_fov, *geometry, self.axis, math.cos(reach), n_cat, eps)

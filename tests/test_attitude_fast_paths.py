@@ -378,3 +378,48 @@ def test_estimate_attitude_bad_input_as_before(where, bad):
             assert estimate_attitude(b, r, sig, gate=-1.0).reason_code == ReasonCode.BAD_INPUT
         else:
             assert res.reason_code != ReasonCode.BAD_INPUT
+
+
+def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
+    """wcs_keywords' one-matrix path (_boresight_east_north_one): ra, dec of dcm_to_radec_roll and east, north of
+    east_north at them, to the bit and of the same types and shapes, on random rotations and at the poles, ra 0 and
+    360, and the axis flips."""
+    from startrack.attitude import _boresight_east_north_one
+    from startrack.rotations import dcm_to_radec_roll, east_north, quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
+
+    mats = [quaternion_to_dcm(q) for q in random_quaternions(20000, np.random.default_rng(5))]
+    mats += [radec_roll_to_dcm(ra, dec, roll) for ra in (0.0, 90.0, 180.0, 359.9999999, 1e-12)
+             for dec in (-90.0, -89.9999999, 0.0, 45.0, 90.0) for roll in (0.0, 180.0, -90.0)]
+    mats += [np.eye(3), -np.eye(3), np.diag([1.0, -1.0, -1.0])]
+    for a in mats:
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        ra, dec, _ = dcm_to_radec_roll(a)
+        east, north = east_north(ra, dec)
+        got = _boresight_east_north_one(a)
+        for want, value in zip((ra, dec, east, north), got, strict=True):
+            assert type(value) is type(want) and np.shape(value) == np.shape(want)
+            assert np.asarray(value).tobytes() == np.asarray(want).tobytes(), a
+
+
+def test_duplicate_labels_are_found_as_by_the_lists_without_none():
+    """estimate_attitude's repeated-label test (the label columns' sets, the lists without None only when a None is
+    there) decides and words it as the lists of the star indices and ids that are not None did: random labels with
+    None, repeats and both."""
+    rng = np.random.default_rng(11)
+    a = np.eye(3)
+    for _ in range(400):
+        n = int(rng.integers(2, 9))
+        r = rng.normal(size=(n, 3))
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        pool_s = [None, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9][: int(rng.integers(2, 12))]
+        pool_i = [None, 100, 101, 102, 103, 104, 105, 106, 107, 108][: int(rng.integers(2, 11))]
+        labels = [(pool_s[int(rng.integers(len(pool_s)))], pool_i[int(rng.integers(len(pool_i)))]) for _ in range(n)]
+        stars = [s for s, _ in labels if s is not None]
+        ids = [i for _, i in labels if i is not None]
+        want = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
+        res = estimate_attitude(r @ a.T, r, np.full(n, 1e-5), labels=labels)
+        assert (res.reason_code == ReasonCode.DUPLICATE_MATCH) == want, labels
+        if want:
+            dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
+            dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
+            assert (f"star(s) {dup_s}" in res.reason) == bool(dup_s) and (f"id(s) {dup_i}" in res.reason) == bool(dup_i)
