@@ -258,23 +258,22 @@ def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, 
     n_near = m
     n_on = 2 * m
     for s in range(m):
-        # Each star is written at the next row of all three lists and each count moves on only where it
-        # belongs (rows past a count are not read): no branch on tests whose outcomes follow no pattern.
-        # A star behind the cut is projected at z = 1 (no division by its z) and kept out of every list.
         z = dcm[2, 0] * star_vec[s, 0] + dcm[2, 1] * star_vec[s, 1] + dcm[2, 2] * star_vec[s, 2]
-        front = not z < cos_fov
+        if z < cos_fov:
+            continue
         x = dcm[0, 0] * star_vec[s, 0] + dcm[0, 1] * star_vec[s, 1] + dcm[0, 2] * star_vec[s, 2]
         y = dcm[1, 0] * star_vec[s, 0] + dcm[1, 1] * star_vec[s, 1] + dcm[1, 2] * star_vec[s, 2]
-        px, py = project_to_pixel(x, y, z if front else 1.0, focal, cx, cy, k1, k2, k3, k4, proj)
-        near = front and not (px < -0.5 - margin_px or px > width - 0.5 + margin_px or py < -0.5 - margin_px
-                              or py > height - 0.5 + margin_px)
-        on = front and not (px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5)
+        px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2, k3, k4, proj)
         _put_row(lists, pv, k, s, x, y, z)
-        k += front
+        k += 1
+        # A star in front is written at the next row of the other two lists too, whose counts move on only
+        # where it belongs (rows past a count are not read): no branch on the sensor's edges, whose outcomes
+        # follow no pattern.  (The test of z stays a branch: over a whole catalog most stars are behind.)
         _put_row(lists, pv, n_near, s, x, y, z)
-        n_near += near
+        n_near += not ((px < -0.5 - margin_px) | (px > width - 0.5 + margin_px) | (py < -0.5 - margin_px)
+                       | (py > height - 0.5 + margin_px))
         _put_row(lists, pv, n_on, s, x, y, z)
-        n_on += on
+        n_on += not ((px < -0.5) | (px > width - 0.5) | (py < -0.5) | (py > height - 0.5))
     return k, n_near - m, n_on - 2 * m
 
 
