@@ -266,13 +266,14 @@ def project_stars(star_vec, dcm, cos_fov, focal, cx, cy, width, height, k1, k2, 
         px, py = project_to_pixel(x, y, z, focal, cx, cy, k1, k2, k3, k4, proj)
         _put_row(lists, pv, k, s, x, y, z)
         k += 1
-        if not (px < -0.5 - margin_px or px > width - 0.5 + margin_px or py < -0.5 - margin_px
-                or py > height - 0.5 + margin_px):
-            _put_row(lists, pv, n_near, s, x, y, z)
-            n_near += 1
-        if not (px < -0.5 or px > width - 0.5 or py < -0.5 or py > height - 0.5):
-            _put_row(lists, pv, n_on, s, x, y, z)
-            n_on += 1
+        # A star in front is written at the next row of the other two lists too, whose counts move on only
+        # where it belongs (rows past a count are not read): no branch on the sensor's edges, whose outcomes
+        # follow no pattern.  (The test of z stays a branch: over a whole catalog most stars are behind.)
+        _put_row(lists, pv, n_near, s, x, y, z)
+        n_near += not ((px < -0.5 - margin_px) | (px > width - 0.5 + margin_px) | (py < -0.5 - margin_px)
+                       | (py > height - 0.5 + margin_px))
+        _put_row(lists, pv, n_on, s, x, y, z)
+        n_on += not ((px < -0.5) | (px > width - 0.5) | (py < -0.5) | (py > height - 0.5))
     return k, n_near - m, n_on - 2 * m
 
 

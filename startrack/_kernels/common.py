@@ -173,8 +173,9 @@ def _sort_indices(a, n):
     top = 0
     for t in range(n):
         top = max(top, a[t])
-    tmp = np.empty(n, dtype=a.dtype)
-    count = np.empty(257, dtype=np.int64)
+    work = np.empty(n + 257, dtype=a.dtype)     # (tmp and count: one allocation)
+    tmp = work[:n]
+    count = work[n:]
     src = a
     dst = tmp
     shift = 0

@@ -18,10 +18,22 @@ def focal_scale(b, img, star_vec, cat):
     The chord ratio is the angle ratio to a relative ``(s^2 - 1) theta^2 / 24`` (2e-4 for a 1 % scale
     over 30 deg: the focal loop's next step takes it up) and needs no ``acos``; at the true focal length
     both are 1 up to the noise."""
-    if img.shape[0] < 3:
+    n = img.shape[0]
+    if n < 3:
         return np.nan
-    ang, mea = _pair_chords(b, img, star_vec, cat)
-    return _chord_scale(ang, mea)
+    # _chord_scale of _pair_chords' chords, summed as they are made (the same sums in the same order), without
+    # their array
+    num = 0.0
+    den = 0.0
+    for u in range(n):
+        for v in range(u + 1, n):
+            mea = _chord_rows(b, img[u], b, img[v])
+            ang = _chord_rows(star_vec, cat[u], star_vec, cat[v])
+            num += ang * mea
+            den += mea * mea
+    if den <= 0.0:
+        return np.nan
+    return num / den
 
 
 @njit(cache=True, inline="always")

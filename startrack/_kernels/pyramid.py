@@ -72,9 +72,13 @@ def pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_co
     # Catalog pairs at theta_ik, linked per star (both orientations): no sorting.
     s2, e2 = _window(pair_cos, kvector, line, kquad, quad, use_quadratic, lo_ik, hi_ik)
     n_cat = star_vec.shape[0]
-    head = np.full(n_cat, -1, dtype=np.int32)
-    nxt = np.empty(2 * max(e2 - s2, 0), dtype=np.int32)
-    other = np.empty(2 * max(e2 - s2, 0), dtype=np.int32)
+    # (head, nxt and other: one allocation)
+    w2 = 2 * max(e2 - s2, 0)
+    links = np.empty(n_cat + 2 * w2, dtype=np.int32)
+    head = links[:n_cat]
+    head[:] = -1
+    nxt = links[n_cat:n_cat + w2]
+    other = links[n_cat + w2:]
     m = 0
     for t in range(s2, e2):
         a = pair_i[t]
@@ -92,12 +96,16 @@ def pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_co
     cb = _triple_rows(b, i, j, k)
     # |angle(J, K) - th_jk| <= e_jk as a cosine window (no acos per candidate).
     lo_jk, hi_jk = _scaled_window(th_jk, e_jk, s_lo, s_hi)
+    # The pairs at theta_ij (below), their window first: its scratch shares the allocations of the others'.
+    s, e = _window(pair_cos, kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
+    # (mark and sel, below: one allocation)
+    flags = np.empty(n_cat + 2 * max(e - s, 0), dtype=np.bool_)
+    mark = flags[:n_cat]
     # J and K of a triangle both have a database pair at theta_jk when that window lies within the
     # database's pairs (every pair of its stars closer than its largest angle is in it, and
     # pair_cos[0] is the smallest cosine; 1e-9 to spare at that edge): stars without one are
     # passed over before their vectors are read.  The window is widened by 1e-12 so that no
     # cosine rounding can drop a star the exact test below would keep.
-    mark = np.empty(n_cat, dtype=np.bool_)
     if pair_cos.shape[0] > 0 and lo_jk - 1e-12 >= pair_cos[0] + 1e-9:
         mark[:] = False
         s3, e3 = _window(pair_cos, kvector, line, kquad, quad, False, lo_jk - 1e-12, hi_jk + 1e-12)
@@ -106,19 +114,20 @@ def pyramid_triangles(b, tol, margin, i, j, k, star_vec, pair_i, pair_j, pair_co
             mark[pair_j[t]] = True
     else:
         mark[:] = True
-    tri = np.empty((max_triangles, 3), dtype=np.int64)
+    # (tri and lead, below: one allocation)
+    ints = np.empty(3 * max_triangles + 2 * max(e - s, 0), dtype=np.int64)
+    tri = ints[:3 * max_triangles].reshape((max_triangles, 3))
     tri_s = np.empty((max_triangles, 2))
     nt = 0
     scaled = focal_error > 0.0
-    s, e = _window(pair_cos, kvector, line, kquad, quad, use_quadratic, lo_ij, hi_ij)
     # The pairs at theta_ij (both orientations, in order) whose first star I has a pair at
     # theta_ik, gathered without a branch: about four in five have none, and a branch on that
     # is mispredicted often enough to double the loop's time.  ``t`` is orientation (i, j),
     # ``-1 - t`` the other.
-    lead = np.empty(2 * max(e - s, 0), dtype=np.int64)
+    lead = ints[3 * max_triangles:]
     nl = 0
     # (Two passes: the tests first, each pair's independent of the others', then the gathering.)
-    sel = np.empty(2 * max(e - s, 0), dtype=np.bool_)
+    sel = flags[n_cat:]
     for t in range(s, e):
         pi_ = pair_i[t]
         pj_ = pair_j[t]
