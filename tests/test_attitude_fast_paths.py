@@ -385,7 +385,13 @@ def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
     east_north at them, to the bit and of the same types and shapes, on random rotations and at the poles, ra 0 and
     360, and the axis flips."""
     from startrack.attitude import _boresight_east_north_one
-    from startrack.rotations import dcm_to_radec_roll, east_north, quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
+    from startrack.rotations import (
+        dcm_to_radec_roll,
+        east_north,
+        quaternion_to_dcm,
+        radec_roll_to_dcm,
+        random_quaternions,
+    )
 
     mats = [quaternion_to_dcm(q) for q in random_quaternions(20000, np.random.default_rng(5))]
     mats += [radec_roll_to_dcm(ra, dec, roll) for ra in (0.0, 90.0, 180.0, 359.9999999, 1e-12)
