@@ -474,7 +474,8 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     b = np.asarray(body, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
     n = len(b)
-    labels = list(labels) if labels is not None else [(i, None) for i in range(n)]
+    given = labels is not None
+    labels = list(labels) if given else [(i, None) for i in range(n)]
     sig = np.full(n, 1e-5) if sigmas_rad is None else np.asarray(sigmas_rad, dtype=np.float64).reshape(-1)
     if n < 2:
         return _fail(method, ReasonCode.TOO_FEW_STARS, f"{n} identified star(s): at least 2 are needed", t0)
@@ -490,15 +491,17 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     br = br / np.sqrt(np.add.reduce(br * br, axis=(1,), keepdims=True))
     b, r = br[:n], br[n:]
     # A star index or catalog id (None: unknown, not compared) given twice.  The pairs' columns at once; only labels
-    # with a None take the lists without them.
-    col_s, col_i = zip(*labels)
-    set_s, set_i = set(col_s), set(col_i)
-    if None in set_s or None in set_i:
-        stars = [s for s in col_s if s is not None]
-        ids = [i for i in col_i if i is not None]
-        repeated = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
-    else:
-        repeated = len(set_s) != len(col_s) or len(set_i) != len(col_i)
+    # with a None take the lists without them.  Labels made here (none given) are distinct star indices without ids.
+    repeated = False
+    if given:
+        col_s, col_i = zip(*labels)
+        set_s, set_i = set(col_s), set(col_i)
+        if None in set_s or None in set_i:
+            stars = [s for s in col_s if s is not None]
+            ids = [i for i in col_i if i is not None]
+            repeated = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
+        else:
+            repeated = len(set_s) != len(col_s) or len(set_i) != len(col_i)
     if repeated:
         stars = [s for s, _ in labels if s is not None]
         ids = [i for _, i in labels if i is not None]
