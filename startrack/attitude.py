@@ -490,21 +490,14 @@ def estimate_attitude(body, reference, sigmas_rad=None, method: str = "quest", l
     # np.linalg.norm(x, axis=1, keepdims=True) of a real array is this expression.
     br = br / np.sqrt(np.add.reduce(br * br, axis=(1,), keepdims=True))
     b, r = br[:n], br[n:]
-    # A star index or catalog id (None: unknown, not compared) given twice.  The pairs' columns at once; only labels
-    # with a None take the lists without them.  Labels made here (none given) are distinct star indices without ids.
+    # A star index or catalog id (None: unknown, not compared) given twice.  Labels made here (none given) are distinct
+    # star indices without ids.
     repeated = False
     if given:
-        col_s, col_i = zip(*labels)
-        set_s, set_i = set(col_s), set(col_i)
-        if None in set_s or None in set_i:
-            stars = [s for s in col_s if s is not None]
-            ids = [i for i in col_i if i is not None]
-            repeated = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
-        else:
-            repeated = len(set_s) != len(col_s) or len(set_i) != len(col_i)
-    if repeated:
         stars = [s for s, _ in labels if s is not None]
         ids = [i for _, i in labels if i is not None]
+        repeated = len(set(stars)) != len(stars) or len(set(ids)) != len(ids)
+    if repeated:
         dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
         dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
         what = "; ".join(x for x in (f"star(s) {dup_s} matched more than once" if dup_s else "",
@@ -634,27 +627,12 @@ def wcs_header(dcm, camera, sip_order: int = 5, mirrored: bool = False):
     return hdr
 
 
-def _boresight_east_north_one(a):
-    """``ra, dec = dcm_to_radec_roll(a)[:2]`` and ``east, north = east_north(ra, dec)`` of one 3 x 3 float64 matrix,
-    to the bit: the same ufuncs on the same values (:func:`startrack.rotations._dcm_to_radec_roll_one`'s ra and dec,
-    numpy's degrees and radians of them), without the roll :func:`wcs_keywords` does not use, each sine and cosine
-    once, and east and north built directly rather than stacked (``-sin(dec) * cos(ra)`` is ``(-sin dec) cos ra``
-    either way; ``zeros_like`` of a 0-d value is +0.0)."""
-    bore = a[..., 2, :]
-    ra = np.mod(np.degrees(np.mod(np.arctan2(bore[..., 1], bore[..., 0]), 2 * np.pi)), 360.0)
-    dec = np.degrees(np.arctan2(bore[..., 2], np.hypot(bore[..., 0], bore[..., 1])))
-    ra_r = np.radians(np.asarray(ra, dtype=np.float64))
-    dec_r = np.radians(np.asarray(dec, dtype=np.float64))
-    sr, cr, sd = np.sin(ra_r), np.cos(ra_r), np.sin(dec_r)
-    east = np.array([-sr, cr, 0.0])
-    north = np.array([-sd * cr, -sd * sr, np.cos(dec_r)])
-    return ra, dec, east, north
-
-
 def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dict:
     """The keywords of :func:`wcs_header` and their values, in order, as a dict (without astropy)."""
     a = np.asarray(dcm, dtype=np.float64)
     if a.shape == (3, 3):
+        from startrack.rotations import _boresight_east_north_one
+
         ra, dec, east, north = _boresight_east_north_one(a)
     else:
         from startrack.rotations import dcm_to_radec_roll, east_north

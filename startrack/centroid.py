@@ -899,7 +899,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
     integer = _is_integer_image(img)
 
     def background(det_img, bg_sat):
-        """The background mesh (saturated pixels no data when ``bg_sat``) and the detection threshold's."""
+        """The background mesh (saturated pixels no data when ``bg_sat``), the detection threshold's and the mesh's
+        tile size."""
         level_mesh, sigma_mesh, glevel, gsigma = estimate_background(det_img, options, bg_sat)
         sigma_mesh = np.maximum(sigma_mesh, max(gsigma, 1e-3) * 0.25)
         if options.threshold_dn is not None:
@@ -908,25 +909,25 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
             # A pixel's noise: the background's normal sigma, and on whole DN the rounding's 1/12 DN^2 (the
             # whole noise of a frame whose pixels sit in one or two grey levels, where sigma is 0).
             thresh_mesh = options.threshold_sigma * np.sqrt(sigma_mesh**2 + (_QUANT_VAR if integer else 0.0))
-        return level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh
+        cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+        return level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh, cell
 
     max_blobs = 20000
-    # A whole float32 frame (the mesh background, no top-hat) has its range from the background pass itself
+    ws = _workspace(img.shape, max_blobs, not banded)
+    residual, labels, table = ws["residual"], ws["labels"], ws["table"]
+    foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
+    counts = ws["row_counts"]
+    # A whole float32 frame (no top-hat: the background pass reads the frame itself) has its range from that pass
     # (subtract_background_rows_keyed): one pass over the pixels fewer.  That pass needs the background first,
     # whose saturated pixels depend on the range: it is made with what the probe already tells (pixels at a
     # level given are saturated whatever the range), and made again in the one case the range changes that (no
     # level given or reached, and the probe holds the frame's largest value: saturated pixels at an inferred
     # level).  A frame with a pixel that is not finite takes the passes below instead.  The same numbers either way.
-    fused = (_FUSED_RANGE and not banded and options.background == "mesh" and img.dtype == np.float32
+    fused = (_FUSED_RANGE and not banded and options.background != "tophat" and img.dtype == np.float32
              and img.flags.c_contiguous)
     if fused:
         guess = sat if sat is not None and probe.size and np.count_nonzero(probe >= sat) else None
-        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(img, guess)
-        cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
-        ws = _workspace(img.shape, max_blobs, True)
-        residual, labels, table = ws["residual"], ws["labels"], ws["table"]
-        foreground = int(np.iinfo(labels.dtype).max)
-        counts = ws["row_counts"]
+        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh, cell = background(img, guess)
         keys = []
         noise_mesh = _subtract_background(img, level_mesh, thresh_mesh, cell, residual, labels, foreground, counts,
                                           sigma_mesh, options.method == "gauss", keys)
@@ -938,9 +939,8 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
             early, sat, inferred, frac_sat, span = levels(_key_value(int(lo)), _key_value(int(hi)), probe)
             if early is None:
                 bg_sat = sat if frac_sat > 0 else None
-                if (bg_sat is None) != (guess is None) or (bg_sat is not None and bg_sat != guess):
-                    level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(img, bg_sat)
-                    cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
+                if bg_sat != guess:         # (a level or None; the range is finite here)
+                    level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh, cell = background(img, bg_sat)
                     if gsigma > 0 or span > 0:
                         noise_mesh = _subtract_background(img, level_mesh, thresh_mesh, cell, residual, labels,
                                                           foreground, counts, sigma_mesh, options.method == "gauss")
@@ -966,15 +966,10 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         if options.background == "tophat":
             det_img = _tophat(img, options)
         # Saturated pixels are no data for the background (only looked for when the probe saw some).
-        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh = background(
+        level_mesh, sigma_mesh, glevel, gsigma, thresh_mesh, cell = background(
             det_img, sat if frac_sat > 0 and det_img is img else None)
         if not gsigma > 0 and span <= 0:
             return result([], [], glevel, 0.0, "image is constant: no signal")
-        cell = options.mesh_px if level_mesh.shape != (1, 1) else max(img.shape)
-        ws = _workspace(img.shape, max_blobs, not banded)
-        residual, labels, table = ws["residual"], ws["labels"], ws["table"]
-        foreground = int(np.iinfo(labels.dtype).max)       # the mask: pixels to label (blob numbers <= max_blobs)
-        counts = ws["row_counts"]
     if banded:
         from startrack._kernels.centroid import label_blobs_lazy
 

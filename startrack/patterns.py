@@ -620,15 +620,13 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
     # knot of nebula or a galaxy can hold more flux than a star but is never as peaked; for
     # stars of one PSF the order is the flux order.
     if opts.rank == "peak":
-        keys = [(-s.get("peak", f), -f) for s in stars for f in (s.get("flux", 0.0),)]     # (each flux read once)
+        keys = [(-s.get("peak", s.get("flux", 0.0)), -s.get("flux", 0.0)) for s in stars]
         ranked = sorted(range(n_all), key=keys.__getitem__)
     else:
         ranked = list(range(n_all))
     stars = [stars[i] for i in ranked]
     m = min(n_all, opts.verify_stars)
-    # (one flat list of floats, then its (m, 2) view: the same array as a list of pairs, without a list per star)
-    xy_all = np.array([v for s in stars[:m] for v in (s["x"], s["y"])], dtype=np.float64).reshape(m, 2) if m \
-        else np.array([], dtype=np.float64)
+    xy_all = np.array([[s["x"], s["y"]] for s in stars[:m]], dtype=np.float64)
     n_pat = min(m, opts.pattern_stars)
     # Deeper searches when every pattern of the brightest stars is spent: a frame whose brightest detections
     # are mostly not catalog stars (a foreground's pieces, satellites, hot pixels) is found among later ones.
@@ -702,9 +700,7 @@ def solve_blind(stars: list, width: int, height: int, index: PatternIndex, optio
                 res = None
             if res is not None:
                 cam, (m_star, m_id, m_row), dcm, p_false = res
-                # (Match._make of each pair without its length check: zip's pairs are pairs)
-                matches = list(map(tuple.__new__, itertools.repeat(Match),
-                                   zip(map(ranked.__getitem__, m_star.tolist()), m_id.tolist())))
+                matches = list(map(Match._make, zip([ranked[s_] for s_ in m_star.tolist()], m_id.tolist())))
                 elapsed = (time.perf_counter() - t0) * 1000
                 extra = {"level_deg": round(math.degrees(float(index.level_rho[row[1]])), 4),
                          "patterns_tried": info["patterns"], "candidates": info["candidates"],
@@ -910,19 +906,12 @@ def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, s
     return cam, matches, dcm, p_false
 
 
-_FLOAT = {float}
-
-
 def _centroid_sigma_px(stars: list, params) -> float:
     """1-sigma centroid noise: the option, else the median reported ``sigma_px``, else 0.5 px."""
     if params.sigma_px is not None:
         return float(params.sigma_px)
-    values = [s.get("sigma_px") for s in stars]
-    if set(map(type, values)) == _FLOAT:
-        # Every value a Python float (a detector's list): finite and positive is 0 < v < inf (NaN fails both).
-        reported = [v for v in values if 0.0 < v < math.inf]
-    else:
-        reported = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
+    reported = [v for v in (s.get("sigma_px") for s in stars)
+                if isinstance(v, (int, float)) and math.isfinite(v) and v > 0]
     if reported:
         return float(max(0.05, min(2.0, _median(reported) * 1.5)))
     return 0.5

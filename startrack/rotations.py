@@ -320,18 +320,36 @@ def _dcm_to_radec_roll_rad(dcm):
     return ra, dec, roll
 
 
-def _dcm_to_radec_roll_one(a):
-    """:func:`_dcm_to_radec_roll_rad` of one 3 x 3 matrix, to the bit: the same ufuncs on the same values, east
-    and north built directly rather than stacked (called per frame)."""
+def _boresight_one(a):
+    """``ra`` (in ``[0, 2 pi)``) and ``dec`` (radians) of one 3 x 3 matrix's boresight row: the ufuncs of
+    :func:`_dcm_to_radec_roll_rad` on the same values."""
     bore = a[..., 2, :]
-    ra = np.mod(np.arctan2(bore[..., 1], bore[..., 0]), 2 * np.pi)
-    dec = np.arctan2(bore[..., 2], np.hypot(bore[..., 0], bore[..., 1]))
+    return (np.mod(np.arctan2(bore[..., 1], bore[..., 0]), 2 * np.pi),
+            np.arctan2(bore[..., 2], np.hypot(bore[..., 0], bore[..., 1])))
+
+
+def _east_north_one(ra, dec):
+    """:func:`_east_north_rad` of one ``ra``, ``dec`` (radians), to the bit: each sine and cosine once, east and north
+    built directly rather than stacked (``zeros_like`` of a 0-d value is +0.0)."""
     sr, cr, sd = np.sin(ra), np.cos(ra), np.sin(dec)
-    east = np.array([-sr, cr, 0.0])
-    north = np.array([-sd * cr, -sd * sr, np.cos(dec)])
+    return np.array([-sr, cr, 0.0]), np.array([-sd * cr, -sd * sr, np.cos(dec)])
+
+
+def _dcm_to_radec_roll_one(a):
+    """:func:`_dcm_to_radec_roll_rad` of one 3 x 3 matrix, to the bit (called per frame)."""
+    ra, dec = _boresight_one(a)
+    east, north = _east_north_one(ra, dec)
     up = -a[..., 1, :]
     roll = np.arctan2(np.sum(up * east, axis=-1), np.sum(up * north, axis=-1))
     return ra, dec, roll
+
+
+def _boresight_east_north_one(a):
+    """``ra, dec = dcm_to_radec_roll(a)[:2]`` (degrees) and ``east, north = east_north(ra, dec)`` of one 3 x 3
+    float64 matrix, to the bit, without the roll (:func:`startrack.attitude.wcs_keywords`, per solved frame)."""
+    ra, dec = _boresight_one(a)
+    ra, dec = np.mod(np.degrees(ra), 360.0), np.degrees(dec)
+    return (ra, dec, *_east_north_one(_deg(ra), _deg(dec)))
 
 
 def _euler123_to_dcm_rad(yaw, pitch, roll):

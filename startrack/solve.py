@@ -721,16 +721,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
     # Every parity and depth searched spends its share of the false-match budget, as every hypothesis does
     # (the all-sky search one share per parity).
     shares = len(order) * (len(depths) + (1 if allsky else 0))
-    # A copy with the share (dataclasses.replace would check every option again: they were checked when made).  For
-    # SolveOptions itself (a plain dataclass: no __copy__, __reduce__, __getstate__ or __setstate__ of its own) what
-    # copy.copy makes of it, a new object with its __dict__ copied, without copy's reduce protocol.
-    share = opts.max_false_probability / shares
-    if type(opts) is SolveOptions:
-        copied = object.__new__(SolveOptions)
-        copied.__dict__.update(opts.__dict__)
-        opts = copied
-    else:
-        opts = copy.copy(opts)
+    # A copy with the share (dataclasses.replace would check every option again: they were checked when made).
+    opts, share = copy.copy(opts), opts.max_false_probability / shares
     opts.max_false_probability = share
 
     def search(search_list):
@@ -963,8 +955,8 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         cat_mag = ids_catalog.mag
         cat_rows = ids_catalog.rows_by_id()
         mags = np.array([cat_mag[cat_rows[i]] if i in cat_rows else np.nan for i in ids], dtype=np.float64)
-    if every_row and type(vec) is np.ndarray and vec.dtype == np.float64 and vec.ndim == 2 and vec.shape[1] == 3:
-        sky = vec[id_rows]      # (the rows at once: the same (n, 3) float64 array as the list of rows below)
+    if every_row:
+        sky = np.asarray(vec)[id_rows].astype(np.float64, copy=False).reshape(-1, 3)     # the rows at once
     else:
         sky = np.array([vec[rows[i]] if i in rows else (np.nan,) * 3 for i in ids], dtype=np.float64).reshape(-1, 3)
     out.matched_catalog = {"ra": np.degrees(np.arctan2(sky[:, 1], sky[:, 0])) % 360.0,
@@ -1188,8 +1180,6 @@ def _failed(reason, code, t0, stars=None, centroid=None, **kw):
 #: Centroid 1-sigma (px) assumed for a star that carries none, as ``startrack attitude`` and ``identify`` assume.
 DEFAULT_SIGMA_PX = 0.5
 
-_PLAIN_MAPPINGS = (dict, type(type.__dict__))        # dict and mappingproxy (a catalog's rows_by_id)
-
 
 def identified_attitude(stars, identification, camera, rows: dict, vectors, method: str = "quest",
                         sigma_px: float | None = None, epoch: float | None = None, observer=None,
@@ -1230,16 +1220,12 @@ def identified_attitude(stars, identification, camera, rows: dict, vectors, meth
     if identification.status != "ok":
         return Attitude.failed(f"not identified: {identification.reason}", ReasonCode.NOT_IDENTIFIED, method)
     labels = [(int(m[0]), int(m[1])) for m in identification.matches]
-    if type(rows) in _PLAIN_MAPPINGS:
-        # Each id looked up once (a catalog's rows_by_id holds every star: its look-ups are the cache misses here); a
-        # dict's get is None exactly when the id is not in it (its values are rows, never None).
-        found = [rows.get(m[1]) for m in labels]
-        if None in found:
-            labels = [m for m, r in zip(labels, found) if r is not None]
-            found = [r for r in found if r is not None]
-    else:
-        labels = [m for m in labels if m[1] in rows]
-        found = [rows[m[1]] for m in labels]
+    # Each id looked up once (a catalog's rows_by_id holds every star: its look-ups are the cache misses here); get
+    # is None exactly when the id is not in it (its values are rows, never None).
+    found = [rows.get(m[1]) for m in labels]
+    if None in found:
+        labels = [m for m, r in zip(labels, found) if r is not None]
+        found = [r for r in found if r is not None]
     star = np.array([m[0] for m in labels], dtype=np.int64)
     body = camera.pixels_to_vectors(stars.x[star], stars.y[star]).reshape(-1, 3)
     ref = np.asarray(vectors)[found].reshape(-1, 3)

@@ -384,8 +384,8 @@ def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
     """wcs_keywords' one-matrix path (_boresight_east_north_one): ra, dec of dcm_to_radec_roll and east, north of
     east_north at them, to the bit and of the same types and shapes, on random rotations and at the poles, ra 0 and
     360, and the axis flips."""
-    from startrack.attitude import _boresight_east_north_one
     from startrack.rotations import (
+        _boresight_east_north_one,
         dcm_to_radec_roll,
         east_north,
         quaternion_to_dcm,
@@ -408,9 +408,8 @@ def test_wcs_boresight_east_north_are_the_public_functions_to_the_bit():
 
 
 def test_duplicate_labels_are_found_as_by_the_lists_without_none():
-    """estimate_attitude's repeated-label test (the label columns' sets, the lists without None only when a None is
-    there) decides and words it as the lists of the star indices and ids that are not None did: random labels with
-    None, repeats and both."""
+    """estimate_attitude's repeated-label test decides and words it as the lists of the star indices and ids that are
+    not None say: random labels with None, repeats and both (and none given: no repeat)."""
     rng = np.random.default_rng(11)
     a = np.eye(3)
     for _ in range(400):
@@ -429,3 +428,7 @@ def test_duplicate_labels_are_found_as_by_the_lists_without_none():
             dup_s = sorted({s for s in stars if stars.count(s) > 1})[:5]
             dup_i = sorted({i for i in ids if ids.count(i) > 1})[:5]
             assert (f"star(s) {dup_s}" in res.reason) == bool(dup_s) and (f"id(s) {dup_i}" in res.reason) == bool(dup_i)
+    # No labels: the ones estimate_attitude makes (each star its own index, no id) repeat nothing.
+    r = rng.normal(size=(6, 3))
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    assert estimate_attitude(r, r, np.full(6, 1e-5)).status == "ok"

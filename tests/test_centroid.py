@@ -733,7 +733,8 @@ def test_range_from_the_background_pass_changes_nothing(case, monkeypatch):
         img[:10, :10] = 100.0
     elif case == "negative":
         img = img - 5000.0
-    for opts in (CentroidOptions(max_stars=60), CentroidOptions(method="com"), CentroidOptions(matched_filter=True)):
+    for opts in (CentroidOptions(max_stars=60), CentroidOptions(method="com"), CentroidOptions(matched_filter=True),
+                 CentroidOptions(background="global")):
         fused, plain, saturations = _fused_and_not(img, opts, sat, monkeypatch)
         assert repr(fused.stars) == repr(plain.stars) and fused.rejected == plain.rejected
         assert (repr(fused.background_level), repr(fused.background_sigma), fused.reason) == \
