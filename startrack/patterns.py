@@ -751,6 +751,11 @@ _WIDE_SCREEN_P = 1e-2
 #: Fit-and-verify rounds of a wide field (the radius shrinks to the fitted camera's misfit, then to the strict one).
 _WIDE_ROUNDS = 5
 
+#: Relative change of a wide field's match radius below which a round that kept its matches is stuck
+#: (:func:`_verify_candidate`): the next verification would be the last one again, at the same radius on the same
+#: stars, and the candidate is refused (it never reached the strict radius).
+_WIDE_STUCK = 0.01
+
 
 def _misfit_rms_px(cam, dcm, xy, ref) -> float:
     """RMS distance (pixels) between the detections ``xy`` and their catalog stars ``ref`` projected by a pinhole
@@ -820,6 +825,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     verified_cam = cam
     # Fit the camera on the matches, re-solve and verify again with the fitted camera.
     previous = None
+    radius_before = r_px        # the match radius of the verification that gave ``matches``
     for _ in range(_WIDE_ROUNDS):
         idx, _, rows = matches
         cam = _fit_camera(cam, dcm, xy[idx], star_vec[rows], len(idx) >= 8)
@@ -828,14 +834,23 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
         pairs = (idx.tolist(), rows.tolist())
         if decided and pairs == previous:
             break
-        previous = pairs
         round_params = params
         if not decided:
             # The radius covers the fitted camera's misfit on the matches (three rms), down to the strict radius.
             strict_px = _match_radius_px(params, sigma, cam.focal_length_px)
             misfit_px = 3.0 * _misfit_rms_px(cam, dcm, xy[idx], star_vec[rows])
             if misfit_px > strict_px:
-                round_params = replace(screen, match_radius_px=min(r_px, misfit_px))
+                radius = min(r_px, misfit_px)
+                if pairs == previous and abs(radius - radius_before) <= _WIDE_STUCK * radius_before:
+                    # Stuck: the last round kept its matches, the camera fitted on them misfits them as much as before
+                    # (the fit has converged: the alternation's steps shrink geometrically) and the radius is no
+                    # nearer the strict one.  Another round is the same verification again: this field never passes
+                    # the limit at the strict radius (a wrong wide candidate whose padded radius holds a few chance
+                    # stars: ~0.16 ms a round, five rounds).
+                    return None
+                round_params = replace(screen, match_radius_px=radius)
+                radius_before = radius
+        previous = pairs
         b = cam.pixels_to_vectors(xy[:, 0], xy[:, 1])
         eps = tolerance_rad(cam, sigma, params)
         m2, dcm2, p2, _ = _verify_blind(idx, rows, trials, b, cam, star_vec, star_id, eps, sigma, round_params, cone)

@@ -769,3 +769,34 @@ def test_the_built_shapes_are_those_of_the_stored_patterns(index):
     assert len(want) > 10000
     np.testing.assert_array_equal(built.shapes, want)
     np.testing.assert_array_equal(opened.shapes, want)
+
+
+def test_a_wrong_wide_candidate_stuck_at_its_radius_is_not_verified_again(monkeypatch):
+    """The 11 deg ESA image Alt40_Azi45's search meets a wrong 85 deg candidate: its padded match radius (26 px) holds
+    10 chance stars at a chance of coincidence under the wide screen's 1e-2, and the lens fitted on them misfits them
+    by more than that radius, round after round, on the same matches.  A round that repeats the last one's matches at
+    the same radius is not verified again (_WIDE_STUCK): no three verifications in a row alike (there were six), and
+    the frame is solved as before."""
+    import os
+
+    import startrack
+    import startrack.patterns as patterns
+    from startrack.imageio import read_image
+
+    calls = []
+    verify = patterns._verify_blind
+
+    def recording(image, catalog, trials, b, camera, star_vec, star_id, eps, sigma, params, cone=None):
+        out = verify(image, catalog, trials, b, camera, star_vec, star_id, eps, sigma, params, cone)
+        radius = round(patterns._match_radius_px(params, sigma, camera.focal_length_px), 6)
+        calls.append((radius, None if out[0] is None else tuple(out[0][0].tolist()), params.match_radius_px is None))
+        return out
+
+    monkeypatch.setattr(patterns, "_verify_blind", recording)
+    path = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt40_Azi45_Try1.tiff")
+    image, meta = read_image(path)
+    result = startrack.Solver().solve(image, saturation=meta["saturation"])
+    assert result.status == "ok" and len(result.identification.matches) >= 40
+    assert abs(result.fov_deg[0] - 11.42) < 0.05
+    assert any(not strict and matched for _, matched, strict in calls)     # a wide candidate got past its screen
+    assert not any(calls[k] == calls[k + 1] == calls[k + 2] for k in range(len(calls) - 2)), calls
