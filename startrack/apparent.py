@@ -349,31 +349,87 @@ def frame_apparent(doc: dict | None, options: ApparentOptions, source: str = "fr
 
 
 def astrometric_attitude(dcm, camera, state: ObserverState | None):
-    """The attitude and camera whose pinhole map takes pixels to *astrometric* (catalog) directions.
+    """The attitude and camera whose map takes pixels to *astrometric* (catalog) directions.
 
     ``dcm`` is the camera's true orientation (apparent directions ``u' = A^T b``).  Removing
     aberration from every pixel's direction is, over a field of view, a rotation and a uniform
     scale ``1 / (1 - beta cos psi)`` (:func:`apparent_scale`) to first order in the field angle
     ``theta``; the rest, below ``beta theta^2`` (0.3 arcsec at the corner of an 11 x 9 deg
-    image), is not representable by a pinhole and is left out (terms in ``beta^2`` are ~1e-8 rad).  The rotation is fitted (Wahba, SVD) over a grid of
-    the image's pixels; the focal length of the returned camera is ``f * apparent_scale``.
+    image), is not representable by a pinhole and is left out (terms in ``beta^2`` are ~1e-8 rad).
+    The rotation is fitted (Wahba, SVD) over a grid of the image's pixels; the focal length of the
+    returned camera is ``f * apparent_scale`` for an undistorted pinhole.  For any other lens the
+    scale is fitted with the rotation (least squares over the grid, :func:`_fitted_scale`): its map's
+    radial scale is not the pinhole's away from the axis (a fitted fisheye polynomial over 100 deg:
+    ``apparent_scale`` left 35-84 arcsec at the field's edge, more than aberration itself, the fit ~11).
+    Only the grid's pixels the lens maps are used: a lens fitted on the stars of a wide field may
+    fold beyond them, in a corner with no star, where it has no direction.
     Returns ``(dcm_astrometric, camera_astrometric)``; ``(dcm, camera)`` without a state.
     """
     a = np.asarray(dcm, dtype=np.float64)
     if state is None:
         return a, camera
     scale = apparent_scale(a[2], state)
+    plain = camera.is_pinhole and not camera.has_distortion
+    # The scales the fit may try: the pixels the grid keeps are mapped at each (a fold moves with the scale).
+    reach = 0.0 if plain else 4.0 * float(np.linalg.norm(state.beta)) + 1e-12
+    extent = 1.0
+    while True:
+        # The image's grid; with fewer than 9 of its pixels mapped, a grid half as wide about the principal point.
+        x0, x1, y0, y1 = -0.5, camera.width - 0.5, -0.5, camera.height - 0.5
+        if extent < 1.0:
+            x0, x1 = camera.cx + extent * (x0 - camera.cx), camera.cx + extent * (x1 - camera.cx)
+            y0, y1 = camera.cy + extent * (y0 - camera.cy), camera.cy + extent * (y1 - camera.cy)
+        xs, ys = np.meshgrid(np.linspace(x0, x1, 9), np.linspace(y0, y1, 9))
+        xs, ys = xs.ravel(), ys.ravel()
+        dirs = np.asarray(camera.pixels_to_vectors(xs, ys))
+        mapped = np.isfinite(dirs).all(axis=1)
+        for s in {scale - reach, scale, scale + reach}:
+            mapped &= np.isfinite(np.asarray(camera.with_focal_length(camera.focal_length_px * s)
+                                             .pixels_to_vectors(xs, ys))).all(axis=1)
+        if np.count_nonzero(mapped) >= 9 or extent < 1e-3:
+            break
+        extent /= 2.0
+    if np.count_nonzero(mapped) < 3:
+        raise ValueError("the camera maps no pixel near its principal point to a direction")
+    if not mapped.all():
+        xs, ys, dirs = xs[mapped], ys[mapped], dirs[mapped]
+    astrometric = unaberrate(dirs @ a, state)
+    if not plain:
+        scale = _fitted_scale(camera, xs, ys, astrometric, scale - reach, scale + reach)
     cam_astro = camera.with_focal_length(camera.focal_length_px * scale)
-    xs, ys = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, 9), np.linspace(-0.5, camera.height - 0.5, 9))
-    xs, ys = xs.ravel(), ys.ravel()
-    apparent_dirs = np.asarray(camera.pixels_to_vectors(xs, ys)) @ a
-    astrometric = unaberrate(apparent_dirs, state)
-    body = np.asarray(cam_astro.pixels_to_vectors(xs, ys))
-    # Wahba by SVD: A maps ICRS to camera, body ~ A astrometric.
-    b = body.T @ astrometric
-    u, _, vt = np.linalg.svd(b)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
-    return u @ d @ vt, cam_astro
+    rot, _ = _wahba(np.asarray(cam_astro.pixels_to_vectors(xs, ys)), astrometric)
+    return rot, cam_astro
+
+
+def _wahba(body, ref):
+    """Wahba by SVD: the rotation ``A`` (ICRS to camera) with ``body ~ A ref`` and its score (the sum of the
+    singular values, sign-corrected: the loss is ``n - score``)."""
+    u, sv, vt = np.linalg.svd(body.T @ ref)
+    d = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt, float(sv[0] + sv[1] + d * sv[2])
+
+
+def _fitted_scale(camera, xs, ys, astrometric, lo: float, hi: float) -> float:
+    """The focal-length scale in ``[lo, hi]`` whose camera, rotated by its Wahba fit, maps the pixels ``xs, ys`` nearest
+    the directions ``astrometric`` (least squares).  The loss is a parabola in the scale over this range (the map
+    moves by ~1e-4 of itself): its vertex through three scales a quarter of the range apart, then again through
+    three an eighth of that apart about it (each loss a lens map of the grid: a fisheye's is iterated)."""
+    f = camera.focal_length_px
+
+    def loss(s):
+        body = np.asarray(camera.with_focal_length(f * s).pixels_to_vectors(xs, ys))
+        return -_wahba(body, astrometric)[1] if np.isfinite(body).all() else math.inf
+
+    s = (lo + hi) / 2.0
+    h = (hi - lo) / 4.0
+    for _ in range(2):
+        fm, f0, fp = loss(s - h), loss(s), loss(s + h)
+        curvature = fp - 2.0 * f0 + fm
+        if not (math.isfinite(curvature) and curvature > 0.0):
+            break
+        s = min(hi, max(lo, s - h * (fp - fm) / (2.0 * curvature)))
+        h /= 8.0
+    return s
 
 
 def image_time_tags(path: str):

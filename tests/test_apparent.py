@@ -167,6 +167,51 @@ def test_astrometric_attitude_maps_pixels_to_astrometric_directions(k1):
         assert np.max(_angle(exact, plain)) > 5 / 206265
 
 
+def test_astrometric_attitude_of_a_fitted_fisheye_that_folds_in_its_corners():
+    # A blind solve's camera of a 100 deg field (stereographic, its polynomial fitted on the stars): it folds
+    # beyond them, in the image's corners, where it maps no direction.  The map to astrometric directions is made
+    # of the pixels it maps (the grid's NaN rows made the SVD raise LinAlgError), and its focal scale is fitted:
+    # over the mapped field it is within the second-order bound, where the pinhole's first-order scale
+    # (apparent_scale) is not, for this lens.
+    from startrack.camera import Camera
+    from startrack.rotations import quaternion_to_dcm, random_quaternions
+
+    cam = Camera.from_dict({"width": 1280, "height": 960, "focal_length_px": 821.3842055430567,
+                            "cx": 638.281503283044, "cy": 483.86762147838846, "projection": "stereographic",
+                            "distortion": {"k1": 0.12937215237171976, "k2": -1.007495147742464,
+                                           "k3": 1.7511498196382722, "k4": -1.1576045610520365}})
+    corners = np.asarray(cam.pixels_to_vectors(np.array([-0.5, 1279.5, -0.5, 1279.5]),
+                                               np.array([-0.5, -0.5, 959.5, 959.5])))
+    assert not np.isfinite(corners).any()
+    rng = np.random.default_rng(5)
+    worse = 0
+    for q in random_quaternions(3, rng):
+        dcm = quaternion_to_dcm(q)
+        state = ap.velocity_state(_unit(rng, 1)[0] * 35.0, _unit(rng, 1)[0], 1.0)
+        a_astro, cam_astro = ap.astrometric_attitude(dcm, cam, state)
+        assert np.all(np.isfinite(a_astro)) and np.allclose(a_astro @ a_astro.T, np.eye(3), atol=1e-12)
+        x, y = rng.uniform(-0.5, 1279.5, 2000), rng.uniform(-0.5, 959.5, 2000)
+        v = np.asarray(cam.pixels_to_vectors(x, y))
+        model_b = np.asarray(cam_astro.pixels_to_vectors(x, y))
+        # (away from the fold, where the map's radial derivative goes to 0 and any scale moves a direction far:
+        # the pixels mapped at focal lengths 0.1 % either side)
+        ok = np.isfinite(v).all(axis=1) & np.isfinite(model_b).all(axis=1)
+        for s in (0.999, 1.001):
+            ok &= np.isfinite(np.asarray(cam.with_focal_length(cam.focal_length_px * s).pixels_to_vectors(x, y))).all(1)
+        assert ok.mean() > 0.85
+        exact = ap.unaberrate(v[ok] @ dcm, state)
+        theta = np.arccos(np.clip(v[ok][:, 2], -1.0, 1.0)).max()
+        bound = 35.0 / ap.C_KM_S * theta ** 2
+        assert np.max(_angle(exact, model_b[ok] @ a_astro)) < bound
+        # The first-order scale with its best rotation, on the same pixels.
+        first = np.asarray(cam.with_focal_length(cam.focal_length_px * ap.apparent_scale(dcm[2], state))
+                           .pixels_to_vectors(x[ok], y[ok]))
+        u, _, vt = np.linalg.svd(first.T @ exact)
+        rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))]) @ vt
+        worse += np.max(_angle(exact, first @ rot)) > bound
+    assert worse >= 2
+
+
 def test_parallax_agrees_with_astropy_gcrs_of_near_stars():
     """Stars at finite distance (issue 39: "parallax for the stars that have one"): the apparent place with the
     parallax agrees with astropy's ICRS -> GCRS of a star with that distance within 1 mas; without the parallax
