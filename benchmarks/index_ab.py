@@ -3,14 +3,14 @@
 A study tool for the blind search's index (``startrack.patterns.BUILD_PARAMS``), not a `make bench` section.  Each
 frame is solved blind (``startrack.solve.solve_image`` with ``index=``) with every index given, three times, the
 indexes alternated; a frame with a ``startrack render`` document beside it (``NAME.json`` for ``NAME.tiff``) is
-scored against its truth (right: boresight within 0.05 deg).  Results of session 10 (the default index's
-``max_per_anchor`` 40 -> 100) are in ``results/results-speed-2026-12-06.md``.
+scored against its truth (right: boresight within 0.05 deg).  Session 10's study (the default index's
+``max_per_anchor``, 40 against 100: not kept) is in ``results/results-speed-2026-12-06.md``.
 
     # an index file of given build parameters (the rest the default's)
-    python benchmarks/index_ab.py --build '{"max_per_anchor": 40}' bench-output/mpa40.idx
+    python benchmarks/index_ab.py --build '{"max_per_anchor": 100}' bench-output/mpa100.idx
     # 80 frames nothing was tuned on (random sky, vignetting, magnitude noise, hot pixels)
     python benchmarks/index_ab.py --render bench-output/ev --count 80 --seed 11
-    python benchmarks/index_ab.py bench-output/mpa40.idx default 'bench-output/ev/*.tiff' 'tests/data/real/*.tiff'
+    python benchmarks/index_ab.py default bench-output/mpa100.idx 'bench-output/ev/*.tiff' 'tests/data/real/*.tiff'
 
 An index argument is a file, or ``default`` (the cached default index).
 """

@@ -70,24 +70,25 @@ _FILE_LAYOUT = 3
 LEVEL_RATIO = math.sqrt(2.0)
 LEVELS_DEG = tuple(0.9 * LEVEL_RATIO**k for k in range(13))     # 0.9 ... 57.6 degrees
 BUILD_PARAMS = {"levels_deg": [round(v, 6) for v in LEVELS_DEG], "level_ratio": LEVEL_RATIO, "keep": 3,
-                "thin_radius_fraction": 0.5, "max_per_anchor": 100, "min_edge_ratio": 0.05, "mag_max": 10.0,
+                "thin_radius_fraction": 0.5, "max_per_anchor": 40, "min_edge_ratio": 0.05, "mag_max": 10.0,
                 "neighbours": "nearest", "version": 1}
 """The default index's build parameters (:func:`build_index`; their hash names the cache file).  ``neighbours``: the
 order an anchor's fainter neighbours make its patterns in, ``"brightest"`` or ``"nearest"`` (a parameter set without
 the key: ``"nearest"``, as every index built before it was).
 
-``max_per_anchor`` 100: an anchor makes every pattern of its neighbours at nearly every level (a cap of 200 adds 0.8 %
-more).  At 40 an anchor's patterns stopped at about its seventh nearest kept neighbour, and an image pattern was
-missing whenever one of its stars was a later one: 80 rendered 6-25 deg frames (vignetting to 0.3, magnitude noise to
-0.4) took 20.1 patterns on average before the one found (median 6, 90th percentile 37), 11.8 at 100 (3, 19);
-2,212,925 patterns, 81 MB, against 2,648,885, 95 MB.  Every frame whose brightest stars are thinned away at their
-level (a brighter star outside the field within half the level's size) still needs fainter ones."""
+``max_per_anchor`` 40: an anchor's patterns stop at about its seventh nearest kept neighbour, and an image pattern with a
+later one is not held (the 11 deg ESA image Alt40_Azi45's four brightest stars are their anchor's neighbours 1, 9 and
+12 of 15: its search tries 42 patterns).  100 (nearly every pattern of every anchor; 2,648,885 patterns, 95 MB, against
+2,212,925 and 81 MB) was measured and not kept (session 10, ``benchmarks/index_ab.py``): on 80 rendered 6-25 deg frames
+it halved the patterns tried (mean 20.1 -> 11.8, median 6 -> 3) and cut the mean solve 4.22 -> 3.95 ms, but every
+frame that searches many patterns (false stars, photographs whose brightest detections form no pattern) met more
+chance candidates: the hint bench's 12 deg frames with 25 false stars took 6-13 % longer blind, the real-extra photos
+6-8 %."""
+
 DEEP_LEVELS_DEG = tuple(0.9 / LEVEL_RATIO * LEVEL_RATIO**k for k in range(14))     # 0.64 ... 57.6 degrees
-DEEP_BUILD_PARAMS = {**BUILD_PARAMS, "levels_deg": [round(v, 6) for v in DEEP_LEVELS_DEG], "catalog": "gaia",
-                     "max_per_anchor": 40}
+DEEP_BUILD_PARAMS = {**BUILD_PARAMS, "levels_deg": [round(v, 6) for v in DEEP_LEVELS_DEG], "catalog": "gaia"}
 """The deep index: the same patterns over Gaia DR3 to G 10 with Hipparcos for the brightest
-(:mod:`startrack.gaia`), one level finer (patterns of 0.45 to 0.64 degrees), for fields from about 0.8 degrees; at most
-40 patterns per anchor, as built and measured for the narrow fields (``benchmarks/narrow_solve.py``)."""
+(:mod:`startrack.gaia`), one level finer (patterns of 0.45 to 0.64 degrees), for fields from about 0.8 degrees."""
 INDEX_KINDS = {"default": BUILD_PARAMS, "deep": DEEP_BUILD_PARAMS}
 """The indexes :func:`default_index` builds: ``default`` from the shipped Hipparcos catalog (fields of 1.5 to 100
 degrees), ``deep`` from the catalog ``gaia`` (the extra ``startrack[gaia]``; searched for fields under
