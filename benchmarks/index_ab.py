@@ -1,4 +1,4 @@
-"""Two pattern indexes on the same frames, in one process: patterns tried, candidates verified, time, right or wrong.
+"""A study: two pattern indexes on the same frames, in one process (patterns tried, candidates verified, time, right).
 
 A study tool for the blind search's index (``startrack.patterns.BUILD_PARAMS``), not a `make bench` section.  Each
 frame is solved blind (``startrack.solve.solve_image`` with ``index=``) with every index given, three times, the
