@@ -157,6 +157,8 @@ def test_astrometric_attitude_maps_pixels_to_astrometric_directions(k1):
         dcm = quaternion_to_dcm(q)
         state = ap.velocity_state(_unit(rng, 1)[0] * 35.0, _unit(rng, 1)[0], 1.0)
         a_astro, cam_astro = ap.astrometric_attitude(dcm, cam, state)
+        # (the first-order scale holds for these lenses: not fitted)
+        assert cam_astro.focal_length_px == cam.focal_length_px * ap.apparent_scale(dcm[2], state)
         x, y = rng.uniform(-0.5, 1023.5, 200), rng.uniform(-0.5, 767.5, 200)
         exact = ap.unaberrate(np.asarray(cam.pixels_to_vectors(x, y)) @ dcm, state)
         model = np.asarray(cam_astro.pixels_to_vectors(x, y)) @ a_astro
