@@ -819,3 +819,20 @@ def test_a_wrong_wide_candidate_stuck_at_its_radius_is_not_verified_again(monkey
     monkeypatch.setattr(patterns, "_WIDE_STUCK", -1.0)
     assert candidate() is None
     assert calls == [10] * 6            # every round alike until they ran out
+
+
+def test_a_position_hints_star_mask_is_kept_for_the_next_frame(index):
+    """The mask of the stars a position hint lets the look-up compare is made once per index, hint and reach (a batch
+    of frames with one --ra/--dec/--radius), and is the stars within the reach of the hint."""
+    import startrack.patterns as patterns
+
+    built, opened = index
+    hint = np.array([0.6, 0.0, 0.8])
+    first = patterns._hint_rows(opened, hint, 0.3)
+    assert patterns._hint_rows(opened, hint.copy(), 0.3) is first
+    assert np.array_equal(first, (np.asarray(opened.star_vec) @ hint >= math.cos(0.3)).astype(np.uint8))
+    assert 0 < first.sum() < len(first)
+    wider = patterns._hint_rows(opened, hint, 0.4)
+    assert wider is not first and wider.sum() > first.sum()
+    other = patterns._hint_rows(built, hint, 0.3)       # another index (the same stars): its own mask
+    assert other is not first and np.array_equal(other, first)
