@@ -372,6 +372,7 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
         return a, camera
     scale = apparent_scale(a[2], state)
     plain = camera.is_pinhole and not camera.has_distortion
+    cam_astro = camera.with_focal_length(camera.focal_length_px * scale)
     extent = 1.0
     while True:
         # The image's grid; with fewer than 9 of its pixels mapped, a grid half as wide about the principal point.
@@ -382,7 +383,6 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
         xs, ys = np.meshgrid(np.linspace(x0, x1, 9), np.linspace(y0, y1, 9))
         xs, ys = xs.ravel(), ys.ravel()
         dirs = np.asarray(camera.pixels_to_vectors(xs, ys))
-        cam_astro = camera.with_focal_length(camera.focal_length_px * scale)
         body = np.asarray(cam_astro.pixels_to_vectors(xs, ys))
         mapped = np.isfinite(dirs).all(axis=1) & np.isfinite(body).all(axis=1)
         if np.count_nonzero(mapped) >= 9 or extent < 1e-3:
@@ -416,7 +416,9 @@ def astrometric_attitude(dcm, camera, state: ObserverState | None):
 
 def _wahba(body, ref):
     """Wahba by SVD: the rotation ``A`` (ICRS to camera) with ``body ~ A ref`` and its score (the sum of the
-    singular values, sign-corrected: the loss is ``n - score``)."""
+    singular values, sign-corrected: the loss is ``n - score``).  :func:`startrack.attitude.svd_solve`'s formula on
+    unweighted vectors, with the determinants' sign taken exactly, as :func:`astrometric_attitude` always took it (its
+    numbers unchanged), and the score its scale fit compares."""
     u, sv, vt = np.linalg.svd(body.T @ ref)
     d = np.sign(np.linalg.det(u) * np.linalg.det(vt))
     return u @ np.diag([1.0, 1.0, d]) @ vt, float(sv[0] + sv[1] + d * sv[2])

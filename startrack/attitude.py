@@ -28,6 +28,7 @@ from startrack.errors import BadInputError, ParameterError
 from startrack.records import Attitude, ReasonCode, Status
 from startrack.rotations import (
     _angles_deg_one,
+    _boresight_east_north_one,
     _dcm_to_quaternion_one,
     dcm_to_euler123,
     dcm_to_quaternion,
@@ -631,8 +632,6 @@ def wcs_keywords(dcm, camera, sip_order: int = 5, mirrored: bool = False) -> dic
     """The keywords of :func:`wcs_header` and their values, in order, as a dict (without astropy)."""
     a = np.asarray(dcm, dtype=np.float64)
     if a.shape == (3, 3):
-        from startrack.rotations import _boresight_east_north_one
-
         ra, dec, east, north = _boresight_east_north_one(a)
     else:
         from startrack.rotations import dcm_to_radec_roll, east_north
