@@ -159,3 +159,41 @@ def test_centroid_cli_keeps_whole_dn_frames_as_decoded(frame, bits, tmp_path):
     doc = json.loads(run_cli("centroid", path, "--max-stars", "30", "-q", check=True).stdout)
     assert [(s["x"], s["y"], s["flux"]) for s in doc["stars"]] == [(s["x"], s["y"], s["flux"]) for s in want]
     assert doc["image"]["bit_depth"] == bits
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("opts", [{}, {"matched_filter": True, "threshold_sigma": 3.0}, {"max_stars": 40},
+                                  {"method": "com"}, {"background": "global"}, {"background": "tophat"}])
+def test_whole_dn_frames_give_their_float_copys_stars(frame, bits, opts, monkeypatch):
+    """An 8- or 16-bit frame is measured as it is, without a float copy (the whole-frame path since session 11):
+    the kernels read whole DN as float32 holds them, so every number is the float32 copy's to the bit."""
+    monkeypatch.setattr(centroid, "_BAND_MIN_PIXELS", 10**12)
+    image = frame if bits == 16 else np.clip(frame // 64, 0, 255).astype(np.uint8)
+    options = CentroidOptions(**opts)
+    sat = float(np.iinfo(image.dtype).max)
+    got = find_stars(image, options, saturation=sat)
+    want = find_stars(image.astype(np.float32), options, saturation=sat)
+    assert len(got.stars) >= 20
+    assert got.stars == want.stars and got.rejected == want.rejected
+    assert (got.background_level, got.background_sigma, got.reason) == \
+        (want.background_level, want.background_sigma, want.reason)
+
+
+def test_whole_dn_frames_are_not_copied_to_float(frame, monkeypatch):
+    """The whole-frame path takes no float copy of an 8- or 16-bit frame (a 12 Mpx frame's copy is 48 MB and a
+    third of its find_stars time): the kernels are handed the frame itself."""
+    from startrack._kernels import centroid as kernels
+
+    monkeypatch.setattr(centroid, "_BAND_MIN_PIXELS", 10**12)
+    seen = []
+    real = kernels.label_blobs_into
+
+    def spy(residual, image, *args):
+        seen.append(image)
+        return real(residual, image, *args)
+
+    monkeypatch.setattr(kernels, "label_blobs_into", spy)
+    for image in (frame, np.clip(frame // 64, 0, 255).astype(np.uint8)):
+        seen.clear()
+        find_stars(image, CentroidOptions())
+        assert len(seen) == 1 and seen[0] is image

@@ -552,9 +552,9 @@ def _subtract_rows(image, level_mesh, threshold_mesh, cell, residual, labels, fo
             lab_run = labels[y, x0:x1]
             for q in range(x1 - x0):
                 t = t_run[q]
-                r = im_run[q] - (la + dl * t)
-                res_run[q] = r
-                m = 1 if r > ta + dt * t else 0
+                v = im_run[q] - (la + dl * t)
+                res_run[q] = v
+                m = 1 if v > ta + dt * t else 0
                 lab_run[q] = fg * m
                 count += m
         row_counts[y] = count
