@@ -1,0 +1,81 @@
+"""A frame's matched stars at the frame's time, without moving the whole catalog (Catalog.rows_of, positions_of):
+the same numbers, bit for bit, as the whole catalog propagated, and a solve with a time propagates its matches only."""
+import glob
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from startrack.catalog import Catalog
+
+REAL = sorted(glob.glob(os.path.join(os.path.dirname(__file__), "data", "real", "*.tiff")))
+
+
+@pytest.mark.parametrize("epoch", [None, 1991.25, 2016.0, 2019.57, 2100.0])
+def test_positions_of_are_the_whole_catalogs_propagated_rows(catalog, epoch):
+    whole = catalog if epoch is None else catalog.propagate(epoch)
+    by_id, vec = whole.rows_by_id(), whole.vectors()
+    rng = np.random.default_rng(11)
+    for size in (1, 3, 58, 400):
+        ids = rng.choice(catalog.id, size=size, replace=False).tolist()
+        rows, got, cat_rows = catalog.positions_of(ids + [10**9, -7], epoch)
+        assert sorted(rows) == sorted(ids) and sorted(rows.values()) == list(range(size))
+        for i in ids:
+            assert got[rows[i]].tobytes() == vec[by_id[i]].tobytes()
+            assert cat_rows[rows[i]] == catalog.rows_by_id()[i]
+
+
+def _big_id_catalog(catalog, n=500):
+    """Stars of ``catalog`` renamed with 64-bit ids (as Gaia's): the sorted table, not the dense one."""
+    part = catalog.subset(np.arange(n))
+    return replace(part, id=np.asarray(part.id, dtype=np.int64) * 10**12 + 4_000_000_000_123)
+
+
+def test_rows_of_answers_as_rows_by_id_for_either_table(catalog):
+    big = _big_id_catalog(catalog)
+    for cat in (catalog, big):
+        by_id = cat.rows_by_id()
+        ids = cat.id[::7].tolist()
+        assert cat.rows_of(ids).tolist() == [by_id[i] for i in ids]
+        assert cat.rows_of([-1, 0, int(max(cat.id)) + 1, 2**62]).tolist() == [-1, -1, -1, -1]
+    assert catalog._derived("id_table", catalog._id_table)[0] == "dense"
+    assert big._derived("id_table", big._id_table)[0] == "sorted"
+
+
+def test_rows_of_a_repeated_id_is_its_last_row_as_rows_by_id(catalog):
+    part = catalog.subset(np.arange(20))
+    ids = np.asarray(part.id).copy()
+    ids[15] = ids[3]
+    twice = replace(part, id=ids)
+    assert twice.rows_of([int(ids[3])]).tolist() == [twice.rows_by_id()[int(ids[3])]] == [15]
+    big = replace(_big_id_catalog(catalog, 20), id=np.where(np.arange(20) == 15, ids[3] * 10**12, ids * 10**12))
+    assert big.rows_of([int(ids[3]) * 10**12]).tolist() == [big.rows_by_id()[int(ids[3]) * 10**12]] == [15]
+
+
+@pytest.mark.skipif(not REAL, reason="needs tests/data/real")
+def test_a_solve_with_a_time_moves_its_matches_alone(monkeypatch):
+    """A frame's time moves the matched stars, not the catalog's 118,000 (90 ms a frame before); the answer is
+    the one the whole catalog moved to that time gives."""
+    from startrack.solve import SolveOptions, solve_image
+
+    moved = []
+    real = Catalog.propagate
+
+    def spy(self, epoch):
+        moved.append(len(self.id))
+        return real(self, epoch)
+
+    monkeypatch.setattr(Catalog, "propagate", spy)
+    res = solve_image(REAL[0], SolveOptions(epoch=2019.57))
+    assert res.status == "ok"
+    assert moved and max(moved) <= len(res.identification.matches)
+    # The attitude's stars at 2019.57, from the whole catalog moved there (as before).
+    from startrack.catalog import load_catalog
+
+    whole = real(load_catalog(), 2019.57)
+    ids = [int(m[1]) for m in res.identification.matches]
+    by_id = whole.rows_by_id()
+    want = whole.vectors()[[by_id[i] for i in ids]]
+    ra = np.degrees(np.arctan2(want[:, 1], want[:, 0])) % 360.0
+    assert np.array_equal(res.matched_catalog["ra"], ra)
