@@ -458,6 +458,11 @@ def image_time_tags(path: str):
 
     ext = os.path.splitext(str(path))[1].lower()
     if ext in (".fits", ".fit", ".fts"):
+        from startrack.fitsfast import read_header
+
+        header = read_header(path)      # without astropy's import when the header is a plain one
+        if header is not None:
+            return header, None
         from astropy.io import fits
 
         try:

@@ -350,6 +350,15 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
 
 
 def _read_fits(path, limit):
+    from startrack.fitsfast import read_image as read_plain
+
+    plain = read_plain(path)        # a plain image without astropy's import (startrack.fitsfast), else astropy
+    if plain is not None:
+        data = plain[0]
+        if int(np.prod(data.shape[-2:])) > limit:
+            raise BadInputError(path, None, f"is {data.shape[-1]}x{data.shape[-2]} pixels, more than the "
+                                f"limit of {limit} (STARTRACK_MAX_IMAGE_PIXELS)")
+        return _fits_pixels(data)
     from astropy.io import fits
 
     with captured_stderr() as cap:
@@ -373,7 +382,11 @@ def _read_fits(path, limit):
                                                           cap)) from None
     if data is None:
         raise BadInputError(path, None, "holds no 2-D image")
-    data = np.asarray(data)
+    return _fits_pixels(np.asarray(data))
+
+
+def _fits_pixels(data):
+    """:func:`_read_fits`' image, bit depth, channels and saturation of a FITS HDU's data."""
     if data.ndim == 3:
         data = data.mean(axis=0) if data.shape[0] in (3, 4) else data[0]
     dtype = data.dtype
