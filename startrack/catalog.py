@@ -511,14 +511,134 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
     BadInputError
         If the file is missing, not HDF5, not a catalog, or holds NaN positions.
     """
+    if path in CATALOG_NAMES:
+        return _load_named(path, mag_max)
+    t0 = time.perf_counter()
+    if path is None:
+        # The shipped catalog, from the cache's decompressed and verified copy of it when there is one.
+        path = default_catalog_path()
+        cached = _cached_catalog(path)
+        if cached is not None:
+            cat = _rows_to(cached, mag_max)
+            log.info("catalog %s: %d stars%s, epoch %g, read in %.0f ms from the cache", path, len(cat),
+                     f" to Hp {mag_max:g}" if mag_max is not None else "", cat.epoch,
+                     (time.perf_counter() - t0) * 1000)
+            return cat
+        full = _read_catalog(path, None, t0)
+        _cache_catalog(path, full)
+        return full if mag_max is None else _rows_to(full, mag_max)
+    return _read_catalog(path, mag_max, t0)
+
+
+def _rows_to(cat: Catalog, mag_max: float | None) -> Catalog:
+    """:func:`load_catalog`'s ``mag_max`` of a catalog read whole: the rows :func:`_read_catalog` reads (the
+    first ones of a catalog sorted by magnitude, else those at most ``mag_max``), the same arrays."""
+    if mag_max is None:
+        return cat
+    mag = cat.mag
+    if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
+        rows = slice(0, int(np.searchsorted(mag, mag_max, side="right")))
+    else:
+        rows = np.flatnonzero(mag <= mag_max)
+    params = dict(cat.params)
+    params["read_mag_max"] = float(mag_max)
+    out = replace(cat, **{name: getattr(cat, name)[rows] for name in _COLUMNS}, params=params, merged={})
+    if cat.merged:
+        kept = set(out.id.tolist())
+        out.merged = {k: v for k, v in cat.merged.items() if k in kept}
+    return out
+
+
+def _catalog_cache_path(path: str) -> str:
+    """The cache file of the catalog file ``path``, named by its path, size and modification time."""
+    import hashlib
+
+    st = os.stat(path)
+    stamp = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{CATALOG_FORMAT}|{_CACHE_MAGIC.decode()}"
+    from startrack.patterns import cache_dir
+
+    return os.path.join(cache_dir(), f"catalog-{hashlib.sha256(stamp.encode()).hexdigest()[:12]}.bin")
+
+
+#: The cache file: this magic, the JSON header's length (uint64, little-endian), the header (epoch, params, rows,
+#: merged pairs and each column's dtype and offset), then the columns, each at a 64-byte boundary.
+_CACHE_MAGIC = b"STCAT01\n"
+
+
+def _cached_catalog(path: str) -> Catalog | None:
+    """The shipped catalog from its cache file (written by :func:`_cache_catalog` from a read that decompressed and
+    verified the HDF5 file), its columns mapped copy-on-write, or None: no cache file yet, or one that does not read.
+
+    Reading the HDF5 file costs a process ~60 ms (h5py's import, the decompression, the sha256 of every column);
+    mapping the cache file ~1 ms, and the pages of the rows used are read as they are used."""
+    try:
+        cache = _catalog_cache_path(path)
+        if not os.path.exists(cache):
+            return None
+        size = os.path.getsize(cache)
+        with open(cache, "rb") as fh:
+            head = fh.read(16)
+            if len(head) != 16 or head[:8] != _CACHE_MAGIC:
+                return None
+            meta = json.loads(fh.read(int.from_bytes(head[8:], "little")))
+        n = int(meta["rows"])
+        cols = {}
+        for name, dtype, offset in meta["columns"]:
+            dt = np.dtype(dtype)
+            if offset + n * dt.itemsize > size:
+                return None
+            cols[name] = np.asarray(np.memmap(cache, dtype=dt, mode="c", offset=offset, shape=(n,))) if n else \
+                np.zeros(0, dtype=dt)
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError):
+        return None
+    if set(cols) != set(_COLUMNS):
+        return None
+    merged: dict = {}
+    for into, mid in meta["merged"]:
+        merged.setdefault(int(into), []).append(int(mid))
+    cat = Catalog(epoch=float(meta["epoch"]), params=meta["params"], source=path, **cols)
+    cat.merged = merged
+    return cat
+
+
+def _cache_catalog(path: str, cat: Catalog) -> None:
+    """Write the cache file of the shipped catalog ``cat`` (read whole from ``path``), atomically; nothing when its
+    parameters do not survive JSON as they are, or the cache cannot be written."""
+    try:
+        arrays = [(name, np.ascontiguousarray(getattr(cat, name))) for name in _COLUMNS]
+        header = {"epoch": cat.epoch, "params": cat.params, "rows": len(cat.id), "columns": [],
+                  "merged": [[into, mid] for into, mids in cat.merged.items() for mid in mids]}
+        text = b""
+        for _ in range(5):      # the offsets are in the header whose length they follow: until they stay put
+            offset = -(-(16 + len(text)) // 64) * 64
+            columns = []
+            for name, a in arrays:
+                columns.append([name, a.dtype.str, offset])
+                offset += -(-a.nbytes // 64) * 64
+            if columns == header["columns"]:
+                break
+            header["columns"] = columns
+            text = json.dumps(header).encode()
+        if json.loads(text)["params"] != cat.params or 16 + len(text) > columns[0][2]:
+            return
+        cache = _catalog_cache_path(path)
+        tmp = f"{cache}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as fh:
+            fh.write(_CACHE_MAGIC + len(text).to_bytes(8, "little") + text)
+            for (_, a), (_, _, at) in zip(arrays, columns, strict=True):
+                fh.write(b"\0" * (at - fh.tell()))
+                fh.write(a.tobytes())
+        os.replace(tmp, cache)
+    except OSError:
+        return
+
+
+def _read_catalog(path: str, mag_max: float | None, t0: float) -> Catalog:
+    """:func:`load_catalog` of a file: read, checked and verified."""
     import h5py
 
     from startrack.formats.hdf5 import corrupt_hdf5, read_hdf5
 
-    if path in CATALOG_NAMES:
-        return _load_named(path, mag_max)
-    t0 = time.perf_counter()
-    path = path or default_catalog_path()
     f = read_hdf5(path, CATALOG_FORMAT, names=["mag"])
     mag = np.asarray(f["mag"])
     if mag.dtype.kind not in "iuf" or mag.ndim != 1:

@@ -15,9 +15,9 @@ def command(action, catalog, quiet):
     """List, build or clear the cache of `startrack solve`.
 
     The blind solver's star pattern index (one memory-mapped file, built from
-    the shipped catalog) and the k-vector and label databases of the older
-    solvers are cached in $STARTRACK_CACHE, else $XDG_CACHE_HOME/startrack,
-    else ~/.cache/startrack.  `build` makes the default pattern index now and
+    the shipped catalog), a decompressed copy of the shipped catalog and the
+    k-vector and label databases of the older solvers are cached in
+    $STARTRACK_CACHE, else $XDG_CACHE_HOME/startrack, else ~/.cache/startrack.  `build` makes the default pattern index now and
     compiles the solver's kernels ahead of time (into $STARTRACK_KERNELS, else
     the default cache's kernels/ folder: one build serves every cache), so
     that `solve` neither waits nor loads numba (`build --catalog gaia`: the
@@ -58,6 +58,9 @@ def command(action, catalog, quiet):
         t0 = time.perf_counter()
         existed = os.path.exists(default_index_path(kind=kind))
         index = _process_index(kind)
+        from startrack.catalog import load_catalog
+
+        load_catalog()      # the shipped catalog's cached copy (a command then reads it without h5py)
         if not quiet:
             verb = "opened" if existed else "built"
             click.echo(f"cache: {verb} {index.path} ({index.size_bytes / 1e6:.1f} MB, "

@@ -1,0 +1,75 @@
+"""The shipped catalog's cache file (startrack.catalog._cached_catalog): the HDF5 file's catalog, value for value,
+read without h5py, and a cache file that does not read is replaced, never believed."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import startrack.catalog as C
+
+
+def _same(a, b):
+    for name in C._COLUMNS:
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), name
+    assert (a.epoch, a.params, a.source, a.merged) == (b.epoch, b.params, b.source, b.merged)
+    assert list(a.merged) == list(b.merged)
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("STARTRACK_CACHE", str(tmp_path))
+    return tmp_path
+
+
+@pytest.mark.parametrize("mag_max", [None, 2.0, 6.5, 30.0])
+def test_the_cached_catalog_is_the_files(cache, mag_max):
+    path = C.default_catalog_path()
+    first = C.load_catalog(None, mag_max)          # reads the HDF5 file, writes the cache
+    assert [p.name for p in cache.glob("catalog-*.bin")]
+    again = C.load_catalog(None, mag_max)          # from the cache
+    want = C._read_catalog(path, mag_max, 0.0)
+    _same(first, want)
+    _same(again, want)
+    assert all(getattr(again, n).flags.writeable and type(getattr(again, n)) is np.ndarray for n in C._COLUMNS)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "magic", "header"])
+def test_a_cache_file_that_does_not_read_is_replaced(cache, damage):
+    want = C.load_catalog()
+    (cache_file,) = cache.glob("catalog-*.bin")
+    data = cache_file.read_bytes()
+    if damage == "truncate":
+        cache_file.write_bytes(data[: len(data) // 2])
+    elif damage == "magic":
+        cache_file.write_bytes(b"XXXXXXX\n" + data[8:])
+    else:
+        cache_file.write_bytes(data[:16] + b"{not json" + data[25:])
+    assert C._cached_catalog(C.default_catalog_path()) is None
+    _same(C.load_catalog(), want)                   # read from the file again, and the cache written anew
+    assert C._cached_catalog(C.default_catalog_path()) is not None
+
+
+def test_a_changed_catalog_file_gets_its_own_cache(cache, tmp_path, monkeypatch):
+    import shutil
+
+    copy = tmp_path / "hip2.h5"
+    shutil.copy(C.default_catalog_path(), copy)
+    monkeypatch.setenv("STARTRACK_CATALOG", str(copy))
+    C.load_catalog()
+    os.utime(copy, ns=(1, 1))                       # the file "changed": another name, not the old file's copy
+    C.load_catalog()
+    assert len(list(cache.glob("catalog-*.bin"))) == 2
+
+
+def test_a_process_reads_the_cached_catalog_without_h5py(cache):
+    C.load_catalog()
+    code = ("import sys; from startrack.catalog import load_catalog; c = load_catalog(); "
+            "print(len(c), 'h5py' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "STARTRACK_CACHE": str(cache)})
+    assert out.returncode == 0, out.stderr
+    n, h5 = out.stdout.split()
+    assert int(n) == len(C.load_catalog()) and h5 == "False"
