@@ -555,7 +555,7 @@ def _catalog_cache_path(path: str) -> str:
 
     st = os.stat(path)
     stamp = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{CATALOG_FORMAT}|{_CACHE_MAGIC.decode()}"
-    from startrack.patterns import cache_dir
+    from startrack.cachedir import cache_dir
 
     return os.path.join(cache_dir(), f"catalog-{hashlib.sha256(stamp.encode()).hexdigest()[:12]}.bin")
 

@@ -55,6 +55,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from startrack.cachedir import cache_dir
 from startrack.errors import BadInputError, ParameterError
 from startrack.timeutil import search_clock
 
@@ -100,12 +101,6 @@ finest level's patterns (0.45-0.64 degrees) still fit a field's brightest stars;
 (``benchmarks/narrow_solve.py``), not below."""
 
 
-def cache_dir() -> str:
-    """``$STARTRACK_CACHE``, else ``$XDG_CACHE_HOME/startrack``, else ``~/.cache/startrack`` (created)."""
-    path = os.environ.get("STARTRACK_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "startrack")
-    os.makedirs(path, exist_ok=True)
-    return path
 
 
 @dataclass
