@@ -101,8 +101,6 @@ finest level's patterns (0.45-0.64 degrees) still fit a field's brightest stars;
 (``benchmarks/narrow_solve.py``), not below."""
 
 
-
-
 @dataclass
 class PatternIndex:
     """The arrays of a pattern index (memory-mapped when opened from a file)."""
