@@ -300,8 +300,9 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
         Refuse (``BadInputError``) an image with more pixels than this, checked
         from the header before decoding; default :func:`max_image_pixels`.
     whole_dn : bool
-        Return a single-channel 8- or 16-bit file as decoded (uint8 or uint16: the same values in a
-        quarter or half of float32's memory; issue 41) instead of as float32.
+        Return a single-channel 8- or 16-bit file (a FITS file of unsigned 8- or 16-bit pixels too) as decoded
+        (uint8 or uint16: the same values in a quarter or half of float32's memory; issue 41) instead of as
+        float32.
 
     Returns
     -------
@@ -339,7 +340,7 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
     ext = os.path.splitext(path)[1].lower()
     with reading(path):   # an unexpected exception of a decoder names the image
         if ext in (".fits", ".fit", ".fts") or _magic(path) == b"SIMPLE  =":
-            img, bit_depth, channels, saturation = _read_fits(path, limit)
+            img, bit_depth, channels, saturation = _read_fits(path, limit, whole_dn)
         else:
             img, bit_depth, channels, saturation = _read_cv2(path, limit, whole_dn)
     if img.ndim != 2 or img.shape[0] == 0 or img.shape[1] == 0:
@@ -349,7 +350,7 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
     return img, {"bit_depth": bit_depth, "channels": channels, "saturation": saturation}
 
 
-def _read_fits(path, limit):
+def _read_fits(path, limit, whole_dn=False):
     from startrack.fitsfast import read_image as read_plain
 
     plain = read_plain(path)        # a plain image without astropy's import (startrack.fitsfast), else astropy
@@ -358,7 +359,7 @@ def _read_fits(path, limit):
         if int(np.prod(data.shape[-2:])) > limit:
             raise BadInputError(path, None, f"is {data.shape[-1]}x{data.shape[-2]} pixels, more than the "
                                 f"limit of {limit} (STARTRACK_MAX_IMAGE_PIXELS)")
-        return _fits_pixels(data)
+        return _fits_pixels(data, whole_dn)
     from astropy.io import fits
 
     with captured_stderr() as cap:
@@ -382,14 +383,18 @@ def _read_fits(path, limit):
                                                           cap)) from None
     if data is None:
         raise BadInputError(path, None, "holds no 2-D image")
-    return _fits_pixels(np.asarray(data))
+    return _fits_pixels(np.asarray(data), whole_dn)
 
 
-def _fits_pixels(data):
-    """:func:`_read_fits`' image, bit depth, channels and saturation of a FITS HDU's data."""
+def _fits_pixels(data, whole_dn=False):
+    """:func:`_read_fits`' image, bit depth, channels and saturation of a FITS HDU's data (``whole_dn``: a 2-D image of
+    8- or 16-bit unsigned integers as it is, in native byte order, instead of float32)."""
     if data.ndim == 3:
         data = data.mean(axis=0) if data.shape[0] in (3, 4) else data[0]
     dtype = data.dtype
+    if whole_dn and data.ndim == 2 and dtype.kind == "u" and dtype.itemsize <= 2:
+        img = np.ascontiguousarray(data, dtype=dtype.newbyteorder("="))
+        return img, 8 * dtype.itemsize, 1, float(np.iinfo(dtype).max)
     img = np.ascontiguousarray(data, dtype=np.float32)
     if dtype.kind == "f":
         return img, 32, 1, None

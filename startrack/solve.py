@@ -689,7 +689,7 @@ def solve_image(image, options: SolveOptions | None = None, camera=None, catalog
         from startrack.imageio import read_image
 
         path = os.fspath(image)
-        image, meta = read_image(path)
+        image, meta = read_image(path, whole_dn=True)      # (find_stars reads whole DN without a float copy)
         saturation = meta["saturation"] if saturation is None else saturation
         # As `solve` writes it; the path absolute, so that a document written anywhere finds its image.
         image_record = {"path": os.path.abspath(path), "width": int(image.shape[1]), "height": int(image.shape[0]),

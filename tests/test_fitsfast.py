@@ -152,3 +152,45 @@ def test_a_fits_solve_process_does_not_import_astropy_fits(tmp_path):
     assert "astropy.io.fits" not in json.loads(out.stdout.splitlines()[-1])
     doc = json.loads(open(tmp_path / "f.json").read())
     assert doc["solve"]["status"] == "ok" and doc["image"]["time"].startswith("2019-07-29T20:47:26")
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.float32])
+def test_whole_dn_fits_pixels_are_the_float_reads_values(tmp_path, dtype):
+    """``read_image(whole_dn=True)`` gives an unsigned 8- or 16-bit FITS image as stored (native order), with the
+    float read's values, bit depth and saturation; other types as float32, as before."""
+    data = _frame(dtype)
+    path = _write(str(tmp_path / "w.fits"), data)
+    whole, meta_w = read_image(path, whole_dn=True)
+    flt, meta_f = read_image(path)
+    assert meta_w == meta_f and flt.dtype == np.float32
+    if np.dtype(dtype).kind == "u":
+        assert whole.dtype == dtype and whole.dtype.isnative and whole.flags.c_contiguous
+    else:
+        assert whole.dtype == np.float32
+    assert np.array_equal(whole.astype(np.float32), flt)
+
+
+def test_a_solve_reads_whole_dn_and_gives_the_float_reads_answer(monkeypatch):
+    """solve_image of a 16-bit file hands find_stars the decoded uint16 pixels (no float copy of the frame), and
+    answers as it does for the same pixels as float32."""
+    real = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt60_Azi45_Try1.tiff")
+    if not os.path.exists(real):
+        pytest.skip("needs tests/data/real")
+    import startrack.centroid as centroid
+    from startrack.solve import solve_image
+
+    seen = []
+    find = centroid.find_stars
+
+    def spy(image, *args, **kw):
+        seen.append(np.asarray(image).dtype)
+        return find(image, *args, **kw)
+
+    monkeypatch.setattr(centroid, "find_stars", spy)
+    by_path = solve_image(real)
+    img, meta = read_image(real)
+    by_floats = solve_image(img, saturation=meta["saturation"])
+    assert seen[0] == np.uint16 and seen[-1] == np.float32
+    assert by_path.status == by_floats.status == "ok"
+    assert by_path.identification.matches == by_floats.identification.matches
+    assert np.array_equal(by_path.attitude.quaternion, by_floats.attitude.quaternion)

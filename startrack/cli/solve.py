@@ -193,7 +193,9 @@ def _solve_one(args):
     t0 = time.perf_counter()
     doc = {"format": FRAME_FORMAT, "image": {"path": path}}
     try:
-        image, meta = read_image(path)
+        # Whole DN as decoded (find_stars reads them as float32 holds them, without a copy), unless calibration
+        # frames are subtracted from them.
+        image, meta = read_image(path, whole_dn=frames is None)
         pixels, saturation = image, meta["saturation"]
         if frames is not None:
             calibration = _calibration(frames)
