@@ -79,3 +79,62 @@ def test_a_solve_with_a_time_moves_its_matches_alone(monkeypatch):
     want = whole.vectors()[[by_id[i] for i in ids]]
     ra = np.degrees(np.arctan2(want[:, 1], want[:, 0])) % 360.0
     assert np.array_equal(res.matched_catalog["ra"], ra)
+
+
+@pytest.mark.parametrize("epoch", [None, 1900.0, 2019.57, 2100.0])
+def test_photocentres_at_are_the_whole_catalogs_moved_then_searched(catalog, epoch):
+    """Companions found among the stars that can reach a match by ``epoch`` alone: the same photocentres, bit for
+    bit, as the whole catalog moved to ``epoch`` and searched (Catalog.photocentres)."""
+    vec = catalog.vectors()
+    rng = np.random.default_rng(5)
+    sample = rng.choice(len(catalog.id), 3000, replace=False)
+    radius = 30.0
+    close = np.count_nonzero(vec[sample] @ vec.T >= np.cos(np.radians(radius / 3600)), axis=1) >= 2
+    ids = [int(i) for i in catalog.id[sample[close][:15]]] + rng.choice(catalog.id, 40, replace=False).tolist()
+    whole = catalog if epoch is None else catalog.propagate(epoch)
+    by_id = whole.rows_by_id()
+    want = whole.photocentres([by_id[i] for i in ids if i in by_id], radius)
+    got = catalog.photocentres_at(ids + [10**9], radius, epoch)
+    assert len(want) >= 10 and list(got) == list(want)
+    assert all(got[k].tobytes() == want[k].tobytes() for k in want)
+
+
+def test_attitude_moves_a_frames_matches_to_its_time(catalog, tmp_path):
+    """`startrack attitude` moves a frame's matches to the frame's own time (Catalog.positions_of): its attitude is
+    the one the whole catalog moved to that time gives (the catalog's own 1991.25 positions are 1.2" off here)."""
+    import json
+    import subprocess
+    import sys
+
+    from startrack.attitude import estimate_attitude
+    from startrack.camera import Camera
+    from startrack.timeutil import julian_year
+
+    render = [sys.executable, "-m", "startrack", "render", "--stars-only", "--frames", "3", "--frame-interval-s",
+              "20", "--fov-deg", "15", "--size", "1024x1024", "--sigma-px", "0.3", "--seed", "8", "--mag-max", "5.5",
+              "--time", "2026-09-22T12:00:00Z", "--no-aberration"]
+    frames = subprocess.run(render, capture_output=True, text=True, check=True).stdout
+    docs = [json.loads(line) for line in frames.splitlines()]
+    for d in docs:      # the rendered truth as the identification (ids of the rendered stars)
+        d["identification"] = {"status": "ok", "algorithm": "truth", "matches": [
+            {"star": k, "id": int(i)} for k, i in enumerate(d["truth"]["star_ids"]) if i is not None]}
+    src = tmp_path / "ids.jsonl"
+    src.write_text("".join(json.dumps(d) + "\n" for d in docs))
+    out = subprocess.run([sys.executable, "-m", "startrack", "attitude", str(src), "--no-aberration",
+                          "--merge-px", "0"], capture_output=True, text=True, check=True).stdout
+    got = [json.loads(line)["attitude"] for line in out.splitlines()]
+    from startrack.timeutil import parse_time
+
+    for d, att in zip(docs, got, strict=True):
+        ep = julian_year(parse_time(d["image"]["time"], "time"))
+        assert att["epoch"] == pytest.approx(ep, abs=1e-12)
+        whole = catalog.propagate(ep)
+        by_id, vec = whole.rows_by_id(), whole.vectors()
+        cam = Camera.from_dict(d["camera"])
+        m = d["identification"]["matches"]
+        body = np.array([cam.pixels_to_vectors(d["stars"][x["star"]]["x"], d["stars"][x["star"]]["y"]) for x in m])
+        ref = vec[[by_id[x["id"]] for x in m]]
+        want = estimate_attitude(body.reshape(-1, 3), ref, np.full(len(m), 0.3 / cam.focal_length_px))
+        q = np.asarray(want.section()["quaternion"], dtype=np.float64)
+        ang = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(q, att["quaternion"])))))) * 3600
+        assert ang < 0.05, ang

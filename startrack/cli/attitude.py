@@ -105,25 +105,19 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
     apparent = apparent_from_options(obs_time, velocity_km_s, no_aberration)
     no_time = NoTimeNotice("attitude")
     base = load_catalog(catalog)
-    propagated = {}
     wcs_names = StreamNames(wcs_path)
 
-    def catalog_at(ep):
-        key = round(ep, 6)
-        found = propagated.get(key)
-        if found is None:
-            cat = base if abs(ep - base.epoch) < 1e-9 else base.propagate(ep)
-            found = (cat, cat.rows_by_id(), cat.vectors())
-            propagated.clear()
-            propagated[key] = found
-        return found
+    def positions_at(ep, ids):
+        """``(rows, vectors, catalog rows)`` of the matched stars at epoch ``ep`` (Catalog.positions_of: the
+        numbers of the whole catalog moved there, without moving it; the catalog as it is at its own epoch)."""
+        return base.positions_of(ids, None if abs(ep - base.epoch) < 1e-9 else ep)
 
     def photocentres_at(ep, cam, ids):
         """``{id: unit vector}`` of the matched stars that have unresolved companions at this camera's scale."""
         if not merge_px:
             return {}
-        cat, rows, vectors = catalog_at(ep)
-        return cat.photocentres([rows[i] for i in ids if i in rows], merge_radius_arcsec(cam, merge_px), vectors)
+        return base.photocentres_at(ids, merge_radius_arcsec(cam, merge_px),
+                                    None if abs(ep - base.epoch) < 1e-9 else ep)
 
     def process(doc, source, index, total):  # noqa: ARG001 - the caller's signature
         ident = doc.get("identification")
@@ -157,8 +151,9 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
             ep = float(doc["truth"]["epoch"])
         if ep is None:
             ep = base.epoch
-        cat_ep, rows, vectors = catalog_at(ep)
-        centres = photocentres_at(ep, cam, [int(m["id"]) for m in matches])
+        match_ids = [int(m["id"]) for m in matches]
+        rows, vectors, cat_rows = positions_at(ep, match_ids)
+        centres = photocentres_at(ep, cam, match_ids)
         gain = _frame_gain(doc)
         noise_frame = (doc.get("centroid") or {}).get("noise_dn")
         body, ref, sig, labels, bounds = [], [], [], [], []
@@ -185,7 +180,7 @@ def command(input, method, catalog, epoch, obs_time, velocity_km_s, no_aberratio
             if mirrored:
                 x = 2.0 * cam.cx - x        # identified as the un-mirrored camera's stars (startrack.parity)
             body.append(cam.pixels_to_vectors(x, y))
-            ref.append(setting.apparent(centres.get(int(m["id"]), vectors[row]), cat_ep.plx[row]))
+            ref.append(setting.apparent(centres.get(int(m["id"]), vectors[row]), base.plx[cat_rows[row]]))
             # Each star's own sigma: the covariance its centroid fit reports, else its centroid Cramér-Rao
             # bound from its flux, PSF and noise (startrack.accuracy), else the sigma_px centroid wrote,
             # else --sigma-px.  The bound alone goes into the crb_* fields.
