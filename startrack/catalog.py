@@ -657,14 +657,20 @@ def _cache_catalog(path: str, cat: Catalog) -> None:
             return
         cache = _catalog_cache_path(path)
         tmp = f"{cache}.{os.getpid()}.tmp"
+    except (OSError, TypeError, ValueError):     # no cache dir; parameters JSON cannot hold
+        return
+    try:
         with open(tmp, "wb") as fh:
             fh.write(_CACHE_MAGIC + len(text).to_bytes(8, "little") + text)
             for (_, a), (_, _, at) in zip(arrays, columns, strict=True):
                 fh.write(b"\0" * (at - fh.tell()))
                 fh.write(a.tobytes())
         os.replace(tmp, cache)
-    except OSError:
-        return
+    except OSError:         # a full disk, a cache that cannot be written: no cache file, nor a partial one
+        try:
+            os.remove(tmp)
+        except OSError:
+            pass
 
 
 def _read_catalog(path: str, mag_max: float | None, t0: float) -> Catalog:

@@ -73,3 +73,14 @@ def test_a_process_reads_the_cached_catalog_without_h5py(cache):
     assert out.returncode == 0, out.stderr
     n, h5 = out.stdout.split()
     assert int(n) == len(C.load_catalog()) and h5 == "False"
+
+
+def test_a_cache_that_cannot_be_written_leaves_nothing_behind(cache, monkeypatch):
+    """A full disk (the rename fails): the catalog is read as ever, and no partial cache file stays."""
+    def full(*_args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(C.os, "replace", full)
+    cat = C.load_catalog()
+    assert len(cat) > 100_000
+    assert not list(cache.glob("catalog-*"))
