@@ -558,10 +558,22 @@ def load_catalog(path: str | None = None, mag_max: float | None = None) -> Catal
                      f" to Hp {mag_max:g}" if mag_max is not None else "", cat.epoch,
                      (time.perf_counter() - t0) * 1000)
             return cat
+        if mag_max is not None and not _cache_writable():
+            return _read_catalog(path, mag_max, t0)     # no cache to write: the rows asked for alone, as ever
         full = _read_catalog(path, None, t0)
         _cache_catalog(path, full)
         return full if mag_max is None else _rows_to(full, mag_max)
     return _read_catalog(path, mag_max, t0)
+
+
+def _cache_writable() -> bool:
+    """Whether the cache directory can take the catalog's cached copy (a read-only home: no)."""
+    from startrack.cachedir import cache_dir
+
+    try:
+        return os.access(cache_dir(), os.W_OK)
+    except OSError:
+        return False
 
 
 def _rows_to(cat: Catalog, mag_max: float | None) -> Catalog:

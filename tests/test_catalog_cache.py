@@ -84,3 +84,20 @@ def test_a_cache_that_cannot_be_written_leaves_nothing_behind(cache, monkeypatch
     cat = C.load_catalog()
     assert len(cat) > 100_000
     assert not list(cache.glob("catalog-*"))
+
+
+def test_without_a_writable_cache_a_few_rows_are_read_alone(cache, monkeypatch):
+    """Where no cache file can be written, a read of the brightest stars reads those rows alone, as before the
+    cache (not the whole file for a copy that cannot be kept)."""
+    monkeypatch.setattr(C, "_cache_writable", lambda: False)
+    read = []
+    real = C._read_catalog
+
+    def spy(path, mag_max, t0):
+        read.append(mag_max)
+        return real(path, mag_max, t0)
+
+    monkeypatch.setattr(C, "_read_catalog", spy)
+    bright = C.load_catalog(None, 3.0)
+    assert read == [3.0] and len(bright) < 200
+    assert not list(cache.glob("catalog-*"))
