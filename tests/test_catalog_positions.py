@@ -143,7 +143,7 @@ def test_attitude_moves_a_frames_matches_to_its_time(catalog, tmp_path):
 @pytest.mark.skipif(len(REAL) < 3, reason="needs tests/data/real")
 def test_calibrate_moves_each_frames_matches_alone(tmp_path, monkeypatch):
     """`startrack calibrate` of frames solved at their own times moves their matches to those times, not the
-    whole catalog for each (100 ms and a kept copy of ~13 MB a frame before)."""
+    whole catalog for each (100 ms and a kept copy of 15.6 MB a frame before)."""
     import json
 
     from startrack.cli.main import main

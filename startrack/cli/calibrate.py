@@ -86,7 +86,7 @@ def command(input, output, fit, projection, catalog, quiet):
             raise BadInputError(rec.source, "attitude.epoch", f"must be a decimal year, got {json.dumps(ep)[:40]}")
         ep = float(ep)
         # The matched stars at the frame's epoch (Catalog.positions_of: the whole catalog's numbers there, without
-        # moving and keeping a copy of it for every epoch: 100 ms and ~13 MB a frame of its own time).
+        # moving and keeping a copy of it for every epoch: 100 ms and 15.6 MB a frame of its own time).
         rows, vec, _ = base.positions_of([int(m["id"]) for m in ident.get("matches", [])],
                                          None if abs(ep - base.epoch) < 1e-9 else ep)
         xy, ref = [], []
