@@ -581,11 +581,7 @@ def _rows_to(cat: Catalog, mag_max: float | None) -> Catalog:
     first ones of a catalog sorted by magnitude, else those at most ``mag_max``), the same arrays."""
     if mag_max is None:
         return cat
-    mag = cat.mag
-    if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
-        rows = slice(0, int(np.searchsorted(mag, mag_max, side="right")))
-    else:
-        rows = np.flatnonzero(mag <= mag_max)
+    rows = _mag_rows(cat.mag, mag_max)
     params = dict(cat.params)
     params["read_mag_max"] = float(mag_max)
     out = replace(cat, **{name: getattr(cat, name)[rows] for name in _COLUMNS}, params=params, merged={})
@@ -593,6 +589,14 @@ def _rows_to(cat: Catalog, mag_max: float | None) -> Catalog:
         kept = set(out.id.tolist())
         out.merged = {k: v for k, v in cat.merged.items() if k in kept}
     return out
+
+
+def _mag_rows(mag, mag_max: float):
+    """The rows of the stars at most ``mag_max``: the first ones of magnitudes sorted brightest first (a slice: only
+    those rows are read and decompressed from a file), else a selection."""
+    if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
+        return slice(0, int(np.searchsorted(mag, mag_max, side="right")))
+    return np.flatnonzero(mag <= mag_max)
 
 
 def _catalog_cache_path(path: str) -> str:
@@ -695,12 +699,7 @@ def _read_catalog(path: str, mag_max: float | None, t0: float) -> Catalog:
     mag = np.asarray(f["mag"])
     if mag.dtype.kind not in "iuf" or mag.ndim != 1:
         raise BadInputError(path, "mag", f"holds {mag.dtype} values of shape {mag.shape}, expected one number per star")
-    rows = slice(None)
-    if mag_max is not None:
-        if len(mag) > 1 and np.all(mag[1:] >= mag[:-1]):
-            rows = slice(0, int(np.searchsorted(mag, mag_max, side="right")))
-        else:
-            rows = np.flatnonzero(mag <= mag_max)
+    rows = slice(None) if mag_max is None else _mag_rows(mag, mag_max)
     cols = {"mag": mag[rows]}
     with corrupt_hdf5(path) as where, h5py.File(path, "r") as h5:
         for name in ("id", "ra", "dec"):

@@ -10,6 +10,21 @@ import pytest
 from startrack.catalog import Catalog
 
 REAL = sorted(glob.glob(os.path.join(os.path.dirname(__file__), "data", "real", "*.tiff")))
+assert len(REAL) == 8, "tests/data/real holds the 8 ESA images"
+
+
+@pytest.fixture()
+def moved(monkeypatch):
+    """The number of stars of each Catalog.propagate call made while the test runs."""
+    sizes = []
+    real = Catalog.propagate
+
+    def spy(self, epoch):
+        sizes.append(len(self.id))
+        return real(self, epoch)
+
+    monkeypatch.setattr(Catalog, "propagate", spy)
+    return sizes
 
 
 @pytest.mark.parametrize("epoch", [None, 1991.25, 2016.0, 2019.57, 2100.0])
@@ -53,27 +68,18 @@ def test_rows_of_a_repeated_id_is_its_last_row_as_rows_by_id(catalog):
     assert big.rows_of([int(ids[3]) * 10**12]).tolist() == [big.rows_by_id()[int(ids[3]) * 10**12]] == [15]
 
 
-@pytest.mark.skipif(not REAL, reason="needs tests/data/real")
-def test_a_solve_with_a_time_moves_its_matches_alone(monkeypatch):
+def test_a_solve_with_a_time_moves_its_matches_alone(moved):
     """A frame's time moves the matched stars, not the catalog's 118,000 (90 ms a frame before); the answer is
     the one the whole catalog moved to that time gives."""
     from startrack.solve import SolveOptions, solve_image
 
-    moved = []
-    real = Catalog.propagate
-
-    def spy(self, epoch):
-        moved.append(len(self.id))
-        return real(self, epoch)
-
-    monkeypatch.setattr(Catalog, "propagate", spy)
     res = solve_image(REAL[0], SolveOptions(epoch=2019.57))
     assert res.status == "ok"
     assert moved and max(moved) <= len(res.identification.matches)
     # The attitude's stars at 2019.57, from the whole catalog moved there (as before).
     from startrack.catalog import load_catalog
 
-    whole = real(load_catalog(), 2019.57)
+    whole = load_catalog().propagate(2019.57)       # (after the count above)
     ids = [int(m[1]) for m in res.identification.matches]
     by_id = whole.rows_by_id()
     want = whole.vectors()[[by_id[i] for i in ids]]
@@ -140,8 +146,7 @@ def test_attitude_moves_a_frames_matches_to_its_time(catalog, tmp_path):
         assert ang < 0.05, ang
 
 
-@pytest.mark.skipif(len(REAL) < 3, reason="needs tests/data/real")
-def test_calibrate_moves_each_frames_matches_alone(tmp_path, monkeypatch):
+def test_calibrate_moves_each_frames_matches_alone(tmp_path, moved):
     """`startrack calibrate` of frames solved at their own times moves their matches to those times, not the
     whole catalog for each (100 ms and a kept copy of 15.6 MB a frame before)."""
     import json
@@ -156,16 +161,10 @@ def test_calibrate_moves_each_frames_matches_alone(tmp_path, monkeypatch):
             doc = {"format": FRAME_FORMAT, **to_frame(solve_image(path, SolveOptions(epoch=2019.57 + 0.01 * k)))}
             assert doc["solve"]["status"] == "ok"
             fh.write(json.dumps(doc) + "\n")
-    moved = []
-    real = Catalog.propagate
-
-    def spy(self, epoch):
-        moved.append(len(self.id))
-        return real(self, epoch)
-
-    monkeypatch.setattr(Catalog, "propagate", spy)
+    solves = len(moved)         # (the solves' own moves above)
     with pytest.raises(SystemExit) as done:
         main(["calibrate", str(tmp_path / "solved.jsonl"), "-o", str(tmp_path / "cal.json"), "-q"])
     assert done.value.code in (0, None)
-    assert len(moved) == 3 and max(moved) <= 200
+    by_calibrate = moved[solves:]
+    assert len(by_calibrate) == 3 and max(by_calibrate) <= 200
     assert json.loads((tmp_path / "cal.json").read_text())["calibration"]["frames"] == 3

@@ -136,8 +136,7 @@ def test_headers_are_astropys_values(tmp_path):
 def test_a_fits_solve_process_does_not_import_astropy_fits(tmp_path):
     """A plain 16-bit FITS frame with DATE-OBS: read, timed, solved, without astropy.io.fits' ~130 ms import."""
     real = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt40_Azi-135_Try1.tiff")
-    if not os.path.exists(real):
-        pytest.skip("needs tests/data/real")
+    assert os.path.exists(real), "tests/data/real holds the ESA images"
     img, _ = read_image(real)
     path = _write(str(tmp_path / "esa.fits"), img.astype(np.uint16), {"DATE-OBS": "2019-07-29T20:47:26"})
     code = ("import sys, json; from startrack.cli.main import main\n"
@@ -174,8 +173,7 @@ def test_a_solve_reads_whole_dn_and_gives_the_float_reads_answer(monkeypatch):
     """solve_image of a 16-bit file hands find_stars the decoded uint16 pixels (no float copy of the frame), and
     answers as it does for the same pixels as float32."""
     real = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt60_Azi45_Try1.tiff")
-    if not os.path.exists(real):
-        pytest.skip("needs tests/data/real")
+    assert os.path.exists(real), "tests/data/real holds the ESA images"
     import startrack.centroid as centroid
     from startrack.solve import solve_image
 
