@@ -572,6 +572,8 @@ def _tiff_datetime(fh):
     neither is text."""
     import struct
 
+    from startrack.tifffast import directory as tiff_directory
+
     def read(offset, size):
         fh.seek(offset)
         out = fh.read(size)
@@ -585,10 +587,7 @@ def _tiff_datetime(fh):
         raise ValueError("not a classic TIFF structure")
 
     def directory(offset):
-        (n,) = struct.unpack(order + "H", read(offset, 2))
-        raw = read(offset + 2, 12 * n)
-        return {tag: (kind, count, value) for tag, kind, count, value in
-                (struct.unpack_from(order + "HHI4s", raw, 12 * k) for k in range(n))}
+        return tiff_directory(fh, order, offset)
 
     def text(entry):
         if entry is None or entry[0] not in _TIFF_TEXT:

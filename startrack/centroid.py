@@ -849,8 +849,6 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         ``cov_px2``).  An image where
         nothing can be found gives an empty list and a ``reason``.
     """
-    import cv2
-
     from startrack._kernels.centroid import clear_labels, label_blobs_into
 
     options = options or CentroidOptions()
@@ -1001,6 +999,9 @@ def find_stars(image: np.ndarray, options: CentroidOptions | None = None, satura
         noise_mesh = _subtract_background(det_img, level_mesh, thresh_mesh, cell, residual, labels, foreground,
                                           counts, sigma_mesh, options.method == "gauss")
     if options.matched_filter:
+        # (OpenCV only here: a frame measured without the matched filter never imports it, ~17 ms)
+        import cv2
+
         # Detect on the residual smoothed by the PSF-sized Gaussian; the noise of
         # the filtered image is the pixel noise times the kernel's L2 norm.
         k = max(3, int(2 * math.ceil(3 * options.filter_sigma_px) + 1))

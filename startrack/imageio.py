@@ -339,10 +339,12 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
 
     ext = os.path.splitext(path)[1].lower()
     with reading(path):   # an unexpected exception of a decoder names the image
-        if ext in (".fits", ".fit", ".fts") or _magic(path) == b"SIMPLE  =":
+        magic = _magic(path)
+        if ext in (".fits", ".fit", ".fts") or magic == b"SIMPLE  =":
             img, bit_depth, channels, saturation = _read_fits(path, limit, whole_dn)
         else:
-            img, bit_depth, channels, saturation = _read_cv2(path, limit, whole_dn)
+            plain = _read_tiff(path, whole_dn) if magic[:4] in (b"II*\0", b"MM\0*") else None
+            img, bit_depth, channels, saturation = plain or _read_cv2(path, limit, whole_dn)
     if img.ndim != 2 or img.shape[0] == 0 or img.shape[1] == 0:
         raise BadInputError(path, None, f"has no pixels (shape {img.shape})")
     if img.dtype.kind == "f" and not np.all(np.isfinite(img)):
@@ -400,6 +402,20 @@ def _fits_pixels(data, whole_dn=False):
         return img, 32, 1, None
     bit_depth = 8 if dtype.itemsize == 1 else 16
     return img, bit_depth, 1, float(np.iinfo(dtype).max) if dtype.itemsize <= 2 else None
+
+
+def _read_tiff(path, whole_dn=False):
+    """:func:`_read_cv2`'s answer for a plain TIFF file (:mod:`startrack.tifffast`: one grey 8- or 16-bit sample
+    per pixel, not compressed) without OpenCV's import; None for any other TIFF file (OpenCV reads it).  The size
+    limit was checked from the header (:func:`image_size_from_header`)."""
+    from startrack.tifffast import read_image as read_plain
+
+    plain = read_plain(path)
+    if plain is None:
+        return None
+    raw, bits = plain
+    img = raw if whole_dn else raw.astype(np.float32)
+    return img, bits, 1, 255.0 if bits == 8 else 65535.0
 
 
 def _read_cv2(path, limit, whole_dn=False):
