@@ -678,8 +678,22 @@ def _key(f) -> str:
     return f.metadata.get("key") or f.name
 
 
+#: Types whose values :func:`_json_value` returns as they are (an enum member's type is its enum, never one of these).
+_PLAIN_JSON = frozenset((str, int, bool, type(None)))
+
+
 def _json_value(value):
     """A JSON-ready copy: NumPy to Python, non-finite floats to ``None``, enums to their value."""
+    kind = type(value)
+    # The types a document holds by far the most often, by exact type first (the same values as the checks below).
+    if kind in _PLAIN_JSON:
+        return value
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind is dict:
+        return {str(k): _json_value(v) for k, v in value.items()}
+    if kind is list:
+        return [_json_value(v) for v in value]
     if isinstance(value, enum_types()):
         return value.value
     if isinstance(value, dict):

@@ -3,10 +3,13 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from startrack.errors import BadInputError
 from startrack.formats import FrameWriter, atomic_open, dumps_frame, read_frames, validate_frame
 from startrack.formats.hdf5 import read_hdf5, write_hdf5
+from startrack.records import Status
 
 CAMERA = {"width": 1024, "height": 1024, "focal_length_px": 2903.7, "cx": 511.5, "cy": 511.5}
 
@@ -74,6 +77,89 @@ def test_missing_file():
 def test_dumps_handles_numpy_and_nan():
     line = dumps_frame({"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": np.int64(4)})
     assert json.loads(line) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": 4}
+
+
+def _old_json_value(value):
+    """records._json_value before its exact-type fast paths (the reference of the test below)."""
+    import math
+
+    from startrack.records import enum_types
+
+    if isinstance(value, enum_types()):
+        return value.value
+    if isinstance(value, dict):
+        return {str(k): _old_json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_old_json_value(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _old_json_value(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
+
+
+_LEAVES = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70), st.floats(allow_nan=True, allow_infinity=True),
+                    st.text(max_size=5), st.sampled_from(["ok", "failed"]).map(lambda v: Status(v)),
+                    st.integers(-1000, 1000).map(np.int64), st.floats(-1e30, 1e30).map(np.float64),
+                    st.floats(-1e6, 1e6, width=32).map(np.float32), st.booleans().map(np.bool_),
+                    st.lists(st.floats(-1e6, 1e6), max_size=4).map(np.array),
+                    st.lists(st.integers(-5, 5), max_size=4).map(lambda v: np.array(v, dtype=np.int32)))
+_KEYS = st.one_of(st.text(max_size=4), st.integers(-5, 5), st.booleans(), st.none(), st.floats(-1e20, 1e20))
+_DOCS = st.recursive(_LEAVES, lambda inner: st.one_of(st.lists(inner, max_size=4), st.tuples(inner, inner),
+                                                      st.dictionaries(_KEYS, inner, max_size=4)), max_leaves=25)
+
+
+@settings(max_examples=400, deadline=None)
+@given(_DOCS)
+def test_json_values_and_lines_are_the_copys(doc):
+    """records._json_value's fast paths give its old values; dumps_frame's line (the document straight to the encoder
+    when it can take it) is the line of the document copied through _to_json, NaN, NumPy values and keys of every
+    kind included."""
+    import math
+
+    from startrack.formats.frame import _to_json
+    from startrack.records import _json_value
+
+    def same(a, b):
+        if isinstance(a, float) and isinstance(b, float):
+            return a == b or (math.isnan(a) and math.isnan(b))
+        if type(a) is not type(b):
+            return False
+        if isinstance(a, dict):
+            return list(a) == list(b) and all(same(a[k], b[k]) for k in a)
+        if isinstance(a, list):
+            return len(a) == len(b) and all(map(same, a, b))
+        return a == b
+
+    assert same(_json_value(doc), _old_json_value(doc))
+    try:
+        want = json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as exc:       # (a value JSON has no place for): refused alike
+        with pytest.raises(type(exc)):
+            dumps_frame(doc)
+        return
+    assert dumps_frame(doc) == want
+    assert dumps_frame({"frame": [doc, np.arange(2.0)]}) == json.dumps(_to_json({"frame": [doc, np.arange(2.0)]}),
+                                                                         separators=(",", ":"), allow_nan=False)
+
+
+def test_a_solve_documents_line_is_the_copys():
+    """The frame document of a real solve (NumPy values, many floats) gives the copy's line, straight."""
+    from startrack import Solver
+    from startrack.formats.frame import _to_json
+    from startrack.records import solve_result_to_frame
+
+    path = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt60_Azi135_Try1.tiff")
+    doc = solve_result_to_frame(Solver().solve(path))
+    assert doc["solve"]["status"] == "ok"
+    line = dumps_frame(doc)
+    assert line == json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+    assert json.loads(line)["attitude"]["quaternion"] == [float(v) for v in doc["attitude"]["quaternion"]]
 
 
 def test_frame_writer_is_a_journal_and_resumes(tmp_path):

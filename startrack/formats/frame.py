@@ -452,6 +452,15 @@ def _lines_after_bad_first(text: str, first_no: int, name: str, base, exc):
 _AS_IS = frozenset((str, int, bool, type(None)))     # JSON values as they are (the most common by far)
 
 
+def _json_key(key) -> str:
+    """A dictionary key as a string: ``True``, ``False`` and ``None`` as the JSON encoder writes them (so that a
+    document gives one line whether or not :func:`dumps_frame` copies it through :func:`_to_json`), others by
+    ``str``."""
+    if key is True or key is False:
+        return "true" if key else "false"
+    return "null" if key is None else str(key)
+
+
 def _to_json(value):
     kind = type(value)
     if kind in _AS_IS:
@@ -459,7 +468,7 @@ def _to_json(value):
     if kind is float:
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {str(k): _to_json(v) for k, v in value.items()}
+        return {k if type(k) is str else _json_key(k): _to_json(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_to_json(v) for v in value]
     if isinstance(value, np.ndarray):
@@ -474,9 +483,33 @@ def _to_json(value):
     return value
 
 
+def _json_default(value):
+    """:func:`dumps_frame`'s encoder's hook: a NumPy array or scalar as :func:`_to_json` converts it (anything else
+    is not JSON: a ``TypeError``, as before)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
+
+
+_ENCODE = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json_default).encode
+
+
 def dumps_frame(doc: dict) -> str:
-    """One compact JSON line; numpy values converted, non-finite floats as ``null``."""
-    return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+    """One compact JSON line; numpy values converted, non-finite floats as ``null``.
+
+    The document goes straight to the encoder (NumPy values through its hook); only one that holds a non-finite
+    float (the encoder refuses it) or a key the encoder does not take is first copied by :func:`_to_json`: the same
+    line either way, without a copy of every document."""
+    try:
+        return _ENCODE(doc)
+    except (ValueError, TypeError):
+        return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
 
 
 def frame_line(doc: dict, base_dir: str | None = None) -> str:
