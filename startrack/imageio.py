@@ -70,7 +70,7 @@ def check_fits_output(path: str | None) -> None:
 
 
 def write_image(path: str, image: np.ndarray, header: dict | None = None) -> None:
-    """Write a 2-D uint8/uint16 image atomically; FITS gets ``header`` as keywords."""
+    """Write a 2-D uint8/uint16 image atomically; FITS gets ``header`` as keywords, a TIFF file is not compressed."""
     ext = check_image_output(path)
     with atomic_path(path) as tmp:
         if ext in (".fits", ".fit", ".fts"):
@@ -85,7 +85,11 @@ def write_image(path: str, image: np.ndarray, header: dict | None = None) -> Non
 
             if image.dtype not in (np.uint8, np.uint16):
                 raise BadInputError(path, None, f"cannot write {image.dtype} pixels to {ext}")
-            if not cv2.imwrite(tmp, image):
+            # TIFF not compressed (OpenCV's default is LZW): a 1024 x 768 16-bit frame is written in ~1 ms instead of
+            # ~16 and read in ~0.2 ms instead of ~8 (startrack.tifffast), for twice the disk (a 12 Mpx frame: 35
+            # against 265 ms written, 16 against 103 ms read, 24 against 17 MB).
+            params = [cv2.IMWRITE_TIFF_COMPRESSION, 1] if ext in (".tif", ".tiff") else []
+            if not cv2.imwrite(tmp, image, params):
                 raise BadInputError(path, None, "OpenCV could not write the image")
 
 

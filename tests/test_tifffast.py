@@ -185,3 +185,17 @@ def test_a_plain_tiff_solve_process_does_not_import_cv2(tmp_path):
     assert json.loads(out.stdout.splitlines()[-1]) is False
     doc = json.loads(open(tmp_path / "f.json").read())
     assert doc["solve"]["status"] == "ok" and doc["image"]["bit_depth"] == 16
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_startracks_own_tiffs_are_plain(tmp_path, dtype):
+    """write_image (render's frames) writes TIFF files not compressed: this module reads them, OpenCV's pixels."""
+    from startrack.imageio import write_image
+
+    data = _frame(dtype, (48, 64), seed=3)
+    for name in ("a.tif", "b.TIFF"):
+        path = str(tmp_path / name)
+        write_image(path, data)
+        pixels, bits = tifffast.read_image(path)
+        assert np.array_equal(pixels, data) and np.array_equal(pixels, _opencv(path))
+        assert os.path.getsize(path) >= data.nbytes
