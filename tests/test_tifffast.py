@@ -199,3 +199,25 @@ def test_startracks_own_tiffs_are_plain(tmp_path, dtype):
         pixels, bits = tifffast.read_image(path)
         assert np.array_equal(pixels, data) and np.array_equal(pixels, _opencv(path))
         assert os.path.getsize(path) >= data.nbytes
+
+
+@pytest.mark.parametrize("mode", ["L", "I;16", "I;16B"])
+def test_pillows_tiffs_are_opencvs(tmp_path, mode):
+    """Another writer's plain TIFF files (Pillow: 8-bit, 16-bit in either byte order, its own strips): OpenCV's
+    pixels; its compressed ones go to OpenCV."""
+    from PIL import Image
+
+    dtype = np.uint8 if mode == "L" else np.uint16
+    data = _frame(dtype, (301, 517), seed=5)
+    if mode == "I;16B":
+        image = Image.frombuffer(mode, (517, 301), data.astype(">u2").tobytes(), "raw", mode, 0, 1)
+    else:
+        image = Image.fromarray(data)
+    for compression in (None, "tiff_lzw", "packbits"):
+        path = str(tmp_path / f"pil-{compression}.tif")
+        image.save(path, compression=compression) if compression else image.save(path)
+        got = tifffast.read_image(path)
+        assert (got is None) == (compression is not None)
+        assert np.array_equal(read_image(path, whole_dn=True)[0], data) and np.array_equal(_opencv(path), data)
+        if got is not None:
+            assert np.array_equal(got[0], data)

@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
-"""Study (issue 38, session 11), recorded in results/results-speed-2026-12-06.md: whole processes of two checkouts.
+"""Study (issue 38, sessions 11-12), recorded in results/results-speed-2026-12-06.md: whole processes of two checkouts.
 
 What a user pays beyond ``speed_path.py``'s sections: a frame with a time (a FITS file's ``DATE-OBS``, or ``--time``:
-what stellar aberration needs), FITS files, a large 16-bit frame, and ``attitude`` on a stream of timed frames.  Each
+what stellar aberration needs), FITS files, a large 16-bit frame, ``attitude`` on a stream of timed frames, a batch of
+64 TIFF files, and rendering 20 frames to TIFF files (each checkout's own files, in a directory of its own).  Each
 case runs ``RUNS`` times per checkout, the checkouts alternated run by run (one warm-up each, not counted); the median
 wall time of each and their ratio.  The inputs are made here, in a temporary directory: FITS copies of the ESA images
 with times a minute apart (from the photos' own), a rendered 4000 x 3000 16-bit TIFF, 20 rendered star lists a day apart identified with a k-vector
@@ -66,6 +67,8 @@ def main(argv=None):
     runs = int(argv[2]) if len(argv) > 2 else 8
     with tempfile.TemporaryDirectory() as tmp:
         fits, big, ids = _inputs(tmp, now)
+        for label in ("before", "now"):
+            os.makedirs(os.path.join(tmp, "render-" + label))
         solve = ["-m", "startrack", "solve", "-q", "-o", os.devnull]
         cases = {
             "solve one 16-bit FITS with DATE-OBS": solve + [fits[0]],
@@ -74,6 +77,11 @@ def main(argv=None):
             "solve the 8 FITS with DATE-OBS, one process": solve + fits,
             "solve a 4000 x 3000 16-bit TIFF": solve + [big, "--no-aberration"],
             "attitude, 20 star lists a day apart": ["-m", "startrack", "attitude", ids, "-q", "-o", os.devnull],
+            "solve 64 ESA TIFF files (8 names each), -j 1": solve + ["-j", "1", "--no-aberration"] + ESA * 8,
+            "render 20 frames 1024 x 768 to 16-bit TIFF files": lambda where: [
+                "-m", "startrack", "render", "--fov-deg", "12", "--size", "1024x768", "--frames", "20", "--bit-depth",
+                "16", "--seed", "2", "--no-aberration", "-o",
+                os.path.join(tmp, "render-" + ("before" if where == before else "now"), "frame.tif")],
         }
         print(f"{runs} runs each, alternated; start {time.strftime('%H:%M:%S', time.gmtime())} UTC, load "
               f"{os.getloadavg()[0]:.2f}\n\n| process | before s | now s | now / before |\n|---|---|---|---|")
@@ -82,7 +90,8 @@ def main(argv=None):
             for rep in range(runs + 1):
                 for where in ((before, now) if rep % 2 == 0 else (now, before)):
                     t0 = time.perf_counter()
-                    proc = subprocess.run([sys.executable, *args], cwd=where, env=_env(where), capture_output=True)
+                    proc = subprocess.run([sys.executable, *(args(where) if callable(args) else args)], cwd=where,
+                                          env=_env(where), capture_output=True)
                     if proc.returncode != 0:
                         raise RuntimeError(f"{name} ({where}): {proc.stderr.decode()[-500:]}")
                     if rep:
