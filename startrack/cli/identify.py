@@ -186,7 +186,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
     deep = None
     if match_all:
         from startrack.catalog import load_catalog
-        from startrack.identify.catalog_match import CatalogStars
+        from startrack.identify.catalog_match import CatalogStars, CatalogStarsAt
 
         base = load_catalog(catalog)
         deep = CatalogStars.from_catalog(base)
@@ -194,7 +194,8 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
 
         def deep_at(t):
             """The catalog at the frame's time (proper motion), to 0.001 yr (8.8 h; 0.01" for the fastest
-            stars), one epoch kept: the final match compares with where the stars are."""
+            stars), one epoch kept: the final match compares with where the stars are (CatalogStarsAt: the stars
+            a frame reads moved, not the whole catalog)."""
             from startrack.timeutil import julian_year
 
             ep = round(julian_year(t), 3)
@@ -204,8 +205,7 @@ def command(input, database, algorithm, camera_file, sigma_px, tolerance_arcsec,
                 at_epoch.clear()
                 # The database's stars move by their catalog stars' motion since the database's epoch.
                 db_epoch = (getattr(db, "params", None) or {}).get("epoch", base.epoch)
-                since = base if abs(db_epoch - base.epoch) < 1e-9 else base.propagate(db_epoch)
-                at_epoch[ep] = CatalogStars.from_catalog(base.propagate(ep), since)
+                at_epoch[ep] = CatalogStarsAt(deep, base, ep, None if abs(db_epoch - base.epoch) < 1e-9 else db_epoch)
             return at_epoch[ep]
     override = None
     if camera_file:
