@@ -79,7 +79,16 @@ def test_catalog_stars_without_an_index_make_one(catalog):
     c = math.cos(math.radians(12.0))
     np.testing.assert_array_equal(stars.in_cone(axis, c), np.flatnonzero(sub.vectors() @ axis > c))
     assert stars.sky is not None
-    assert CatalogStars.from_catalog(sub).sky is sub.sky_index()
+    # A catalog's own index, made (or taken from the catalog) only when a cone needs it: not for a cone of the
+    # brightest stars, which has an index of its own.
+    fresh = catalog.filter_magnitude(None, 8.0)
+    lazy = CatalogStars.from_catalog(fresh)
+    assert lazy.sky is None and "_cache_sky_index" not in fresh.__dict__
+    np.testing.assert_array_equal(lazy.in_cone(axis, c, 5.0), stars.in_cone(axis, c, 5.0))
+    assert lazy.sky is None and "_cache_sky_index" not in fresh.__dict__
+    got = lazy.in_cone(axis, c)
+    assert lazy.sky is fresh.sky_index()
+    np.testing.assert_array_equal(got, np.flatnonzero(fresh.vectors() @ axis > c))
 
 
 def test_frame_depth_median_is_numpys():

@@ -16,7 +16,8 @@ __all__ = ["CatalogStars", "CatalogStarsAt", "match_catalog", "match_identified"
 @dataclass
 class CatalogStars:
     """A catalog's stars ready for :func:`match_catalog`: ICRS unit vectors, ids, magnitudes, and their
-    sky index (:class:`startrack.skyindex.SkyIndex`, made at the first match when not given)."""
+    sky index (:class:`startrack.skyindex.SkyIndex`, made at the first cone that needs it when not given: a frame whose
+    depth the index of the brightest stars serves never does, ~25 ms of the shipped catalog's)."""
 
     vectors: np.ndarray
     id: np.ndarray
@@ -31,6 +32,8 @@ class CatalogStars:
     _mag_order: tuple | None = None
     _bright: dict | None = None
     _id64: np.ndarray | None = None
+    #: Where :attr:`sky` comes from when a cone first needs it (the catalog's own, shared), or None (made here).
+    _sky_source: object = None
 
     @classmethod
     def from_catalog(cls, catalog, since=None) -> CatalogStars:
@@ -38,8 +41,9 @@ class CatalogStars:
         ``since``: the same catalog at the epoch it was propagated from (the stars' ``motion``)."""
         motion = None if since is None else catalog.vectors() - since.vectors()
         plx = getattr(catalog, "plx", None)
-        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), catalog.sky_index(), motion,
-                   None if plx is None or not np.any(plx > 0) else np.asarray(plx, dtype=np.float64))
+        return cls(catalog.vectors(), np.asarray(catalog.id), np.asarray(catalog.mag), None, motion,
+                   None if plx is None or not np.any(plx > 0) else np.asarray(plx, dtype=np.float64),
+                   _sky_source=catalog.sky_index)
 
     @property
     def mag64(self) -> np.ndarray:
@@ -99,9 +103,12 @@ class CatalogStars:
             near = rows[sky.near(axis, cos_radius)]
         else:
             if self.sky is None:
-                from startrack.skyindex import SkyIndex
+                if self._sky_source is not None:
+                    self.sky = self._sky_source()
+                else:
+                    from startrack.skyindex import SkyIndex
 
-                self.sky = SkyIndex(self.vectors)
+                    self.sky = SkyIndex(self.vectors)
             near = self.sky.near(axis, cos_radius)
         near = near[self.vectors[near] @ axis > cos_radius]
         return near if mag_limit is None else near[self.mag[near] <= mag_limit]
