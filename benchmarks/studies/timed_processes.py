@@ -2,12 +2,13 @@
 """Study (issue 38, sessions 11-12), recorded in results/results-speed-2026-12-06.md: whole processes of two checkouts.
 
 What a user pays beyond ``speed_path.py``'s sections: a frame with a time (a FITS file's ``DATE-OBS``, or ``--time``:
-what stellar aberration needs), FITS files, a large 16-bit frame, ``attitude`` on a stream of timed frames, a batch of
-64 TIFF files, and rendering 20 frames to TIFF files (each checkout's own files, in a directory of its own).  Each
-case runs ``RUNS`` times per checkout, the checkouts alternated run by run (one warm-up each, not counted); the median
-wall time of each and their ratio.  The inputs are made here, in a temporary directory: FITS copies of the ESA images
-with times a minute apart (from the photos' own), a rendered 4000 x 3000 16-bit TIFF, 20 rendered star lists a day apart identified with a k-vector
-database.
+what stellar aberration needs), FITS files, a large 16-bit frame, ``attitude`` on a stream of timed frames,
+``identify`` on star lists 12 hours apart, a batch of 64 TIFF files, and rendering 20 frames to TIFF files (each
+checkout's own files, in a directory of its own).  Each case runs ``RUNS`` times per checkout, the checkouts
+alternated run by run (one warm-up each, not counted); the median wall time of each and their ratio.  The inputs are
+made here, in a temporary directory, with the second checkout's startrack: FITS copies of the ESA images with times a
+minute apart (from the photos' own), a rendered 4000 x 3000 16-bit TIFF, 20 rendered star lists a day apart identified
+with a k-vector database, 30 rendered star lists 12 hours apart.
 
     python benchmarks/studies/timed_processes.py BEFORE_CHECKOUT NOW_CHECKOUT [RUNS]
     python benchmarks/studies/timed_processes.py /tmp/before /work/main 8
@@ -56,7 +57,13 @@ def _inputs(tmp, checkout):
     ids = os.path.join(tmp, "ids.jsonl")
     with open(ids, "wb") as fh:
         fh.write(subprocess.run(st + ["identify", "-d", db], input=frames, **run).stdout)
-    return fits, big, ids
+    lists = os.path.join(tmp, "lists.jsonl")
+    with open(lists, "wb") as fh:
+        fh.write(subprocess.run(st + ["render", "--stars-only", "--frames", "30", "--frame-interval-s", "43200",
+                                      "--rate-deg-s", "0.001,0.0005,0", "--fov-deg", "15", "--size", "1024x1024",
+                                      "--sigma-px", "0.3", "--seed", "4", "--time", "2026-09-22T12:00:00Z"],
+                                **run).stdout)
+    return fits, big, ids, db, lists
 
 
 def main(argv=None):
@@ -66,7 +73,7 @@ def main(argv=None):
     before, now = (os.path.abspath(a) for a in argv[:2])
     runs = int(argv[2]) if len(argv) > 2 else 8
     with tempfile.TemporaryDirectory() as tmp:
-        fits, big, ids = _inputs(tmp, now)
+        fits, big, ids, db, lists = _inputs(tmp, now)
         for label in ("before", "now"):
             os.makedirs(os.path.join(tmp, "render-" + label))
         solve = ["-m", "startrack", "solve", "-q", "-o", os.devnull]
@@ -77,6 +84,8 @@ def main(argv=None):
             "solve the 8 FITS with DATE-OBS, one process": solve + fits,
             "solve a 4000 x 3000 16-bit TIFF": solve + [big, "--no-aberration"],
             "attitude, 20 star lists a day apart": ["-m", "startrack", "attitude", ids, "-q", "-o", os.devnull],
+            "identify 30 star lists 12 h apart (final match)": ["-m", "startrack", "identify", "-d", db, lists, "-q",
+                                                                 "-o", os.devnull],
             "solve 64 ESA TIFF files (8 names each), -j 1": solve + ["-j", "1", "--no-aberration"] + ESA * 8,
             "render 20 frames 1024 x 768 to 16-bit TIFF files": lambda where: [
                 "-m", "startrack", "render", "--fov-deg", "12", "--size", "1024x768", "--frames", "20", "--bit-depth",
