@@ -182,8 +182,8 @@ def command(catalog, camera_file, fov_deg, focal_length_mm, pixel_pitch_um, size
             sigma_arcsec, max_stars, drop_fraction, count, seed, jobs, scheduler, frame_seed, resume, quiet):
     """Render star images (or star lists) of a catalog seen by a camera.
 
-    The image goes to --output (format by extension: 8/16-bit PNG, 16-bit TIFF,
-    FITS) and one frame document per frame (image, camera, truth, render
+    The image goes to --output (format by extension: 8/16-bit PNG, 16-bit TIFF
+    not compressed, FITS) and one frame document per frame (image, camera, truth, render
     parameters) to stdout.  Photometry follows paper 003 Eqs. 7-9, the PSF is a
     Gaussian integrated over each pixel (Eqs. 4-5), and the sensor adds shot,
     dark, read and background noise.  Every random choice follows --seed; each
