@@ -347,7 +347,7 @@ def read_image(path: str, max_pixels: int | None = None, whole_dn: bool = False)
         if ext in (".fits", ".fit", ".fts") or magic == b"SIMPLE  =":
             img, bit_depth, channels, saturation = _read_fits(path, limit, whole_dn)
         else:
-            plain = _read_tiff(path, whole_dn) if magic[:4] in (b"II*\0", b"MM\0*") else None
+            plain = _read_tiff(path, limit, whole_dn) if magic[:4] in (b"II*\0", b"MM\0*") else None
             img, bit_depth, channels, saturation = plain or _read_cv2(path, limit, whole_dn)
     if img.ndim != 2 or img.shape[0] == 0 or img.shape[1] == 0:
         raise BadInputError(path, None, f"has no pixels (shape {img.shape})")
@@ -408,13 +408,13 @@ def _fits_pixels(data, whole_dn=False):
     return img, bit_depth, 1, float(np.iinfo(dtype).max) if dtype.itemsize <= 2 else None
 
 
-def _read_tiff(path, whole_dn=False):
+def _read_tiff(path, limit, whole_dn=False):
     """:func:`_read_cv2`'s answer for a plain TIFF file (:mod:`startrack.tifffast`: one grey 8- or 16-bit sample
-    per pixel, not compressed) without OpenCV's import; None for any other TIFF file (OpenCV reads it).  The size
-    limit was checked from the header (:func:`image_size_from_header`)."""
+    per pixel, not compressed) without OpenCV's import; None for any other TIFF file, and for one of more than
+    ``limit`` pixels (OpenCV reads it, and the limit refuses it as before)."""
     from startrack.tifffast import read_image as read_plain
 
-    plain = read_plain(path)
+    plain = read_plain(path, limit)
     if plain is None:
         return None
     raw, bits = plain

@@ -72,9 +72,12 @@ def _one(fh, order, entries, tag, default=None):
     return got[0] if got is not None and len(got) == 1 else None
 
 
-def read_image(path: str):
+def read_image(path: str, max_pixels: int | None = None):
     """``(pixels, bits)`` of a plain TIFF file's first image: a 2-D uint8 or uint16 array (native byte order) and 8
-    or 16; ``None`` when the file is not one this module reads (see the module's note)."""
+    or 16; ``None`` when the file is not one this module reads (see the module's note), and when the image has more
+    than ``max_pixels`` pixels or more bytes than the file holds (nothing that large is allocated here)."""
+    import os
+
     with open(path, "rb") as fh:
         head = fh.read(8)
         if len(head) < 8 or head[:4] not in (b"II*\0", b"MM\0*"):
@@ -99,7 +102,8 @@ def read_image(path: str):
             return None
         rows = min(rows, height)
         row_bytes = width * bits // 8
-        if len(offsets) != -(-height // rows):
+        if (len(offsets) != -(-height // rows) or (max_pixels is not None and width * height > max_pixels)
+                or height * row_bytes > os.fstat(fh.fileno()).st_size):
             return None
         dtype = np.dtype(np.uint8 if bits == 8 else order + "u2")
         out = np.empty((height, width), dtype=dtype)

@@ -221,3 +221,33 @@ def test_pillows_tiffs_are_opencvs(tmp_path, mode):
         assert np.array_equal(read_image(path, whole_dn=True)[0], data) and np.array_equal(_opencv(path), data)
         if got is not None:
             assert np.array_equal(got[0], data)
+
+
+def test_nothing_larger_than_the_file_or_the_limit_is_allocated(tmp_path, monkeypatch):
+    """A directory (after the pixels, beyond the header read that checks the size) that claims more pixels than the
+    file holds, or more than the image size limit: None here, before any allocation; read_image then refuses the file
+    as it did through OpenCV."""
+    path = _tiff(str(tmp_path / "big.tif"), _frame(np.uint16, (200, 200)))
+    whole = bytearray(open(path, "rb").read())
+    at = struct.unpack_from("<I", whole, 4)[0]
+    assert at > 1 << 16         # beyond the 64 KB header read: no size check before the decoders
+    for k in range(struct.unpack_from("<H", whole, at)[0]):
+        entry = at + 2 + 12 * k
+        tag = struct.unpack_from("<H", whole, entry)[0]
+        if tag in (256, 257):                          # 100,000 x 100,000 pixels: 20 GB of uint16
+            struct.pack_into("<I", whole, entry + 8, 100_000)
+        if tag in (278, 279):
+            struct.pack_into("<I", whole, entry + 8, 100_000 if tag == 278 else 2 * 100_000 ** 2 % 2**32)
+    with open(path, "wb") as fh:
+        fh.write(bytes(whole))
+    allocated = []
+    real_empty = np.empty
+    monkeypatch.setattr(np, "empty", lambda shape, *a, **k: allocated.append(shape) or real_empty(shape, *a, **k))
+    assert tifffast.read_image(path) is None and not allocated
+    monkeypatch.undo()
+    with pytest.raises(BadInputError):
+        read_image(path)
+    small = _tiff(str(tmp_path / "small.tif"), _frame(np.uint16, (40, 40)))
+    assert tifffast.read_image(small, max_pixels=1599) is None and tifffast.read_image(small, max_pixels=1600)
+    with pytest.raises(BadInputError, match="more than the limit of 1599"):
+        read_image(small, max_pixels=1599)
