@@ -505,7 +505,8 @@ def dumps_frame(doc: dict) -> str:
 
     The document goes straight to the encoder (NumPy values through its hook); only one that holds a non-finite
     float (the encoder refuses it) or a key the encoder does not take is first copied by :func:`_to_json`: the same
-    line either way, without a copy of every document."""
+    line either way, without a copy of every document.  (Keys that collide written as strings, ``1`` and ``"1"``, make
+    no JSON object: the encoder writes both.)"""
     try:
         return _ENCODE(doc)
     except (ValueError, TypeError):
