@@ -168,3 +168,53 @@ def test_calibrate_moves_each_frames_matches_alone(tmp_path, moved):
     by_calibrate = moved[solves:]
     assert len(by_calibrate) == 3 and max(by_calibrate) <= 200
     assert json.loads((tmp_path / "cal.json").read_text())["calibration"]["frames"] == 3
+
+
+def _old_matched_catalog(doc, catalog):
+    """solve_result_from_frame's matched catalog before it moved the matches alone: the whole catalog moved."""
+    epoch = doc.get("attitude", {}).get("epoch")
+    cat = catalog.propagate(epoch) if epoch is not None and epoch != catalog.epoch else catalog
+    rows = cat.rows_by_id()
+    got = [rows.get(int(m["id"])) for m in doc["identification"]["matches"]]
+    return {name: np.array([getattr(cat, name)[r] if r is not None else np.nan for r in got], dtype=np.float64)
+            for name in ("ra", "dec", "mag")}
+
+
+def test_a_documents_matched_catalog_moves_its_matches_alone(catalog, monkeypatch):
+    """solve_result_from_frame(doc, catalog): the matches' catalog positions at the attitude's epoch are the whole
+    catalog's moved there, bit for bit, at any epoch and with ids the catalog lacks (NaN), and nothing moves the
+    whole catalog."""
+    import copy
+    import os
+
+    from startrack import Solver
+    from startrack.formats.sections import solve_result_from_frame
+    from startrack.records import solve_result_to_frame
+
+    path = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt40_Azi135_Try1.tiff")
+    base = solve_result_to_frame(Solver().solve(path))
+    assert base["solve"]["status"] == "ok"
+    ids = [m["id"] for m in base["identification"]["matches"]]
+    lacking = catalog.subset(~np.isin(catalog.id, ids[:3]))
+    for cat in (catalog, lacking):
+        for epoch in (None, float(catalog.epoch), 2019.58, 1900.0, 2100.0):
+            doc = copy.deepcopy(base)
+            if epoch is None:
+                doc["attitude"].pop("epoch", None)
+            else:
+                doc["attitude"]["epoch"] = epoch
+            want = _old_matched_catalog(doc, cat)
+            whole = []
+            real = type(cat).propagate
+
+            def spy(self, ep, whole=whole, real=real):
+                whole.append(len(self))
+                return real(self, ep)
+
+            monkeypatch.setattr(type(cat), "propagate", spy)
+            got = solve_result_from_frame(doc, catalog=cat).matched_catalog
+            monkeypatch.undo()
+            assert all(n <= len(ids) for n in whole)
+            for name in ("ra", "dec", "mag"):
+                np.testing.assert_array_equal(got[name], want[name])
+            assert np.isnan(got["ra"]).sum() == (3 if cat is lacking else 0)

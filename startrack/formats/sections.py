@@ -269,11 +269,19 @@ def solve_result_from_frame(doc: dict, source: str = "<frame>", catalog=None) ->
         result.attitude = from_section(Attitude, doc["attitude"], source, "attitude")
     if catalog is not None and result.identification is not None:
         epoch = result.attitude.epoch if result.attitude is not None else None
-        cat = catalog.propagate(epoch) if epoch is not None and epoch != catalog.epoch else catalog
-        rows = cat.rows_by_id()
-        got = [rows.get(int(m[1])) for m in result.identification.matches]
-        pick = lambda column: np.array([column[r] if r is not None else np.nan for r in got],  # noqa: E731
-                                       dtype=np.float64)
+        # The matched stars alone, moved to the attitude's epoch: the whole catalog's numbers moved there, row by row
+        # (Catalog.propagate works star by star), without moving the whole catalog for every document (~90 ms).
+        found = catalog.rows_of([int(m[1]) for m in result.identification.matches])
+        held = found >= 0
+        cat = catalog.subset(found[held])
+        if epoch is not None and epoch != catalog.epoch:
+            cat = cat.propagate(epoch)
+
+        def pick(column):
+            out = np.full(len(found), np.nan)
+            out[held] = column
+            return out
+
         result.matched_catalog = {"ra": pick(cat.ra), "dec": pick(cat.dec), "mag": pick(cat.mag)}
     return result
 
