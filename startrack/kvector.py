@@ -313,8 +313,9 @@ def choose_database_stars(catalog, field_w_deg: float, field_h_deg: float, max_a
     return out
 
 
-def save_kvector(db: KVectorDatabase, path: str) -> None:
-    """Write ``startrack.kvector/1`` atomically."""
+def save_kvector(db: KVectorDatabase, path: str, compress: bool = True) -> None:
+    """Write ``startrack.kvector/1`` atomically (``compress``: gzip its larger arrays, as a file handed to others
+    wants; a cache read by every process does not, :func:`startrack.solve.band_database`)."""
     from startrack.formats.hdf5 import write_hdf5
 
     datasets = {
@@ -330,7 +331,7 @@ def save_kvector(db: KVectorDatabase, path: str) -> None:
         datasets["merged_into"] = (db.merged_into, {"note": "star_id of the entry holding merged_id"})
     write_hdf5(path, KVECTOR_FORMAT, db.params, datasets, attrs={
         "catalog_sha256": db.catalog_sha256, "max_angle_deg": db.max_angle_deg,
-        "kvector_line": np.array(db.line), "quadratic": np.array(db.quad)})
+        "kvector_line": np.array(db.line), "quadratic": np.array(db.quad)}, compress=compress)
 
 
 def load_kvector(path: str) -> KVectorDatabase:

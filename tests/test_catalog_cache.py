@@ -101,3 +101,27 @@ def test_without_a_writable_cache_a_few_rows_are_read_alone(cache, monkeypatch):
     bright = C.load_catalog(None, 3.0)
     assert read == [3.0] and len(bright) < 200
     assert not list(cache.glob("catalog-*"))
+
+
+def test_band_databases_are_cached_uncompressed(catalog, tmp_path, monkeypatch):
+    """A FOV band's k-vector database goes to the cache without compression (every `solve --camera` process reads
+    it: half the time of a gzipped read), loads as it was built, and a file cached gzipped before still loads."""
+    import h5py
+
+    from startrack import solve
+    from startrack.kvector import load_kvector, save_kvector
+
+    monkeypatch.setenv("STARTRACK_CACHE", str(tmp_path))
+    small = catalog.filter_magnitude(None, 4.0)
+    built = solve.band_database(2, catalog=small)
+    assert os.path.dirname(built.path) == str(tmp_path)
+    with h5py.File(built.path, "r") as h5:
+        assert h5["pair_cos"].size > 1024 and all(h5[name].compression is None for name in h5)
+    again = solve.band_database(2, catalog=small)
+    for name in ("star_id", "star_vector", "pair_i", "pair_j", "pair_cos", "kvector", "kquad", "neighbor_idx"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(built, name))
+    save_kvector(built, built.path)                 # as a cache written before: gzipped
+    with h5py.File(built.path, "r") as h5:
+        assert h5["pair_cos"].compression == "gzip"
+    np.testing.assert_array_equal(load_kvector(built.path).pair_cos, built.pair_cos)
+    np.testing.assert_array_equal(solve.band_database(2, catalog=small).kvector, built.kvector)
