@@ -82,7 +82,7 @@ def band_database(band: int, catalog=None, progress=None, which: int = 0, memo: 
     path = os.path.join(cache_dir(), f"kvector-fov{lo:g}-{hi:g}-mag{mag:g}-{key[2][:12]}.h5")
     # Written without compression: every `solve --camera` process reads it (the 9-13 deg band's Hp 6.5 file: 31 MB
     # read in ~70 ms, against 9.4 MB gzipped in ~150 ms).  A file cached compressed before still reads.
-    return _cached(memo, key, path, load_kvector, lambda db, to: save_kvector(db, to, compress=False), lambda: build_kvector(
+    return _cached(memo, key, path, load_kvector, functools.partial(save_kvector, compress=False), lambda: build_kvector(
         cat, diag + 0.5, progress=progress,
         params={"band_fov_deg": [lo, hi], "mag_max": mag, "purpose": "startrack solve default"}))
 

@@ -10,6 +10,7 @@ are OpenCV's, value for value (``tests/test_tifffast.py`` holds them side by sid
 """
 from __future__ import annotations
 
+import os
 import struct
 
 import numpy as np
@@ -76,8 +77,6 @@ def read_image(path: str, max_pixels: int | None = None):
     """``(pixels, bits)`` of a plain TIFF file's first image: a 2-D uint8 or uint16 array (native byte order) and 8
     or 16; ``None`` when the file is not one this module reads (see the module's note), and when the image has more
     than ``max_pixels`` pixels or more bytes than the file holds (nothing that large is allocated here)."""
-    import os
-
     with open(path, "rb") as fh:
         head = fh.read(8)
         if len(head) < 8 or head[:4] not in (b"II*\0", b"MM\0*"):

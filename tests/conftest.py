@@ -159,3 +159,21 @@ def assert_same_record(got, want):
         else:
             assert x == y and json.dumps(x, default=str) == json.dumps(y, default=str), f.name
 
+
+
+def solve_in_a_process(path, out, *args):
+    """``startrack solve PATH -q -o OUT ARGS`` in a fresh interpreter: ``(the modules it imported, the frame
+    document)`` (exit status 0 asserted), for the tests that a solve imports no more than it needs."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import sys, json; from startrack.cli.main import main\n"
+            "try:\n    main(['solve', sys.argv[1], '-q', '-o', sys.argv[2], *sys.argv[3:]])\n"
+            "except SystemExit as e:\n    assert e.code in (0, None), e.code\n"
+            "print(json.dumps(sorted(sys.modules)))")
+    proc = subprocess.run([sys.executable, "-c", code, str(path), str(out), *args], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open(out) as fh:
+        return set(json.loads(proc.stdout.splitlines()[-1])), json.loads(fh.read())

@@ -12,6 +12,7 @@ import pytest
 
 from startrack.camera import Camera
 from startrack.identify.catalog_match import CatalogStars, CatalogStarsAt
+from startrack.render import Scene, Sensor, star_list
 from startrack.rotations import quaternion_to_dcm, radec_roll_to_dcm, random_quaternions
 
 EPOCHS = [(2026.72, None), (1900.0, None), (2100.0, 2016.0), (1991.25, 2000.0), (2026.72, 2026.72)]
@@ -73,14 +74,8 @@ def test_identifications_are_the_whole_catalogs(catalog, epoch):
     params = IdentifyParams(sigma_px=0.3)
     identified = 0
     for q in random_quaternions(12, rng):
-        dcm = quaternion_to_dcm(q)
-        body = vec @ dcm.T
-        front = np.flatnonzero((body[:, 2] > 0.5) & (moved.mag <= 7.0))
-        x, y = cam.vectors_to_pixels(body[front])
-        inside = cam.in_image(x, y, margin=2.0)
-        order = np.argsort(moved.mag[front][inside], kind="stable")
-        stars = [{"x": float(a + rng.normal(0, 0.3)), "y": float(b + rng.normal(0, 0.3)), "flux": 10 ** (-0.4 * m)}
-                 for a, b, m in zip(x[inside][order], y[inside][order], moved.mag[front][inside][order])]
+        stars, _ = star_list(moved, cam, quaternion_to_dcm(q), Sensor(), Scene(mag_limit=7.0), rng, sigma_px=0.3,
+                             vectors=vec)
         if len(stars) < 6:
             continue
         a = identify_stars(stars, cam, db, "pyramid", params, catalog=lazy)

@@ -1,12 +1,11 @@
 """startrack.fitsfast against astropy.io.fits: the same pixels and header values for the files it reads, None (astropy
 reads them) for the others, and a FITS solve process that never imports astropy.io.fits."""
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from astropy.io import fits
+from conftest import solve_in_a_process
 
 from startrack import fitsfast
 from startrack.imageio import read_image
@@ -139,17 +138,8 @@ def test_a_fits_solve_process_does_not_import_astropy_fits(tmp_path):
     assert os.path.exists(real), "tests/data/real holds the ESA images"
     img, _ = read_image(real)
     path = _write(str(tmp_path / "esa.fits"), img.astype(np.uint16), {"DATE-OBS": "2019-07-29T20:47:26"})
-    code = ("import sys, json; from startrack.cli.main import main\n"
-            "try:\n    main(['solve', sys.argv[1], '-q', '-o', sys.argv[2]])\nexcept SystemExit as e:\n"
-            "    assert e.code in (0, None), e.code\n"
-            "print(json.dumps(sorted(m for m in sys.modules if m.startswith('astropy'))))")
-    out = subprocess.run([sys.executable, "-c", code, path, str(tmp_path / "f.json")], capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    import json
-
-    assert "astropy.io.fits" not in json.loads(out.stdout.splitlines()[-1])
-    doc = json.loads(open(tmp_path / "f.json").read())
+    modules, doc = solve_in_a_process(path, tmp_path / "f.json")
+    assert "astropy.io.fits" not in modules
     assert doc["solve"]["status"] == "ok" and doc["image"]["time"].startswith("2019-07-29T20:47:26")
 
 

@@ -1,15 +1,13 @@
 """startrack.tifffast against OpenCV: the same pixels for the plain TIFF files it reads (grey, 8 or 16 bits, not
 compressed, in strips, either byte order), None (OpenCV reads them) for the others, and a solve process of a plain
 TIFF that never imports cv2."""
-import json
 import os
 import struct
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
+from conftest import solve_in_a_process
 
 from startrack import tifffast
 from startrack.errors import BadInputError
@@ -175,15 +173,8 @@ def test_the_esa_images_are_read_as_opencv_reads_them():
 def test_a_plain_tiff_solve_process_does_not_import_cv2(tmp_path):
     """An ESA image (a plain 16-bit TIFF): read and solved without OpenCV's ~17 ms import."""
     path = os.path.join(REAL, "2019-07-29T204726_Alt40_Azi135_Try1.tiff")
-    code = ("import sys, json; from startrack.cli.main import main\n"
-            "try:\n    main(['solve', sys.argv[1], '-q', '--no-aberration', '-o', sys.argv[2]])\n"
-            "except SystemExit as e:\n    assert e.code in (0, None), e.code\n"
-            "print(json.dumps('cv2' in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code, path, str(tmp_path / "f.json")], capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert json.loads(out.stdout.splitlines()[-1]) is False
-    doc = json.loads(open(tmp_path / "f.json").read())
+    modules, doc = solve_in_a_process(path, tmp_path / "f.json", "--no-aberration")
+    assert "cv2" not in modules
     assert doc["solve"]["status"] == "ok" and doc["image"]["bit_depth"] == 16
 
 

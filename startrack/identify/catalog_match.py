@@ -169,11 +169,16 @@ class CatalogStarsAt(CatalogStars):
     def _rows(self, ids):
         return self._at._rows(ids)
 
+    def _vectors_at(self, rows, epoch) -> np.ndarray:
+        """The unit vectors of the catalog's ``rows`` moved to ``epoch`` (None: as they are), star by star."""
+        part = self._catalog.subset(np.asarray(rows, dtype=np.int64))
+        return (part if epoch is None else part.propagate(epoch)).vectors()
+
     def vectors_of(self, rows) -> np.ndarray:
         """The unit vectors of ``rows`` at the epoch (the last :meth:`in_cone`'s own, kept)."""
         if self._cone is not None and rows is self._cone[0]:
             return self._cone[1]
-        return self._catalog.subset(np.asarray(rows, dtype=np.int64)).propagate(self.epoch).vectors()
+        return self._vectors_at(rows, self.epoch)
 
     def in_cone(self, axis: np.ndarray, cos_radius: float, mag_limit: float | None = None) -> np.ndarray:
         radius = math.acos(max(-1.0, min(1.0, float(cos_radius))))
@@ -183,7 +188,7 @@ class CatalogStarsAt(CatalogStars):
                 wide = wide[self.mag[wide] <= mag_limit]
         else:
             wide = self._at.in_cone(axis, math.cos(radius + self._reach + 1e-9), mag_limit)
-        vec = self._catalog.subset(wide).propagate(self.epoch).vectors()
+        vec = self._vectors_at(wide, self.epoch)
         keep = vec @ axis > cos_radius
         front = wide[keep]
         self._cone = (front, vec[keep])
@@ -193,9 +198,7 @@ class CatalogStarsAt(CatalogStars):
         rows, found = self._rows(ids)
         out = np.array(vectors, dtype=np.float64, copy=True)
         take = rows[found]
-        part = self._catalog.subset(take)
-        then = part if self._since is None else part.propagate(self._since)
-        out[found] += part.propagate(self.epoch).vectors() - then.vectors()
+        out[found] += self._vectors_at(take, self.epoch) - self._vectors_at(take, self._since)
         return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
