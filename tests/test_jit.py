@@ -55,6 +55,12 @@ from startrack._kernels import _jit
 from startrack._kernels.attitude import quat_to_dcm
 q = np.array([0.1, -0.2, 0.3, 0.9]); q /= np.linalg.norm(q)
 out = {"aot": _jit.aot_loaded(), "dcm": quat_to_dcm(q).tolist(), "numba_after_aot_call": "numba" in sys.modules}
+# Each returned array's Python type is unpickled once, not per call (numba.pycc's boxing kept one more reference to
+# numpy.ndarray at every return).
+refs = sys.getrefcount(np.ndarray)
+for _ in range(1000):
+    quat_to_dcm(q)
+out["ndarray_refs_per_1000_calls"] = sys.getrefcount(np.ndarray) - refs
 # float32 has no AOT entry: numba compiles it (a wrong-type AOT call would crash or give garbage)
 out["dcm32"] = quat_to_dcm(q.astype(np.float32)).tolist()
 out["numba_after_fallback"] = "numba" in sys.modules
@@ -81,6 +87,7 @@ def test_aot_build_runs_without_numba_and_falls_back_exactly(tmp_path):
     assert child.returncode == 0, child.stderr
     out = json.loads(child.stdout)
     assert out["aot"] and not out["numba_after_aot_call"] and out["numba_after_fallback"]
+    assert abs(out["ndarray_refs_per_1000_calls"]) < 10
     from startrack.rotations import quaternion_to_dcm
 
     q = np.array([0.1, -0.2, 0.3, 0.9])

@@ -495,10 +495,54 @@ def _build(path, module, cpu, kernels):
         return compile_extra(typing_context, target_context, func, args, return_type, flags, *rest, **kwargs)
 
     pycc_compiler.compile_extra = compile_nogil
+    from numba.core.pythonapi import PythonAPI
+
+    adapt = PythonAPI.nrt_adapt_ndarray_to_python
+    PythonAPI.nrt_adapt_ndarray_to_python = _adapt_with_cached_type(adapt)
     try:
         return _build_entries(path, module, cpu, entries, skipped)
     finally:
         pycc_compiler.compile_extra = compile_extra
+        PythonAPI.nrt_adapt_ndarray_to_python = adapt
+
+
+def _adapt_with_cached_type(adapt):
+    """numba's boxing of a returned array (``PythonAPI.nrt_adapt_ndarray_to_python``) with the array's Python type
+    unpickled once per process instead of at every return.
+
+    numba embeds that type (``numpy.ndarray``) pickled and unpickles it each time a kernel hands an array back.  Its
+    JIT memoises the unpickling; a numba.pycc build calls ``pickle.loads`` every time (~1 us a returned array) and
+    keeps the reference it gets (``numpy.ndarray``'s reference count grew by one a call).  Here the unpickled object
+    goes to a global of the kernel's LLVM module on its first use and is read from there after: one ``loads`` and
+    one reference per kernel and process.  Two threads boxing at once (the GIL is held while boxing) at worst both
+    unpickle it once."""
+    from llvmlite import ir
+    from numba.core import cgutils
+
+    def cached_unserialize(pyapi, structptr):
+        name = getattr(structptr, "name", None)
+        if not name:         # not a module constant: as numba does it
+            return type(pyapi).unserialize(pyapi, structptr)
+        builder = pyapi.builder
+        module = builder.module
+        slot_name = f"{name}.startrack_unpickled"
+        slot = module.globals.get(slot_name)
+        if slot is None:
+            slot = ir.GlobalVariable(module, pyapi.pyobj, slot_name)
+            slot.linkage = "internal"
+            slot.initializer = ir.Constant(pyapi.pyobj, None)
+        with builder.if_then(cgutils.is_null(builder, builder.load(slot)), likely=False):
+            builder.store(type(pyapi).unserialize(pyapi, structptr), slot)
+        return builder.load(slot)
+
+    def adapt_cached(self, aryty, ary, dtypeptr):
+        self.unserialize = functools.partial(cached_unserialize, self)
+        try:
+            return adapt(self, aryty, ary, dtypeptr)
+        finally:
+            del self.unserialize
+
+    return adapt_cached
 
 
 def _build_entries(path, module, cpu, entries, skipped):
