@@ -251,6 +251,12 @@ def identify_stars(stars: list, camera, db, algorithm: str = "pyramid", params: 
         from startrack.errors import BadInputError
 
         raise BadInputError("config", None, f"{algorithm} takes a {alg.config.__name__}, got {type(config).__name__}")
-    from startrack.identify.driver import run
+    run = _RUN[0]
+    if run is None:
+        from startrack.identify.driver import run
 
+        _RUN[0] = run
     return run(alg, config, stars, camera, db, params or IdentifyParams(), catalog, apparent)
+
+
+_RUN = [None]   # the driver's run(), imported at the first identification (a blind `solve` never loads it)

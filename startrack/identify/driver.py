@@ -112,8 +112,9 @@ def run(algorithm: Algorithm, config, frame_stars: list, camera, db, params: Ide
     margin, eps = _tolerances(params, sig_px, use, camera.focal_length_px)
     prepare_ms = None
     if algorithm.prepare is not None:
-        pause = _prepare(algorithm, config, camera, db, eps)
-        if pause:
+        tp = time.perf_counter()
+        if algorithm.prepare(config, camera, db, eps):     # (:func:`_prepare`, without a call)
+            pause = time.perf_counter() - tp
             prepare_ms = pause * 1000
             t0 += pause       # loading for this sensor, not identification: not in time_ms
     deadline = t0 + params.max_time_ms / 1000.0

@@ -134,6 +134,7 @@ def tolerance_rad(camera, sigma_px: float, params: IdentifyParams) -> float:
 
 _NUMBER = frozenset((float, int, bool, np.float64, type(None)))    # types read as themselves (None: NaN)
 _GET_X, _GET_Y = operator.itemgetter("x"), operator.itemgetter("y")
+_GET_FLUX = operator.methodcaller("get", "flux")
 _F64 = np.dtype(np.float64)      # the dtype itself: numpy converts np.float64 (the type) to it on every call
 
 
@@ -155,7 +156,7 @@ def _frame_arrays(frame_stars):
     n = len(frame_stars)
     xs = np.fromiter(map(_GET_X, frame_stars), _F64, n)
     ys = np.fromiter(map(_GET_Y, frame_stars), _F64, n)
-    return xs, ys, _floats([s.get("flux") for s in frame_stars])
+    return xs, ys, _floats(list(map(_GET_FLUX, frame_stars)))
 
 
 def _floats(values: list) -> np.ndarray:

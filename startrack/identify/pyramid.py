@@ -327,9 +327,9 @@ def _accepted(buffers, dcm, n, got):
     state, _, _, res_i, res_f = buffers
     _, _, tried, patterns, _, _ = state.tolist()
     end = n + nm
-    matched = res_i[n:end]
-    matches = list(map(_new_tuple, repeat(Match), zip(matched.tolist(), res_i[end:end + nm].tolist())))
-    return SearchOutcome(_Verdict(matches, matched, res_i[end + nm:end + 2 * nm], dcm, float(p_false), None, None,
+    pairs = res_i[n:end + nm].tolist()      # the matched detections, then their ids
+    matches = list(map(_new_tuple, repeat(Match), zip(pairs[:nm], pairs[nm:])))
+    return SearchOutcome(_Verdict(matches, res_i[n:end], res_i[end + nm:end + 2 * nm], dcm, float(p_false), None, None,
                                   None, res_f[:4].copy(), rms),
                          None if total == 1.0 else float(total), {"triangles": int(n_tri)}, None, {}, tried, patterns,
                          _NO_PATTERN_FOUND, _NO_PATTERN)
