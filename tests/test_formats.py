@@ -3,7 +3,7 @@ import os
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from startrack.errors import BadInputError
@@ -125,12 +125,28 @@ _DOCS = st.recursive(_LEAVES, lambda inner: st.one_of(st.lists(inner, max_size=4
                      max_leaves=25)
 
 
-@settings(max_examples=400, deadline=None)
-@given(_DOCS)
-def test_json_values_and_lines_are_the_copys(doc):
+def _same_json(line: str, want: str) -> bool:
+    """Two JSON texts of the same values, in the same order, ints and floats told apart (re-encoded alike: the
+    float digits of orjson's line and the standard library's are the same, their exponents written otherwise)."""
+    return line.isascii() and json.dumps(json.loads(line)) == json.dumps(json.loads(want))
+
+
+@pytest.fixture(params=["orjson", "json"])
+def encoder(request, monkeypatch):
+    """dumps_frame with orjson (the first document imports it) and without (the standard library's encoder alone,
+    as where orjson is not installed)."""
+    from startrack.formats import frame
+
+    monkeypatch.setattr(frame, "_ORJSON", [None if request.param == "orjson" else False])
+    return request.param
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(doc=_DOCS)
+def test_json_values_and_lines_are_the_copys(encoder, doc):
     """records._json_value's fast paths give its old values; dumps_frame's line (the document straight to the encoder
-    when it can take it) is the line of the document copied through _to_json, NaN, NumPy values and keys of every
-    kind included."""
+    when it can take it) holds the values of the document copied through _to_json, NaN, NumPy values and keys of
+    every kind included, in ASCII; the standard library's encoder alone writes the copy's very line."""
     import math
 
     from startrack.formats.frame import _to_json
@@ -154,22 +170,38 @@ def test_json_values_and_lines_are_the_copys(doc):
         with pytest.raises(type(exc)):
             dumps_frame(doc)
         return
-    assert dumps_frame(doc) == want
-    assert dumps_frame({"frame": [doc, np.arange(2.0)]}) == json.dumps(_to_json({"frame": [doc, np.arange(2.0)]}),
-                                                                         separators=(",", ":"), allow_nan=False)
+    wrapped = {"frame": [doc, np.arange(2.0)]}
+    want_wrapped = json.dumps(_to_json(wrapped), separators=(",", ":"), allow_nan=False)
+    if encoder == "json":
+        assert dumps_frame(doc) == want
+        assert dumps_frame(wrapped) == want_wrapped
+    else:
+        assert _same_json(dumps_frame(doc), want)
+        assert _same_json(dumps_frame(wrapped), want_wrapped)
 
 
-def test_a_solve_documents_line_is_the_copys():
-    """The frame document of a real solve (NumPy values, many floats) gives the copy's line, straight."""
+def test_a_solve_documents_line_is_the_copys(encoder, monkeypatch):
+    """The frame document of a real solve (NumPy values, many floats) gives the copy's values (its very line with the
+    standard library's encoder), straight: with orjson, without the standard library's encoder."""
     from startrack import Solver
+    from startrack.formats import frame
     from startrack.formats.frame import _to_json
     from startrack.records import solve_result_to_frame
 
     path = os.path.join(os.path.dirname(__file__), "data", "real", "2019-07-29T204726_Alt60_Azi135_Try1.tiff")
     doc = solve_result_to_frame(Solver().solve(path))
     assert doc["solve"]["status"] == "ok"
-    line = dumps_frame(doc)
-    assert line == json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+    want = json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+    if encoder == "orjson":
+        def refuse(_doc):
+            raise AssertionError("the standard library's encoder was used")
+
+        monkeypatch.setattr(frame, "_ENCODE", refuse)
+        line = dumps_frame(doc)
+        assert _same_json(line, want)
+    else:
+        line = dumps_frame(doc)
+        assert line == want
     assert json.loads(line)["attitude"]["quaternion"] == [float(v) for v in doc["attitude"]["quaternion"]]
 
 

@@ -501,16 +501,50 @@ _ENCODE = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json
 
 
 def dumps_frame(doc: dict) -> str:
-    """One compact JSON line; numpy values converted, non-finite floats as ``null``.
+    """One compact JSON line of ASCII characters; numpy values converted, non-finite floats as ``null``.
 
-    The document goes straight to the encoder (NumPy values through its hook); only one that holds a non-finite
-    float (the encoder refuses it) or a key the encoder does not take is first copied by :func:`_to_json`: the same
-    line either way, without a copy of every document.  (Keys that collide written as strings, ``1`` and ``"1"``, make
-    no JSON object: the encoder writes both.)"""
+    The document goes straight to orjson (:func:`_orjson`; NumPy values through :func:`_json_default`, as below),
+    some twenty times faster than the standard library's encoder on a solved frame's document.  What orjson does not
+    take (a key that is not a string, an integer beyond 64 bits), or writes otherwise (a character beyond ASCII,
+    which the line escapes), goes to the standard library's encoder; only a document that holds a non-finite float
+    (that encoder refuses it) or a key it does not take is first copied by :func:`_to_json`.  The same JSON values
+    either way: orjson writes a float's shortest round-trip digits as ``repr`` does, its exponent without padding
+    (``1e-6`` for ``1e-06``).  (Keys that collide written as strings, ``1`` and ``"1"``, make no JSON object: the
+    encoders write both.)"""
+    fast = _ORJSON[0]
+    if fast is None:
+        fast = _orjson()
+    if fast:
+        try:
+            line = fast(doc)
+        except TypeError:       # (orjson.JSONEncodeError is one)
+            pass
+        else:
+            if line.isascii():
+                return line.decode("ascii")
     try:
         return _ENCODE(doc)
     except (ValueError, TypeError):
         return json.dumps(_to_json(doc), separators=(",", ":"), allow_nan=False)
+
+
+_ORJSON: list = [None]      # orjson's encoder as dumps_frame calls it, False without orjson; None: not looked up yet
+
+
+def _orjson():
+    """orjson's ``dumps`` as :func:`dumps_frame` calls it, imported at the first document (a process that writes none
+    never pays its ~1 ms), or False when orjson is not installed.  Dataclasses and datetimes are passed to
+    :func:`_json_default`, which refuses them as the standard library's encoder does: orjson would write them."""
+    try:
+        import orjson
+    except ImportError:
+        _ORJSON[0] = False
+        return False
+    import functools
+
+    _ORJSON[0] = functools.partial(orjson.dumps, default=_json_default,
+                                   option=orjson.OPT_PASSTHROUGH_DATACLASS | orjson.OPT_PASSTHROUGH_DATETIME)
+    return _ORJSON[0]
 
 
 def frame_line(doc: dict, base_dir: str | None = None) -> str:
