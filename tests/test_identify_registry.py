@@ -179,3 +179,34 @@ def test_retired_pyramid_quadratic_is_refused_with_its_reason(tmp_path):
     assert_refused(run_cli("evaluate", "-d", db, "-a", "pyramid,pyramid-quadratic"), reason)
     help_text = run_cli("identify", "--help").stdout
     assert "modified-pyramid" in help_text and "pyramid-quadratic" not in help_text
+
+
+def test_entry_points_are_importlib_metadatas(toy_module, tmp_path, monkeypatch):
+    """The registry's own reading of the installed distributions' entry points (without importing
+    importlib.metadata) finds what importlib.metadata finds: the toy plugin's, every console script of this
+    environment, and of a distribution on sys.path twice, the first copy only."""
+    from importlib.metadata import entry_points
+
+    from startrack.identify import ENTRY_POINT_GROUP, _entry_points
+
+    shadow = tmp_path / "Toy_Identify-0.2.dist-info"     # the same distribution (normalised name), later on the path
+    shadow.mkdir()
+    (shadow / "METADATA").write_text("Metadata-Version: 2.1\nName: Toy_Identify\nVersion: 0.2\n")
+    (shadow / "entry_points.txt").write_text("# a comment\n[startrack.identify]\n toy-pair =  other:TOY \n"
+                                             "[console_scripts]\ntoy = other:main\n")
+    other = tmp_path / "other_plugin-1.0.dist-info"
+    other.mkdir()
+    (other / "METADATA").write_text("Metadata-Version: 2.1\nName: other-plugin\nVersion: 1.0\n")
+    (other / "entry_points.txt").write_text("[startrack.identify]\nsecond = toy_identify:TOY [extra]\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p != str(toy_module)])
+    monkeypatch.setattr(sys, "path", [str(toy_module), *sys.path])       # the toy's own copy first
+    for group in (ENTRY_POINT_GROUP, "console_scripts", "pytest11"):
+        want = sorted((e.name, e.value) for e in entry_points(group=group))
+        got = sorted((e.name, e.value) for e in _entry_points(group))
+        assert got == want, group
+    got = {e.name: e for e in _entry_points(ENTRY_POINT_GROUP)}
+    assert got["toy-pair"].value == "toy_identify:TOY"          # the first copy's
+    import toy_identify
+
+    assert got["second"].load() is toy_identify.TOY and got["toy-pair"].load() is toy_identify.TOY
