@@ -58,6 +58,28 @@ class SkyIndex:
             raise ParameterError("n_bands", f"must be at least 1, got {nb}", "SkyIndex")
         self.cells, self.ra = sky_index(vec, int(nb))
 
+    @classmethod
+    def from_arrays(cls, vectors, cells, ra) -> SkyIndex:
+        """The index of ``vectors`` from the ``cells`` and ``ra`` a :class:`SkyIndex` of them made (a cache's copy),
+        checked first: ``ParameterError`` naming the array when the bands' offsets or the stars' rows could make a cone
+        query read outside ``vectors`` (a damaged file), or ``ra`` is not one per star."""
+        vec = np.ascontiguousarray(vectors, dtype=np.float64)
+        cells = np.ascontiguousarray(cells, dtype=np.int64)
+        ra = np.ascontiguousarray(ra, dtype=np.float64)
+        m = len(vec)
+        nb = int(cells[0]) if len(cells) else 0
+        if vec.ndim != 2 or vec.shape[1] != 3 or nb < 1 or cells.shape != (nb + 2 + m,):
+            raise ParameterError("cells", f"do not index {m} vectors", "SkyIndex.from_arrays")
+        ptr, rows = cells[1:nb + 2], cells[nb + 2:]
+        if ptr[0] != 0 or ptr[-1] != m or np.any(np.diff(ptr) < 0) or (m and (rows.min() < 0 or rows.max() >= m)):
+            raise ParameterError("cells", "hold offsets or rows outside the vectors", "SkyIndex.from_arrays")
+        if ra.shape != (m,):
+            raise ParameterError("ra", f"must hold one value per vector ({m}), got shape {ra.shape}",
+                                 "SkyIndex.from_arrays")
+        out = cls.__new__(cls)
+        out.vectors, out.cells, out.ra = vec, cells, ra
+        return out
+
     def __len__(self) -> int:
         return len(self.vectors)
 

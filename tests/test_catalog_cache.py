@@ -125,3 +125,62 @@ def test_band_databases_are_cached_uncompressed(catalog, tmp_path, monkeypatch):
         assert h5["pair_cos"].compression == "gzip"
     np.testing.assert_array_equal(load_kvector(built.path).pair_cos, built.pair_cos)
     np.testing.assert_array_equal(solve.band_database(2, catalog=small).kvector, built.kvector)
+
+
+@pytest.mark.usefixtures("cache")
+@pytest.mark.parametrize("mag_max", [None, 2.0, 6.5])
+def test_the_cached_catalog_holds_its_unit_vectors(mag_max):
+    """The cache file holds the stars' unit vectors (a process then never computes them: ~22 ms of the shipped
+    catalog's): the vectors its ra and dec give, bit for bit, for the whole catalog and its brightest rows; a catalog
+    made from it (a subset) computes its own."""
+    from startrack.rotations import radec_to_vector
+
+    C.load_catalog()                                # writes the cache
+    again = C.load_catalog(None, mag_max)           # from the cache
+    held = again.__dict__["_cache_vectors"][1]      # kept, not computed
+    want = radec_to_vector(again.ra, again.dec)
+    assert again.vectors() is held
+    assert held.shape == (len(again), 3) and held.flags.c_contiguous and held.flags.writeable
+    assert np.array_equal(held, want)               # bit for bit (no NaN: every star has a position)
+    sub = again.subset(np.arange(0, len(again), 7))
+    assert "_cache_vectors" not in sub.__dict__ and np.array_equal(sub.vectors(), want[::7])
+
+
+@pytest.mark.usefixtures("cache")
+def test_the_cached_catalog_holds_its_sky_index():
+    """The cache file holds the sky index of the whole catalog (~12 ms a process would spend): the arrays a new
+    SkyIndex of its vectors makes, and the same cones."""
+    from startrack.skyindex import SkyIndex
+
+    C.load_catalog()
+    again = C.load_catalog()
+    sky = again.sky_index()
+    assert again.__dict__["_cache_sky_index"][1] is sky         # kept, not built
+    fresh = SkyIndex(again.vectors())
+    assert np.array_equal(sky.cells, fresh.cells) and np.array_equal(sky.ra, fresh.ra)
+    rng = np.random.default_rng(5)
+    for axis in rng.normal(size=(20, 3)):
+        axis /= np.linalg.norm(axis)
+        assert np.array_equal(sky.cone(axis, np.cos(0.2)), fresh.cone(axis, np.cos(0.2)))
+
+
+@pytest.mark.parametrize("damage", ["cut", "row", "offset"])
+def test_a_cache_file_whose_derived_arrays_do_not_hold_is_replaced(cache, damage):
+    """A cache file cut short in its last derived array, or whose sky index names a row beyond the stars or a band
+    beyond them (a cone query would read outside the vectors), is not read, and the catalog file is read again."""
+    want = C.load_catalog()
+    (cache_file,) = cache.glob("catalog-*.bin")
+    data = bytearray(cache_file.read_bytes())
+    head = C.json.loads(bytes(data[16:16 + int.from_bytes(data[8:16], "little")]))
+    _, _, at, shape = next(d for d in head["derived"] if d[0] == "sky_cells")
+    nb = int(np.frombuffer(bytes(data[at:at + 8]), "<i8")[0])
+    if damage == "cut":
+        data = data[:-8]
+    elif damage == "row":
+        data[at + 8 * (nb + 2 + 5):at + 8 * (nb + 2 + 6)] = np.int64(len(want) + 3).tobytes()
+    else:
+        data[at + 8 * 3:at + 8 * 4] = np.int64(len(want) * 2).tobytes()
+    cache_file.write_bytes(bytes(data))
+    assert C._cached_catalog(C.default_catalog_path()) is None
+    _same(C.load_catalog(), want)
+    assert C._cached_catalog(C.default_catalog_path()) is not None
