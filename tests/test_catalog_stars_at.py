@@ -9,6 +9,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from startrack.camera import Camera
 from startrack.identify.catalog_match import CatalogStars, CatalogStarsAt
@@ -123,3 +125,20 @@ def test_identify_on_frames_days_apart_writes_the_same_documents(tmp_path):
             assert a.get(key) == b.get(key), key
     ok = [d for d in out["lazy"] if d["identification"]["status"] == "ok"]
     assert len(ok) >= 3 and all(d["identification"]["apparent"] for d in ok)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(-3, 60), min_size=1, max_size=40), st.lists(st.integers(-5, 70), max_size=30))
+def test_catalog_rows_of_ids_are_the_sorted_searchs(ids, want):
+    """CatalogStars' id look-up (a table by id for small distinct ids, else a sorted search) finds every id's first
+    row and nothing else, as the stable argsort's search does."""
+    from startrack.identify.catalog_match import CatalogStars
+
+    cat_ids = np.array(ids, dtype=np.int64)
+    stars = CatalogStars(np.zeros((len(ids), 3)), cat_ids, np.zeros(len(ids)))
+    rows, found = stars._rows(want)
+    for w, r, f in zip(want, rows.tolist(), found.tolist(), strict=True):
+        assert f == (w in ids)
+        assert 0 <= r < len(ids)
+        if f:
+            assert r == ids.index(w)
