@@ -17,8 +17,10 @@ The file records the catalog checksum and the parameters, and
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -335,11 +337,19 @@ def save_kvector(db: KVectorDatabase, path: str, compress: bool = True) -> None:
 
 
 def load_kvector(path: str) -> KVectorDatabase:
-    """Read a ``startrack.kvector/1`` file (one-line errors for anything else)."""
-    from startrack.formats.hdf5 import read_hdf5
+    """Read a ``startrack.kvector/1`` file (one-line errors for anything else).
 
+    The first read of a file (h5py, its decompression and checksums: ~60 ms a process for a 15 degree database)
+    leaves a flat copy of its datasets and attributes in the cache (:mod:`startrack.formats.flatcopy`, checked
+    against its own sha256 whenever it changed); the next process maps the copy instead, and checks every array
+    as it would the file's."""
     t0 = time.perf_counter()
-    f = read_hdf5(path, KVECTOR_FORMAT)
+    f = _read_copy(path)
+    if f is None:
+        from startrack.formats.hdf5 import read_hdf5
+
+        f = read_hdf5(path, KVECTOR_FORMAT)
+        _write_copy(path, f)
     for attr in ("catalog_sha256", "max_angle_deg", "kvector_line", "quadratic"):
         if attr not in f.attrs:
             raise BadInputError(path, attr, "attribute is missing")
@@ -375,6 +385,45 @@ def load_kvector(path: str) -> KVectorDatabase:
     log.info("k-vector database %s: %d stars, %d pairs up to %g deg, read in %.0f ms", path, db.n_stars, db.n_pairs,
              db.max_angle_deg, (time.perf_counter() - t0) * 1000)
     return db
+
+
+def _read_copy(path: str):
+    """The :class:`~startrack.formats.hdf5.HDF5File` of ``path`` from its flat copy in the cache, or None."""
+    from startrack.formats.flatcopy import copy_path, read_copy
+
+    try:
+        where = copy_path(path, KVECTOR_FORMAT)
+        got = read_copy(where) if where is not None else None
+        if got is None:
+            return None
+        from startrack.formats.hdf5 import HDF5File
+
+        header, arrays = got
+        return HDF5File(path, header["attrs"], arrays)
+    except (OSError, KeyError, TypeError, ValueError, BadInputError):
+        return None
+
+
+def _write_copy(path: str, f) -> None:
+    """Leave the flat copy of ``f`` (``path`` read whole and verified) in the cache; nothing when its attributes do
+    not survive JSON as they are, or the cache cannot take it."""
+    from startrack.formats.flatcopy import copy_path, write_copy
+
+    attrs = {}
+    for key, value in f.attrs.items():
+        if isinstance(value, np.ndarray):
+            if value.dtype.kind not in "biuf":
+                return
+            value = value.tolist()
+        attrs[key] = value
+    try:
+        if json.loads(json.dumps(attrs)) != attrs:
+            return
+    except (TypeError, ValueError):
+        return
+    where = copy_path(path, KVECTOR_FORMAT)
+    if where is not None:
+        write_copy(where, {"source": os.path.abspath(path), "attrs": attrs}, dict(f.datasets))
 
 
 def check_database(db, camera=None, catalog=None, tolerance: float = 0.5) -> None:
