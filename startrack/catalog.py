@@ -607,19 +607,20 @@ def _catalog_cache_path(path: str) -> str:
     """The cache file of the catalog file ``path``, named by its path, size and modification time."""
     import hashlib
 
+    from startrack.formats.flatcopy import MAGIC
+
     st = os.stat(path)
-    stamp = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{CATALOG_FORMAT}|{_CACHE_MAGIC.decode()}"
+    stamp = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{CATALOG_FORMAT}|{MAGIC.decode()}|{_CACHE_LAYOUT}"
     from startrack.cachedir import cache_dir
 
     return os.path.join(cache_dir(), f"catalog-{hashlib.sha256(stamp.encode()).hexdigest()[:12]}.bin")
 
 
-#: The cache file: this magic, the JSON header's length (uint64, little-endian), the header (epoch, params, rows,
-#: merged pairs, each column's dtype and offset, and each derived array's name, dtype, offset and shape), then the
-#: columns and the derived arrays, each at a 64-byte boundary: the stars' ICRS unit vectors (:meth:`Catalog.vectors`,
-#: rows of three float64) and their sky index (:meth:`Catalog.sky_index`'s ``cells`` and ``ra``), which a process would
-#: otherwise compute (~22 and ~12 ms of the shipped catalog's).
-_CACHE_MAGIC = b"STCAT02\n"
+#: The cache file is a flat copy (:mod:`startrack.formats.flatcopy`: checked against its sha256 whenever it changed)
+#: of the columns and of what a process would otherwise compute from them: the stars' ICRS unit vectors
+#: (:meth:`Catalog.vectors`) and their sky index (:meth:`Catalog.sky_index`'s ``cells`` and ``ra``), ~22 and ~12 ms of
+#: the shipped catalog's; its header holds the epoch, parameters, rows and merged pairs.
+_CACHE_LAYOUT = 3
 
 
 def _cached_catalog(path: str) -> Catalog | None:
@@ -628,46 +629,27 @@ def _cached_catalog(path: str) -> Catalog | None:
 
     Reading the HDF5 file costs a process ~60 ms (h5py's import, the decompression, the sha256 of every column);
     mapping the cache file ~1 ms, and the pages of the rows used are read as they are used."""
+    from startrack.formats.flatcopy import read_copy
+
     try:
-        cache = _catalog_cache_path(path)
-        if not os.path.exists(cache):
+        got = read_copy(_catalog_cache_path(path))
+        if got is None:
             return None
-        size = os.path.getsize(cache)
-        with open(cache, "rb") as fh:
-            head = fh.read(16)
-            if len(head) != 16 or head[:8] != _CACHE_MAGIC:
-                return None
-            meta = json.loads(fh.read(int.from_bytes(head[8:], "little")))
+        meta, arrays = got
         n = int(meta["rows"])
-        cols = {}
-        for name, dtype, offset in meta["columns"]:
-            dt = np.dtype(dtype)
-            if offset + n * dt.itemsize > size:
-                return None
-            cols[name] = np.asarray(np.memmap(cache, dtype=dt, mode="c", offset=offset, shape=(n,))) if n else \
-                np.zeros(0, dtype=dt)
-        derived = {}
-        for name, dtype, offset, shape in meta["derived"]:
-            shape = tuple(int(v) for v in shape)
-            dt = np.dtype(dtype)
-            if offset + int(np.prod(shape)) * dt.itemsize > size:
-                return None
-            derived[name] = np.asarray(np.memmap(cache, dtype=dt, mode="c", offset=offset, shape=shape)) \
-                if np.prod(shape) else np.zeros(shape, dtype=dt)
-        vec = derived["vectors"]
-        if vec.shape != (n, 3):
+        cols = {name: arrays[name] for name in _COLUMNS}
+        vec = arrays["vectors"]
+        if any(c.shape != (n,) for c in cols.values()) or vec.shape != (n, 3):
             return None
         from startrack.skyindex import SkyIndex
 
-        sky = SkyIndex.from_arrays(vec, derived["sky_cells"], derived["sky_ra"])     # (checked: a kernel reads it)
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError, ParameterError):
+        sky = SkyIndex.from_arrays(vec, arrays["sky_cells"], arrays["sky_ra"])     # (checked: a kernel reads it)
+        merged: dict = {}
+        for into, mid in meta["merged"]:
+            merged.setdefault(int(into), []).append(int(mid))
+        cat = Catalog(epoch=float(meta["epoch"]), params=meta["params"], source=path, **cols)
+    except (OSError, ValueError, KeyError, TypeError, ParameterError):
         return None
-    if set(cols) != set(_COLUMNS):
-        return None
-    merged: dict = {}
-    for into, mid in meta["merged"]:
-        merged.setdefault(int(into), []).append(int(mid))
-    cat = Catalog(epoch=float(meta["epoch"]), params=meta["params"], source=path, **cols)
     cat.merged = merged
     _keep_vectors(cat, vec)
     cat.__dict__["_cache_sky_index"] = ((cat.id, cat.ra, cat.dec), sky)
@@ -683,51 +665,19 @@ def _keep_vectors(cat: Catalog, vec: np.ndarray) -> None:
 def _cache_catalog(path: str, cat: Catalog) -> None:
     """Write the cache file of the shipped catalog ``cat`` (read whole from ``path``), atomically; nothing when its
     parameters do not survive JSON as they are, or the cache cannot be written."""
+    from startrack.formats.flatcopy import write_copy
+
     try:
-        arrays = [(name, np.ascontiguousarray(getattr(cat, name))) for name in _COLUMNS]
-        sky = cat.sky_index()
-        extra = [("vectors", np.ascontiguousarray(cat.vectors(), dtype="<f8")),
-                 ("sky_cells", np.ascontiguousarray(sky.cells, dtype="<i8")),
-                 ("sky_ra", np.ascontiguousarray(sky.ra, dtype="<f8"))]
-        header = {"epoch": cat.epoch, "params": cat.params, "rows": len(cat.id), "columns": [],
-                  "merged": [[into, mid] for into, mids in cat.merged.items() for mid in mids], "derived": []}
-        text = b""
-        for _ in range(5):      # the offsets are in the header whose length they follow: until they stay put
-            offset = -(-(16 + len(text)) // 64) * 64
-            columns = []
-            for name, a in arrays:
-                columns.append([name, a.dtype.str, offset])
-                offset += -(-a.nbytes // 64) * 64
-            derived = []
-            for name, a in extra:
-                derived.append([name, a.dtype.str, offset, list(a.shape)])
-                offset += -(-a.nbytes // 64) * 64
-            if columns == header["columns"] and derived == header["derived"]:
-                break
-            header["columns"] = columns
-            header["derived"] = derived
-            text = json.dumps(header).encode()
-        if json.loads(text)["params"] != cat.params or 16 + len(text) > columns[0][2]:
+        if json.loads(json.dumps(cat.params)) != cat.params:
             return
         cache = _catalog_cache_path(path)
-        tmp = f"{cache}.{os.getpid()}.tmp"
     except (OSError, TypeError, ValueError):     # no cache dir; parameters JSON cannot hold
         return
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(_CACHE_MAGIC + len(text).to_bytes(8, "little") + text)
-            for (_, a), (_, _, at) in zip(arrays, columns, strict=True):
-                fh.write(b"\0" * (at - fh.tell()))
-                fh.write(a.tobytes())
-            for (_, a), (_, _, at, _) in zip(extra, derived, strict=True):
-                fh.write(b"\0" * (at - fh.tell()))
-                fh.write(a.tobytes())
-        os.replace(tmp, cache)
-    except OSError:         # a full disk, a cache that cannot be written: no cache file, nor a partial one
-        try:
-            os.remove(tmp)
-        except OSError:
-            pass
+    sky = cat.sky_index()
+    arrays = {name: getattr(cat, name) for name in _COLUMNS}
+    arrays.update(vectors=cat.vectors(), sky_cells=sky.cells, sky_ra=sky.ra)
+    write_copy(cache, {"epoch": cat.epoch, "params": cat.params, "rows": len(cat.id),
+                       "merged": [[into, mid] for into, mids in cat.merged.items() for mid in mids]}, arrays)
 
 
 def _read_catalog(path: str, mag_max: float | None, t0: float) -> Catalog:

@@ -327,44 +327,17 @@ def open_index(path: str, verify: bool = True) -> PatternIndex:
         raise BadInputError(path, "arrays", f"the header's array table is damaged ({exc})") from None
     index = PatternIndex(**out, params=header["params"], path=path)
     if verify:
-        stamp = _checked_stamp(path, header["data_sha256"])
-        if stamp is None or not _stamp_matches(path + ".checked", stamp):
+        from startrack.formats.flatcopy import is_checked, mark_checked, stamp
+
+        taken = stamp(path, header["data_sha256"])
+        if not is_checked(path, taken):
             whole = np.memmap(path, dtype=np.uint8, mode="r")
             if _data_sha256(whole, head_len) != header["data_sha256"]:
                 raise BadInputError(path, "data_sha256", "does not match the arrays: the file is damaged")
             check_index(index, path)
-            _write_stamp(path + ".checked", stamp)
+            mark_checked(path, taken)
     log.info("pattern index %s: %.0f MB, memory-mapped", path, size / 1e6)
     return index
-
-
-def _checked_stamp(path: str, checksum: str) -> dict | None:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return {"ino": st.st_ino, "size": st.st_size, "mtime_ns": st.st_mtime_ns, "ctime_ns": st.st_ctime_ns,
-            "data_sha256": checksum}
-
-
-def _stamp_matches(stamp_path: str, stamp: dict) -> bool:
-    try:
-        with open(stamp_path, encoding="utf-8") as fh:
-            return json.load(fh) == stamp
-    except (OSError, ValueError):
-        return False
-
-
-def _write_stamp(stamp_path: str, stamp: dict | None) -> None:
-    import contextlib
-
-    if stamp is None:
-        return
-    with contextlib.suppress(OSError):
-        tmp = f"{stamp_path}.{os.getpid()}"
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(stamp, fh)
-        os.replace(tmp, stamp_path)
 
 
 def _kind_params(kind: str) -> dict:

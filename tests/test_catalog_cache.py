@@ -172,7 +172,7 @@ def test_a_cache_file_whose_derived_arrays_do_not_hold_is_replaced(cache, damage
     (cache_file,) = cache.glob("catalog-*.bin")
     data = bytearray(cache_file.read_bytes())
     head = C.json.loads(bytes(data[16:16 + int.from_bytes(data[8:16], "little")]))
-    _, _, at, shape = next(d for d in head["derived"] if d[0] == "sky_cells")
+    _, _, shape, at = next(d for d in head["arrays"] if d[0] == "sky_cells")
     nb = int(np.frombuffer(bytes(data[at:at + 8]), "<i8")[0])
     if damage == "cut":
         data = data[:-8]

@@ -82,3 +82,28 @@ def test_bad_input_is_refused():
         SkyIndex(np.zeros((4, 2)))
     with pytest.raises(ParameterError, match="n_bands"):
         SkyIndex(SKY, n_bands=0)
+
+
+@pytest.mark.parametrize("damage", ["row", "offset", "bands", "ra"])
+def test_an_index_from_arrays_is_checked_before_a_query(damage):
+    """SkyIndex.from_arrays (a cache's copy of an index) takes the arrays a SkyIndex made, and refuses offsets or rows
+    that would make a cone query read outside the vectors."""
+    rng = np.random.default_rng(3)
+    vec = rng.normal(size=(500, 3))
+    vec /= np.linalg.norm(vec, axis=1, keepdims=True)
+    made = SkyIndex(vec)
+    again = SkyIndex.from_arrays(vec, made.cells.copy(), made.ra.copy())
+    axis = np.array([0.0, 0.6, 0.8])
+    assert np.array_equal(again.cone(axis, 0.9), made.cone(axis, 0.9))
+    cells, ra = made.cells.copy(), made.ra.copy()
+    nb = int(cells[0])
+    if damage == "row":
+        cells[nb + 2 + 7] = len(vec)
+    elif damage == "offset":
+        cells[3] = 2 * len(vec)
+    elif damage == "bands":
+        cells[0] = nb + 1
+    else:
+        ra = ra[:-1]
+    with pytest.raises(ParameterError):
+        SkyIndex.from_arrays(vec, cells, ra)

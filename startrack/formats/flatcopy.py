@@ -15,7 +15,7 @@ import os
 
 import numpy as np
 
-__all__ = ["copy_path", "read_copy", "write_copy"]
+__all__ = ["copy_path", "is_checked", "mark_checked", "read_copy", "stamp", "write_copy"]
 
 MAGIC = b"STFLAT1\n"
 _ALIGN = 64
@@ -42,23 +42,21 @@ def write_copy(path: str, header: dict, arrays: dict) -> bool:
         items = [(name, np.ascontiguousarray(a)) for name, a in arrays.items()]
         if any(a.dtype.kind not in "biuf" for _, a in items):
             return False
-        head = dict(header)
-        head["arrays"] = []
+        digest = hashlib.sha256()
+        for _, a in items:
+            digest.update(a.data)
+            digest.update(b"\0" * _pad(a.nbytes))
+        head = dict(header, arrays=[], data_sha256=digest.hexdigest())
         text = b""
         for _ in range(5):      # the offsets follow the header's length, which holds them: until they stay put
             offset = -(-(16 + len(text)) // _ALIGN) * _ALIGN
             table = []
             for name, a in items:
                 table.append([name, a.dtype.str, list(a.shape), offset])
-                offset += -(-a.nbytes // _ALIGN) * _ALIGN
+                offset += a.nbytes + _pad(a.nbytes)
             if table == head["arrays"]:
                 break
             head["arrays"] = table
-            digest = hashlib.sha256()
-            for _, a in items:
-                digest.update(a.tobytes())
-                digest.update(b"\0" * (-(-a.nbytes // _ALIGN) * _ALIGN - a.nbytes))
-            head["data_sha256"] = digest.hexdigest()
             text = json.dumps(head).encode()
         start = table[0][3] if table else -(-(16 + len(text)) // _ALIGN) * _ALIGN
         if 16 + len(text) > start:
@@ -72,8 +70,8 @@ def write_copy(path: str, header: dict, arrays: dict) -> bool:
             fh.write(MAGIC + len(text).to_bytes(8, "little") + text)
             fh.write(b"\0" * (start - fh.tell()))
             for _, a in items:
-                fh.write(a.tobytes())
-                fh.write(b"\0" * (-(-a.nbytes // _ALIGN) * _ALIGN - a.nbytes))
+                fh.write(a.data)
+                fh.write(b"\0" * _pad(a.nbytes))
         os.replace(tmp, path)
     except OSError:         # a full disk, a cache that cannot be written: no copy, nor a partial one
         try:
@@ -81,20 +79,29 @@ def write_copy(path: str, header: dict, arrays: dict) -> bool:
         except OSError:
             pass
         return False
-    _write_stamp(path, head["data_sha256"])
+    mark_checked(path, stamp(path, head["data_sha256"]))
     return True
+
+
+def _pad(nbytes: int) -> int:
+    """The zeros after an array of ``nbytes`` bytes to the next 64-byte boundary."""
+    return -nbytes % _ALIGN
 
 
 def read_copy(path: str) -> tuple | None:
     """``(header, arrays)`` of the copy at ``path``, its arrays mapped copy-on-write (writable, as the kernels' builds
     take them), or None: no copy, or one that does not read or whose data does not match its sha256."""
     try:
-        size = os.path.getsize(path)
+        before = os.stat(path)
+        size = before.st_size
         with open(path, "rb") as fh:
             head = fh.read(16)
             if len(head) != 16 or head[:8] != MAGIC:
                 return None
             header = json.loads(fh.read(int.from_bytes(head[8:], "little")))
+        taken = stamp(path, header["data_sha256"])
+        if taken is None or taken["ino"] != before.st_ino:
+            return None         # (replaced while it was opened)
         arrays = {}
         ends = []
         for name, dtype, shape, offset in header["arrays"]:
@@ -103,22 +110,25 @@ def read_copy(path: str) -> tuple | None:
             nbytes = int(np.prod(shape)) * dt.itemsize
             if dt.kind not in "biuf" or offset < 0 or offset + nbytes > size:
                 return None
-            ends.append(offset + -(-nbytes // _ALIGN) * _ALIGN)
+            ends.append(offset + nbytes + _pad(nbytes))
             arrays[name] = np.asarray(np.memmap(path, dtype=dt, mode="c", offset=offset, shape=shape)) \
                 if nbytes else np.zeros(shape, dtype=dt)
-        if not _stamp_matches(path, header["data_sha256"]):
+        if not is_checked(path, taken):
             start = header["arrays"][0][3] if header["arrays"] else size
             whole = np.memmap(path, dtype=np.uint8, mode="r") if size else np.zeros(0, np.uint8)
             if max(ends, default=start) > size or hashlib.sha256(whole[start:max(ends, default=start)]).hexdigest() \
                     != header["data_sha256"]:
                 return None
-            _write_stamp(path, header["data_sha256"])
+            mark_checked(path, taken)
     except (OSError, ValueError, KeyError, TypeError, IndexError):
         return None
     return header, arrays
 
 
-def _stamp(path: str, checksum: str) -> dict | None:
+def stamp(path: str, checksum: str) -> dict | None:
+    """What ``PATH.checked`` holds once ``path`` is found to match ``checksum`` (taken before it is read: a file
+    replaced meanwhile is checked again next time): its inode, size and times (any write changes its change time),
+    and the checksum; None when ``path`` cannot be looked at."""
     try:
         st = os.stat(path)
     except OSError:
@@ -127,23 +137,23 @@ def _stamp(path: str, checksum: str) -> dict | None:
             "data_sha256": checksum}
 
 
-def _stamp_matches(path: str, checksum: str) -> bool:
-    want = _stamp(path, checksum)
+def is_checked(path: str, taken: dict | None) -> bool:
+    """Whether ``path``'s ``.checked`` record is ``taken`` (:func:`stamp`): it was checked and has not changed since."""
     try:
         with open(path + ".checked", encoding="utf-8") as fh:
-            return want is not None and json.load(fh) == want
+            return taken is not None and json.load(fh) == taken
     except (OSError, ValueError):
         return False
 
 
-def _write_stamp(path: str, checksum: str) -> None:
-    stamp = _stamp(path, checksum)
-    if stamp is None:
+def mark_checked(path: str, taken: dict | None) -> None:
+    """Record ``taken`` (:func:`stamp`) in ``PATH.checked``, atomically; nothing when it cannot be written."""
+    if taken is None:
         return
     tmp = f"{path}.checked.{os.getpid()}"
     try:
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(stamp, fh)
+            json.dump(taken, fh)
         os.replace(tmp, path + ".checked")
     except OSError:
         try:
