@@ -39,17 +39,24 @@ def test_solver_and_cli_give_the_same_answer(which, rendered, esa_db, solve_cach
     monkeypatch.setenv("STARTRACK_CACHE", solve_cache["STARTRACK_CACHE"])
     # solve, blind.
     cli_doc = json.loads(run_cli("solve", image, "-q", env=solve_cache, check=True).stdout)
+    # The Python API's first search without a sky index (a process's screens read every row of their catalog
+    # prefix until they have read SKY_SCREEN_AFTER times the index's stars, when the cache holds none); the CLI's
+    # read the sky index that the cache holds (patterns._file_sky).
+    import startrack.patterns as patterns
+
+    file_sky = patterns._file_sky
+    monkeypatch.setattr(patterns, "_file_sky", lambda index: None)
+    monkeypatch.setattr(patterns, "SKY_SCREEN_AFTER", float("inf"))
+    monkeypatch.setattr(patterns, "_SKY_SCREEN", {})
     result = startrack.Solver().solve(image)
+    assert all(state[2] is None for state in patterns._SKY_SCREEN.values())
     assert result.status == "ok" and cli_doc["solve"]["status"] == "ok"
     assert _pairs(result.identification.matches) == _pairs(cli_doc["identification"]["matches"])
     assert len(result.identification.matches) >= 10
     assert result.attitude.ra == pytest.approx(cli_doc["attitude"]["ra"], abs=1e-9)
     assert result.attitude.dec == pytest.approx(cli_doc["attitude"]["dec"], abs=1e-9)
-    # A long session's blind search screens its candidates through the pattern index's sky index
-    # (patterns._screen_sky): the same answer, to the bit.
-    import startrack.patterns as patterns
-
-    monkeypatch.setattr(patterns, "SKY_SCREEN_AFTER", 0.0)
+    # Through the pattern index's sky index (patterns._screen_sky, the cache's copy): the same answer, to the bit.
+    monkeypatch.setattr(patterns, "_file_sky", file_sky)
     monkeypatch.setattr(patterns, "_SKY_SCREEN", {})
     sky = startrack.Solver().solve(image)
     assert any(state[2] is not None for state in patterns._SKY_SCREEN.values())

@@ -1,6 +1,7 @@
 """The scale-invariant pattern index: file round trip, blind identification at several fields, no wrong answer."""
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -456,6 +457,51 @@ def test_a_candidate_refused_at_refinement_leaves_the_probe_for_the_next():
     both_i, both_f = look_up([1] * 8)
     np.testing.assert_array_equal(both_i, alone_i)
     np.testing.assert_array_equal(both_f, alone_f)
+
+
+def test_an_index_files_sky_index_is_kept_in_the_cache(index, tmp_path, monkeypatch):
+    """_file_sky: an index opened from a file has its stars' sky index built once and kept in the cache; a later
+    process (a fresh screen state) reads it from there, the same arrays, without building one; a damaged copy is not
+    read (built and written again); an index held in memory has none (its screens build one after SKY_SCREEN_AFTER)."""
+    import startrack.patterns as patterns
+    import startrack.skyindex as skyindex
+    from startrack.formats.flatcopy import copy_path, read_copy
+
+    built, opened = index
+    monkeypatch.setenv("STARTRACK_CACHE", str(tmp_path))
+    want = skyindex.SkyIndex(np.array(opened.star_vec))
+    assert patterns._file_sky(built) is None
+    path = copy_path(opened.path, patterns._SKY_COPY)
+    assert not os.path.exists(path)
+    first = patterns._file_sky(opened)
+    assert os.path.exists(path)
+
+    def same(sky):
+        return np.array_equal(sky.cells, want.cells) and np.array_equal(sky.ra, want.ra)
+
+    assert same(first)
+    init = skyindex.SkyIndex.__init__
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("the sky index was built again")
+
+    monkeypatch.setattr(skyindex.SkyIndex, "__init__", no_build)
+    assert same(patterns._file_sky(opened))
+    # The screens read it from their first look (a process's first screen state).
+    monkeypatch.setattr(patterns, "_SKY_SCREEN", {})
+    cells, ra = patterns._screen_sky(opened, len(opened.star_id), 0.1)
+    assert np.array_equal(cells, want.cells) and np.array_equal(ra, want.ra)
+    # One byte of the copy changed: not read; built and written again.
+    data = bytearray(open(path, "rb").read())
+    data[len(data) // 2] ^= 0x5A
+    with open(path, "wb") as fh:
+        fh.write(data)
+    assert read_copy(path) is None
+    with pytest.raises(AssertionError, match="built again"):
+        patterns._file_sky(opened)
+    monkeypatch.setattr(skyindex.SkyIndex, "__init__", init)
+    assert same(patterns._file_sky(opened))
+    assert read_copy(path) is not None
 
 
 def test_combos_are_the_brightest_first_order():
