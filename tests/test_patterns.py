@@ -823,7 +823,8 @@ def test_a_wrong_wide_candidate_stuck_at_its_radius_is_not_verified_again(monkey
     padded match radius (26 px) holds 10 chance stars at a chance of coincidence under the wide screen's
     1e-2, and the lens fitted on them misfits them by more than that radius, round after round, on the same matches.
     A round that repeats the last one's matches at the same radius is not verified again (_WIDE_STUCK): two
-    verifications, where the rounds ran out after six (the rule off)."""
+    verifications, where the rounds ran out after six (the rule off).  Its screen, which hits fewer of the image's
+    brightest stars than chance would, now refuses it before any of them (_chance_hits)."""
     import os
 
     import startrack.patterns as patterns
@@ -860,6 +861,12 @@ def test_a_wrong_wide_candidate_stuck_at_its_radius_is_not_verified_again(monkey
         return patterns._verify_candidate(stars, xy, [0, 1, 2, 4], [rows[i] for i in (100453, 91262, 11767, 80331)],
                                           553.3589328282759, w, h, index, params, sigma, 1, f_lo, f_hi, opts)
 
+    # Its screen puts 2 of the 16 other screened stars on catalog stars, fewer than chance would (_chance_hits): it
+    # is refused before any verification.
+    assert candidate() is None
+    assert calls == []
+    # Past the screen (chance taken as no hit at all), the rounds:
+    monkeypatch.setattr(patterns, "_chance_hits", lambda *args: -1.0)
     assert candidate() is None
     assert calls == [10, 10]            # the padded radius's chance stars, twice: then stuck
     monkeypatch.setattr(patterns, "_WIDE_STUCK", -1.0)
@@ -882,3 +889,39 @@ def test_a_position_hints_star_mask_is_kept_for_the_next_frame(index):
     assert wider is not first and wider.sum() > first.sum()
     other = patterns._hint_rows(built, hint, 0.3)       # another index (the same stars): its own mask
     assert other is not first and np.array_equal(other, first)
+
+
+def test_chance_hits_is_what_wrong_candidates_hit():
+    """_chance_hits: the screen's hits of wrong candidates (random catalog rows for the pattern, on a catalog spread
+    evenly over the sky) average what it says, at a wide field's padded radius (2-7 chance hits) and a pinhole's
+    (well under one); right candidates hit far more.  The oracle is the kernel's own count."""
+    from startrack._kernels.verify import screen_in_cone
+    from startrack.patterns import _chance_hits
+
+    rng = np.random.default_rng(7)
+    star_vec = rng.normal(size=(20000, 3))
+    star_vec = np.ascontiguousarray(star_vec / np.linalg.norm(star_vec, axis=1)[:, None])
+    no_sky = (np.zeros(0, dtype=np.int64), np.zeros(0))
+    img = np.array([0, 1, 2, 3], dtype=np.int64)
+    for f, radius_px, n_rows in ((700.0, 25.0, 3000), (700.0, 12.0, 3000), (3000.0, 2.0, 15000)):
+        half_diag = math.atan(math.hypot(1024.0, 768.0) / 2.0 / f)
+        cos_fov = math.cos(half_diag + math.radians(0.5))
+        cone_radius = math.acos(cos_fov) + math.radians(1.0)
+        rows = np.empty(n_rows, dtype=np.int64)
+        got, want, right = [], [], []
+        for _ in range(150):
+            dcm = quaternion_to_dcm(random_quaternions(1, rng)[0])
+            front = np.flatnonzero(star_vec[:n_rows] @ dcm[2] > math.cos(half_diag * 0.8))
+            seen = rng.permutation(front)[:24]
+            b = star_vec[seen] @ dcm.T
+            b = np.ascontiguousarray(b / np.linalg.norm(b, axis=1)[:, None])
+            for is_right, cat in ((True, seen[:4]), (False, rng.choice(n_rows, 4, replace=False))):
+                hits, k, _ = screen_in_cone(b, 20, star_vec, n_rows, img, np.asarray(cat, dtype=np.int64), cos_fov,
+                                            radius_px / f, math.cos(cone_radius), rows, *no_sky)
+                if is_right:
+                    right.append(hits - _chance_hits(k, cone_radius, radius_px / f, 20, img))
+                else:
+                    got.append(hits)
+                    want.append(_chance_hits(k, cone_radius, radius_px / f, 20, img))
+        assert np.mean(got) == pytest.approx(np.mean(want), rel=0.15, abs=0.05), (f, radius_px)
+        assert min(right) > 5.0
