@@ -102,3 +102,55 @@ def test_without_a_writable_cache_the_file_is_read(db_file, monkeypatch):
     db = load_kvector(db_file)
     assert db.n_pairs > 0
     assert flatcopy.copy_path(db_file, KVECTOR_FORMAT) is None
+
+
+def test_a_pairs_subset_is_kept_beside_its_database(db_file):
+    """cached_subset: a subset of a file's database (the pyramid's first tier) is made once, kept in the cache and
+    read back by the next process (a fresh database object), the same arrays, sharing the database's stars; a subset
+    that is none is kept as none; a damaged copy is made again; a database held in memory only makes it every time."""
+    from startrack.kvector import cached_subset
+
+    calls = []
+
+    def make(db):
+        calls.append(db)
+        return db.pairs_subset(np.asarray(db.star_mag)[db.pair_i] + np.asarray(db.star_mag)[db.pair_j] < 5.0)
+
+    first = load_kvector(db_file)
+    made = cached_subset(first, "test|5.0", make)
+    assert len(calls) == 1 and 0 < made.n_pairs < first.n_pairs
+    again_db = load_kvector(db_file)
+    again = cached_subset(again_db, "test|5.0", make)
+    assert len(calls) == 1                  # read from the cache
+    _same(made, again)
+    assert again.star_vector is again_db.star_vector
+    # Another kind is another subset.
+    cached_subset(again_db, "test|other", make)
+    assert len(calls) == 2
+    # None is kept as none.
+    assert cached_subset(again_db, "test|none", lambda db: calls.append(db)) is None
+    assert cached_subset(again_db, "test|none", make) is None and len(calls) == 3
+    # A damaged copy (a neighbour index beyond the stars, the sha256 written to match) is made again.
+    copy = flatcopy.copy_path(db_file, f"{KVECTOR_FORMAT}|subset|test|5.0")
+    header, arrays = flatcopy.read_copy(copy)
+    arrays = {k: np.array(v) for k, v in arrays.items()}
+    arrays["neighbor_idx"][3] = first.n_stars + 5
+    os.remove(copy)
+    assert flatcopy.write_copy(copy, {k: v for k, v in header.items() if k not in ("arrays", "data_sha256")}, arrays)
+    remade = cached_subset(load_kvector(db_file), "test|5.0", make)
+    assert len(calls) == 4
+    _same(made, remade)
+    # A database in memory only (no file): made every time.
+    memory = dataclasses.replace(first, path="")
+    cached_subset(memory, "test|5.0", make)
+    cached_subset(memory, "test|5.0", make)
+    assert len(calls) == 6
+
+
+def test_a_copy_of_no_array_holds_its_header(tmp_path):
+    """A copy without arrays (a subset that is none) reads back its header: the header's text is written even when
+    no array's offset depends on it."""
+    path = str(tmp_path / "empty.bin")
+    assert flatcopy.write_copy(path, {"none": True}, {})
+    header, arrays = flatcopy.read_copy(path)
+    assert header["none"] is True and arrays == {}

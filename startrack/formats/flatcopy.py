@@ -46,7 +46,7 @@ def write_copy(path: str, header: dict, arrays: dict) -> bool:
         for _, a in items:
             digest.update(a.data)
             digest.update(b"\0" * _pad(a.nbytes))
-        head = dict(header, arrays=[], data_sha256=digest.hexdigest())
+        head = dict(header, arrays=None, data_sha256=digest.hexdigest())      # (None: the first pass writes the text)
         text = b""
         for _ in range(5):      # the offsets follow the header's length, which holds them: until they stay put
             offset = -(-(16 + len(text)) // _ALIGN) * _ALIGN

@@ -55,7 +55,7 @@ from startrack.identify.verify import (
     _sorted_mags,
     _Verdict,
 )
-from startrack.kvector import KVectorDatabase
+from startrack.kvector import KVectorDatabase, cached_subset
 from startrack.records import Match, ReasonCode
 
 
@@ -118,7 +118,10 @@ def _pattern_tier(db, camera):
         cache = d["_pattern_dbs"] = {}
     made = key not in cache
     if made:
-        cache[key] = _pattern_database(db, math.radians(min(camera.fov_deg)) / 2.0)
+        r = math.radians(min(camera.fov_deg)) / 2.0
+        # (kept in the cache for the next process: the same tier of the same file and radius)
+        cache[key] = cached_subset(db, f"pattern-tier|{r!r}|{PATTERN_STARS}|{PATTERN_PAIRS_MAX!r}",
+                                   lambda d: _pattern_database(d, r))
     first = cache[key]
     d["_pattern_last"] = (camera, first)
     return first, made
