@@ -119,8 +119,9 @@ def _pattern_tier(db, camera):
     made = key not in cache
     if made:
         r = math.radians(min(camera.fov_deg)) / 2.0
-        # (kept in the cache for the next process: the same tier of the same file and radius)
-        cache[key] = cached_subset(db, f"pattern-tier|{r!r}|{PATTERN_STARS}|{PATTERN_PAIRS_MAX!r}",
+        # (kept in the cache for the next process: the same tier of the same file and radius; "/1": this way of
+        # making it, _pattern_database's)
+        cache[key] = cached_subset(db, f"pattern-tier/1|{r!r}|{PATTERN_STARS}|{PATTERN_PAIRS_MAX!r}",
                                    lambda d: _pattern_database(d, r))
     first = cache[key]
     d["_pattern_last"] = (camera, first)
