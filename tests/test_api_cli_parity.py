@@ -45,7 +45,7 @@ def test_solver_and_cli_give_the_same_answer(which, rendered, esa_db, solve_cach
     import startrack.patterns as patterns
 
     file_sky = patterns._file_sky
-    monkeypatch.setattr(patterns, "_file_sky", lambda index: None)
+    monkeypatch.setattr(patterns, "_file_sky", lambda _index: None)
     monkeypatch.setattr(patterns, "SKY_SCREEN_AFTER", float("inf"))
     monkeypatch.setattr(patterns, "_SKY_SCREEN", {})
     result = startrack.Solver().solve(image)

@@ -482,7 +482,7 @@ def test_an_index_files_sky_index_is_kept_in_the_cache(index, tmp_path, monkeypa
     assert same(first)
     init = skyindex.SkyIndex.__init__
 
-    def no_build(*args, **kwargs):
+    def no_build(*_args, **_kwargs):
         raise AssertionError("the sky index was built again")
 
     monkeypatch.setattr(skyindex.SkyIndex, "__init__", no_build)
@@ -866,7 +866,7 @@ def test_a_wrong_wide_candidate_stuck_at_its_radius_is_not_verified_again(monkey
     assert candidate() is None
     assert calls == []
     # Past the screen (chance taken as no hit at all), the rounds:
-    monkeypatch.setattr(patterns, "_chance_hits", lambda *args: -1.0)
+    monkeypatch.setattr(patterns, "_chance_hits", lambda *_: -1.0)
     assert candidate() is None
     assert calls == [10, 10]            # the padded radius's chance stars, twice: then stuck
     monkeypatch.setattr(patterns, "_WIDE_STUCK", -1.0)
