@@ -773,7 +773,7 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     hits, k, axis = screen_in_cone(b, n_screen, index.star_vec, n_rows, np.asarray(img, dtype=np.int64),
                                    np.asarray(cat_rows, dtype=np.int64), cos_fov, r_px / f, math.cos(cone_radius),
                                    cone_rows, *_screen_sky(index, n_rows, cone_radius))
-    if hits < min(2, n_screen - 4):
+    if hits < min(2, n_screen - 4) or hits <= _chance_hits(k, cone_radius, r_px / f, n_screen, img):
         return None
     cone = _CatalogCone(cone_rows[:k], star_vec, star_id, axis, cone_radius)
     cam = Camera(width, height, float(f), cx, cy)
@@ -837,6 +837,26 @@ def _verify_candidate(stars, xy, img, cat_rows, f, width, height, index, params,
     if not decided:
         return None         # a wide field whose fitted camera never passed the limit at the strict radius
     return verified_cam, matches, dcm, p_false      # the camera its matches were verified with
+
+
+def _chance_hits(n_cone: int, cone_radius: float, radius: float, n_screen: int, img) -> float:
+    """How many of a screen's stars (:func:`startrack._kernels.verify.screen_in_cone`: the first ``n_screen`` image
+    stars other than the pattern's ``img``) would land within ``radius`` (rad) of a catalog star by chance: each
+    with probability ``1 - exp(-rho a)``, ``a`` the solid angle of the radius and ``rho`` the density of the
+    ``n_cone`` catalog stars of the cone of ``cone_radius`` around the candidate's boresight (a Poisson field of the
+    cone's own density).
+
+    A candidate whose screen hits no more stars than that placed the image's brightest stars on catalog stars no
+    more often than random positions would: no evidence for it, and :func:`_verify_candidate` refuses it before
+    verifying.  This decides only where the radius is wide: a wide field's first radius is padded for its unknown
+    distortion (up to ~2.7 deg at 90 deg), where a wrong candidate's chance hits number 2-7 of 16 and its
+    verification and fits took 0.1-1.5 ms; a pinhole's radius holds well under one chance hit, where the two hits
+    asked for already decide (measured on 55 frames of 6-92 deg: every right candidate had at least 2 hits more than
+    this; 174 of 326 wrong ones, 30 of their 63 ms, had no more)."""
+    omega = 2.0 * math.pi * (1.0 - math.cos(min(cone_radius, math.pi)))
+    area = 2.0 * math.pi * (1.0 - math.cos(radius))
+    p = -math.expm1(-n_cone * area / omega) if omega > 0 else 1.0
+    return (n_screen - sum(1 for i in img if i < n_screen)) * p
 
 
 def _verify_pinhole(xy, img, cat_rows, trials, b, cam, star_vec, star_id, eps, sigma, params, cone, f_lo, f_hi):
@@ -1091,15 +1111,21 @@ def _screen_sky(index: PatternIndex, n_rows: int, cone_radius: float) -> tuple:
     """The sky index (``cells``, ``ra``: :class:`startrack.skyindex.SkyIndex`) of ``index``'s stars for a screen of
     the first ``n_rows`` rows within ``cone_radius`` (rad) of a boresight
     (:func:`startrack._kernels.verify.screen_in_cone`), or :data:`_NO_SKY` (every row read): the sky index when the
-    cone holds under a tenth of the prefix's stars on average, once this process's screens have read
-    :data:`SKY_SCREEN_AFTER` times the index's stars one by one (a solve or two never pays for the build; a
-    session of many does, once)."""
+    cone holds under a tenth of the prefix's stars on average.  An index opened from a file has it from the cache
+    (:func:`_file_sky`: ~0.5 ms a process to map and check, where a screen without it read 20,000-50,000 rows, 0.1-0.4
+    ms on the ESA images); another one once this process's screens have read :data:`SKY_SCREEN_AFTER` times the
+    index's stars one by one (a solve or two never pays for the build; a session of many does, once)."""
     m = len(index.star_id)
     state = _SKY_SCREEN.get(id(index))
     if state is None or state[0] is not index:
         if len(_SKY_SCREEN) > 4:
             _SKY_SCREEN.clear()
         state = _SKY_SCREEN[id(index)] = [index, 0, None, None]
+        # An index file's sky index is kept in the cache: read from there, or built at once and kept (once on a
+        # machine, ~10 ms, as the index itself once).
+        sky = _file_sky(index)
+        if sky is not None:
+            state[2], state[3] = sky.cells, sky.ra
     if m * (1.0 - math.cos(min(cone_radius, math.pi))) / 2.0 >= n_rows / 10.0:
         state[1] += n_rows
         return _NO_SKY
@@ -1112,6 +1138,35 @@ def _screen_sky(index: PatternIndex, n_rows: int, cone_radius: float) -> tuple:
         sky = SkyIndex(np.array(index.star_vec))      # (a writable copy: the sky index kernel's one compiled type)
         state[2], state[3] = sky.cells, sky.ra
     return state[2], state[3]
+
+
+#: The kind of the cache's copy of a pattern index file's sky index (:func:`_file_sky`).
+_SKY_COPY = "startrack.patterns.sky/1"
+
+
+def _file_sky(index: PatternIndex):
+    """The :class:`startrack.skyindex.SkyIndex` of the stars of ``index`` when it was opened from a file: its copy in
+    the cache (:mod:`startrack.formats.flatcopy`, named by the file's path, inode, size and modification time, and
+    checked against its sha256 when new), else built now and written there.  None for an index held in memory only,
+    and when the cache cannot hold the copy (the screens then build it when they have read as many rows,
+    :data:`SKY_SCREEN_AFTER`)."""
+    from startrack.errors import ParameterError
+    from startrack.formats.flatcopy import copy_path, read_copy, write_copy
+    from startrack.skyindex import SkyIndex
+
+    if index.path is None:
+        return None
+    path = copy_path(index.path, _SKY_COPY)
+    if path is None:
+        return None
+    got = read_copy(path)
+    if got is not None:
+        try:
+            return SkyIndex.from_arrays(index.star_vec, got[1]["cells"], got[1]["ra"])
+        except (KeyError, ParameterError):
+            pass            # (a copy of another index's stars: made again below)
+    sky = SkyIndex(np.array(index.star_vec))      # (a writable copy: the sky index kernel's one compiled type)
+    return sky if write_copy(path, {"stars": len(index.star_id)}, {"cells": sky.cells, "ra": sky.ra}) else None
 
 
 #: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room
