@@ -1160,6 +1160,8 @@ def _file_sky(index: PatternIndex):
     if path is None:
         return None
     got = read_copy(path)
+    if got is None and not os.access(os.path.dirname(path), os.W_OK):
+        return None         # (a cache that cannot take the copy: not built here for nothing, every process again)
     if got is not None:
         try:
             return SkyIndex.from_arrays(index.star_vec, got[1]["cells"], got[1]["ra"])

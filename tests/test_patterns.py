@@ -502,6 +502,11 @@ def test_an_index_files_sky_index_is_kept_in_the_cache(index, tmp_path, monkeypa
     monkeypatch.setattr(skyindex.SkyIndex, "__init__", init)
     assert same(patterns._file_sky(opened))
     assert read_copy(path) is not None
+    # A cache that cannot take a copy: none is built (each process would build it again for nothing).
+    os.remove(path)
+    monkeypatch.setattr(skyindex.SkyIndex, "__init__", no_build)
+    monkeypatch.setattr(os, "access", lambda *_: False)
+    assert patterns._file_sky(opened) is None
 
 
 def test_combos_are_the_brightest_first_order():
