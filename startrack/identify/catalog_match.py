@@ -27,7 +27,7 @@ class CatalogStars:
     motion: np.ndarray | None = None
     #: Parallaxes (mas; 0: none), or None: the apparent places' parallax (:func:`match_catalog`'s ``apparent``).
     plx: np.ndarray | None = None
-    _id_order: tuple | None = None        # _id_lookup(id)
+    _id_order: tuple | None = None        # startrack.catalog.id_table(id)
     _mag64: np.ndarray | None = None
     _mag_order: tuple | None = None
     _bright: dict | None = None
@@ -62,20 +62,12 @@ class CatalogStars:
     def _rows(self, ids):
         """``(rows, found)``: the row of each of ``ids`` (its first, for an id the catalog repeats; a row in range
         but meaningless where not found) and whether the catalog has it."""
-        order = self._id_order
-        if order is None:
-            order = self._id_order = _id_lookup(self.id)
-        if order[0] == "dense":
-            want = np.asarray(ids, dtype=np.int64)
-            table = order[1]
-            inside = (want >= 0) & (want < len(table))
-            rows = table[np.where(inside, want, 0)]
-            found = inside & (rows >= 0)
-            return np.maximum(rows, 0).astype(np.int64), found
-        order = order[1]
-        ids = np.asarray(ids, dtype=self.id.dtype)
-        rows = order[np.minimum(np.searchsorted(self.id, ids, sorter=order), len(order) - 1)]
-        return rows, self.id[rows] == ids
+        from startrack.catalog import id_table, rows_in
+
+        if self._id_order is None:
+            self._id_order = id_table(self.id)
+        rows = rows_in(self._id_order, ids, first=True)
+        return np.maximum(rows, 0), rows >= 0
 
     def parallax_of(self, ids) -> np.ndarray | None:
         """The parallaxes (mas) of catalog ids ``ids``, 0 for an id the catalog lacks; None without parallaxes."""
@@ -209,19 +201,6 @@ class CatalogStarsAt(CatalogStars):
         take = rows[found]
         out[found] += self._vectors_at(take, self.epoch) - self._vectors_at(take, self._since)
         return out / np.linalg.norm(out, axis=1, keepdims=True)
-
-
-def _id_lookup(ids: np.ndarray) -> tuple:
-    """:meth:`CatalogStars._rows`' table of catalog ids ``ids``: ``("dense", row by id, -1 where none)`` when they are
-    distinct non-negative integers below ``max(1024, 4 n)`` (Hipparcos numbers: built in ~1 ms, where the shipped
-    catalog's argsort takes ~8), else ``("sorted", their stable argsort)``."""
-    n = len(ids)
-    if n and ids.dtype.kind in "iu" and int(ids.min()) >= 0 and int(ids.max()) < max(1024, 4 * n):
-        table = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
-        table[ids[::-1]] = np.arange(n - 1, -1, -1)         # (a repeated id's first row written last)
-        if np.count_nonzero(table >= 0) == n:
-            return ("dense", table)
-    return ("sorted", np.argsort(ids, kind="stable"))
 
 
 def match_catalog(matches: list, ref: np.ndarray, dcm: np.ndarray, b_all: np.ndarray, radius: np.ndarray, camera,
