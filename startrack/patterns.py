@@ -1147,9 +1147,9 @@ _SKY_COPY = "startrack.patterns.sky/1"
 def _file_sky(index: PatternIndex):
     """The :class:`startrack.skyindex.SkyIndex` of the stars of ``index`` when it was opened from a file: its copy in
     the cache (:mod:`startrack.formats.flatcopy`, named by the file's path, inode, size and modification time, and
-    checked against its sha256 when new), else built now and written there.  None for an index held in memory only,
-    and when the cache cannot hold the copy (the screens then build it when they have read as many rows,
-    :data:`SKY_SCREEN_AFTER`)."""
+    checked against its sha256 when new), else built now and written there (and used, written or not).  None for an
+    index held in memory only, and when the cache directory cannot be written (the screens then build it when they
+    have read as many rows, :data:`SKY_SCREEN_AFTER`)."""
     from startrack.errors import ParameterError
     from startrack.formats.flatcopy import copy_path, read_copy, write_copy
     from startrack.skyindex import SkyIndex
@@ -1168,7 +1168,8 @@ def _file_sky(index: PatternIndex):
         except (KeyError, ParameterError):
             pass            # (a copy of another index's stars: made again below)
     sky = SkyIndex(np.array(index.star_vec))      # (a writable copy: the sky index kernel's one compiled type)
-    return sky if write_copy(path, {"stars": len(index.star_id)}, {"cells": sky.cells, "ra": sky.ra}) else None
+    write_copy(path, {"stars": len(index.star_id)}, {"cells": sky.cells, "ra": sky.ra})   # (built: used either way)
+    return sky
 
 
 #: How far (rad) beyond a candidate's field the catalog rows its verification reads are kept (_CatalogCone): room
